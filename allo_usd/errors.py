@@ -21,5 +21,17 @@ class AssetError(AlloError, FileNotFoundError):
     """An asset file is missing or cannot be converted."""
 
 
+class ImportOptionError(AlloError, ValueError):
+    """An argument to the mesh importer (units, up axis, rotation, texture size) is invalid."""
+
+
 class PlacementError(AlloError, RuntimeError):
     """An anomaly or camera could not be placed within the attempt budget."""
+
+
+class EpochError(AlloError, ValueError):
+    """An epoch is not a timezone-aware datetime (naive, NaN, wrong type) or cannot be parsed."""
+
+
+class SkyInputError(AlloError, ValueError):
+    """A number fed to the sky/orbit/eclipse geometry is non-finite or out of its valid domain."""

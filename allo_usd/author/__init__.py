@@ -1,0 +1,1 @@
+"""USD authoring (pxr only): assets, the base stage and per-scene layers."""

@@ -1,0 +1,1 @@
+"""SceneDescription -> Blender scene -> Cycles arrays. Uses bpy only; never imports pxr."""

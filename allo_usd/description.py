@@ -1,0 +1,100 @@
+"""The plain scene description that crosses from `read` (pxr) to `blender` (bpy).
+
+Frozen dataclasses of numbers, strings and numpy arrays: nothing here imports pxr or bpy, so
+it can cross a process boundary (pickle) and be compared for incremental scene updates.
+Matrices are 4x4 float64, column-vector convention (p' = M @ [p, 1]).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+BACKGROUND, STATION, ANOMALY = 0, 1, 2  # mask classes; celestial bodies share STATION's label
+
+
+@dataclass(frozen=True, eq=False)
+class MeshDesc:
+    path: str
+    points: np.ndarray          # (N, 3) float32, local
+    face_counts: np.ndarray     # (F,) int32
+    face_indices: np.ndarray    # (sum,) int32
+    uv: np.ndarray | None       # (len(face_indices), 2) float32, face-varying
+    smooth: bool
+    material: str               # key into SceneDescription.materials
+    matrix: np.ndarray          # local-to-world
+    class_id: int
+    camera_only: bool = False   # seen by camera rays only (the Sun's disc)
+
+
+@dataclass(frozen=True)
+class MaterialDesc:
+    path: str
+    base_color: tuple[float, float, float]
+    metallic: float
+    roughness: float
+    base_color_texture: str | None = None      # absolute, resolved file path
+    emissive_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraDesc:
+    matrix: np.ndarray
+    focal_length_mm: float
+    sensor_width_mm: float
+    sensor_height_mm: float
+    clip: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class SunDesc:
+    direction: tuple[float, float, float]  # unit, towards the Sun
+    irradiance: float                      # W/m^2 (0 in umbra)
+    angle_deg: float
+    color: tuple[float, float, float]
+
+
+@dataclass(frozen=True, eq=False)
+class SpotDesc:
+    matrix: np.ndarray
+    radius: float
+    intensity: float                       # surface radiance, UsdLux units
+    color: tuple[float, float, float]
+    cone_angle_deg: float                  # half angle
+    softness: float
+
+
+@dataclass(frozen=True)
+class RenderDesc:
+    resolution: tuple[int, int]
+    preset: str
+    samples: int
+    adaptive_threshold: float
+    denoise: bool
+    max_bounces: int
+    seed: int
+    exposure: float
+    threads: int
+    outputs: tuple[str, ...]               # RenderVar source names ordered by the product
+
+
+@dataclass(frozen=True)
+class EffectsDesc:
+    sensor_noise: bool
+    glare: bool
+    inspection_light: bool
+    body_shine: bool
+
+
+@dataclass(frozen=True, eq=False)
+class SceneDescription:
+    layer: str
+    meshes: tuple[MeshDesc, ...]
+    materials: dict[str, MaterialDesc]
+    camera: CameraDesc
+    sun: SunDesc | None
+    spot: SpotDesc | None
+    render: RenderDesc
+    effects: EffectsDesc
+    meta: dict = field(default_factory=dict)  # scene identity and provenance (epoch, pose, seed, ...)

@@ -1,0 +1,278 @@
+"""Composed USD stage -> SceneDescription. Uses pxr only; never imports bpy.
+
+One reader function per prim type (mesh, material, camera, lights, render settings); the
+stage is the scene, this module is a one-way translation of it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from . import schema
+from .description import (ANOMALY, BACKGROUND, STATION, CameraDesc, EffectsDesc, MaterialDesc, MeshDesc,
+                          RenderDesc, SceneDescription, SpotDesc, SunDesc)
+from .errors import LayerError
+
+CLASS_IDS = {"station": STATION, "celestial_body": STATION, "anomaly": ANOMALY}
+
+
+def open_stage(layer_path: str | Path):
+    """Open a scene layer as a stage, turning every USD failure into a LayerError with a fix."""
+    from pxr import Tf, Usd, UsdGeom
+
+    schema.register()
+    path = Path(layer_path)
+    if not path.is_file():
+        raise LayerError(f"scene layer {path} does not exist; check the path")
+    try:
+        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+    except Tf.ErrorException as exc:
+        raise LayerError(f"{path} is not a readable USD layer ({str(exc).strip().splitlines()[-1]}); "
+                         "re-author it with `allo-usd author` or restore it from the plan") from None
+    if stage is None:
+        raise LayerError(f"{path} could not be opened as a USD stage; re-author it")
+    if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.z or UsdGeom.GetStageMetersPerUnit(stage) != 1.0:
+        raise LayerError(f"{path}: stage must be Z-up in metres (upAxis='Z', metersPerUnit=1)")
+    return stage
+
+
+def _matrix(cache, prim) -> np.ndarray:
+    m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64).T  # USD is row-vector
+    if not np.isfinite(m).all():
+        raise LayerError(f"{prim.GetPath()} has a non-finite transform; fix the layer that sets it")
+    return m
+
+
+def _class_id(prim) -> int:
+    from pxr import UsdSemantics
+
+    p = prim
+    while p and not p.IsPseudoRoot():
+        if p.HasAPI(UsdSemantics.LabelsAPI, "class"):
+            labels = UsdSemantics.LabelsAPI(p, "class").GetLabelsAttr().Get() or []
+            for label in labels:
+                if label in CLASS_IDS:
+                    return CLASS_IDS[label]
+        p = p.GetParent()
+    return BACKGROUND
+
+
+def _camera_only(prim) -> bool:
+    p = prim
+    while p and not p.IsPseudoRoot():
+        attr = p.GetAttribute("allo:rayVisibility")
+        if attr and attr.HasAuthoredValue():
+            return attr.Get() == "cameraOnly"
+        p = p.GetParent()
+    return False
+
+
+def _input(shader, name, default):
+    inp = shader.GetInput(name)
+    if not inp:
+        return default, None
+    src = inp.GetConnectedSource()
+    if src and src[0]:
+        return default, src
+    value = inp.Get()
+    return (default if value is None else value), None
+
+
+def read_material(material) -> MaterialDesc:
+    from pxr import UsdShade
+
+    path = str(material.GetPath())
+    surface = material.ComputeSurfaceSource()[0]
+    if not surface or surface.GetIdAttr().Get() != "UsdPreviewSurface":
+        raise LayerError(f"material {path} has no UsdPreviewSurface; allo-usd renders UsdPreviewSurface only")
+    color, src = _input(surface, "diffuseColor", (0.18, 0.18, 0.18))
+    texture = None
+    if src is not None:
+        tex = UsdShade.Shader(src[0].GetPrim())
+        asset = tex.GetInput("file").Get()
+        texture = asset.resolvedPath if asset else None
+        if not texture:
+            raise LayerError(f"material {path}: texture {asset} does not resolve to a file; restore the "
+                             "asset's textures/ folder")
+        scale = tex.GetInput("scale").Get() if tex.GetInput("scale") else None
+        color = tuple(scale)[:3] if scale is not None else (1.0, 1.0, 1.0)
+    metallic, _ = _input(surface, "metallic", 0.0)
+    roughness, _ = _input(surface, "roughness", 0.5)
+    emissive, _ = _input(surface, "emissiveColor", (0.0, 0.0, 0.0))
+    return MaterialDesc(path, tuple(float(c) for c in color), float(metallic), float(roughness), texture,
+                        tuple(float(c) for c in emissive))
+
+
+def read_mesh(prim, cache, materials: dict) -> MeshDesc:
+    from pxr import UsdGeom, UsdShade
+
+    mesh = UsdGeom.Mesh(prim)
+    path = str(prim.GetPath())
+    points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float32)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(), dtype=np.int32)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int32)
+    if points.ndim != 2 or len(points) == 0 or len(counts) == 0:
+        raise LayerError(f"mesh {path} has no points or faces; regenerate its asset")
+    if not np.isfinite(points).all():
+        raise LayerError(f"mesh {path} has NaN or infinite points; regenerate its asset")
+    if counts.sum() != len(indices) or indices.min() < 0 or indices.max() >= len(points):
+        raise LayerError(f"mesh {path} has inconsistent face indices; regenerate its asset")
+    uv = None
+    st = UsdGeom.PrimvarsAPI(prim).GetPrimvar("st")
+    if st and st.HasValue():
+        if st.GetInterpolation() != UsdGeom.Tokens.faceVarying:
+            raise LayerError(f"mesh {path}: primvars:st must be faceVarying")
+        uv = np.asarray(st.ComputeFlattened(), dtype=np.float32)
+    smooth = bool(mesh.GetNormalsAttr().HasAuthoredValue()) and mesh.GetNormalsInterpolation() != UsdGeom.Tokens.faceVarying
+    bound = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+    if bound:
+        key = str(bound.GetPath())
+        if key not in materials:
+            materials[key] = read_material(bound)
+    else:
+        key = "__default__"
+        materials.setdefault(key, MaterialDesc(key, (0.5, 0.5, 0.5), 0.0, 0.5))
+    return MeshDesc(path, points, counts, indices, uv, smooth, key, _matrix(cache, prim), _class_id(prim),
+                    _camera_only(prim))
+
+
+def read_camera(prim, cache) -> CameraDesc:
+    from pxr import UsdGeom
+
+    cam = UsdGeom.Camera(prim)
+    # Lens values are tenths of a scene unit; with metersPerUnit = 1 that is 100 mm per unit.
+    to_mm = 100.0
+    clip = cam.GetClippingRangeAttr().Get()
+    values = [cam.GetFocalLengthAttr().Get(), cam.GetHorizontalApertureAttr().Get(),
+              cam.GetVerticalApertureAttr().Get()]
+    if not all(v is not None and np.isfinite(v) and v > 0 for v in values):
+        raise LayerError(f"camera {prim.GetPath()} needs positive focalLength and apertures, got {values}")
+    return CameraDesc(_matrix(cache, prim), values[0] * to_mm, values[1] * to_mm, values[2] * to_mm,
+                      (float(clip[0]), float(clip[1])))
+
+
+def read_sun(prim, cache) -> SunDesc | None:
+    from pxr import UsdLux
+
+    light = UsdLux.DistantLight(prim)
+    intensity = float(light.GetIntensityAttr().Get()) * 2.0 ** float(light.GetExposureAttr().Get() or 0.0)
+    if not np.isfinite(intensity) or intensity < 0:
+        raise LayerError(f"{prim.GetPath()}: sun intensity must be finite and >= 0, got {intensity}")
+    if intensity == 0.0:
+        return None  # umbra: the sun lamp is off
+    m = _matrix(cache, prim)
+    direction = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z, so +Z points at the Sun
+    return SunDesc(tuple(direction), intensity, float(light.GetAngleAttr().Get()),
+                   tuple(float(c) for c in light.GetColorAttr().Get()))
+
+
+def read_spot(prim, cache) -> SpotDesc:
+    from pxr import UsdLux
+
+    light = UsdLux.SphereLight(prim)
+    shaping = UsdLux.ShapingAPI(prim)
+    cone = shaping.GetShapingConeAngleAttr().Get() if prim.HasAPI(UsdLux.ShapingAPI) else 180.0
+    softness = shaping.GetShapingConeSoftnessAttr().Get() if prim.HasAPI(UsdLux.ShapingAPI) else 0.0
+    intensity = float(light.GetIntensityAttr().Get()) * 2.0 ** float(light.GetExposureAttr().Get() or 0.0)
+    return SpotDesc(_matrix(cache, prim), float(light.GetRadiusAttr().Get()), intensity,
+                    tuple(float(c) for c in light.GetColorAttr().Get()), float(cone), float(softness or 0.0))
+
+
+def _get(prim, name, default=None):
+    attr = prim.GetAttribute(name)
+    value = attr.Get() if attr else None
+    return default if value is None else value
+
+
+def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
+    from pxr import UsdRender
+
+    settings = UsdRender.Settings(settings_prim)
+    res = settings.GetResolutionAttr().Get()
+    w, h = int(res[0]), int(res[1])
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise LayerError(f"render resolution {w}x{h} is outside 1..16384 per side; fix {settings_prim.GetPath()}")
+    samples = int(_get(settings_prim, "allo:render:samples", 64))
+    if not 1 <= samples <= 65536:
+        raise LayerError(f"allo:render:samples={samples} is outside 1..65536")
+    outputs = []
+    for product_path in settings.GetProductsRel().GetForwardedTargets():
+        product = UsdRender.Product(settings_prim.GetStage().GetPrimAtPath(product_path))
+        for var_path in product.GetOrderedVarsRel().GetForwardedTargets():
+            var = UsdRender.Var(settings_prim.GetStage().GetPrimAtPath(var_path))
+            outputs.append(str(var.GetSourceNameAttr().Get()))
+    exposure = float(_get(settings_prim, "allo:render:exposure", 1.0))
+    if not (np.isfinite(exposure) and exposure > 0):
+        raise LayerError(f"allo:render:exposure must be a positive number, got {exposure}")
+    render = RenderDesc((w, h), str(_get(settings_prim, "allo:render:preset", "preview")), samples,
+                        float(_get(settings_prim, "allo:render:adaptiveThreshold", 0.0)),
+                        bool(_get(settings_prim, "allo:render:denoise", True)),
+                        int(_get(settings_prim, "allo:render:maxBounces", 8)),
+                        int(_get(settings_prim, "allo:render:seed", 0)), exposure,
+                        int(_get(settings_prim, "allo:render:threads", 0)), tuple(outputs))
+    effects = EffectsDesc(bool(_get(settings_prim, "allo:effects:sensorNoise", False)),
+                          bool(_get(settings_prim, "allo:effects:glare", False)),
+                          bool(_get(settings_prim, "allo:effects:inspectionLight", True)),
+                          bool(_get(settings_prim, "allo:effects:bodyShine", True)))
+    return render, effects
+
+
+def read_meta(stage) -> dict:
+    world = stage.GetDefaultPrim()
+    meta = {}
+    for attr in world.GetAttributes():
+        name = attr.GetName()
+        if name.startswith("allo:"):
+            value = attr.Get()
+            meta[name[5:]] = tuple(value) if hasattr(value, "__len__") and not isinstance(value, str) else value
+    provenance = dict(stage.GetRootLayer().customLayerData.get("allo", {}))
+    meta["provenance"] = provenance
+    anomaly = stage.GetPrimAtPath("/World/Anomaly")
+    if anomaly and anomaly.IsActive():
+        meta["anomaly"] = {a.GetName().split(":")[-1]: a.Get() for a in anomaly.GetAttributes()
+                           if a.GetName().startswith("allo:anomaly:")}
+    return meta
+
+
+def read_scene(layer_path: str | Path) -> SceneDescription:
+    """Read a scene layer (composed over its base stage) into a plain description."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    stage = open_stage(layer_path)
+    settings_path = stage.GetMetadata("renderSettingsPrimPath") or "/Render/Settings"
+    settings_prim = stage.GetPrimAtPath(settings_path)
+    if not settings_prim:
+        raise LayerError(f"{layer_path}: no render settings at {settings_path}; the base stage sublayer is "
+                         "missing or broken (check subLayers)")
+    render, effects = read_render(settings_prim)
+    from pxr import UsdRender
+    cam_targets = UsdRender.Settings(settings_prim).GetCameraRel().GetForwardedTargets()
+    if not cam_targets or not stage.GetPrimAtPath(cam_targets[0]).IsA(UsdGeom.Camera):
+        raise LayerError(f"{layer_path}: render settings name no camera; set {settings_path}.camera")
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    camera = read_camera(stage.GetPrimAtPath(cam_targets[0]), cache)
+
+    meshes, materials, sun, spot = [], {}, None, None
+    it = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.PrimIsActive & Usd.PrimIsDefined & ~Usd.PrimIsAbstract))
+    for prim in it:
+        if prim.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
+            it.PruneChildren()
+            continue
+        if prim.GetPath().HasPrefix("/World/Rig") or prim.GetPath().HasPrefix("/Render"):
+            it.PruneChildren()
+            continue
+        if prim.IsA(UsdGeom.Mesh):
+            meshes.append(read_mesh(prim, cache, materials))
+        elif prim.IsA(UsdLux.DistantLight):
+            sun = read_sun(prim, cache)
+        elif prim.IsA(UsdLux.SphereLight):
+            spot = read_spot(prim, cache)
+    if not meshes:
+        raise LayerError(f"{layer_path}: the composed stage has no meshes; the base stage or its station "
+                         "payload did not load (check subLayers and stages/)")
+    if not effects.inspection_light:
+        spot = None
+    return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, sun, spot,
+                            render, effects, read_meta(stage))

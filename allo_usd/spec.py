@@ -1,0 +1,94 @@
+"""A scene spec: every value one scene layer records, fully resolved (nothing random left).
+
+Planning code (sky, rig, placement) fills it; `author.scene.write_scene_layer` writes it.
+Plain dataclasses so it can be built and tested without pxr.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SunSpec:
+    direction: tuple[float, float, float]   # unit vector station -> Sun, station frame
+    irradiance: float                        # W/m^2 at the station, times lit fraction
+    irradiance_unoccluded: float
+    angular_diameter_deg: float
+    distance_m: float
+    lit_fraction: float = 1.0
+    eclipse_state: str = "lit"
+    eclipse_body: str = "none"
+
+
+@dataclass(frozen=True)
+class BodySpec:
+    position: tuple[float, float, float]    # metres, station frame (true scale, scheme C)
+    radius: float
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    position: tuple[float, float, float]
+    rotation: np.ndarray                     # (3, 3) camera-to-station
+    offset_position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    offset_rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    perturbation: str = "euler-zyx"
+    attempts: int = 1
+
+
+@dataclass(frozen=True)
+class AnomalySpec:
+    asset: str
+    variant: str
+    position: tuple[float, float, float]
+    rotation: np.ndarray                     # (3, 3) asset-to-station
+    depth_index: int = 0
+    depth_offset: float = 0.0
+    attempts: int = 1
+    predicted_area_fraction: float = 0.0
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    resolution: tuple[int, int] = (1920, 1080)
+    preset: str = "preview"
+    samples: int = 64
+    adaptive_threshold: float = 0.0
+    denoise: bool = True
+    max_bounces: int = 8
+    seed: int = 0
+    exposure: float = 1.0
+    threads: int = 0
+
+
+@dataclass(frozen=True)
+class EffectsSpec:
+    sensor_noise: bool = False
+    glare: bool = False
+    inspection_light: bool = True
+    body_shine: bool = True
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    scene_id: str
+    epoch: str
+    perilune_epoch: str
+    day: int
+    pose: int
+    split: str
+    seed: int
+    seed_path: str
+    camera: CameraSpec
+    sun: SunSpec
+    bodies: dict[str, BodySpec]
+    render: RenderSpec = field(default_factory=RenderSpec)
+    effects: EffectsSpec = field(default_factory=EffectsSpec)
+    anomaly: AnomalySpec | None = None
+
+    @property
+    def variant(self) -> str:
+        return "normal" if self.anomaly is None else "anomaly"
