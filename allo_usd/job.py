@@ -1,0 +1,59 @@
+"""One render job: a scene layer in, its files out (PNG, EXR, mask, metadata).
+
+The unit of work for local pools and Dask alike. Outputs are written atomically and the
+metadata JSON goes last, so its presence marks a finished scene and re-runs skip it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .write import write_json, write_mask_png, write_rgb_exr, write_rgb_png
+
+
+def output_paths(layer: Path, out_dir: Path) -> dict[str, Path]:
+    stem = Path(layer).stem
+    out_dir = Path(out_dir)
+    return {"rgb": out_dir / f"{stem}.png", "exr": out_dir / f"{stem}.exr",
+            "mask": out_dir / f"{stem}_mask.png", "meta": out_dir / f"{stem}.json"}
+
+
+def is_done(layer: Path, out_dir: Path) -> bool:
+    paths = output_paths(layer, out_dir)
+    return all(p.is_file() for p in paths.values())
+
+
+def render_layer(layer: Path, out_dir: Path, force: bool = False) -> dict:
+    """Render one layer into out_dir; returns its metadata (also written as JSON)."""
+    import json
+
+    from .blender.render import render_scene
+    from .read import read_scene
+
+    paths = output_paths(layer, out_dir)
+    if not force and is_done(layer, out_dir):
+        return json.loads(paths["meta"].read_text())
+    desc = read_scene(layer)
+    result = render_scene(desc)
+    write_rgb_png(paths["rgb"], result.rgb)
+    write_rgb_exr(paths["exr"], result.rgb)
+    write_mask_png(paths["mask"], result.mask)
+    counts = np.bincount(result.mask.ravel(), minlength=3)
+    meta = {
+        "layer": str(Path(layer).resolve()),
+        "layer_sha256": hashlib.sha256(Path(layer).read_bytes()).hexdigest(),
+        "package_version": __version__,
+        "render_seconds": round(result.seconds, 3),
+        "resolution": list(desc.render.resolution),
+        "class_pixels": {"background": int(counts[0]), "station_and_bodies": int(counts[1]),
+                         "anomaly": int(counts[2])},
+        "anomaly_fraction": float(counts[2] / result.mask.size),
+        "scene": desc.meta,
+        "files": {k: p.name for k, p in paths.items()},
+    }
+    write_json(paths["meta"], meta)
+    return meta

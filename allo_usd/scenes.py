@@ -1,0 +1,116 @@
+"""Resolve scenes: sky for a day + perturbed pose + (optional) placed anomaly -> SceneSpec.
+
+Everything random happens here, from an explicit numpy Generator seeded per scene, before
+anything is authored. Station and anomaly geometry for the checks is read from the base
+stage, so the checks see exactly what the renderer will see.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from .description import STATION
+from .errors import PlacementError
+from .placement import place
+from .read import read_rig, read_triangles
+from .rig import PERTURBATION, perturb
+from .spec import AnomalySpec, BodySpec, CameraSpec, EffectsSpec, RenderSpec, SceneSpec, SunSpec
+
+SOLAR_CONSTANT = 1361.0
+# Standard view transform, linear 1.0 = white: a white Lambertian surface facing a 1361 W/m^2 Sun
+# renders at 1361/pi, so this exposure puts it at 0.9 (near, but below, white).
+EXPOSURE = 0.9 * math.pi / SOLAR_CONSTANT
+
+
+def scene_seed(plan_seed: int, *keys) -> tuple[int, str]:
+    """A stable 63-bit seed for one scene from the plan seed and the scene's keys, and its path."""
+    path = "/".join(str(k) for k in (plan_seed, *keys))
+    return int.from_bytes(hashlib.sha256(path.encode()).digest()[:8], "little") >> 1, path
+
+
+@dataclass
+class World:
+    """What scene resolution needs from the base stage and the sky, loaded once."""
+
+    base_stage: Path
+    sky: object                 # allo_usd.sky.Sky
+    perilune_epoch: str
+    _anomaly_cache: dict = field(default_factory=dict)
+
+    @cached_property
+    def poses(self):
+        return {p.index: p for p in read_rig(self.base_stage)}
+
+    @cached_property
+    def station_parts(self):
+        from .raycast import Scene
+
+        pts, tris = read_triangles(self.base_stage, "/World/Station")
+        return [(pts, tris, STATION)]
+
+    @cached_property
+    def station_scene(self):
+        from .raycast import Scene
+
+        return Scene(self.station_parts)
+
+    def anomaly_geometry(self, asset: str, variant: str):
+        key = (asset, variant)
+        if key not in self._anomaly_cache:
+            path = self.base_stage.parent / "anomalies" / f"{asset}.usda"
+            self._anomaly_cache[key] = read_triangles(path, f"/{asset}", variant)
+        return self._anomaly_cache[key]
+
+
+def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
+    from .sky import body_placement, sun_light
+
+    at = sky.at(day)
+    light = sun_light(at)
+    sun = SunSpec(tuple(map(float, light["direction_to_sun"])), float(light["irradiance_w_m2"]),
+                  float(at.sun_irradiance_w_m2), math.degrees(float(light["angular_diameter_rad"])),
+                  float(at.distance_m["sun"]), float(light["lit_fraction"]), str(light["state"]),
+                  str(at.eclipse_body or "none"))
+    bodies = {name.capitalize(): BodySpec(tuple(map(float, pos)), float(radius))
+              for name, (pos, radius) in body_placement(at).items()}
+    return sun, bodies
+
+
+def resolve_scene(world: World, *, scene_id: str, day: int, pose: int, plan_seed: int,
+                  render: RenderSpec, effects: EffectsSpec = EffectsSpec(),
+                  anomaly: tuple[str, str] | None = None, depth_index: int = 0) -> SceneSpec:
+    """One fully resolved scene. With an anomaly, its five depths share the same draw, so depth k of
+    the same (day, pose, anomaly) differs only by the offset along the view ray."""
+    base = world.poses[pose]
+    key = (day, pose) if anomaly is None else (day, pose, *anomaly)
+    seed, seed_path = scene_seed(plan_seed, *key)
+    rng = np.random.default_rng(seed)
+    pos, rot, dpos, dang, attempts = perturb(base, rng, world.station_scene)
+    camera = CameraSpec(tuple(map(float, pos)), rot, tuple(map(float, dpos)), tuple(map(float, dang)),
+                        PERTURBATION, attempts)
+    sun, bodies = sun_and_bodies(world.sky, day)
+    anomaly_spec = None
+    if anomaly is not None:
+        pts, tris = world.anomaly_geometry(*anomaly)
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        placements = place(world.station_parts, pts - centre, tris, pos, rot, rng,
+                           render.resolution[0], render.resolution[1], check_width=min(480, render.resolution[0]))
+        chosen = placements[depth_index]
+        if chosen.position is None:
+            raise PlacementError(f"scene {scene_id}: depth {depth_index} ({chosen.depth_offset:+.0f} m) was "
+                                 f"skipped: {chosen.skipped_reason}")
+        # The asset's own origin is its bounding-box centre, so the placed centre is the prim position.
+        anomaly_spec = AnomalySpec(anomaly[0], anomaly[1], tuple(map(float, chosen.position - chosen.rotation @ centre)),
+                                   chosen.rotation, chosen.depth_index, chosen.depth_offset, chosen.attempts,
+                                   chosen.area_fraction)
+    epoch = world.sky.epochs[day]
+    split = base.split
+    render = RenderSpec(**{**render.__dict__, "seed": seed % (2 ** 31)})
+    return SceneSpec(scene_id, epoch, world.perilune_epoch, day, pose, split, seed, seed_path, camera, sun,
+                     bodies, render, effects, anomaly_spec)

@@ -1,0 +1,71 @@
+"""The reader turns a composed stage into plain data, with pxr only."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from allo_usd.author.scene import write_scene_layer
+from allo_usd.description import ANOMALY, STATION
+from allo_usd.errors import LayerError
+from allo_usd.read import read_scene
+
+from conftest import EXPOSURE, make_spec
+
+
+def test_reader_describes_the_scene(tiny_base, tmp_path):
+    spec = make_spec(anomaly=True)
+    desc = read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base))
+    by_path = {m.path: m for m in desc.meshes}
+    assert by_path["/World/Station/Geom/Truss"].class_id == STATION
+    assert by_path["/World/Sky/Moon/Geom/Surface"].class_id == STATION
+    assert by_path["/World/Anomaly/Geom/Body"].class_id == ANOMALY
+    assert by_path["/World/Sky/Sun/Geom/Surface"].camera_only
+    np.testing.assert_allclose(by_path["/World/Anomaly/Geom/Body"].matrix[:3, 3], spec.anomaly.position)
+    np.testing.assert_allclose(by_path["/World/Sky/Moon/Geom/Surface"].matrix[0, 0], 1.7374e6)
+    assert desc.camera.focal_length_mm == pytest.approx(25.0)
+    assert desc.camera.sensor_width_mm == pytest.approx(36.0)
+    assert desc.sun.irradiance == pytest.approx(1361.0)
+    np.testing.assert_allclose(desc.sun.direction, spec.sun.direction, atol=1e-7)
+    assert desc.render.resolution == (64, 36) and desc.render.exposure == pytest.approx(EXPOSURE)
+    assert desc.render.outputs == ("color", "allo:classMask")
+    assert desc.meta["seed"] == 7 and desc.meta["anomaly"]["assetVariant"] == "blue"
+    blue = desc.materials[by_path["/World/Anomaly/Geom/Body"].material]
+    assert blue.base_color[2] > blue.base_color[0]
+    moon = desc.materials[by_path["/World/Sky/Moon/Geom/Surface"].material]
+    assert moon.base_color_texture and moon.base_color_texture.endswith(".png")
+
+
+def test_umbra_turns_the_sun_off(tiny_base, tmp_path):
+    from allo_usd.spec import SunSpec
+
+    spec = make_spec(sun=SunSpec((0.0, 0.0, 1.0), 0.0, 1361.0, 0.533, 1.5e11, 0.0, "umbra", "moon"))
+    assert read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base)).sun is None
+
+
+def test_reader_never_imports_bpy(tiny_base, tmp_path):
+    layer = write_scene_layer(make_spec(), tmp_path / "s.usda", tiny_base)
+    code = ("import sys; from allo_usd.read import read_scene; read_scene(sys.argv[1]); "
+            "assert 'bpy' not in sys.modules, 'read imported bpy'")
+    subprocess.run([sys.executable, "-c", code, str(layer)], check=True)
+
+
+def test_malformed_layer_gives_clear_error(tmp_path):
+    bad = tmp_path / "bad.usda"
+    bad.write_text("#usda 1.0\n( defaultPrim = \"World\"\n over \"World\" {")
+    with pytest.raises(LayerError, match="bad.usda"):
+        read_scene(bad)
+    with pytest.raises(LayerError, match="does not exist"):
+        read_scene(tmp_path / "missing.usda")
+
+
+def test_missing_sublayer_is_named(tiny_base, tmp_path):
+    layer = write_scene_layer(make_spec(), tmp_path / "s.usda", tiny_base)
+    text = layer.read_text().replace("base.usda", "gone.usda")
+    broken = tmp_path / "broken.usda"
+    broken.write_text(text)
+    with pytest.raises(LayerError):
+        read_scene(broken)

@@ -1,0 +1,73 @@
+"""Real Cycles renders of tiny images: masks line up with classes, outputs are deterministic."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import OpenEXR
+import pytest
+from PIL import Image
+
+from allo_usd.author.scene import write_scene_layer
+from allo_usd.job import render_layer
+
+from conftest import make_spec
+
+pytestmark = pytest.mark.render
+
+
+@pytest.fixture(scope="module")
+def rendered(tiny_base, tmp_path_factory):
+    root = tmp_path_factory.mktemp("render")
+    out = {}
+    for name, anomaly in (("normal", False), ("anomaly", True)):
+        layer = write_scene_layer(make_spec(anomaly=anomaly), root / "layers" / f"{name}.usda", tiny_base)
+        out[name] = (layer, render_layer(layer, root / "renders"), root / "renders")
+    return out
+
+
+def test_normal_mask_has_background_and_station(rendered):
+    layer, meta, d = rendered["normal"]
+    mask = np.asarray(Image.open(d / meta["files"]["mask"]))
+    assert mask.dtype == np.uint8 and mask.shape == (36, 64)
+    assert set(np.unique(mask)) == {0, 1}
+    rgb = np.asarray(Image.open(d / meta["files"]["rgb"]))
+    assert rgb.shape == (36, 64, 3)
+    # Lit station pixels are bright but not clipped; background is black space.
+    assert 60 < rgb[mask == 1].mean() < 250
+    assert rgb[mask == 0].mean() < 8  # edge pixels are anti-aliased; the mask is not
+
+
+def test_anomaly_mask_has_class_2_where_the_anomaly_is(rendered):
+    _, meta, d = rendered["anomaly"]
+    mask = np.asarray(Image.open(d / meta["files"]["mask"]))
+    assert set(np.unique(mask)) == {0, 1, 2}
+    assert meta["class_pixels"]["anomaly"] == int((mask == 2).sum()) > 0
+    rgb = np.asarray(Image.open(d / meta["files"]["rgb"])).astype(int)
+    blue = rgb[mask == 2]
+    assert blue[:, 2].mean() > blue[:, 0].mean()  # the blue variant was rendered
+
+
+def test_exr_is_linear_half_and_matches_png(rendered):
+    _, meta, d = rendered["normal"]
+    with OpenEXR.File(str(d / meta["files"]["exr"]), separate_channels=True) as f:
+        r = f.channels()["R"].pixels
+    assert r.dtype == np.float16 and r.shape == (36, 64)
+    mask = np.asarray(Image.open(d / meta["files"]["mask"]))
+    assert float(r[mask == 1].max()) < 1.2  # exposure puts sunlit white near 0.9
+
+
+def test_same_layer_same_bytes(rendered, tmp_path):
+    layer, meta, d = rendered["anomaly"]
+    again = render_layer(layer, tmp_path)
+    for key in ("rgb", "mask", "exr"):
+        assert (tmp_path / again["files"][key]).read_bytes() == (d / meta["files"][key]).read_bytes(), key
+
+
+def test_rerun_skips_finished_scene(rendered):
+    layer, meta, d = rendered["normal"]
+    before = (d / meta["files"]["meta"]).stat().st_mtime_ns
+    render_layer(layer, d)
+    assert (d / meta["files"]["meta"]).stat().st_mtime_ns == before
+    assert json.loads((d / meta["files"]["meta"]).read_text())["scene"]["seed"] == 7
