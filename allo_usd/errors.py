@@ -35,3 +35,7 @@ class EpochError(AlloError, ValueError):
 
 class SkyInputError(AlloError, ValueError):
     """A number fed to the sky/orbit/eclipse geometry is non-finite or out of its valid domain."""
+
+
+class UnknownAnomalyError(AlloError, ValueError):
+    """An anomaly asset id or variant that the procedural library does not define."""

@@ -276,3 +276,55 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
         spot = None
     return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, sun, spot,
                             render, effects, read_meta(stage))
+
+
+def read_rig(base_stage: str | Path) -> list:
+    """The base camera poses recorded in the base stage (the stage, not code, is the record)."""
+    from pxr import Usd, UsdGeom
+
+    from .author.base import CameraPose
+
+    stage = open_stage(base_stage)
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    poses = []
+    for prim in stage.GetPrimAtPath("/World/Rig").GetChildren():
+        if not prim.HasAPI("AlloCameraPoseAPI"):
+            continue
+        m = _matrix(cache, prim)
+        poses.append(CameraPose(int(prim.GetAttribute("allo:pose:index").Get()),
+                                str(prim.GetAttribute("allo:pose:split").Get()), m[:3, 3].copy(), m[:3, :3].copy()))
+    if not poses:
+        raise LayerError(f"{base_stage} has no camera poses under /World/Rig; regenerate the base stage")
+    return sorted(poses, key=lambda p: p.index)
+
+
+def read_triangles(layer_path: str | Path, root: str, variant: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space (points, triangles) of every mesh under `root`, for ray casting."""
+    from pxr import Usd, UsdGeom
+
+    from .mesh import fan_triangulate
+
+    stage = open_stage(layer_path)
+    prim = stage.GetPrimAtPath(root) if root else stage.GetDefaultPrim()
+    if not prim:
+        raise LayerError(f"{layer_path} has no prim {root}")
+    if variant is not None:
+        vs = prim.GetVariantSets().GetVariantSet("variant")
+        if variant not in vs.GetVariantNames():
+            raise LayerError(f"{layer_path}: unknown variant {variant!r}; choose one of {vs.GetVariantNames()}")
+        vs.SetVariantSelection(variant)
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    pts, tris, off = [], [], 0
+    for p in Usd.PrimRange(prim):
+        if p.IsA(UsdGeom.Mesh):
+            mesh = UsdGeom.Mesh(p)
+            local = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
+            m = _matrix(cache, p)
+            pts.append(local @ m[:3, :3].T + m[:3, 3])
+            t = fan_triangulate(np.asarray(mesh.GetFaceVertexCountsAttr().Get()),
+                                np.asarray(mesh.GetFaceVertexIndicesAttr().Get()))
+            tris.append(t + off)
+            off += len(local)
+    if not pts:
+        raise LayerError(f"{layer_path}: no meshes under {root}")
+    return np.concatenate(pts), np.concatenate(tris)
