@@ -25,7 +25,7 @@ class MeshDesc:
     material: str               # key into SceneDescription.materials
     matrix: np.ndarray          # local-to-world
     class_id: int
-    camera_only: bool = False   # seen by camera rays only (the Sun's disc)
+    ray_visibility: str = "all"  # all | cameraOnly (the Sun's disc) | noShadow (Moon, Earth)
 
 
 @dataclass(frozen=True)

@@ -59,14 +59,14 @@ def _class_id(prim) -> int:
     return BACKGROUND
 
 
-def _camera_only(prim) -> bool:
+def _ray_visibility(prim) -> str:
     p = prim
     while p and not p.IsPseudoRoot():
         attr = p.GetAttribute("allo:rayVisibility")
         if attr and attr.HasAuthoredValue():
-            return attr.Get() == "cameraOnly"
+            return str(attr.Get())
         p = p.GetParent()
-    return False
+    return "all"
 
 
 def _input(shader, name, default):
@@ -135,7 +135,7 @@ def read_mesh(prim, cache, materials: dict) -> MeshDesc:
         key = "__default__"
         materials.setdefault(key, MaterialDesc(key, (0.5, 0.5, 0.5), 0.0, 0.5))
     return MeshDesc(path, points, counts, indices, uv, smooth, key, _matrix(cache, prim), _class_id(prim),
-                    _camera_only(prim))
+                    _ray_visibility(prim))
 
 
 def read_camera(prim, cache) -> CameraDesc:

@@ -23,7 +23,9 @@ def test_reader_describes_the_scene(tiny_base, tmp_path):
     assert by_path["/World/Station/Geom/Truss"].class_id == STATION
     assert by_path["/World/Sky/Moon/Geom/Surface"].class_id == STATION
     assert by_path["/World/Anomaly/Geom/Body"].class_id == ANOMALY
-    assert by_path["/World/Sky/Sun/Geom/Surface"].camera_only
+    assert by_path["/World/Sky/Sun/Geom/Surface"].ray_visibility == "cameraOnly"
+    assert by_path["/World/Sky/Moon/Geom/Surface"].ray_visibility == "noShadow"
+    assert by_path["/World/Station/Geom/Truss"].ray_visibility == "all"
     np.testing.assert_allclose(by_path["/World/Anomaly/Geom/Body"].matrix[:3, 3], spec.anomaly.position)
     np.testing.assert_allclose(by_path["/World/Sky/Moon/Geom/Surface"].matrix[0, 0], 1.7374e6)
     assert desc.camera.focal_length_mm == pytest.approx(25.0)

@@ -108,9 +108,10 @@ def write_base_stage(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
         xf = UsdGeom.Xformable(prim)
         xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*default_body_pos[name]))
         xf.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*[default_body_radius[name]] * 3))
-        if name == "Sun":
-            schema.apply(prim, "AlloRayVisibilityAPI")
-            prim.GetAttribute("allo:rayVisibility").Set("cameraOnly")
+        # The Sun's disc is seen but lights nothing (the DistantLight does); Moon and Earth cast no
+        # shadow on the lamp's rays, since the layer's lamp intensity already holds the eclipse.
+        schema.apply(prim, "AlloRayVisibilityAPI")
+        prim.GetAttribute("allo:rayVisibility").Set("cameraOnly" if name == "Sun" else "noShadow")
 
     rig = UsdGeom.Scope.Define(stage, "/World/Rig")
     rig.GetPrim().SetDocumentation("Base camera poses: 1-40 train, 41-50 test (paper Table II).")

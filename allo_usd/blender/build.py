@@ -82,9 +82,11 @@ def build_mesh(desc: MeshDesc, material):
     obj = bpy.data.objects.new(desc.path, me)
     obj.matrix_world = _matrix(desc.matrix)
     obj.pass_index = desc.class_id
-    if desc.camera_only:  # the Sun's disc: seen, but neither shadowing nor lighting anything
+    if desc.ray_visibility == "cameraOnly":  # the Sun's disc: seen, but neither shadowing nor lighting
         obj.visible_diffuse = obj.visible_glossy = obj.visible_shadow = False
         obj.visible_transmission = obj.visible_volume_scatter = False
+    elif desc.ray_visibility == "noShadow":  # Moon, Earth: the eclipse is in the sun lamp's intensity
+        obj.visible_shadow = False
     bpy.context.scene.collection.objects.link(obj)
     return obj
 
