@@ -18,7 +18,7 @@ DEMO_SCENES = (  # (day, pose, anomaly or None)
     (0, 3, None),
     (120, 17, None),
     (45, 42, ("power_drill", None)),
-    (200, 47, ("thermal_blanket_1", None)),
+    (200, 47, ("mli_blanket", None)),
 )
 
 

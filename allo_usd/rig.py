@@ -90,3 +90,36 @@ def perturb(pose: CameraPose, rng: np.random.Generator, station: Scene | None = 
             return pos, pose.rotation @ perturbation_matrix(dang), dpos, dang, attempt
     raise PlacementError(f"pose {pose.index}: no perturbed camera outside the station in {max_attempts} "
                          "attempts; move the base pose further from the structure")
+
+
+def fixtures_from_mesh(points: np.ndarray, triangles: np.ndarray, count: int = 40,
+                       standoff: tuple[float, float] = (1.0, 2.5), seed: int = RIG_SEED) -> np.ndarray:
+    """Camera fixture points for any station mesh (e.g. an imported model): area-weighted surface
+    samples pushed out along their face normal, kept only if clear of all structure."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles)
+    n = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    area = np.linalg.norm(n, axis=1)
+    keep = area > 0
+    rng = np.random.default_rng(seed)
+    scene = Scene([(p, t, 1)])
+    centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
+    out = []
+    for _ in range(count * 20):
+        i = rng.choice(np.flatnonzero(keep), p=area[keep] / area[keep].sum())
+        a, b = rng.random(2)
+        if a + b > 1:
+            a, b = 1 - a, 1 - b
+        q = p[t[i, 0]] + a * (p[t[i, 1]] - p[t[i, 0]]) + b * (p[t[i, 2]] - p[t[i, 0]])
+        normal = n[i] / area[i]
+        if np.dot(normal, q - centre) < 0:  # meshes of unknown winding: point away from the centre
+            normal = -normal
+        f = q + normal * rng.uniform(*standoff)
+        if not too_close(scene, f, clearance=0.5):
+            out.append(f)
+        if len(out) == count:
+            break
+    if len(out) < 10:
+        raise PlacementError(f"found only {len(out)} clear camera fixtures on the station mesh; "
+                             "is it closed and in metres?")
+    return np.array(out)

@@ -155,10 +155,11 @@ def grid(name: str, size_u: float, size_v: float, material: str, nu: int = 1, nv
     all_pts, all_quads, all_uv = [pts], [quads], [uvgrid[quads.ravel()]]
     if double_sided_thickness > 0:
         back = pts - np.array([0.0, 0.0, double_sided_thickness])
-        bq = quads[:, ::-1] + len(pts)
+        flip = [0, 3, 2, 1]  # reversed winding that keeps the front face's fan diagonal (a-c)
+        bq = quads[:, flip] + len(pts)
         all_pts.append(back)
         all_quads.append(bq)
-        all_uv.append(uvgrid[quads[:, ::-1].ravel()])
+        all_uv.append(uvgrid[quads[:, flip].ravel()])
     q = np.concatenate(all_quads)
     return _place(MeshPart(name, np.concatenate(all_pts), np.full(len(q), 4), q.ravel(), material,
                            np.concatenate(all_uv), smooth=height is not None), matrix)
