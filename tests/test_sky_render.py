@@ -1,0 +1,104 @@
+"""Hard cases of the sky that need Blender: float32 transforms, vertical cameras, the Sun in frame, umbra."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from allo_usd.author.scene import write_scene_layer
+from allo_usd.blender.build import build_scene
+from allo_usd.blender.render import render_scene
+from allo_usd.geometry import look_at
+from allo_usd.read import read_scene
+from allo_usd.scenes import sun_and_bodies
+from allo_usd.sky import compute_sky, default_epochs
+from allo_usd.spec import CameraSpec, SunSpec
+
+from conftest import make_spec
+
+pytestmark = pytest.mark.render
+
+
+@pytest.fixture(scope="module")
+def sky():
+    return compute_sky(default_epochs())
+
+
+def _blender_matrices() -> dict:
+    import bpy
+
+    return {o.name: np.array(o.matrix_world, dtype=np.float64) for o in bpy.context.scene.objects}
+
+
+@pytest.mark.parametrize("day", [0, 3, 91, 269])  # perilune, apolune side, spring, the umbra day
+def test_body_transforms_survive_float32_in_blender(sky, tiny_base, tmp_path, day):
+    sun, bodies = sun_and_bodies(sky, day)
+    spec = replace(make_spec(), sun=sun, bodies=bodies)
+    desc = read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base))
+    build_scene(desc)
+    got = _blender_matrices()
+    cams = np.random.default_rng(day).uniform(-100, 100, size=(64, 3))
+    cams = cams / np.linalg.norm(cams, axis=1, keepdims=True) * np.linspace(0, 100, 64)[:, None]
+    for name, body in bodies.items():
+        m = got[f"/World/Sky/{name}/Geom/Surface"]
+        true_pos, true_r = np.array(body.position), body.radius
+        v_true = true_pos - cams
+        v_got = m[:3, 3] - cams
+        cosang = np.einsum("ij,ij->i", v_true, v_got) / np.linalg.norm(v_true, axis=1) / np.linalg.norm(v_got, axis=1)
+        err = np.arctan2(np.linalg.norm(np.cross(v_true, v_got), axis=1), np.einsum("ij,ij->i", v_true, v_got))
+        assert err.max() <= 1e-5, f"{name}: direction error {err.max():.2e} rad"
+        r_got = np.linalg.norm(m[:3, 0])
+        ang_true = np.arcsin(true_r / np.linalg.norm(v_true, axis=1))
+        ang_got = np.arcsin(min(r_got, 0.999 * np.linalg.norm(v_got, axis=1).min()) / np.linalg.norm(v_got, axis=1))
+        assert (np.abs(ang_got / ang_true - 1) <= 1e-4).all(), name
+        assert cosang.min() > 0.999999
+
+
+@pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])
+def test_vertical_camera_round_trips_as_a_matrix(tiny_base, tmp_path, pitch):
+    pos = np.array([12.0, 3.0, 4.0])
+    target = pos + np.array([0.0, 0.0, math.copysign(10.0, pitch)])  # straight up or down
+    rot = look_at(pos, target)
+    spec = replace(make_spec(), camera=CameraSpec(tuple(pos), rot))
+    desc = read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base))
+    np.testing.assert_allclose(desc.camera.matrix[:3, :3], rot, atol=1e-12)
+    build_scene(desc)
+    m = _blender_matrices()["/World/Camera"]
+    np.testing.assert_allclose(m[:3, :3], rot, atol=1e-6)
+    np.testing.assert_allclose(m[:3, 3], pos, atol=1e-5)
+
+
+def test_camera_looking_at_the_sun(sky, tiny_base, tmp_path):
+    sun, bodies = sun_and_bodies(sky, 10)
+    pos = np.array([0.0, 0.0, 30.0])  # above the station, nothing between camera and Sun
+    d = np.array(sun.direction)
+    spec = replace(make_spec(resolution=(320, 180), samples=1), sun=sun, bodies=bodies,
+                   camera=CameraSpec(tuple(pos), look_at(pos, pos + d)))
+    desc = read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base))
+    result = render_scene(desc)
+    assert np.isfinite(result.rgb).all()
+    cy, cx = 90, 160  # the Sun sits at the image centre
+    disc = result.rgb[cy - 2:cy + 2, cx - 2:cx + 2].max()
+    assert disc > 1e3, "the solar disc should be far brighter than white (radiance 2e7 times exposure)"
+    assert (result.mask[cy - 2:cy + 2, cx - 2:cx + 2] == 1).any()
+    # Away from the disc the sky is black: the disc lights nothing and the world is empty.
+    assert np.median(result.rgb) == 0.0
+
+
+def test_umbra_scene_is_never_rendered_lit(sky, tiny_base, tmp_path):
+    day = int(np.flatnonzero(np.asarray(sky.eclipse_state) == "umbra")[0])
+    sun, bodies = sun_and_bodies(sky, day)
+    assert sun.irradiance == 0.0 and sun.eclipse_state == "umbra"
+    lit_sun = replace(sun, irradiance=sun.irradiance_unoccluded, lit_fraction=1.0, eclipse_state="lit",
+                      eclipse_body="none")
+    means = {}
+    for name, s in (("umbra", sun), ("lit", lit_sun)):
+        spec = replace(make_spec(resolution=(64, 36), samples=8), sun=s, bodies=bodies)
+        desc = read_scene(write_scene_layer(spec, tmp_path / f"{name}.usda", tiny_base))
+        assert (desc.sun is None) == (name == "umbra")
+        r = render_scene(desc)
+        means[name] = float(r.rgb[r.mask == 1].mean())
+    assert means["umbra"] < 0.05 * means["lit"]
