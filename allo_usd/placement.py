@@ -16,7 +16,7 @@ import numpy as np
 from .description import ANOMALY
 from .errors import PlacementError
 from .geometry import quat_to_matrix
-from .raycast import Scene, class_image, pixel_rays
+from .raycast import Scene, pixel_rays
 
 DEPTH_OFFSETS = (0.0, -1.0, 1.0, -2.0, 2.0)
 MIN_FRACTION = 0.001
@@ -42,25 +42,32 @@ def _posed(points, rotation, position):
     return points @ rotation.T + position
 
 
-def check(station_parts, anomaly_points, anomaly_tris, position, rotation, cam_pos, cam_rot,
+def visible_fraction(station: Scene, anomaly: Scene, cam_pos, cam_rot, width: int, height: int) -> float:
+    """Fraction of pixel centres whose first hit is the anomaly (station and anomaly BVHs kept apart,
+    so the station's is built once per camera and only the small one per candidate)."""
+    o, d = pixel_rays(cam_pos, cam_rot, width, height)
+    a_owner, a_dist = anomaly.first_hit(o, d)
+    hit = a_owner > 0
+    if not hit.any():
+        return 0.0
+    _, s_dist = station.first_hit(o[hit], d[hit])
+    return float((a_dist[hit] < s_dist).sum() / (width * height))
+
+
+def check(station: Scene, anomaly_points, anomaly_tris, position, rotation, cam_pos, cam_rot,
           width, height, min_fraction=MIN_FRACTION) -> tuple[bool, float, str]:
     """(accepted, visible fraction, reason) for one candidate placement."""
-    pts = _posed(anomaly_points, rotation, position)
+    cam_pos = np.asarray(cam_pos, dtype=np.float64)
     radius = np.linalg.norm(anomaly_points, axis=1).max()
-    to_obj = position - cam_pos
-    fwd = -cam_rot[:, 2]
-    if np.dot(to_obj, fwd) <= radius:
+    if np.dot(position - cam_pos, -cam_rot[:, 2]) <= radius:
         return False, 0.0, "behind or against the camera"
-    station = Scene(station_parts)
-    # Touching the station: any station hit from the object's centre closer than its radius.
-    dirs = np.random.default_rng(0).normal(size=(64, 3))
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    # Touching the station: a station surface closer to the object's centre than its bounding radius.
+    dirs = _SPHERE_DIRS
     _, dist = station.first_hit(np.repeat(position[None], len(dirs), 0), dirs)
     if (dist < radius * 1.05).any():
         return False, 0.0, "intersects the station"
-    scene = Scene(list(station_parts) + [(pts, anomaly_tris, ANOMALY)])
-    mask = class_image(scene, cam_pos, cam_rot, width, height)
-    frac = float((mask == ANOMALY).mean())
+    anomaly = Scene([(_posed(anomaly_points, rotation, position), anomaly_tris, ANOMALY)])
+    frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height)
     if frac == 0.0:
         return False, 0.0, "fully occluded or outside the frame"
     if frac < min_fraction:
@@ -68,18 +75,29 @@ def check(station_parts, anomaly_points, anomaly_tris, position, rotation, cam_p
     return True, frac, ""
 
 
-def place(station_parts, anomaly_points, anomaly_tris, cam_pos, cam_rot, rng: np.random.Generator,
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
+_SPHERE_DIRS = _fibonacci_sphere(128)
+
+
+def place(station_parts: "Scene | list", anomaly_points, anomaly_tris, cam_pos, cam_rot, rng: np.random.Generator,
           width: int, height: int, max_attempts: int = 60, check_width: int | None = None,
           min_fraction: float = MIN_FRACTION) -> list[Placement]:
     """Place one object and its four extra depths; raises PlacementError if no initial placement."""
     cw = check_width or width
     ch = max(1, round(height * cw / width))
-    station = Scene(station_parts)
+    cam_pos = np.asarray(cam_pos, dtype=np.float64)
+    station = station_parts if isinstance(station_parts, Scene) else Scene(station_parts)
+    o, d = pixel_rays(cam_pos, cam_rot, cw, ch)
     radius = float(np.linalg.norm(anomaly_points, axis=1).max())
     for attempt in range(1, max_attempts + 1):
         u, v = rng.uniform(0.15, 0.85), rng.uniform(0.15, 0.85)
         px, py = int(u * cw), int(v * ch)
-        o, d = pixel_rays(cam_pos, cam_rot, cw, ch)
         ray = d[py * cw + px]
         _, hit = station.first_hit(cam_pos[None].astype(np.float64), ray[None])
         far = hit[0] - radius - 0.5 if np.isfinite(hit[0]) else 12.0
@@ -89,7 +107,7 @@ def place(station_parts, anomaly_points, anomaly_tris, cam_pos, cam_rot, rng: np
         depth = rng.uniform(max(near, far - 6.0), far)
         rot = random_rotation(rng)
         pos = cam_pos + depth * ray
-        ok, frac, _ = check(station_parts, anomaly_points, anomaly_tris, pos, rot, cam_pos, cam_rot, cw, ch,
+        ok, frac, _ = check(station, anomaly_points, anomaly_tris, pos, rot, cam_pos, cam_rot, cw, ch,
                             min_fraction)
         if not ok:
             continue
@@ -99,7 +117,7 @@ def place(station_parts, anomaly_points, anomaly_tris, cam_pos, cam_rot, rng: np
             if off == 0.0:
                 out.append(Placement(k, off, p, rot, frac, attempt))
                 continue
-            ok_k, frac_k, why = check(station_parts, anomaly_points, anomaly_tris, p, rot, cam_pos, cam_rot,
+            ok_k, frac_k, why = check(station, anomaly_points, anomaly_tris, p, rot, cam_pos, cam_rot,
                                       cw, ch, min_fraction)
             out.append(Placement(k, off, p if ok_k else None, rot, frac_k, attempt, "" if ok_k else why))
         return out

@@ -34,6 +34,17 @@ class Scene:
         return owner, dist
 
 
+    def inside(self, point: np.ndarray) -> bool:
+        """Parity test: a point is enclosed when most of 7 rays cross the surface an odd number of
+        times (a majority vote tolerates small holes in non-watertight meshes)."""
+        dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
+                         [0.577, 0.577, 0.577]], dtype=np.float64)
+        origins = np.repeat(np.asarray(point, dtype=np.float64)[None], len(dirs), 0)
+        _, ray_idx, _ = self.intersector.intersects_location(origins, dirs, multiple_hits=True)
+        crossings = np.bincount(ray_idx, minlength=len(dirs))
+        return int((crossings % 2 == 1).sum()) >= 4
+
+
 def pixel_rays(cam_pos, cam_rot, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """One ray through each pixel centre, row-major from the top-left pixel."""
     k = camera_intrinsics(width, height)

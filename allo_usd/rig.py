@@ -70,12 +70,12 @@ def perturbation_matrix(angles) -> np.ndarray:
 
 
 def too_close(scene: Scene, p: np.ndarray, clearance: float = CLEARANCE_M) -> bool:
-    """True if p is within `clearance` of the station or enclosed by it (rays all ways hit)."""
+    """True if p is within `clearance` of the station or enclosed by it (parity vote)."""
     dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
                      [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], dtype=np.float64)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     owner, dist = scene.first_hit(np.repeat(p[None], len(dirs), 0), dirs)
-    return bool((dist < clearance).any() or (owner > 0).all() and (dist < 3.0).all())
+    return bool((dist < clearance).any() or scene.inside(p))
 
 
 def perturb(pose: CameraPose, rng: np.random.Generator, station: Scene | None = None,

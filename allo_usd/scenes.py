@@ -99,7 +99,7 @@ def resolve_scene(world: World, *, scene_id: str, day: int, pose: int, plan_seed
     if anomaly is not None:
         pts, tris = world.anomaly_geometry(*anomaly)
         centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-        placements = place(world.station_parts, pts - centre, tris, pos, rot, rng,
+        placements = place(world.station_scene, pts - centre, tris, pos, rot, rng,
                            render.resolution[0], render.resolution[1], check_width=min(480, render.resolution[0]))
         chosen = placements[depth_index]
         if chosen.position is None:
