@@ -23,9 +23,9 @@ def register() -> None:
     reg = Usd.SchemaRegistry()
     missing = [n for n in API_SCHEMAS if reg.FindAppliedAPIPrimDefinition(n) is None]
     if missing:
-        raise AlloError(f"the allo-usd schema did not register {missing}; check {SCHEMAS / 'alloUsd'} "
-                        "(plugInfo.json and generatedSchema.usda) and that it is registered before any "
-                        "stage using it is opened")
+        raise AlloError(f"the allo-usd schema did not register {missing}: USD reads schema plugins once, "
+                        "when the first stage is opened, so call allo_usd.schema.register() before any other "
+                        f"use of pxr.Usd in this process (and check {SCHEMAS / 'alloUsd'} is intact)")
 
 
 def apply(prim, name: str) -> None:

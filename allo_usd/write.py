@@ -69,7 +69,11 @@ def write_mask_png(path: Path, mask: np.ndarray) -> Path:
 def write_exr(path: Path, channels: dict[str, np.ndarray], half: bool = True, attributes: dict | None = None) -> Path:
     import OpenEXR
 
-    data = {k: np.ascontiguousarray(v.astype(np.float16 if half else np.float32)) for k, v in channels.items()}
+    if half:  # the Sun's disc and its specular glints exceed half's range: saturate, never inf
+        hmax = float(np.finfo(np.float16).max)
+        data = {k: np.ascontiguousarray(np.clip(v, -hmax, hmax).astype(np.float16)) for k, v in channels.items()}
+    else:
+        data = {k: np.ascontiguousarray(v.astype(np.float32)) for k, v in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for k, v in (attributes or {}).items():
         header[k] = v

@@ -126,6 +126,9 @@ def new_layer(path: Path):
     authoring; `commit_layer` saves it and renames it into place (atomic on POSIX)."""
     from pxr import Sdf
 
+    from .. import schema
+
+    schema.register()  # before any stage opens: the schema registry reads plugins only once
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
