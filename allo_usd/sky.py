@@ -870,6 +870,18 @@ def _span_geometry(start: datetime, offsets_s: np.ndarray, orbit: Orbit, chunk: 
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
+def _contact_times(start, offsets, s_idx, e_idx, predicate, orbit, tol_s):
+    """Refined start and end times of runs [s_idx, e_idx) of sampled offsets where `predicate` holds;
+    a run touching either end of the sampled window keeps that end's sample time."""
+    has_lo = s_idx > 0
+    has_hi = e_idx < offsets.size
+    t_start = offsets[s_idx].astype(np.float64)
+    t_end = offsets[np.minimum(e_idx, offsets.size - 1)].astype(np.float64)
+    t_start[has_lo] = _refine(start, offsets[s_idx[has_lo] - 1], offsets[s_idx[has_lo]], predicate, orbit, tol_s)
+    t_end[has_hi] = _refine(start, offsets[e_idx[has_hi] - 1], offsets[e_idx[has_hi]], predicate, orbit, tol_s)
+    return t_start, t_end
+
+
 def _refine(start: datetime, lo: np.ndarray, hi: np.ndarray, pred, orbit: Orbit, tol_s: float) -> np.ndarray:
     """Bisect all brackets [lo, hi] (pred(lo) != pred(hi)) at once; returns crossing offsets."""
     if lo.size == 0:
@@ -927,20 +939,10 @@ def eclipse_events(
         def umbral(gg, key=key):
             return gg[key] == UMBRA
 
-        has_lo = s_idx > 0
-        has_hi = e_idx < offsets.size
-        t_start = offsets[s_idx].astype(np.float64)
-        t_end = offsets[np.minimum(e_idx, offsets.size - 1)].astype(np.float64)
-        t_start[has_lo] = _refine(start, offsets[s_idx[has_lo] - 1], offsets[s_idx[has_lo]], shadowed, orbit, tol_s)
-        t_end[has_hi] = _refine(start, offsets[e_idx[has_hi] - 1], offsets[e_idx[has_hi]], shadowed, orbit, tol_s)
+        t_start, t_end = _contact_times(start, offsets, s_idx, e_idx, shadowed, orbit, tol_s)
         # Umbra contacts inside each pass.
         u_s, u_e = _runs(code == UMBRA)
-        u_lo = u_s > 0
-        u_hi = u_e < offsets.size
-        tu_s = offsets[u_s].astype(np.float64)
-        tu_e = offsets[np.minimum(u_e, offsets.size - 1)].astype(np.float64)
-        tu_s[u_lo] = _refine(start, offsets[u_s[u_lo] - 1], offsets[u_s[u_lo]], umbral, orbit, tol_s)
-        tu_e[u_hi] = _refine(start, offsets[u_e[u_hi] - 1], offsets[u_e[u_hi]], umbral, orbit, tol_s)
+        tu_s, tu_e = _contact_times(start, offsets, u_s, u_e, umbral, orbit, tol_s)
         for k in range(s_idx.size):
             inside = (u_s >= s_idx[k]) & (u_e <= e_idx[k])
             umbra_s = float(np.sum(tu_e[inside] - tu_s[inside]))
@@ -954,7 +956,7 @@ def eclipse_events(
                 umbra_s=umbra_s,
                 min_lit_fraction=float(np.min(lit[seg])),
                 deepest_state=ECLIPSE_STATES[deepest],
-                truncated=bool(not has_lo[k] or not has_hi[k]),
+                truncated=bool(s_idx[k] == 0 or e_idx[k] >= offsets.size),
             ))
     events.sort(key=lambda ev: ev.start)
     info = {"samples": int(offsets.size), "step_s": step_s, "tol_s": tol_s,
