@@ -27,6 +27,18 @@ def is_done(layer: Path, out_dir: Path) -> bool:
     return all(p.is_file() for p in paths.values())
 
 
+def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Post-render effects the layer declares, on linear data; each absent effect costs nothing."""
+    applied = {}
+    if desc.effects.sensor_noise:
+        from .effects.noise import SensorParams, apply_sensor_noise
+
+        params = SensorParams()
+        rgb = apply_sensor_noise(rgb, desc.render.exposure, seed=desc.render.seed, params=params)
+        applied["sensor_noise"] = {"model": "EMVA 1288", "seed": desc.render.seed, **params.as_dict()}
+    return rgb, applied
+
+
 def render_layer(layer: Path, out_dir: Path, force: bool = False) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON)."""
     import json
@@ -39,8 +51,9 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False) -> dict:
         return json.loads(paths["meta"].read_text())
     desc = read_scene(layer)
     result = render_scene(desc)
-    write_rgb_png(paths["rgb"], result.rgb)
-    write_rgb_exr(paths["exr"], result.rgb)
+    rgb, effects = apply_effects(desc, result.rgb)
+    write_rgb_png(paths["rgb"], rgb)
+    write_rgb_exr(paths["exr"], rgb)
     write_mask_png(paths["mask"], result.mask)
     counts = np.bincount(result.mask.ravel(), minlength=3)
     meta = {
@@ -53,6 +66,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False) -> dict:
                          "anomaly": int(counts[2])},
         "anomaly_fraction": float(counts[2] / result.mask.size),
         "scene": desc.meta,
+        "effects": effects,
         "files": {k: p.name for k, p in paths.items()},
     }
     write_json(paths["meta"], meta)

@@ -71,3 +71,22 @@ def test_rerun_skips_finished_scene(rendered):
     render_layer(layer, d)
     assert (d / meta["files"]["meta"]).stat().st_mtime_ns == before
     assert json.loads((d / meta["files"]["meta"]).read_text())["scene"]["seed"] == 7
+
+
+def test_sensor_noise_only_when_declared(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    from allo_usd.spec import EffectsSpec
+
+    metas = {}
+    for noisy in (False, True):
+        spec = replace(make_spec(), effects=EffectsSpec(sensor_noise=noisy))
+        layer = write_scene_layer(spec, tmp_path / f"n{int(noisy)}.usda", tiny_base)
+        metas[noisy] = render_layer(layer, tmp_path / "out")
+    assert metas[False]["effects"] == {}
+    assert metas[True]["effects"]["sensor_noise"]["model"] == "EMVA 1288"
+    clean = np.asarray(Image.open(tmp_path / "out" / metas[False]["files"]["rgb"])).astype(int)
+    noisy = np.asarray(Image.open(tmp_path / "out" / metas[True]["files"]["rgb"])).astype(int)
+    mask = np.asarray(Image.open(tmp_path / "out" / metas[True]["files"]["mask"]))
+    assert (clean != noisy).mean() > 0.3
+    assert abs(clean[mask == 1].mean() - noisy[mask == 1].mean()) < 6  # same level, plus noise
