@@ -90,3 +90,34 @@ def test_sensor_noise_only_when_declared(tiny_base, tmp_path):
     mask = np.asarray(Image.open(tmp_path / "out" / metas[True]["files"]["mask"]))
     assert (clean != noisy).mean() > 0.3
     assert abs(clean[mask == 1].mean() - noisy[mask == 1].mean()) < 6  # same level, plus noise
+
+
+def test_glare_builds_a_compositor_only_when_declared(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    import bpy
+
+    from allo_usd.blender.render import render_scene
+    from allo_usd.read import read_scene
+    from allo_usd.spec import EffectsSpec
+
+    from allo_usd.geometry import look_at
+
+    base = make_spec(resolution=(320, 180), samples=2)
+    pos = np.array([0.0, 0.0, 30.0])
+    sun_at = pos + np.array(base.sun.direction)
+    results = {}
+    for glare in (False, True):  # the Sun in frame: its disc is far above the glare threshold
+        spec = replace(base, effects=EffectsSpec(glare=glare),
+                       camera=replace(base.camera, position=tuple(pos), rotation=look_at(pos, sun_at)))
+        desc = read_scene(write_scene_layer(spec, tmp_path / f"g{int(glare)}.usda", tiny_base))
+        results[glare] = render_scene(desc)
+        tree = bpy.context.scene.compositing_node_group
+        if glare:
+            assert tree is not None and any(n.bl_idname == "CompositorNodeGlare" for n in tree.nodes)
+        else:
+            assert tree is None and not bpy.context.scene.render.use_compositing
+    # Glare spreads the Sun's light into the black sky around the disc.
+    bg = results[False].mask == 0
+    assert results[True].rgb[bg].mean() > 10 * max(results[False].rgb[bg].mean(), 1e-6)
+    np.testing.assert_array_equal(results[True].mask, results[False].mask)

@@ -203,3 +203,9 @@ def build_scene(desc: SceneDescription) -> None:
     if desc.spot is not None:
         build_spot(desc.spot)
     configure_render(desc.render, desc.effects.body_shine)
+    from .compositor import build_glare, no_compositor
+
+    if desc.effects.glare:
+        build_glare()
+    else:
+        no_compositor()  # a scene that declares no glare gets no compositor at all

@@ -59,9 +59,12 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
         if "FINISHED" not in result or not out.is_file():
             raise AlloError(f"Cycles did not produce an image for {desc.layer}; see Blender's log above")
         ch = _read_multilayer_exr(out)
-    r, g, b = (_find(ch, f"Combined.{c}", f".{c}") for c in "RGB")
+    from .compositor import has_compositor
+
+    layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
+    r, g, b = (ch.get(f"{layer}.{c}") for c in "RGB")
     if r is None:
-        raise AlloError(f"the render of {desc.layer} has no Combined pass; channels: {sorted(ch)}")
+        raise AlloError(f"the render of {desc.layer} has no {layer} pass; channels: {sorted(ch)}")
     rgb = np.stack([r, g, b], axis=-1).astype(np.float32)  # EXR rows run top-down, like PNG
     index = _find(ch, "IndexOB.X", "Object Index.X", "IndexOB.V")
     if index is None:
