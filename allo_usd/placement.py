@@ -42,10 +42,24 @@ def _posed(points, rotation, position):
     return points @ rotation.T + position
 
 
-def visible_fraction(station: Scene, anomaly: Scene, cam_pos, cam_rot, width: int, height: int) -> float:
+def visible_fraction(station: Scene, anomaly: Scene, cam_pos, cam_rot, width: int, height: int,
+                     rays=None, sphere=None) -> float:
     """Fraction of pixel centres whose first hit is the anomaly (station and anomaly BVHs kept apart,
-    so the station's is built once per camera and only the small one per candidate)."""
-    o, d = pixel_rays(cam_pos, cam_rot, width, height)
+    so the station's is built once per camera and only the small one per candidate).
+
+    `rays`: the camera's pixel rays, if already computed. `sphere`: (centre, radius) bounding the
+    anomaly; rays that miss it cannot hit the anomaly and are not cast (exact, and ~20x faster
+    for a small object in a large image)."""
+    o, d = pixel_rays(cam_pos, cam_rot, width, height) if rays is None else rays
+    if sphere is not None:
+        c, r = np.asarray(sphere[0], dtype=np.float64), float(sphere[1]) * 1.001 + 1e-9
+        v = c - o[0]                                   # every ray starts at the camera
+        t = d @ v
+        miss = (np.dot(v, v) - t * t > r * r) | (t < -r)
+        keep = np.flatnonzero(~miss)
+        if keep.size == 0:
+            return 0.0
+        o, d = o[keep], d[keep]
     a_owner, a_dist = anomaly.first_hit(o, d)
     hit = a_owner > 0
     if not hit.any():
@@ -55,7 +69,7 @@ def visible_fraction(station: Scene, anomaly: Scene, cam_pos, cam_rot, width: in
 
 
 def check(station: Scene, anomaly_points, anomaly_tris, position, rotation, cam_pos, cam_rot,
-          width, height, min_fraction=MIN_FRACTION) -> tuple[bool, float, str]:
+          width, height, min_fraction=MIN_FRACTION, rays=None) -> tuple[bool, float, str]:
     """(accepted, visible fraction, reason) for one candidate placement."""
     cam_pos = np.asarray(cam_pos, dtype=np.float64)
     radius = np.linalg.norm(anomaly_points, axis=1).max()
@@ -67,7 +81,7 @@ def check(station: Scene, anomaly_points, anomaly_tris, position, rotation, cam_
     if (dist < radius * 1.05).any():
         return False, 0.0, "intersects the station"
     anomaly = Scene([(_posed(anomaly_points, rotation, position), anomaly_tris, ANOMALY)])
-    frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height)
+    frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height, rays, (position, radius))
     if frac == 0.0:
         return False, 0.0, "fully occluded or outside the frame"
     if frac < min_fraction:
@@ -108,7 +122,7 @@ def place(station_parts: "Scene | list", anomaly_points, anomaly_tris, cam_pos, 
         rot = random_rotation(rng)
         pos = cam_pos + depth * ray
         ok, frac, _ = check(station, anomaly_points, anomaly_tris, pos, rot, cam_pos, cam_rot, cw, ch,
-                            min_fraction)
+                            min_fraction, (o, d))
         if not ok:
             continue
         out = []
@@ -118,7 +132,7 @@ def place(station_parts: "Scene | list", anomaly_points, anomaly_tris, cam_pos, 
                 out.append(Placement(k, off, p, rot, frac, attempt))
                 continue
             ok_k, frac_k, why = check(station, anomaly_points, anomaly_tris, p, rot, cam_pos, cam_rot,
-                                      cw, ch, min_fraction)
+                                      cw, ch, min_fraction, (o, d))
             out.append(Placement(k, off, p if ok_k else None, rot, frac_k, attempt, "" if ok_k else why))
         return out
     raise PlacementError(f"no visible placement in {max_attempts} attempts (object radius {radius:.2f} m); "

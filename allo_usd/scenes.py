@@ -82,11 +82,10 @@ def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
     return sun, bodies
 
 
-def resolve_scene(world: World, *, scene_id: str, day: int, pose: int, plan_seed: int,
-                  render: RenderSpec, effects: EffectsSpec = EffectsSpec(),
-                  anomaly: tuple[str, str] | None = None, depth_index: int = 0) -> SceneSpec:
-    """One fully resolved scene. With an anomaly, its five depths share the same draw, so depth k of
-    the same (day, pose, anomaly) differs only by the offset along the view ray."""
+def resolve_camera(world: World, *, day: int, pose: int, plan_seed: int,
+                   anomaly: tuple[str, str] | None = None):
+    """The perturbed camera of one pose sample: (CameraSpec, the Generator after the draw, seed,
+    seed path). Every scene of the sample (the five depths of a placement) shares it."""
     base = world.poses[pose]
     key = (day, pose) if anomaly is None else (day, pose, *anomaly)
     seed, seed_path = scene_seed(plan_seed, *key)
@@ -94,23 +93,50 @@ def resolve_scene(world: World, *, scene_id: str, day: int, pose: int, plan_seed
     pos, rot, dpos, dang, attempts = perturb(base, rng, world.station_scene)
     camera = CameraSpec(tuple(map(float, pos)), rot, tuple(map(float, dpos)), tuple(map(float, dang)),
                         PERTURBATION, attempts)
-    sun, bodies = sun_and_bodies(world.sky, day)
+    return camera, rng, seed, seed_path
+
+
+def resolve_placements(world: World, camera: CameraSpec, rng: np.random.Generator, anomaly: tuple[str, str],
+                       resolution: tuple[int, int]) -> list[AnomalySpec | str]:
+    """All five depths of one placement from one ray-cast search: an AnomalySpec per depth, or the
+    reason that depth was skipped. Raises PlacementError when no initial placement is found."""
+    pts, tris = world.anomaly_geometry(*anomaly)
+    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    pos = np.asarray(camera.position, dtype=np.float64)
+    placements = place(world.station_scene, pts - centre, tris, pos, camera.rotation, rng,
+                       resolution[0], resolution[1], check_width=min(480, resolution[0]))
+    out = []
+    for p in placements:
+        if p.position is None:
+            out.append(f"depth {p.depth_index} ({p.depth_offset:+.0f} m) was skipped: {p.skipped_reason}")
+            continue
+        # The asset's own origin is its bounding-box centre, so the placed centre is the prim position.
+        out.append(AnomalySpec(anomaly[0], anomaly[1], tuple(map(float, p.position - p.rotation @ centre)),
+                               p.rotation, p.depth_index, p.depth_offset, p.attempts, p.area_fraction))
+    return out
+
+
+def build_spec(world: World, *, scene_id: str, day: int, pose: int, seed: int, seed_path: str,
+               camera: CameraSpec, render: RenderSpec, effects: EffectsSpec,
+               anomaly: AnomalySpec | None = None, sky: tuple | None = None) -> SceneSpec:
+    """Assemble a SceneSpec from resolved parts (`sky`: a precomputed sun_and_bodies result)."""
+    sun, bodies = sky if sky is not None else sun_and_bodies(world.sky, day)
+    render = RenderSpec(**{**render.__dict__, "seed": seed % (2 ** 31)})
+    return SceneSpec(scene_id, world.sky.epochs[day], world.perilune_epoch, day, pose, world.poses[pose].split,
+                     seed, seed_path, camera, sun, bodies, render, effects, anomaly)
+
+
+def resolve_scene(world: World, *, scene_id: str, day: int, pose: int, plan_seed: int,
+                  render: RenderSpec, effects: EffectsSpec = EffectsSpec(),
+                  anomaly: tuple[str, str] | None = None, depth_index: int = 0) -> SceneSpec:
+    """One fully resolved scene. With an anomaly, its five depths share the same draw, so depth k of
+    the same (day, pose, anomaly) differs only by the offset along the view ray."""
+    camera, rng, seed, seed_path = resolve_camera(world, day=day, pose=pose, plan_seed=plan_seed, anomaly=anomaly)
     anomaly_spec = None
     if anomaly is not None:
-        pts, tris = world.anomaly_geometry(*anomaly)
-        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-        placements = place(world.station_scene, pts - centre, tris, pos, rot, rng,
-                           render.resolution[0], render.resolution[1], check_width=min(480, render.resolution[0]))
-        chosen = placements[depth_index]
-        if chosen.position is None:
-            raise PlacementError(f"scene {scene_id}: depth {depth_index} ({chosen.depth_offset:+.0f} m) was "
-                                 f"skipped: {chosen.skipped_reason}")
-        # The asset's own origin is its bounding-box centre, so the placed centre is the prim position.
-        anomaly_spec = AnomalySpec(anomaly[0], anomaly[1], tuple(map(float, chosen.position - chosen.rotation @ centre)),
-                                   chosen.rotation, chosen.depth_index, chosen.depth_offset, chosen.attempts,
-                                   chosen.area_fraction)
-    epoch = world.sky.epochs[day]
-    split = base.split
-    render = RenderSpec(**{**render.__dict__, "seed": seed % (2 ** 31)})
-    return SceneSpec(scene_id, epoch, world.perilune_epoch, day, pose, split, seed, seed_path, camera, sun,
-                     bodies, render, effects, anomaly_spec)
+        chosen = resolve_placements(world, camera, rng, anomaly, render.resolution)[depth_index]
+        if isinstance(chosen, str):
+            raise PlacementError(f"scene {scene_id}: {chosen}")
+        anomaly_spec = chosen
+    return build_spec(world, scene_id=scene_id, day=day, pose=pose, seed=seed, seed_path=seed_path,
+                      camera=camera, render=render, effects=effects, anomaly=anomaly_spec)
