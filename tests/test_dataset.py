@@ -1,0 +1,166 @@
+"""Dataset assembly: an MVTec-AD tree anomalib's MVTec/Folder loaders accept, a manifest, idempotent re-runs.
+
+anomalib is not installed (and must not be); `mvtec_pairs` re-states what its make_mvtec_dataset
+does with a category directory: glob every image below it, split/label from the last three path
+parts, pair sorted anomalous test images with sorted ground-truth masks by position, and require
+each image stem to be contained in its mask's stem.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+from allo_usd.author.scene import write_scene_layer
+from allo_usd.cli import app
+from allo_usd.dataset import assemble, read_manifest
+from allo_usd.errors import AlloError
+from allo_usd.job import render_layer
+
+from conftest import make_spec
+
+pytestmark = pytest.mark.render
+
+SCENES = {  # name: (spec kwargs, split override)
+    "d000_p01": (dict(day=0, pose=1, seed=11), None),
+    "d001_p02": (dict(day=1, pose=2, seed=12), None),
+    "d002_p41": (dict(day=2, seed=13), ("test", 41)),
+    "d003_p41_crate_z0": (dict(day=3, seed=14, anomaly=True), ("test", 41)),
+}
+
+
+@pytest.fixture(scope="module")
+def renders(tiny_base, tmp_path_factory):
+    """Four real 64x36 Cycles renders: 2 normal train, 1 normal test, 1 anomalous test."""
+    root = tmp_path_factory.mktemp("ds_render")
+    for name, (kw, split) in SCENES.items():
+        spec = make_spec(scene_id=name, **kw)
+        if split:
+            spec = replace(spec, split=split[0], pose=split[1])
+        render_layer(write_scene_layer(spec, root / "layers" / f"{name}.usda", tiny_base), root / "renders")
+    return root / "renders"
+
+
+def fabricate(src_dir: Path, src_name: str, dst_dir: Path, name: str, **scene) -> Path:
+    """A render record in job.py's exact format, copied from a real one under a new name."""
+    meta = json.loads((src_dir / f"{src_name}.json").read_text())
+    dst_dir.mkdir(parents=True, exist_ok=True)
+    files = {"rgb": f"{name}.png", "exr": f"{name}.exr", "mask": f"{name}_mask.png", "meta": f"{name}.json"}
+    for key in ("rgb", "exr", "mask"):
+        shutil.copyfile(src_dir / meta["files"][key], dst_dir / files[key])
+    meta["files"], meta["layer_sha256"] = files, hashlib.sha256(name.encode()).hexdigest()
+    meta["scene"].update(sceneId=name, **scene)
+    (dst_dir / f"{name}.json").write_text(json.dumps(meta))
+    return dst_dir
+
+
+def mvtec_pairs(category_dir: Path) -> dict:
+    samples = [f.parts[-3:] for f in category_dir.glob("**/*") if f.suffix == ".png"]
+    assert {s[0] for s in samples} <= {"train", "test", "ground_truth"}, "stray images confuse the loader"
+    path = lambda s: str(category_dir / s[0] / s[1] / s[2])  # noqa: E731
+    masks = sorted(path(s) for s in samples if s[0] == "ground_truth")
+    abnormal = sorted(path(s) for s in samples if s[0] == "test" and s[1] != "good")
+    assert len(masks) == len(abnormal)
+    for image, mask in zip(abnormal, masks):
+        assert Path(image).stem in Path(mask).stem, (image, mask)
+    return {"train": sorted(path(s) for s in samples if s[0] == "train"),
+            "test_good": sorted(path(s) for s in samples if s[:2] == ("test", "good")),
+            "pairs": list(zip(abnormal, masks))}
+
+
+def sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_layout_is_what_mvtec_loaders_expect(renders, tmp_path):
+    out = tmp_path / "ds"
+    manifest = assemble([renders], out)
+    cat = out / "allo"
+    assert sorted(p.name for p in cat.iterdir()) == ["ground_truth", "test", "train"]
+    found = mvtec_pairs(cat)
+    assert [Path(p).name for p in found["train"]] == ["000000_d000_p01.png", "000001_d001_p02.png"]
+    assert [Path(p).name for p in found["test_good"]] == ["000002_d002_p41.png"]
+    (image, mask), = found["pairs"]
+    assert Path(image).relative_to(cat).as_posix() == "test/anomaly/000003_d003_p41_crate_z0.png"
+    assert Path(mask).relative_to(cat).as_posix() == "ground_truth/anomaly/000003_d003_p41_crate_z0_mask.png"
+    binary = np.asarray(Image.open(mask))
+    three = np.asarray(Image.open(out / "allo_masks/allo/test/anomaly/000003_d003_p41_crate_z0_mask.png"))
+    assert binary.dtype == np.uint8 and binary.shape == (36, 64) == Image.open(image).size[::-1]
+    assert set(np.unique(binary)) == {0, 255}
+    np.testing.assert_array_equal(binary == 255, three == 2)
+    assert set(np.unique(three)) == {0, 1, 2}
+    assert os.path.samefile(image, renders / "d003_p41_crate_z0.png")  # hard link, no copy
+    for split, kind, n in (("train", "good", 2), ("test", "good", 1), ("test", "anomaly", 1)):
+        assert len(list((out / "allo_masks/allo" / split / kind).glob("*_mask.png"))) == n
+    for split in ("train", "test"):
+        assert Image.open(out / "contact_sheets" / f"allo_{split}.png").size[0] >= 64
+    assert manifest == out / "manifest.csv"
+
+
+def test_manifest_has_one_row_per_image_with_provenance(renders, tmp_path):
+    out = tmp_path / "ds"
+    rows = {r["name"]: r for r in read_manifest(assemble([renders], out))}
+    assert sorted(rows) == sorted(SCENES)
+    a = rows["d003_p41_crate_z0"]
+    assert (a["split"], a["kind"], a["pose"], a["day"], a["anomaly_asset"], a["anomaly_variant"], a["seed"]) == \
+        ("test", "anomaly", "41", "3", "Crate", "blue", "14")
+    assert a["depth_index"] == "0" and float(a["depth_offset"]) == 0.0
+    meta = json.loads((renders / "d003_p41_crate_z0.json").read_text())
+    assert meta["anomaly_fraction"] > 0 and float(a["anomaly_fraction"]) == pytest.approx(meta["anomaly_fraction"])
+    assert a["mask"].endswith("_mask.png") and a["allo_mask"].startswith("allo_masks/allo/test/anomaly/")
+    assert a["layer"] == meta["layer"] and a["epoch"] == "2030-01-01T00:00:00Z"
+    for r in rows.values():
+        assert r["sha256"] == sha(out / r["image"])
+        assert r["sha256"] == sha(renders / f"{r['name']}.png")
+    n = rows["d000_p01"]
+    assert (n["split"], n["kind"], n["mask"], n["anomaly_asset"]) == ("train", "good", "", "")
+
+
+def test_rerun_is_idempotent_and_adds_new_scenes(renders, tmp_path):
+    out = tmp_path / "ds"
+    manifest = assemble([renders], out)
+    before = manifest.read_bytes()
+    files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    assert assemble([renders], out).read_bytes() == before
+    assert sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file()) == files
+    more = fabricate(renders, "d002_p41", tmp_path / "more", "d009_p44", day=9, pose=44)
+    rows = read_manifest(assemble([renders, more], out))
+    assert len(rows) == 5 and len({r["name"] for r in rows}) == 5
+    new = next(r for r in rows if r["name"] == "d009_p44")
+    assert new["index"] == "4" and new["image"] == "allo/test/good/000004_d009_p44.png"
+    assert len(read_manifest(assemble([more, renders], out))) == 5
+    mvtec_pairs(out / "allo")
+
+
+def test_left_out_scenes_and_name_clashes(renders, tmp_path):
+    odd = tmp_path / "odd"
+    fabricate(renders, "d003_p41_crate_z0", odd, "train_anomaly", split="train")  # the paper's train is normal only
+    fabricate(renders, "d000_p01", odd, "hidden_anomaly", split="test", variant="anomaly")  # 0 anomaly pixels
+    with pytest.warns(UserWarning, match="2 scene"):
+        rows = read_manifest(assemble([renders, odd], tmp_path / "ds"))
+    assert sorted(r["name"] for r in rows) == sorted(SCENES)
+    clash = fabricate(renders, "d000_p01", tmp_path / "clash", "d000_p01")  # same name, other layer
+    with pytest.raises(AlloError, match="two different scenes"):
+        assemble([renders, clash], tmp_path / "ds2")
+
+
+def test_cli_dataset_copies_when_asked(renders, tmp_path):
+    out = tmp_path / "ds"
+    result = CliRunner().invoke(app, ["dataset", str(renders), "--out", str(out), "--category", "gateway", "--copy"])
+    assert result.exit_code == 0, result.output
+    assert "train/good 2, test/good 1, test/anomaly 1" in result.output
+    image = out / "gateway/train/good/000000_d000_p01.png"
+    assert image.is_file() and not os.path.samefile(image, renders / "d000_p01.png")
+    with open(out / "manifest.csv", newline="") as f:
+        assert {r["category"] for r in csv.DictReader(f)} == {"gateway"}
+    assert not (out / "manifest.parquet").exists() or __import__("importlib").util.find_spec("pyarrow")
