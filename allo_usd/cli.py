@@ -15,14 +15,46 @@ app.add_typer(asset_app, name="asset")
 
 
 @app.command()
-def render(layer: Path = typer.Argument(..., help="Scene layer (.usda) to render."),
+def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
+                                         help="A scene layer (.usda), a directory of them, or a plan (.toml/.yaml)."),
            out: Path = typer.Option(Path("out/render"), "--out", help="Output directory."),
-           force: bool = typer.Option(False, help="Re-render even if outputs exist.")):
-    """Render one scene layer: RGB PNG, linear EXR, 3-class mask PNG and a metadata JSON."""
-    from .job import render_layer
+           force: bool = typer.Option(False, help="Re-render a single layer even if its outputs exist."),
+           workers: int = typer.Option(0, "--workers", help="Local worker processes (default: all cores)."),
+           scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (tcp://host:8786)."),
+           threads: int = typer.Option(0, "--threads", help="Cycles threads per worker (default: cores // workers)."),
+           retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed.")):
+    """Render scene layers: RGB PNG, linear EXR, 3-class mask PNG and a metadata JSON per scene.
 
-    meta = render_layer(layer, out, force=force)
-    typer.echo(f"{layer} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
+    One .usda layer renders in this process. A directory renders all its scene layers on a local
+    pool (--workers) or a Dask cluster (--scheduler), resuming from OUT/manifest.jsonl; failures
+    go to OUT/failed.jsonl. A plan is authored into OUT/layers first, then rendered into OUT/renders.
+    """
+    import os
+
+    from .dispatch import author_and_dispatch, dispatch
+
+    suffix = source.suffix.lower()
+    if suffix == ".usda" and not source.is_dir() and scheduler is None and not workers:
+        from .job import render_layer
+
+        meta = render_layer(source, out, force=force, threads=threads or None)
+        typer.echo(f"{source} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
+        return
+    kwargs = dict(workers=workers or os.cpu_count(), scheduler=scheduler, threads=threads or None, retries=retries)
+    if source.is_file() and suffix in (".toml", ".yaml", ".yml"):
+        summary = author_and_dispatch(source, out, **kwargs)
+    elif source.is_dir() or (source.is_file() and suffix == ".usda"):
+        summary = dispatch(source, out, **kwargs)
+    else:
+        raise AlloError(f"{source} does not exist or is not a .usda layer, a directory of layers or a plan "
+                        "(.toml/.yaml); check the path")
+    typer.echo(f"{source} -> {out}: {summary}")
+    for row in summary.failed:
+        typer.echo(f"  failed {row['scene']}: {row['reason']}", err=True)
+    if summary.interrupted:
+        raise SystemExit(130)
+    if summary.failed:
+        raise SystemExit(1)
 
 
 @app.command()
@@ -59,6 +91,76 @@ def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ or STL fil
     report = import_mesh_report(file, units=units)
     path = write_asset(report.asset, out, label)
     typer.echo(f"{file} -> {path} (unit {report.unit}, {report.triangles} triangles)")
+
+
+@app.command()
+def inspect(layer: Path = typer.Argument(..., help="Scene layer (.usda)."),
+            as_json: bool = typer.Option(False, "--json", help="Print JSON instead of text.")):
+    """Describe a scene from its USD layer alone: identity, seed, sky, camera, anomaly, render, layer stack."""
+    import json
+
+    from .inspect import describe, format_description
+
+    d = describe(layer)
+    typer.echo(json.dumps(d, indent=2) if as_json else format_description(d))
+
+
+@app.command()
+def diff(a: Path = typer.Argument(..., help="First scene layer."), b: Path = typer.Argument(..., help="Second."),
+         full: bool = typer.Option(False, help="Compare every prim, not only those the non-shared layers touch.")):
+    """List composed values that differ between two scene layers (exit 1 if any differ, like diff)."""
+    from .inspect import diff as diff_layers
+    from .inspect import format_diff
+
+    rows = diff_layers(a, b, full=full)
+    typer.echo(format_diff(rows))
+    if rows:
+        raise typer.Exit(1)
+
+
+@app.command()
+def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directories (NAME.json + files)."),
+            out: Path = typer.Option(..., "--out", help="Dataset directory."),
+            category: str = typer.Option("allo", help="MVTec category name."),
+            copy: bool = typer.Option(False, "--copy", help="Copy files instead of hard-linking them.")):
+    """Assemble renders into an MVTec-AD-style tree, 3-class masks, a manifest and contact sheets."""
+    from .dataset import assemble, read_manifest
+
+    manifest = assemble(render_dirs, out, link=not copy, category=category)
+    rows = [r for r in read_manifest(manifest) if r["category"] == category]
+    counts = {k: sum(1 for r in rows if (r["split"], r["kind"]) == k) for k in
+              (("train", "good"), ("test", "good"), ("test", "anomaly"))}
+    typer.echo(f"{out / category}: " + ", ".join(f"{s}/{k} {n}" for (s, k), n in counts.items())
+               + f"; manifest {manifest}")
+
+
+@app.command("plan")
+def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.toml, .yaml or .yml)."),
+             paper: bool = typer.Option(False, "--paper", help="The ALLO paper's Table II plan (51,409 scenes)."),
+             demo: bool = typer.Option(False, "--demo", help="A tiny plan: 2 days, 3 poses, 1 anomaly.")):
+    """Write a dataset plan file (the paper's, or a tiny demo one) to edit and author."""
+    from .errors import PlanError
+    from .plan import demo_plan, enumerate_scenes, paper_plan, save_plan
+
+    if paper == demo:
+        raise PlanError("choose exactly one of --paper or --demo")
+    plan = paper_plan() if paper else demo_plan()
+    save_plan(plan, out)
+    typer.echo(f"wrote {out}: {len(enumerate_scenes(plan))} scenes")
+
+
+@app.command()
+def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml)."),
+           out: Path = typer.Option(Path("out/dataset"), "--out", help="Output directory for the layers."),
+           limit: int = typer.Option(None, "--limit", help="Author only the first N scenes of the plan."),
+           workers: int = typer.Option(None, "--workers", help="Processes (default: 2 for large plans)."),
+           progress: bool = typer.Option(True, help="Show a progress bar.")):
+    """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done)."""
+    from .authoring import author_plan
+    from .plan import load_plan
+
+    paths = author_plan(load_plan(plan_file), out, limit=limit, progress=progress, workers=workers)
+    typer.echo(f"{len(paths)} scene layers under {out / 'scenes'}; skipped depths in {out / 'skipped.csv'}")
 
 
 def main() -> None:

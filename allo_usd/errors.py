@@ -39,3 +39,15 @@ class SkyInputError(AlloError, ValueError):
 
 class UnknownAnomalyError(AlloError, ValueError):
     """An anomaly asset id or variant that the procedural library does not define."""
+
+
+class DiskFullError(AlloError, OSError):
+    """The output device is full (ENOSPC): a batch stops cleanly; finished outputs are kept."""
+
+
+class RenderCrashError(AlloError, RuntimeError):
+    """A render worker died (segfault, out of memory, killed) more times than the retry budget."""
+
+
+class PlanError(AlloError, ValueError):
+    """A dataset plan is invalid, unreadable or cannot be authored; the message names the field and the fix."""

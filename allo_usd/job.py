@@ -39,8 +39,15 @@ def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
     return rgb, applied
 
 
-def render_layer(layer: Path, out_dir: Path, force: bool = False) -> dict:
-    """Render one layer into out_dir; returns its metadata (also written as JSON)."""
+def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
+                 workdir: Path | None = None) -> dict:
+    """Render one layer into out_dir; returns its metadata (also written as JSON).
+
+    `threads` overrides the layer's allo:render:threads for this process only (the layer is not
+    edited): a pool of N workers on C cores runs each with C // N threads. Cycles gives the same
+    image for any thread count. `workdir` holds Blender's temporary render file.
+    """
+    import dataclasses
     import json
 
     from .blender.render import render_scene
@@ -50,7 +57,9 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False) -> dict:
     if not force and is_done(layer, out_dir):
         return json.loads(paths["meta"].read_text())
     desc = read_scene(layer)
-    result = render_scene(desc)
+    if threads is not None:
+        desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, threads=int(threads)))
+    result = render_scene(desc, workdir)
     rgb, effects = apply_effects(desc, result.rgb)
     write_rgb_png(paths["rgb"], rgb)
     write_rgb_exr(paths["exr"], rgb)

@@ -18,9 +18,25 @@ from .errors import LayerError
 CLASS_IDS = {"station": STATION, "celestial_body": STATION, "anomaly": ANOMALY}
 
 
+def _tf_message(exc) -> str:
+    """The last line of a Tf error, safe against bytes that are not UTF-8 (garbage layers)."""
+    try:
+        text = str(exc)
+    except UnicodeDecodeError:
+        return "the file holds bytes that are not UTF-8"
+    lines = text.strip().splitlines()
+    return lines[-1].strip() if lines else type(exc).__name__
+
+
 def open_stage(layer_path: str | Path):
-    """Open a scene layer as a stage, turning every USD failure into a LayerError with a fix."""
+    """Open a scene layer as a stage, turning every USD failure into a LayerError with a fix.
+
+    The stage must compose without errors (every sublayer, reference and payload resolves) and
+    every file it uses must lie under the allowed roots (allo_usd.safety).
+    """
     from pxr import Tf, Usd, UsdGeom
+
+    from .safety import check_stage
 
     schema.register()
     path = Path(layer_path)
@@ -29,17 +45,89 @@ def open_stage(layer_path: str | Path):
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        raise LayerError(f"{path} is not a readable USD layer ({str(exc).strip().splitlines()[-1]}); "
+        raise LayerError(f"{path} is not a readable USD layer ({_tf_message(exc)}); "
                          "re-author it with `allo-usd author` or restore it from the plan") from None
     if stage is None:
         raise LayerError(f"{path} could not be opened as a USD stage; re-author it")
+    errors = stage.GetCompositionErrors()
+    if errors:
+        raise LayerError(f"{path} does not compose: {_tf_message_list(errors)}; restore the missing "
+                         "sublayer/reference or fix its path in the layer")
+    check_stage(stage, path)
     if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.z or UsdGeom.GetStageMetersPerUnit(stage) != 1.0:
         raise LayerError(f"{path}: stage must be Z-up in metres (upAxis='Z', metersPerUnit=1)")
     return stage
 
 
+def _tf_message_list(errors) -> str:
+    out = []
+    for e in errors[:3]:
+        try:
+            out.append(str(e).strip())
+        except UnicodeDecodeError:
+            out.append("an error whose text is not UTF-8")
+    return "; ".join(out) + (f" (and {len(errors) - 3} more)" if len(errors) > 3 else "")
+
+
+def _number(value, what: str, integer: bool = False, lo: float = -np.inf, hi: float = np.inf):
+    """A finite int/float within [lo, hi], or a LayerError naming the attribute and the value."""
+    kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
+    if isinstance(value, bool) or not isinstance(value, kinds):
+        raise LayerError(f"{what} must be {'an integer' if integer else 'a number'}, got {value!r}; fix the layer")
+    if not (np.isfinite(value) and lo <= value <= hi):
+        raise LayerError(f"{what}={value!r} is outside {lo}..{hi}; fix the layer")
+    return int(value) if integer else float(value)
+
+
+def _vector(value, what: str, n: int) -> tuple[float, ...]:
+    try:
+        out = tuple(float(c) for c in value)
+    except (TypeError, ValueError):
+        raise LayerError(f"{what} must be {n} numbers, got {value!r}; fix the layer") from None
+    if len(out) != n or not np.isfinite(out).all():
+        raise LayerError(f"{what} must be {n} finite numbers, got {value!r}; fix the layer")
+    return out
+
+
+def _check_xform_ops(prim) -> None:
+    """Every xformOp on the prim and its ancestors holds finite values of a transform type."""
+    from pxr import Gf, UsdGeom
+
+    p = prim
+    while p and not p.IsPseudoRoot():
+        if p.IsA(UsdGeom.Xformable):
+            for op in UsdGeom.Xformable(p).GetOrderedXformOps():
+                v = op.Get()
+                if isinstance(v, (Gf.Quatd, Gf.Quatf, Gf.Quath)):
+                    values = [v.GetReal(), *v.GetImaginary()]
+                    ok = op.GetOpType() == UsdGeom.XformOp.TypeOrient
+                elif isinstance(v, (Gf.Matrix4d, Gf.Matrix4f)):
+                    values = [c for row in v for c in row]
+                    ok = op.GetOpType() == UsdGeom.XformOp.TypeTransform
+                elif isinstance(v, (Gf.Vec3d, Gf.Vec3f, Gf.Vec3h)):
+                    values, ok = list(v), op.GetOpType() not in (UsdGeom.XformOp.TypeOrient,
+                                                                  UsdGeom.XformOp.TypeTransform)
+                elif isinstance(v, (float, int)) and not isinstance(v, bool):
+                    values, ok = [v], op.GetOpType() in (UsdGeom.XformOp.TypeRotateX, UsdGeom.XformOp.TypeRotateY,
+                                                         UsdGeom.XformOp.TypeRotateZ)
+                else:
+                    values, ok = [], False
+                if not ok:
+                    raise LayerError(f"{op.GetAttr().GetPath()} holds {v!r}, not a value of its op type; fix the "
+                                     "layer that sets it")
+                if not np.isfinite(np.asarray(values, dtype=np.float64)).all():
+                    raise LayerError(f"{op.GetAttr().GetPath()} = {v} is not finite; fix the layer that sets it")
+        p = p.GetParent()
+
+
 def _matrix(cache, prim) -> np.ndarray:
-    m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64).T  # USD is row-vector
+    from pxr import Tf
+
+    _check_xform_ops(prim)
+    try:
+        m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64).T  # USD is row-vector
+    except Tf.ErrorException as exc:
+        raise LayerError(f"{prim.GetPath()} has an unreadable transform ({_tf_message(exc)}); fix the layer") from None
     if not np.isfinite(m).all():
         raise LayerError(f"{prim.GetPath()} has a non-finite transform; fix the layer that sets it")
     return m
@@ -157,15 +245,15 @@ def read_sun(prim, cache) -> SunDesc | None:
     from pxr import UsdLux
 
     light = UsdLux.DistantLight(prim)
-    intensity = float(light.GetIntensityAttr().Get()) * 2.0 ** float(light.GetExposureAttr().Get() or 0.0)
-    if not np.isfinite(intensity) or intensity < 0:
-        raise LayerError(f"{prim.GetPath()}: sun intensity must be finite and >= 0, got {intensity}")
+    where = prim.GetPath()
+    intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0) * 2.0 ** _number(
+        light.GetExposureAttr().Get() or 0.0, f"{where}.inputs:exposure", lo=-64, hi=64)
     if intensity == 0.0:
         return None  # umbra: the sun lamp is off
     m = _matrix(cache, prim)
     direction = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z, so +Z points at the Sun
-    return SunDesc(tuple(direction), intensity, float(light.GetAngleAttr().Get()),
-                   tuple(float(c) for c in light.GetColorAttr().Get()))
+    return SunDesc(tuple(direction), intensity, _number(light.GetAngleAttr().Get(), f"{where}.inputs:angle", lo=0, hi=180),
+                   _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3))
 
 
 def read_spot(prim, cache) -> SpotDesc:
@@ -175,9 +263,13 @@ def read_spot(prim, cache) -> SpotDesc:
     shaping = UsdLux.ShapingAPI(prim)
     cone = shaping.GetShapingConeAngleAttr().Get() if prim.HasAPI(UsdLux.ShapingAPI) else 180.0
     softness = shaping.GetShapingConeSoftnessAttr().Get() if prim.HasAPI(UsdLux.ShapingAPI) else 0.0
-    intensity = float(light.GetIntensityAttr().Get()) * 2.0 ** float(light.GetExposureAttr().Get() or 0.0)
-    return SpotDesc(_matrix(cache, prim), float(light.GetRadiusAttr().Get()), intensity,
-                    tuple(float(c) for c in light.GetColorAttr().Get()), float(cone), float(softness or 0.0))
+    where = prim.GetPath()
+    intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0) * 2.0 ** _number(
+        light.GetExposureAttr().Get() or 0.0, f"{where}.inputs:exposure", lo=-64, hi=64)
+    return SpotDesc(_matrix(cache, prim), _number(light.GetRadiusAttr().Get(), f"{where}.inputs:radius", lo=0.0),
+                    intensity, _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3),
+                    _number(cone, f"{where}.shaping:cone:angle", lo=0, hi=180),
+                    _number(softness or 0.0, f"{where}.shaping:cone:softness", lo=0))
 
 
 def _get(prim, name, default=None):
@@ -189,34 +281,57 @@ def _get(prim, name, default=None):
 def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
     from pxr import UsdRender
 
+    from pxr import Gf
+
     settings = UsdRender.Settings(settings_prim)
     res = settings.GetResolutionAttr().Get()
+    if not isinstance(res, Gf.Vec2i):
+        raise LayerError(f"{settings_prim.GetPath()}.resolution must be an int2, got {res!r}; fix the layer")
     w, h = int(res[0]), int(res[1])
     if not (1 <= w <= 16384 and 1 <= h <= 16384):
         raise LayerError(f"render resolution {w}x{h} is outside 1..16384 per side; fix {settings_prim.GetPath()}")
-    samples = int(_get(settings_prim, "allo:render:samples", 64))
-    if not 1 <= samples <= 65536:
-        raise LayerError(f"allo:render:samples={samples} is outside 1..65536")
+
+    def num(name, default, integer=False, lo=-np.inf, hi=np.inf):
+        return _number(_get(settings_prim, name, default), name, integer, lo, hi)
+
+    def flag(name, default):
+        value = _get(settings_prim, name, default)
+        if not isinstance(value, bool):
+            raise LayerError(f"{name} must be a bool, got {value!r}; fix the layer")
+        return value
+
+    samples = num("allo:render:samples", 64, True, 1, 65536)
     outputs = []
     for product_path in settings.GetProductsRel().GetForwardedTargets():
         product = UsdRender.Product(settings_prim.GetStage().GetPrimAtPath(product_path))
         for var_path in product.GetOrderedVarsRel().GetForwardedTargets():
             var = UsdRender.Var(settings_prim.GetStage().GetPrimAtPath(var_path))
             outputs.append(str(var.GetSourceNameAttr().Get()))
-    exposure = float(_get(settings_prim, "allo:render:exposure", 1.0))
-    if not (np.isfinite(exposure) and exposure > 0):
+    exposure = num("allo:render:exposure", 1.0)
+    if not exposure > 0:
         raise LayerError(f"allo:render:exposure must be a positive number, got {exposure}")
     render = RenderDesc((w, h), str(_get(settings_prim, "allo:render:preset", "preview")), samples,
-                        float(_get(settings_prim, "allo:render:adaptiveThreshold", 0.0)),
-                        bool(_get(settings_prim, "allo:render:denoise", True)),
-                        int(_get(settings_prim, "allo:render:maxBounces", 8)),
-                        int(_get(settings_prim, "allo:render:seed", 0)), exposure,
-                        int(_get(settings_prim, "allo:render:threads", 0)), tuple(outputs))
-    effects = EffectsDesc(bool(_get(settings_prim, "allo:effects:sensorNoise", False)),
-                          bool(_get(settings_prim, "allo:effects:glare", False)),
-                          bool(_get(settings_prim, "allo:effects:inspectionLight", True)),
-                          bool(_get(settings_prim, "allo:effects:bodyShine", True)))
+                        num("allo:render:adaptiveThreshold", 0.0, lo=0.0, hi=1.0),
+                        flag("allo:render:denoise", True),
+                        num("allo:render:maxBounces", 8, True, 0, 1024),
+                        num("allo:render:seed", 0, True, -2 ** 31, 2 ** 32 - 1), exposure,
+                        num("allo:render:threads", 0, True, 0, 4096), tuple(outputs))
+    effects = EffectsDesc(flag("allo:effects:sensorNoise", False), flag("allo:effects:glare", False),
+                          flag("allo:effects:inspectionLight", True), flag("allo:effects:bodyShine", True))
     return render, effects
+
+
+def _check_variants(prim) -> None:
+    """Every variant selection names a variant the prim's asset has (else USD silently composes none)."""
+    if not prim.HasVariantSets():
+        return
+    sets = prim.GetVariantSets()
+    for name in sets.GetNames():
+        vset = sets.GetVariantSet(name)
+        selection, choices = vset.GetVariantSelection(), vset.GetVariantNames()
+        if selection not in choices and (selection or prim.GetPath().name == "Anomaly"):
+            raise LayerError(f"{prim.GetPath()}: variant {name}={selection!r} is not one of {choices}; choose one of "
+                             "those (unknown anomaly variant?)")
 
 
 def read_meta(stage) -> dict:
@@ -263,6 +378,7 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
         if prim.GetPath().HasPrefix("/World/Rig") or prim.GetPath().HasPrefix("/Render"):
             it.PruneChildren()
             continue
+        _check_variants(prim)
         if prim.IsA(UsdGeom.Mesh):
             meshes.append(read_mesh(prim, cache, materials))
         elif prim.IsA(UsdLux.DistantLight):

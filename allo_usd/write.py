@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .errors import AlloError
+from .errors import AlloError, DiskFullError
 
 MASK_PALETTE = np.array([[0, 0, 0], [70, 130, 255], [255, 40, 40]], dtype=np.uint8)
 
@@ -34,7 +34,7 @@ def atomic_path(path: Path, suffix: str = ""):
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
         if exc.errno == 28:
-            raise AlloError(f"no space left on the device while writing {path}; free space and re-run "
+            raise DiskFullError(f"no space left on the device while writing {path}; free space and re-run "
                             "(finished outputs are kept and will be skipped)") from exc
         raise
     except BaseException:

@@ -55,3 +55,20 @@ def make_spec(anomaly: bool = False, resolution=(64, 36), samples=4, seed=7, **k
         anomaly=AnomalySpec("Crate", "blue", (8.0, 4.0, 2.5), np.eye(3)) if anomaly else None,
     )
     return spec if not kw else SceneSpec(**{**spec.__dict__, **kw})
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _allow_test_asset_roots(tmp_path_factory):
+    """Test layers live in pytest's temp dirs, over a tiny base stage in another temp dir: allow
+    that tree as an asset root (allo_usd.safety), for this process and the workers it spawns."""
+    import os
+
+    from allo_usd.safety import ENV_ROOTS
+
+    old = os.environ.get(ENV_ROOTS)
+    os.environ[ENV_ROOTS] = str(tmp_path_factory.getbasetemp())
+    yield
+    if old is None:
+        os.environ.pop(ENV_ROOTS, None)
+    else:
+        os.environ[ENV_ROOTS] = old

@@ -1,0 +1,580 @@
+"""Run render tasks (one scene layer each) on a local pool of worker processes or a Dask cluster.
+
+Local pool (the default): N warm worker processes, started with the *spawn* method (bpy is not
+fork-safe), each importing bpy once and rendering one layer at a time with `cores // N` Cycles
+threads (the layer is not edited; Cycles gives the same image for any thread count). The
+parent hands one task at a time to each idle worker over a pipe and watches the worker's process
+sentinel, so when a worker dies (segfault, out-of-memory kill) the parent knows exactly which
+task it held: that task alone is retried, up to `retries` times, on a freshly started worker;
+then it is recorded in `failed.jsonl` and the run goes on. (`concurrent.futures` cannot do this:
+a dead worker breaks the whole ProcessPoolExecutor and fails every pending future with it.)
+Workers die with their parent (PR_SET_PDEATHSIG on Linux, plus a parent-watch thread), so a
+killed run leaves no orphan renderers writing behind it.
+
+Dask (`scheduler=ADDRESS` or a `distributed.Client`): the same task function runs on the
+cluster's workers; a task whose worker dies comes back as an exception (KilledWorker) and is
+resubmitted up to `retries` times. Outputs must go to a file system every worker can reach.
+
+Crash safety, for both backends:
+- every output is written under a temporary name and renamed (allo_usd.write.atomic_path);
+- `OUT/manifest.jsonl` gets one line per finished scene (sha256 of the layer and of each output
+  file), appended with a single write and fsync; a torn last line (power cut) is ignored;
+- a re-run skips a scene only if the manifest lists it, its layer is unchanged and every output
+  exists with a matching checksum; anything else is rendered again;
+- stale temporaries (`.NAME.XXXXXXXX.ext` from atomic_path, `OUT/.allo-tmp/`) are removed at the
+  start and end of a run; a lock file keeps two runs from sharing one output directory;
+- a bad layer (AlloError) is recorded as failed at once, without retries;
+- a full disk (DiskFullError) stops the run: pending tasks are dropped, workers stopped, and
+  DiskFullError is raised; finished outputs stay valid and are skipped next time;
+- Ctrl-C stops the run the same way and returns a summary with `interrupted=True`.
+
+Test hooks (environment variables read by the worker, test-only): ALLO_TEST_CRASH_SCENE and
+ALLO_TEST_ENOSPC_SCENE (comma-separated scene names: die with SIGSEGV / hit ENOSPC while writing
+that scene's EXR), ALLO_TEST_DELAY (seconds to sleep before each render).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .errors import AlloError, DiskFullError, LayerError
+from .job import output_paths
+from .safety import ENV_ROOTS
+
+MANIFEST = "manifest.jsonl"
+FAILED = "failed.jsonl"
+LOCK = ".allo-dispatch.lock"
+WORKDIR = ".allo-tmp"
+_TEMP_RE = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.[A-Za-z0-9]+)?$")  # tempfile.mkstemp names from atomic_path
+
+
+@dataclass
+class Summary:
+    rendered: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    failed: list[dict] = field(default_factory=list)
+    interrupted: bool = False
+    seconds: float = 0.0
+
+    def __str__(self) -> str:
+        s = (f"{len(self.rendered)} rendered, {len(self.skipped)} skipped (already done), "
+             f"{len(self.failed)} failed in {self.seconds:.1f} s")
+        return s + (" (interrupted)" if self.interrupted else "")
+
+
+# ---------------------------------------------------------------- which layers
+
+def _is_scene_layer(path: Path) -> bool:
+    """Scene layers carry customLayerData.allo.sceneId; shared sublayers do not and are skipped.
+    A file that is not even USD text is kept, so the reader reports it instead of hiding it."""
+    head = path.read_bytes()[:16384]
+    if not head.startswith(b"#usda"):
+        return True
+    return re.search(rb"\bsceneId\s*=", head) is not None
+
+
+def find_layers(source: str | Path | list) -> list[Path]:
+    """A directory (its *.usda scene layers), a single layer, or a list of layers."""
+    if isinstance(source, (list, tuple)):
+        layers = [Path(p) for p in source]
+    else:
+        source = Path(source)
+        if source.is_dir():
+            layers = sorted(p for p in source.glob("*.usda") if _is_scene_layer(p))
+        elif source.is_file():
+            layers = [source]
+        else:
+            raise AlloError(f"{source} is neither a layer nor a directory of layers; check the path")
+    stems: dict[str, Path] = {}
+    for p in layers:
+        if p.stem in stems:
+            raise AlloError(f"two layers share the name {p.stem!r} ({stems[p.stem]}, {p}); outputs are named "
+                            "after the layer, so rename one")
+        stems[p.stem] = p
+    return layers
+
+
+# ---------------------------------------------------------------- manifest
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _read_jsonl(path: Path) -> list[dict]:
+    rows = []
+    if path.is_file():
+        for line in path.read_text(errors="replace").splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line torn by a crash mid-append
+            if isinstance(row, dict) and "scene" in row:
+                rows.append(row)
+    return rows
+
+
+def load_manifest(out_dir: Path) -> dict[str, dict]:
+    """Finished scenes by name (the last row of a scene wins)."""
+    return {row["scene"]: row for row in _read_jsonl(Path(out_dir) / MANIFEST)}
+
+
+def _append_jsonl(path: Path, row: dict) -> None:
+    """One os.write of one line on an O_APPEND descriptor, then fsync: a crash loses at most the line."""
+    data = (json.dumps(row, sort_keys=True) + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, data)
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno == 28:
+            raise DiskFullError(f"no space left on the device while appending to {path}; free space and re-run") from exc
+        raise
+    finally:
+        os.close(fd)
+
+
+def _compact_manifest(out_dir: Path) -> None:
+    """Rewrite the manifest with one row per scene (atomically), dropping torn lines and repeats."""
+    from .write import atomic_path
+
+    path = Path(out_dir) / MANIFEST
+    if not path.is_file():
+        return
+    rows = load_manifest(out_dir)
+    text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows.values())
+    if text != path.read_text(errors="replace"):
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
+
+
+def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
+    """The manifest row matches the current layer and every output exists with its checksum."""
+    if not row or row.get("layer_sha256") != sha256_file(layer):
+        return False
+    files = row.get("files") or {}
+    expected = {p.name for p in output_paths(layer, out_dir).values()}
+    if set(files) != expected:
+        return False
+    return all((Path(out_dir) / name).is_file() and sha256_file(Path(out_dir) / name) == digest
+               for name, digest in files.items())
+
+
+def clean_stale(out_dir: Path) -> int:
+    """Remove temporaries left by killed writers; returns how many."""
+    out_dir = Path(out_dir)
+    n = 0
+    if out_dir.is_dir():
+        for p in out_dir.iterdir():
+            if p.is_file() and _TEMP_RE.match(p.name):
+                p.unlink(missing_ok=True)
+                n += 1
+    shutil.rmtree(out_dir / WORKDIR, ignore_errors=True)
+    return n
+
+
+class _RunLock:
+    def __init__(self, out_dir: Path):
+        self.path = Path(out_dir) / LOCK
+
+    def __enter__(self):
+        import fcntl
+
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.fd)
+            raise AlloError(f"another render run is writing to {self.path.parent}; wait for it or use another "
+                            "--out") from None
+        return self
+
+    def __exit__(self, *exc):
+        os.close(self.fd)
+
+
+# ---------------------------------------------------------------- the task (runs in a worker)
+
+def _listed(var: str, scene: str) -> bool:
+    return scene in [s.strip() for s in os.environ.get(var, "").split(",") if s.strip()]
+
+
+def _test_hooks(scene: str) -> None:
+    if os.environ.get("ALLO_TEST_DELAY"):
+        time.sleep(float(os.environ["ALLO_TEST_DELAY"]))
+    if _listed("ALLO_TEST_CRASH_SCENE", scene):
+        os.kill(os.getpid(), signal.SIGSEGV)
+    if _listed("ALLO_TEST_ENOSPC_SCENE", scene):
+        import errno
+
+        from . import job
+        from .write import atomic_path
+
+        def full_disk(path, *args, **kwargs):
+            with atomic_path(path) as tmp:
+                tmp.write_bytes(b"partial EXR")
+                raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+
+        job.write_rgb_exr = full_disk
+
+
+def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str = "") -> dict:
+    """Render one layer (forced: the parent decided it is not done) and checksum its outputs.
+
+    Never raises for a bad layer or a full disk: returns {"status": "error", "kind": ...} so
+    the parent can tell them apart from a crash, which it sees as a dead worker instead.
+    """
+    _fix_bpy_path()
+    from .job import render_layer
+
+    if roots:
+        os.environ[ENV_ROOTS] = roots
+    layer_p, out_p = Path(layer), Path(out_dir)
+    scene = layer_p.stem
+    try:
+        _test_hooks(scene)
+        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=_workdir(out_p))
+    except DiskFullError as exc:
+        return {"status": "error", "kind": "disk_full", "scene": scene, "message": str(exc)}
+    except AlloError as exc:
+        return {"status": "error", "kind": "layer", "scene": scene, "message": f"{type(exc).__name__}: {exc}"}
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which retries it
+        return {"status": "error", "kind": "error", "scene": scene, "message": f"{type(exc).__name__}: {exc}"}
+    files = {p.name: sha256_file(p) for p in output_paths(layer_p, out_p).values()}
+    return {"status": "ok", "scene": scene, "layer": str(layer_p.resolve()), "layer_sha256": meta["layer_sha256"],
+            "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", scene),
+            "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}"}
+
+
+def _workdir(out_dir: Path) -> Path:
+    d = out_dir / WORKDIR
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+# ---------------------------------------------------------------- local pool
+
+def _die_with_parent(parent_pid: int) -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+    def watch():
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(1)
+            time.sleep(1.0)
+
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    threading.Thread(target=watch, daemon=True).start()
+
+
+_BPY_SCRIPTS = re.compile(r"[/\\]bpy[/\\]\d+\.\d+[/\\]scripts")
+
+
+def _fix_bpy_path() -> None:
+    """A spawned child inherits its parent's sys.path; if the parent had imported bpy, that holds
+    bpy's bundled scripts/modules, whose `bpy` package shadows the real module: drop them."""
+    if "bpy" not in sys.modules:
+        sys.path[:] = [p for p in sys.path if not _BPY_SCRIPTS.search(p)]
+
+
+def _worker_main(conn, env: dict, parent_pid: int) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
+    _die_with_parent(parent_pid)
+    os.environ.update(env)
+    _fix_bpy_path()
+    import bpy  # noqa: F401 - warm: import once per worker, not once per scene
+
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        conn.send(render_task(**msg))
+
+
+class _Worker:
+    def __init__(self, ctx, env: dict):
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_main, args=(child, env, os.getpid()), daemon=True,
+                                name="allo-render-worker")
+        self.proc.start()
+        child.close()
+        self.task: _Task | None = None
+
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(5)
+        self.conn.close()
+
+
+@dataclass
+class _Task:
+    layer: Path
+    attempts: int = 0
+    reasons: list[str] = field(default_factory=list)
+
+    @property
+    def scene(self) -> str:
+        return self.layer.stem
+
+
+def _death_reason(code: int | None) -> str:
+    if code is not None and code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        hint = " (out of memory?)" if -code == signal.SIGKILL else ""
+        return f"worker died with {name}{hint}"
+    return f"worker exited with status {code}"
+
+
+class _Run:
+    """Book-keeping shared by both backends: manifest, failures, progress, retries."""
+
+    def __init__(self, out_dir: Path, total: int, retries: int, progress: bool | None, summary: Summary):
+        from tqdm.auto import tqdm
+
+        self.out_dir, self.retries, self.summary = out_dir, retries, summary
+        disable = (not sys.stderr.isatty()) if progress is None else not progress
+        self.bar = tqdm(total=total, unit="scene", desc="render", disable=disable, dynamic_ncols=True,
+                        file=sys.stderr)
+
+    def ok(self, task: _Task, result: dict) -> None:
+        row = {k: v for k, v in result.items() if k != "status"}
+        row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        _append_jsonl(self.out_dir / MANIFEST, row)
+        self.summary.rendered.append(task.scene)
+        self._tick()
+
+    def fail(self, task: _Task, kind: str, reason: str) -> None:
+        row = {"scene": task.scene, "layer": str(task.layer), "kind": kind, "reason": reason,
+               "attempts": task.attempts, "reasons": task.reasons,
+               "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        self.summary.failed.append(row)
+        try:
+            _append_jsonl(self.out_dir / FAILED, row)
+        finally:
+            self._tick()
+
+    def retry_or_fail(self, task: _Task, kind: str, reason: str) -> bool:
+        """True if the task should run again."""
+        task.reasons.append(reason)
+        if task.attempts <= self.retries:
+            return True
+        self.fail(task, kind, f"{reason} (after {task.attempts} attempts)")
+        return False
+
+    def _tick(self) -> None:
+        self.bar.set_postfix(ok=len(self.summary.rendered), failed=len(self.summary.failed), refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict) -> None:
+    import multiprocessing
+    from multiprocessing.connection import wait
+
+    ctx = multiprocessing.get_context("spawn")
+    pending = deque(tasks)
+    pool = [_Worker(ctx, env) for _ in range(min(workers, len(tasks)))]
+    disk_full: DiskFullError | None = None
+    try:
+        while pending or any(w.task for w in pool):
+            for w in pool:
+                if w.task is None and pending:
+                    w.task = pending.popleft()
+                    w.task.attempts += 1
+                    w.conn.send({"layer": str(w.task.layer), "out_dir": str(out_dir), "threads": threads,
+                                 "roots": env.get(ENV_ROOTS, "")})
+            busy = [w for w in pool if w.task]
+            wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=1.0)
+            for i, w in enumerate(pool):
+                if w.task is None:
+                    continue
+                result = None
+                if w.conn.poll():
+                    try:
+                        result = w.conn.recv()
+                    except (EOFError, OSError):
+                        result = None
+                    dead = result is None
+                else:
+                    dead = not w.proc.is_alive()
+                if not result and not dead:
+                    continue
+                task, w.task = w.task, None
+                if dead:
+                    w.proc.join(5)
+                    reason = _death_reason(w.proc.exitcode)
+                    w.kill()
+                    pool[i] = _Worker(ctx, env)
+                    clean_stale(out_dir)  # its half-written temporaries
+                    if run.retry_or_fail(task, "crash", reason):
+                        pending.appendleft(task)
+                elif result["status"] == "ok":
+                    run.ok(task, result)
+                elif result["kind"] == "layer":
+                    run.fail(task, "layer", result["message"])
+                elif result["kind"] == "disk_full":
+                    run.fail(task, "disk_full", result["message"])
+                    disk_full = DiskFullError(result["message"])
+                    pending.clear()
+                    raise disk_full
+                elif run.retry_or_fail(task, "error", result["message"]):
+                    pending.appendleft(task)
+    finally:
+        for w in pool:
+            w.kill()
+
+
+# ---------------------------------------------------------------- Dask
+
+def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict) -> None:
+    from distributed import Client, as_completed
+
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    roots = env.get(ENV_ROOTS, "")
+    try:
+        def submit(task: _Task):
+            task.attempts += 1
+            return client.submit(render_task, str(task.layer), str(out_dir), threads, roots, pure=False,
+                                 key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
+
+        futures = {submit(t): t for t in tasks}
+        completed = as_completed(list(futures))
+        try:
+            for fut in completed:
+                task = futures.pop(fut)
+                try:
+                    result = fut.result()
+                except Exception as exc:  # noqa: BLE001 - KilledWorker, a lost connection, ...
+                    if run.retry_or_fail(task, "crash", f"{type(exc).__name__}: {exc}"):
+                        new = submit(task)
+                        futures[new] = task
+                        completed.add(new)
+                    continue
+                if result["status"] == "ok":
+                    run.ok(task, result)
+                elif result["kind"] == "layer":
+                    run.fail(task, "layer", result["message"])
+                elif result["kind"] == "disk_full":
+                    run.fail(task, "disk_full", result["message"])
+                    raise DiskFullError(result["message"])
+                elif run.retry_or_fail(task, "error", result["message"]):
+                    new = submit(task)
+                    futures[new] = task
+                    completed.add(new)
+        finally:
+            if futures:
+                client.cancel(list(futures), force=True)
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+# ---------------------------------------------------------------- entry point
+
+def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
+             retries: int = 2, progress: bool | None = None, extra_roots: tuple = ()) -> Summary:
+    """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
+
+    `workers` local processes (default: all cores) with `threads` Cycles threads each (default:
+    cores // workers), or the Dask cluster at `scheduler` (an address or a Client). Returns a
+    Summary; raises DiskFullError when the disk fills (after stopping cleanly).
+    """
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    layers = find_layers(source)
+    roots = sorted({str(p.resolve().parent) for p in layers} | {str(Path(r).resolve()) for r in extra_roots})
+    prior = os.environ.get(ENV_ROOTS, "")
+    env = {ENV_ROOTS: os.pathsep.join([*roots, *([prior] if prior else [])])}
+    summary = Summary()
+    with _RunLock(out_dir):
+        clean_stale(out_dir)
+        (out_dir / FAILED).unlink(missing_ok=True)  # failures of this run only; earlier ones are retried
+        _compact_manifest(out_dir)
+        done = load_manifest(out_dir)
+        tasks = []
+        for layer in layers:
+            if is_verified(done.get(layer.stem), layer, out_dir):
+                summary.skipped.append(layer.stem)
+            else:
+                tasks.append(_Task(layer))
+        run = _Run(out_dir, len(tasks), retries, progress, summary)
+        try:
+            if tasks and scheduler is not None:
+                _run_dask(tasks, out_dir, scheduler, threads, run, env)
+            elif tasks:
+                cores = os.cpu_count() or 1
+                n = max(1, workers or cores)
+                _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env)
+        except KeyboardInterrupt:
+            summary.interrupted = True
+        finally:
+            run.close()
+            clean_stale(out_dir)
+            _compact_manifest(out_dir)
+    summary.seconds = time.perf_counter() - t0
+    return summary
+
+
+def _plan_functions():
+    """(load_plan, author_plan) from allo_usd.plan (or allo_usd.authoring), or None."""
+    import importlib
+
+    try:
+        plan_mod = importlib.import_module(".plan", __package__)
+    except ImportError:
+        return None
+    load = getattr(plan_mod, "load_plan", None)
+    author = getattr(plan_mod, "author_plan", None)
+    if author is None:
+        try:
+            author = getattr(importlib.import_module(".authoring", __package__), "author_plan", None)
+        except ImportError:
+            author = None
+    return (load, author) if load and author else None
+
+
+def author_and_dispatch(plan_path: Path, out_dir: Path, **kwargs) -> Summary:
+    """A plan file: author its layers into OUT/layers (allo_usd.plan), then render into OUT/renders."""
+    funcs = _plan_functions()
+    if funcs is None:
+        raise AlloError(f"{plan_path} is a plan file, but this version of allo_usd has no plan support yet "
+                        "(allo_usd.plan.load_plan/author_plan); author the layers first and pass their directory")
+    load_plan, author_plan = funcs
+    layers_dir = Path(out_dir) / "layers"
+    layers = author_plan(load_plan(Path(plan_path)), layers_dir)
+    source = list(layers) if layers else sorted(p for p in layers_dir.rglob("*.usda") if _is_scene_layer(p))
+    return dispatch(source, Path(out_dir) / "renders", extra_roots=(Path(out_dir),), **kwargs)
+
+
+__all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "load_manifest", "is_verified",
+           "clean_stale", "render_task", "LayerError"]
