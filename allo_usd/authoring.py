@@ -139,6 +139,23 @@ def _existing(out_dir: Path) -> set[str]:
     return found
 
 
+def with_station_stage(plan: Plan, out_dir: Path) -> Plan:
+    """A plan whose station is a model file gets its own base stage, built once under
+    `out_dir/stages` (before any worker starts) and used instead of the committed one."""
+    if plan.station.source == "procedural":
+        return plan
+    from .author.build_stage import build_base_stage
+
+    base = Path(out_dir) / "stages" / "base.usda"
+    if not base.is_file():
+        source = Path(plan.station.source)
+        if not source.is_file():
+            raise PlanError(f"station.source: {source} does not exist; fix: give the path of a glTF/OBJ/STL "
+                            "model, or 'procedural'")
+        build_base_stage(base.parent, str(source), plan.station.units)
+    return plan.model_copy(update={"base_stage": str(base.resolve())})
+
+
 def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
                 workers: int | None = None) -> list[Path]:
     """Author the plan's scenes (the first `limit` of them) under `out_dir`; returns their layer paths
@@ -150,6 +167,7 @@ def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: b
     out_dir = Path(out_dir)
     keys = enumerate_scenes(plan)[: limit if limit is not None else None]
     out_dir.mkdir(parents=True, exist_ok=True)
+    plan = with_station_stage(plan, out_dir)
     save_plan(plan, out_dir / "plan.toml")
     sky = compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch))
     ctx = _Context(plan, out_dir, sky)

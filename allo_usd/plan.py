@@ -190,7 +190,7 @@ class Station(_Model):
     """'procedural' (the built-in station) or the path of a model the base stage was built from."""
 
     source: str = "procedural"
-    units: Literal["m", "cm", "mm", "in", "ft", "auto"] = "m"
+    units: Literal["m", "cm", "mm", "in", "ft", "auto"] = "auto"
 
     @field_validator("source")
     @classmethod

@@ -5,6 +5,8 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
 
 - the project's `stages/` directory (the shipped base stage and assets);
 - the directory of the layer being opened (a scene layer and its neighbours);
+- the nearest enclosing directory holding a `plan.toml` (the top of an authored plan's tree,
+  whose shared day and pose layers sit beside the scene folders);
 - the directories named in the environment variable `ALLO_ASSET_ROOTS` (os.pathsep-separated).
   The dispatcher sets it to the directories of the layers it renders and the plan's output
   directory, so worker processes inherit the same rule.
@@ -25,8 +27,18 @@ from .paths import STAGES
 ENV_ROOTS = "ALLO_ASSET_ROOTS"
 
 
+def _plan_root(start: Path) -> Path | None:
+    for d in (Path(os.path.realpath(start)), *Path(os.path.realpath(start)).parents):
+        if (d / "plan.toml").is_file():
+            return d
+    return None
+
+
 def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> tuple[Path, ...]:
     roots = [STAGES, Path(layer_path).parent, *extra]
+    plan_root = _plan_root(Path(layer_path).parent)
+    if plan_root is not None:  # a plan's output tree (author_plan writes plan.toml at its top)
+        roots.append(plan_root)
     roots += [Path(p) for p in os.environ.get(ENV_ROOTS, "").split(os.pathsep) if p]
     out = []
     for r in roots:

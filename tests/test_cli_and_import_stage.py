@@ -70,3 +70,26 @@ def test_base_stage_from_the_real_iss_renders(tmp_path):
                           render=RenderSpec((64, 36), samples=4, exposure=EXPOSURE, denoise=False))
     meta = render_layer(write_scene_layer(scene, tmp_path / "iss.usda", base), tmp_path / "out")
     assert meta["class_pixels"]["station_and_bodies"] > 0
+
+
+@needs_iss
+@pytest.mark.render
+def test_plan_station_option_uses_the_imported_model(tmp_path):
+    """A plan naming a model file gets its own base stage; a scene of it renders on its own."""
+    from allo_usd.authoring import author_plan
+    from allo_usd.job import render_layer
+    from allo_usd.plan import Anomalies, Dates, Plan, Poses, Quality, Station
+
+    plan = Plan(name="iss", dates=Dates(days=1), poses=Poses(train=[3], test=[41]),
+                anomalies=Anomalies(assets=[]), quality=Quality(resolution=(64, 36), samples=2),
+                station=Station(source=str(ISS)))
+    layers = author_plan(plan, tmp_path / "plan", progress=False)
+    assert layers and (tmp_path / "plan" / "stages" / "base.usda").is_file()
+    from allo_usd.read import open_stage
+
+    stage = open_stage(layers[0])  # keep the stage alive while its layers are read
+    used = [str(layer.identifier) for layer in stage.GetUsedLayers()]
+    assert any(p.endswith("plan/stages/base.usda") for p in used), used
+    assert not any(p.endswith("/stages/station/Station.usda") and "/plan/" not in p for p in used)
+    meta = render_layer(layers[0], tmp_path / "renders")  # single layer: the plan root is allowed
+    assert meta["class_pixels"]["station_and_bodies"] > 0
