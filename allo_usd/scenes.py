@@ -67,6 +67,17 @@ class World:
             self._anomaly_cache[key] = read_triangles(path, f"/{asset}", variant)
         return self._anomaly_cache[key]
 
+    def anomaly_scene(self, asset: str, variant: str):
+        """(centred points, triangles, centre, BVH in the object's own frame), built once per asset variant."""
+        key = ("scene", asset, variant)
+        if key not in self._anomaly_cache:
+            from .placement import anomaly_scene
+
+            pts, tris = self.anomaly_geometry(asset, variant)
+            centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+            self._anomaly_cache[key] = (pts - centre, tris, centre, anomaly_scene(pts - centre, tris))
+        return self._anomaly_cache[key]
+
 
 def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
     from .sky import body_placement, sun_light
@@ -100,11 +111,10 @@ def resolve_placements(world: World, camera: CameraSpec, rng: np.random.Generato
                        resolution: tuple[int, int]) -> list[AnomalySpec | str]:
     """All five depths of one placement from one ray-cast search: an AnomalySpec per depth, or the
     reason that depth was skipped. Raises PlacementError when no initial placement is found."""
-    pts, tris = world.anomaly_geometry(*anomaly)
-    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    pts, tris, centre, scene = world.anomaly_scene(*anomaly)
     pos = np.asarray(camera.position, dtype=np.float64)
-    placements = place(world.station_scene, pts - centre, tris, pos, camera.rotation, rng,
-                       resolution[0], resolution[1], check_width=min(480, resolution[0]))
+    placements = place(world.station_scene, pts, tris, pos, camera.rotation, rng,
+                       resolution[0], resolution[1], check_width=min(480, resolution[0]), anomaly=scene)
     out = []
     for p in placements:
         if p.position is None:
