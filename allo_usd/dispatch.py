@@ -232,6 +232,9 @@ def _test_hooks(scene: str) -> None:
         job.write_rgb_exr = full_disk
 
 
+_SESSION = None  # a local-pool worker's warm Blender session (allo_usd.blender.session); None elsewhere
+
+
 def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str = "") -> dict:
     """Render one layer (forced: the parent decided it is not done) and checksum its outputs.
 
@@ -247,7 +250,7 @@ def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str
     scene = layer_p.stem
     try:
         _test_hooks(scene)
-        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=_workdir(out_p))
+        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=_workdir(out_p), session=_SESSION)
     except DiskFullError as exc:
         return {"status": "error", "kind": "disk_full", "scene": scene, "message": str(exc)}
     except AlloError as exc:
@@ -303,6 +306,11 @@ def _worker_main(conn, env: dict, parent_pid: int) -> None:
     os.environ.update(env)
     _fix_bpy_path()
     import bpy  # noqa: F401 - warm: import once per worker, not once per scene
+
+    from .blender.session import Session
+
+    global _SESSION
+    _SESSION = Session()  # one Blender scene per worker, patched from scene to scene
 
     while True:
         try:

@@ -179,7 +179,7 @@ def configure_render(render: RenderDesc, body_shine: bool = True) -> None:
     scene.view_settings.exposure = 0.0
     scene.view_settings.gamma = 1.0
     scene.render.dither_intensity = 0.0
-    world = bpy.data.worlds.new("Space")
+    world = scene.world if scene.world is not None and scene.world.name == "Space" else bpy.data.worlds.new("Space")
     world.color = (0.0, 0.0, 0.0)
     bg = next((n for n in world.node_tree.nodes if n.type == "BACKGROUND"), None) if world.node_tree else None
     if bg is not None:

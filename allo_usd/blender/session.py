@@ -1,0 +1,410 @@
+"""A warm render session: one Blender scene kept across renders, patched from scene to scene.
+
+`Session.render(desc)` builds the first description from scratch (`build.build_scene`); every
+later one is diffed against the description the scene now shows, and only what differs is
+applied:
+- camera, body and anomaly matrices, pass indices, ray visibility, material assignment;
+- the sun lamp (direction, irradiance, angle, colour; removed in umbra, added back when lit);
+- the inspection spot light (on/off, transform, power, cone);
+- render settings (resolution, samples, seed, exposure, threads, denoise, ...);
+- the compositor (glare on/off);
+- materials whose values changed (patched in place, or rebuilt when the node graph differs);
+- meshes that came, went or changed geometry (the anomaly in/out or changing asset/variant):
+  the old objects, their meshes and materials are removed and orphan data purged
+  (`bpy.data.orphans_purge(do_recursive=True)`) before the new ones are built.
+
+A mesh is kept when its prim path and geometry (points, face counts and indices, UVs, smooth
+flag) are unchanged; geometry is compared by a digest computed once per MeshDesc. When less
+than half of the description's points could be kept (another base stage), the session builds
+from scratch.
+
+Byte-identical to a fresh build (tests/test_session.py, and 10/10 scenes on the real stage in
+scripts/bench_session.py): Cycles with the same seed renders the same scene to the same bytes.
+What makes the patched scene "the same scene":
+- every value is set through the same builder code a fresh build uses (build.build_* and
+  build.configure_render); a spot light is simply rebuilt when anything about it changes, and a
+  material is rebuilt unless only its plain Principled values differ;
+- names are freed before they are taken again (old objects, meshes and materials removed and
+  orphans purged first), so new datablocks get exactly the fresh build's names, never `.001`;
+- objects are linked in the fresh build's order (meshes in description order, camera, sun,
+  spot): the depsgraph, and so Cycles' object and light lists, follow the scene collection's
+  order. In the tests the bytes matched even without this step (Cycles' per-object random
+  numbers hash the name, not the index), but it costs only an unlink/link of the tail, no
+  geometry work, so it is kept as a guarantee;
+- the world is reused (build.configure_render no longer creates a `Space.001` per call).
+Persistent data (`use_persistent_data`, set by configure_render for both paths) lets Cycles keep
+unchanged geometry between renders. On the committed stage a switch costs ~12 ms and a whole
+warm preview scene ~5% less than a cold one (docs/bench_session.md): the station is small, so
+the render dominates either way.
+
+A Session must own the process's Blender scene: a fresh build elsewhere (render_scene, a file
+load) replaces it, which the session notices (a token on the scene, live object pointers) and
+answers with a full build.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..description import MaterialDesc, MeshDesc, SceneDescription
+from . import build
+from .render import RenderResult, render_current
+
+_TOKEN = "allo_session"
+CAMERA, SUN, SPOT = "/World/Camera", "/World/Sky/SunLight", "/World/Camera/InspectionLight"
+
+
+def geometry_digest(mesh: MeshDesc) -> bytes:
+    """Digest of what a Blender mesh datablock is built from (not the matrix, material or class)."""
+    h = hashlib.blake2b(digest_size=16)
+    for arr in (mesh.points, mesh.face_counts, mesh.face_indices):
+        a = np.ascontiguousarray(arr)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.data)
+    if mesh.uv is None:
+        h.update(b"no-uv")
+    else:
+        a = np.ascontiguousarray(mesh.uv)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.data)
+    h.update(b"smooth" if mesh.smooth else b"flat")
+    return h.digest()
+
+
+@dataclass
+class ApplyStats:
+    """What the last `Session.apply` did."""
+    full_build: bool = False
+    seconds: float = 0.0
+    meshes_kept: int = 0
+    meshes_added: list[str] = field(default_factory=list)
+    meshes_removed: list[str] = field(default_factory=list)
+    materials_patched: list[str] = field(default_factory=list)
+    materials_rebuilt: list[str] = field(default_factory=list)
+    changed: list[str] = field(default_factory=list)   # camera, sun, spot, render, compositor, ...
+    reordered: bool = False
+    purged: int = 0
+
+
+def _eq(a, b) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return np.array_equal(np.asarray(a), np.asarray(b))
+    return a == b
+
+
+class Session:
+    """One Blender scene kept warm across renders in this process (bpy has one global state:
+    use one Session per process)."""
+
+    def __init__(self, min_kept_fraction: float = 0.5):
+        self.desc: SceneDescription | None = None
+        self.min_kept_fraction = min_kept_fraction
+        self.full_builds = 0
+        self.applies = 0
+        self.last = ApplyStats()
+        self._digests: dict[str, tuple[MeshDesc, bytes]] = {}   # path -> (desc it was computed for, digest)
+        self._objects: dict[str, object] = {}                   # mesh prim path -> Blender object
+        self._materials: dict[str, object] = {}                 # material key -> Blender material
+        self._token = f"{id(self):x}-{time.monotonic_ns():x}"
+
+    # ---------------------------------------------------------------- public
+
+    def render(self, desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
+        self.apply(desc)
+        try:
+            return render_current(desc, workdir)
+        except BaseException:
+            self.invalidate()
+            raise
+
+    def apply(self, desc: SceneDescription) -> ApplyStats:
+        """Make the Blender scene show `desc`; returns what was done (also in `self.last`)."""
+        t0 = time.perf_counter()
+        try:
+            if self.desc is None or not self._alive() or not self._patchable(desc):
+                stats = self._full_build(desc)
+            else:
+                stats = self._patch(desc)
+        except BaseException:
+            self.invalidate()
+            raise
+        self.desc = desc
+        current = {m.path for m in desc.meshes}
+        self._digests = {p: v for p, v in self._digests.items() if p in current}  # hold no old arrays
+        stats.seconds = time.perf_counter() - t0
+        self.last = stats
+        self.applies += 1
+        return stats
+
+    def _alive(self) -> bool:
+        """The Blender scene is still the one this session built (a fresh build or a file load elsewhere
+        in the process, e.g. render_scene, replaces it and frees every object the session holds)."""
+        import bpy
+
+        try:
+            return bpy.context.scene.get(_TOKEN) == self._token and all(o.name for o in self._objects.values())
+        except ReferenceError:
+            return False
+
+    def invalidate(self) -> None:
+        """Forget the current scene: the next render builds from scratch."""
+        self.desc = None
+        self._objects.clear()
+        self._materials.clear()
+
+    # ---------------------------------------------------------------- digests
+
+    def _digest(self, mesh: MeshDesc) -> bytes:
+        cached = self._digests.get(mesh.path)
+        if cached is not None and cached[0] is mesh:
+            return cached[1]
+        d = geometry_digest(mesh)
+        self._digests[mesh.path] = (mesh, d)
+        return d
+
+    def _patchable(self, desc: SceneDescription) -> bool:
+        self._old_digests = {p: d for p, (_, d) in self._digests.items()}
+        old = {m.path: self._old_digests.get(m.path) for m in self.desc.meshes}
+        self._kept = set()
+        kept_points = total_points = 0
+        for m in desc.meshes:
+            total_points += len(m.points)
+            if m.path in old and old[m.path] is not None and self._digest(m) == old[m.path]:
+                self._kept.add(m.path)
+                kept_points += len(m.points)
+            else:
+                self._digest(m)
+        return bool(self._kept) and kept_points >= self.min_kept_fraction * total_points
+
+    # ---------------------------------------------------------------- from scratch
+
+    def _full_build(self, desc: SceneDescription) -> ApplyStats:
+        import bpy
+
+        build.build_scene(desc)
+        self.full_builds += 1
+        bpy.context.scene[_TOKEN] = self._token  # a custom property: Cycles never reads it
+        objs = {o.name: o for o in bpy.context.scene.collection.objects}
+        self._objects = {m.path: objs[m.path] for m in desc.meshes}
+        self._materials = {k: bpy.data.materials[m.path] for k, m in desc.materials.items()}
+        for m in desc.meshes:
+            self._digest(m)
+        return ApplyStats(full_build=True, meshes_added=[m.path for m in desc.meshes])
+
+    # ---------------------------------------------------------------- incremental
+
+    def _patch(self, desc: SceneDescription) -> ApplyStats:
+        import bpy
+
+        stats = ApplyStats()
+        prev = self.desc
+        scene = bpy.context.scene
+        new_paths = {m.path for m in desc.meshes}
+        removed = [m.path for m in prev.meshes if m.path not in self._kept]
+        added = [m for m in desc.meshes if m.path not in self._kept]
+
+        # 1. Remove what goes (meshes, then materials that are gone or must be rebuilt), purge.
+        for path in removed:
+            obj = self._objects.pop(path)
+            data = obj.data
+            bpy.data.objects.remove(obj, do_unlink=True)
+            if data is not None and data.users == 0:
+                bpy.data.meshes.remove(data)
+        stats.meshes_removed = removed
+        rebuild_mats, patch_mats = [], []
+        for key, mat in list(self._materials.items()):
+            new = desc.materials.get(key)
+            old = prev.materials.get(key)
+            if new is None or new.path != old.path:
+                rebuild_mats.append(key) if new is not None else None
+                self._drop_material(key)
+            elif new != old:
+                if self._can_patch_material(old, new):
+                    patch_mats.append(key)
+                else:
+                    rebuild_mats.append(key)
+                    self._drop_material(key)
+        if removed or rebuild_mats or any(k not in desc.materials for k in prev.materials):
+            stats.purged = self._purge()
+            for key, mat in list(self._materials.items()):  # a material whose only mesh went was purged too
+                try:
+                    mat.name
+                except ReferenceError:
+                    del self._materials[key]
+        # 2. Materials: build the new and the rebuilt ones (in description order), patch the rest.
+        for key, m in desc.materials.items():
+            if key not in self._materials:
+                self._materials[key] = build.build_material(m)
+                if key in prev.materials:
+                    stats.materials_rebuilt.append(key)
+        for key in patch_mats:
+            self._patch_material(self._materials[key], desc.materials[key])
+            stats.materials_patched.append(key)
+        # 3. Meshes: build the new ones; patch the kept ones.
+        prev_by_path = {m.path: m for m in prev.meshes}
+        for m in desc.meshes:
+            if m.path in self._kept:
+                self._patch_mesh(self._objects[m.path], prev_by_path[m.path], m)
+            else:
+                self._objects[m.path] = build.build_mesh(m, self._materials[m.material])
+        stats.meshes_added = [m.path for m in added]
+        stats.meshes_kept = len(self._kept)
+        # 4. Camera, lights.
+        pc, nc = prev.camera, desc.camera
+        if not _eq(pc.matrix, nc.matrix) or (pc.focal_length_mm, pc.sensor_width_mm, pc.sensor_height_mm, pc.clip) \
+                != (nc.focal_length_mm, nc.sensor_width_mm, nc.sensor_height_mm, nc.clip):
+            self._patch_camera(desc)
+            stats.changed.append("camera")
+        if prev.sun != desc.sun:
+            self._patch_sun(desc)
+            stats.changed.append("sun")
+        if not self._spot_equal(prev.spot, desc.spot):
+            self._patch_spot(desc)
+            stats.changed.append("spot")
+        # 5. Render settings and compositor.
+        if prev.render != desc.render or prev.effects.body_shine != desc.effects.body_shine:
+            build.configure_render(desc.render, desc.effects.body_shine)
+            stats.changed.append("render")
+        if prev.effects.glare != desc.effects.glare:
+            from .compositor import build_glare, no_compositor
+
+            if desc.effects.glare:
+                build_glare()
+            else:
+                no_compositor()
+                stats.purged += self._purge()
+            stats.changed.append("compositor")
+        # 6. Object order exactly as a fresh build links them.
+        stats.reordered = self._reorder(desc)
+        return stats
+
+    def _drop_material(self, key: str) -> None:
+        import bpy
+
+        mat = self._materials.pop(key)
+        bpy.data.materials.remove(mat, do_unlink=True)
+
+    @staticmethod
+    def _purge() -> int:
+        import bpy
+
+        n = bpy.data.orphans_purge(do_local_ids=True, do_linked_ids=True, do_recursive=True)
+        return int(n or 0)
+
+    @staticmethod
+    def _can_patch_material(old: MaterialDesc, new: MaterialDesc) -> bool:
+        """Only the Principled BSDF's plain values differ, and the node graph is the same."""
+        if old.base_color_texture or new.base_color_texture:
+            return False
+        return old.emissive_color == new.emissive_color
+
+    @staticmethod
+    def _patch_material(mat, desc: MaterialDesc) -> None:
+        bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+        bsdf.inputs["Base Color"].default_value = (*desc.base_color, 1.0)
+        bsdf.inputs["Metallic"].default_value = desc.metallic
+        bsdf.inputs["Roughness"].default_value = desc.roughness
+
+    def _patch_mesh(self, obj, old: MeshDesc, new: MeshDesc) -> None:
+        if not _eq(old.matrix, new.matrix):
+            obj.matrix_world = build._matrix(new.matrix)
+        if old.class_id != new.class_id:
+            obj.pass_index = new.class_id
+        if old.ray_visibility != new.ray_visibility:
+            for attr in ("visible_camera", "visible_diffuse", "visible_glossy", "visible_shadow",
+                         "visible_transmission", "visible_volume_scatter"):
+                setattr(obj, attr, True)
+            if new.ray_visibility == "cameraOnly":
+                obj.visible_diffuse = obj.visible_glossy = obj.visible_shadow = False
+                obj.visible_transmission = obj.visible_volume_scatter = False
+            elif new.ray_visibility == "noShadow":
+                obj.visible_shadow = False
+        mat = self._materials[new.material]
+        if obj.data.materials[0] != mat:
+            obj.data.materials[0] = mat
+
+    @staticmethod
+    def _find(name: str):
+        import bpy
+
+        for o in bpy.context.scene.collection.objects:
+            if o.name == name:
+                return o
+        return None
+
+    def _patch_camera(self, desc: SceneDescription) -> None:
+        obj = self._find(CAMERA)
+        cam, c = obj.data, desc.camera
+        cam.lens = c.focal_length_mm
+        cam.sensor_width = c.sensor_width_mm
+        cam.sensor_height = c.sensor_height_mm
+        cam.clip_start, cam.clip_end = c.clip
+        obj.matrix_world = build._matrix(c.matrix)
+
+    def _remove_light(self, name: str) -> None:
+        import bpy
+
+        obj = self._find(name)
+        if obj is not None:
+            data = obj.data
+            bpy.data.objects.remove(obj, do_unlink=True)
+            if data is not None and data.users == 0:
+                bpy.data.lights.remove(data)
+
+    def _patch_sun(self, desc: SceneDescription) -> None:
+        from ..geometry import rotation_towards
+
+        obj = self._find(SUN)
+        if desc.sun is None:
+            self._remove_light(SUN)
+            return
+        if obj is None:
+            build.build_sun(desc.sun)
+            return
+        light, s = obj.data, desc.sun
+        light.energy = s.irradiance
+        light.angle = math.radians(s.angle_deg)
+        light.color = s.color
+        m = np.eye(4)
+        m[:3, :3] = rotation_towards(s.direction)
+        obj.matrix_world = build._matrix(m)
+
+    @staticmethod
+    def _spot_equal(a, b) -> bool:
+        if a is None or b is None:
+            return a is b
+        return (_eq(a.matrix, b.matrix) and (a.radius, a.intensity, a.color, a.cone_angle_deg, a.softness)
+                == (b.radius, b.intensity, b.color, b.cone_angle_deg, b.softness))
+
+    def _patch_spot(self, desc: SceneDescription) -> None:
+        # A spot is cheap to build: remove and build it again, so every value is set as a fresh build sets it.
+        self._remove_light(SPOT)
+        if desc.spot is not None:
+            build.build_spot(desc.spot)
+
+    def _reorder(self, desc: SceneDescription) -> bool:
+        """Link objects in the order a fresh build does: meshes, camera, sun, spot."""
+        import bpy
+
+        coll = bpy.context.scene.collection
+        want = [self._objects[m.path] for m in desc.meshes] + [self._find(CAMERA)]
+        for name in ((SUN,) if desc.sun is not None else ()) + ((SPOT,) if desc.spot is not None else ()):
+            want.append(self._find(name))
+        have = list(coll.objects)
+        if have == want:
+            return False
+        i = 0
+        while i < min(len(have), len(want)) and have[i] == want[i]:
+            i += 1
+        for o in have[i:]:
+            coll.objects.unlink(o)
+        for o in want[i:]:
+            coll.objects.link(o)
+        return True
+
