@@ -12,14 +12,42 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .write import write_json, write_mask_png, write_rgb_exr, write_rgb_png
+from .write import write_exr, write_json, write_mask_png, write_rgb_exr, write_rgb_png
 
 
-def output_paths(layer: Path, out_dir: Path) -> dict[str, Path]:
+DEFAULT_OUTPUTS = ("color", "allo:classMask")
+VAR_SOURCES = {"Color": "color", "ClassMask": "allo:classMask", "Depth": "depth"}
+
+
+def layer_outputs(layer: Path) -> tuple[str, ...]:
+    """The render vars a scene layer orders (its own override of the product, else the base's
+    color + class mask), read from the layer file alone: cheap enough for resume checks."""
+    from pxr import Sdf, Tf
+
+    try:
+        sdf = Sdf.Layer.FindOrOpen(str(layer))
+    except Tf.ErrorException:
+        return DEFAULT_OUTPUTS  # unreadable: read_scene will say what is wrong with it
+    rel = sdf.GetRelationshipAtPath("/Render/Products/Image.orderedVars") if sdf else None
+    if not rel or not rel.targetPathList.explicitItems:
+        return DEFAULT_OUTPUTS
+    return tuple(VAR_SOURCES.get(t.name, t.name) for t in rel.targetPathList.explicitItems)
+
+
+def output_paths(layer: Path, out_dir: Path, outputs: tuple[str, ...] | None = None) -> dict[str, Path]:
+    """Files one scene produces, by the render vars it orders (PNG + EXR for color, the class mask,
+    a float32 depth EXR), plus the metadata JSON."""
     stem = Path(layer).stem
     out_dir = Path(out_dir)
-    return {"rgb": out_dir / f"{stem}.png", "exr": out_dir / f"{stem}.exr",
-            "mask": out_dir / f"{stem}_mask.png", "meta": out_dir / f"{stem}.json"}
+    outputs = layer_outputs(layer) if outputs is None else outputs
+    paths = {}
+    if "color" in outputs:
+        paths.update(rgb=out_dir / f"{stem}.png", exr=out_dir / f"{stem}.exr")
+    paths["mask"] = out_dir / f"{stem}_mask.png"
+    if "depth" in outputs:
+        paths["depth"] = out_dir / f"{stem}_depth.exr"
+    paths["meta"] = out_dir / f"{stem}.json"
+    return paths
 
 
 def is_done(layer: Path, out_dir: Path) -> bool:
@@ -62,10 +90,15 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     if threads is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, threads=int(threads)))
     result = render_scene(desc, workdir) if session is None else session.render(desc, workdir)
-    rgb, effects = apply_effects(desc, result.rgb)
-    write_rgb_png(paths["rgb"], rgb)
-    write_rgb_exr(paths["exr"], rgb)
+    paths = output_paths(layer, out_dir, desc.render.outputs)
+    effects = {}
+    if "rgb" in paths:
+        rgb, effects = apply_effects(desc, result.rgb)
+        write_rgb_png(paths["rgb"], rgb)
+        write_rgb_exr(paths["exr"], rgb)
     write_mask_png(paths["mask"], result.mask)
+    if "depth" in paths:
+        write_exr(paths["depth"], {"Z": result.depth}, half=False)
     counts = np.bincount(result.mask.ravel(), minlength=3)
     meta = {
         "layer": str(Path(layer).resolve()),

@@ -62,6 +62,8 @@ class RenderSpec:
     seed: int = 0
     exposure: float = 1.0
     threads: int = 0
+    depth: bool = False          # also write camera depth (metres, float32 EXR)
+    mask_only: bool = False      # only the class mask: one sample, no lights, no path tracing
 
 
 @dataclass(frozen=True)

@@ -121,3 +121,32 @@ def test_glare_builds_a_compositor_only_when_declared(tiny_base, tmp_path):
     bg = results[False].mask == 0
     assert results[True].rgb[bg].mean() > 10 * max(results[False].rgb[bg].mean(), 1e-6)
     np.testing.assert_array_equal(results[True].mask, results[False].mask)
+
+
+def test_depth_and_mask_only_outputs(tiny_base, tmp_path, rendered):
+    from dataclasses import replace
+
+    from allo_usd.job import layer_outputs
+
+    base = make_spec(anomaly=True)
+    with_depth = replace(base, render=replace(base.render, depth=True))
+    layer = write_scene_layer(with_depth, tmp_path / "depth.usda", tiny_base)
+    assert layer_outputs(layer) == ("color", "allo:classMask", "depth")
+    meta = render_layer(layer, tmp_path / "out")
+    with OpenEXR.File(str(tmp_path / "out" / meta["files"]["depth"]), separate_channels=True) as f:
+        z = f.channels()["Z"].pixels
+    mask = np.asarray(Image.open(tmp_path / "out" / meta["files"]["mask"]))
+    assert z.dtype == np.float32 and z.shape == mask.shape
+    station_z = z[mask == 1]
+    assert 5.0 < np.median(station_z) < 40.0  # metres from the camera 19 m from the station centre
+    assert z[mask == 2].max() < np.median(station_z)  # the anomaly floats in front of the station
+
+    mask_only = replace(base, render=replace(base.render, mask_only=True))
+    layer = write_scene_layer(mask_only, tmp_path / "maskonly.usda", tiny_base)
+    assert layer_outputs(layer) == ("allo:classMask",)
+    meta = render_layer(layer, tmp_path / "out")
+    assert set(meta["files"]) == {"mask", "meta"}
+    assert not (tmp_path / "out" / "maskonly.png").exists()
+    full_layer, full_meta, d = rendered["anomaly"]
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "out" / meta["files"]["mask"])),
+                                  np.asarray(Image.open(d / full_meta["files"]["mask"])))

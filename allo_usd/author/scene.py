@@ -36,6 +36,7 @@ class Prim:
     reference: str = ""
     variants: dict = field(default_factory=dict)
     active: bool | None = None
+    rels: dict = field(default_factory=dict)  # {relationship: [target paths]} (explicit targets)
 
 
 def relpath(target: Path, start: Path) -> str:
@@ -139,6 +140,10 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
         "allo:effects:sensorNoise": ("bool", bool(e.sensor_noise)), "allo:effects:glare": ("bool", bool(e.glare)),
         "allo:effects:inspectionLight": ("bool", bool(e.inspection_light)),
         "allo:effects:bodyShine": ("bool", bool(e.body_shine))}))
+    if r.depth or r.mask_only:  # the base product orders color and class mask; change only if asked
+        ordered = ([] if r.mask_only else ["/Render/Vars/Color"]) + ["/Render/Vars/ClassMask"]
+        ordered += ["/Render/Vars/Depth"] if r.depth else []
+        out.append(Prim("/Render/Products/Image", rels={"orderedVars": ordered}))
     return out
 
 
@@ -148,10 +153,11 @@ def merge_prims(*groups: list[Prim]) -> list[Prim]:
     for prim in (p for g in groups for p in g):
         if prim.path not in merged:
             merged[prim.path] = Prim(prim.path, dict(prim.attrs), prim.api, prim.define, prim.reference,
-                                     dict(prim.variants), prim.active)
+                                     dict(prim.variants), prim.active, dict(prim.rels))
             continue
         m = merged[prim.path]
         m.attrs.update(prim.attrs)
+        m.rels.update(prim.rels)
         m.api = tuple(dict.fromkeys(m.api + prim.api))
     return list(merged.values())
 
@@ -187,6 +193,9 @@ def layer_text(prims: list[Prim], sublayers: list[str], custom: dict, doc: str) 
                 attr = Sdf.AttributeSpec(spec, name, vtype,
                                          Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying)
                 attr.default = value
+            for name, targets in prim.rels.items():
+                rel = Sdf.RelationshipSpec(spec, name, custom=False)
+                rel.targetPathList.explicitItems = [Sdf.Path(t) for t in targets]
     return layer.ExportToString()
 
 

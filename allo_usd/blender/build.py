@@ -150,11 +150,12 @@ def configure_render(render: RenderDesc, body_shine: bool = True) -> None:
     scene.render.resolution_x, scene.render.resolution_y = render.resolution
     scene.render.resolution_percentage = 100
     scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
-    scene.cycles.samples = render.samples
-    scene.cycles.use_adaptive_sampling = render.adaptive_threshold > 0
+    mask_only = "color" not in render.outputs
+    scene.cycles.samples = 1 if mask_only else render.samples  # the class mask comes from sample 0
+    scene.cycles.use_adaptive_sampling = render.adaptive_threshold > 0 and not mask_only
     if render.adaptive_threshold > 0:
         scene.cycles.adaptive_threshold = render.adaptive_threshold
-    scene.cycles.use_denoising = render.denoise
+    scene.cycles.use_denoising = render.denoise and not mask_only
     if render.denoise:
         scene.cycles.denoiser = "OPENIMAGEDENOISE"
         scene.cycles.denoising_prefilter = "FAST"
@@ -162,7 +163,7 @@ def configure_render(render: RenderDesc, body_shine: bool = True) -> None:
         scene.cycles.denoising_use_gpu = False
     scene.cycles.seed = render.seed
     scene.cycles.use_animated_seed = False
-    scene.cycles.max_bounces = render.max_bounces
+    scene.cycles.max_bounces = 0 if mask_only else render.max_bounces
     scene.cycles.diffuse_bounces = min(4, render.max_bounces) if body_shine else min(4, render.max_bounces)
     scene.cycles.sample_clamp_direct = 0.0
     scene.cycles.sample_clamp_indirect = 0.0  # the default 10 eats ~10% of a 1361 W/m^2 sun
