@@ -31,7 +31,6 @@ Why these choices:
 from __future__ import annotations
 
 import csv
-import hashlib
 import importlib.util
 import json
 import os
@@ -44,7 +43,7 @@ import numpy as np
 from PIL import Image
 
 from .errors import AlloError
-from .write import atomic_path, mask_overlay, write_png
+from .write import atomic_path, mask_overlay, sha256_file, write_png
 
 LAYOUTS = ("mvtec",)
 COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "kind", "scene_id", "pose", "day",
@@ -53,20 +52,12 @@ COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "
 MANIFEST = "manifest.csv"
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def place(src: Path, dst: Path, link: bool = True) -> str:
     """Put src at dst atomically: a hard link if allowed and possible, else a copy. Returns how."""
     dst.parent.mkdir(parents=True, exist_ok=True)
     if dst.exists():
         same = os.path.samefile(src, dst)
-        if (link and same) or (not link and not same and sha256(src) == sha256(dst)):
+        if (link and same) or (not link and not same and sha256_file(src) == sha256_file(dst)):
             return "kept"  # a copy run replaces earlier links by copies, and keeps equal copies
     if link:
         tmp = dst.parent / f".{dst.name}.{uuid.uuid4().hex}.tmp"
@@ -155,7 +146,7 @@ def _row(category, index, name, meta_path: Path, meta: dict, kind: str, out: Pat
             "anomaly_variant": anomaly.get("assetVariant", ""), "depth_index": anomaly.get("depthIndex", ""),
             "depth_offset": anomaly.get("depthOffset", ""), "anomaly_fraction": meta.get("anomaly_fraction", 0.0),
             "seed": scene.get("seed"), "seed_path": scene.get("seedPath", ""), "layer": meta.get("layer", ""),
-            "layer_sha256": meta.get("layer_sha256", ""), "sha256": sha256(rgb), "source": str(meta_path.resolve())}
+            "layer_sha256": meta.get("layer_sha256", ""), "sha256": sha256_file(rgb), "source": str(meta_path.resolve())}
 
 
 def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, out: Path) -> bool:

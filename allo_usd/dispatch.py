@@ -35,7 +35,6 @@ that scene's EXR), ALLO_TEST_DELAY (seconds to sleep before each render).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -51,6 +50,7 @@ from pathlib import Path
 from .errors import AlloError, DiskFullError, LayerError
 from .job import output_paths
 from .safety import ENV_ROOTS
+from .write import sha256_file
 
 MANIFEST = "manifest.jsonl"
 FAILED = "failed.jsonl"
@@ -106,14 +106,6 @@ def find_layers(source: str | Path | list) -> list[Path]:
 
 
 # ---------------------------------------------------------------- manifest
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
 
 def _read_jsonl(path: Path) -> list[dict]:
     rows = []
@@ -396,6 +388,20 @@ class _Run:
         self.fail(task, kind, f"{reason} (after {task.attempts} attempts)")
         return False
 
+    def settle(self, task: _Task, result: dict) -> bool:
+        """Record a worker's result; True if the task should run again. A bad layer is never
+        retried; a full disk stops the run (DiskFullError); other errors retry up to the limit."""
+        if result["status"] == "ok":
+            self.ok(task, result)
+            return False
+        if result["kind"] == "layer":
+            self.fail(task, "layer", result["message"])
+            return False
+        if result["kind"] == "disk_full":
+            self.fail(task, "disk_full", result["message"])
+            raise DiskFullError(result["message"])
+        return self.retry_or_fail(task, "error", result["message"])
+
     def _tick(self) -> None:
         self.bar.set_postfix(ok=len(self.summary.rendered), failed=len(self.summary.failed), refresh=False)
         self.bar.update(1)
@@ -445,16 +451,7 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                     clean_stale(out_dir)  # its half-written temporaries
                     if run.retry_or_fail(task, "crash", reason):
                         pending.appendleft(task)
-                elif result["status"] == "ok":
-                    run.ok(task, result)
-                elif result["kind"] == "layer":
-                    run.fail(task, "layer", result["message"])
-                elif result["kind"] == "disk_full":
-                    run.fail(task, "disk_full", result["message"])
-                    disk_full = DiskFullError(result["message"])
-                    pending.clear()
-                    raise disk_full
-                elif run.retry_or_fail(task, "error", result["message"]):
+                elif run.settle(task, result):
                     pending.appendleft(task)
     finally:
         for w in pool:
@@ -487,14 +484,7 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
                         futures[new] = task
                         completed.add(new)
                     continue
-                if result["status"] == "ok":
-                    run.ok(task, result)
-                elif result["kind"] == "layer":
-                    run.fail(task, "layer", result["message"])
-                elif result["kind"] == "disk_full":
-                    run.fail(task, "disk_full", result["message"])
-                    raise DiskFullError(result["message"])
-                elif run.retry_or_fail(task, "error", result["message"]):
+                if run.settle(task, result):
                     new = submit(task)
                     futures[new] = task
                     completed.add(new)

@@ -42,6 +42,17 @@ def atomic_path(path: Path, suffix: str = ""):
         raise
 
 
+def sha256_file(path: Path) -> str:
+    """Hex SHA-256 of a file, read in 1 MiB chunks (checksums in manifests)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 transfer on clipped linear values, rounded to 8 bits (no dither)."""
     c = np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0)
