@@ -1,0 +1,47 @@
+"""Issue 5 hard cases: an eclipsed station lit only by the inspection light (and body shine),
+an anomaly tiny and far, and one that fills the frame."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from allo_usd.author.scene import write_scene_layer
+from allo_usd.blender.render import render_scene
+from allo_usd.read import read_scene
+from allo_usd.spec import EffectsSpec, SunSpec
+
+from conftest import CAM_POS, make_spec
+
+pytestmark = pytest.mark.render
+
+
+def _render(spec, base, path):
+    return render_scene(read_scene(write_scene_layer(spec, path, base)))
+
+
+def test_eclipsed_station_is_lit_by_the_inspection_light_only(tiny_base, tmp_path):
+    umbra = SunSpec((0.3, 0.5, 0.8), 0.0, 1361.0, 0.533, 1.5e11, 0.0, "umbra", "moon")
+    base = replace(make_spec(resolution=(64, 36), samples=16), sun=umbra)
+    on = _render(base, tiny_base, tmp_path / "on.usda")
+    off = _render(replace(base, effects=EffectsSpec(inspection_light=False)), tiny_base, tmp_path / "off.usda")
+    lit = _render(replace(make_spec(resolution=(64, 36), samples=16)), tiny_base, tmp_path / "lit.usda")
+    station = on.mask == 1
+    assert np.isfinite(on.rgb).all()
+    assert on.rgb[station].mean() > 5 * max(off.rgb[station].mean(), 1e-9)  # the spot is what lights it
+    assert on.rgb[station].mean() < 0.1 * lit.rgb[station].mean()           # far dimmer than sunlight
+
+
+def test_tiny_far_anomaly_and_frame_filling_anomaly(tiny_base, tmp_path):
+    spec = make_spec(anomaly=True, resolution=(128, 72), samples=2)
+    fwd = (np.zeros(3) - CAM_POS) / np.linalg.norm(CAM_POS)
+    far = replace(spec, anomaly=replace(spec.anomaly, position=tuple(CAM_POS + 14.0 * fwd)))
+    near = replace(spec, anomaly=replace(spec.anomaly, position=tuple(CAM_POS + 0.45 * fwd)))
+    r_far = _render(far, tiny_base, tmp_path / "far.usda")
+    r_near = _render(near, tiny_base, tmp_path / "near.usda")
+    n = r_far.mask.size
+    assert 0 < (r_far.mask == 2).sum() < 0.005 * n       # a few pixels, still labelled
+    assert (r_near.mask == 2).mean() > 0.5               # fills most of the frame
+    assert np.isfinite(r_near.rgb).all() and np.isfinite(r_far.rgb).all()
