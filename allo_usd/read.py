@@ -390,6 +390,11 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
                          "payload did not load (check subLayers and stages/)")
     if not effects.inspection_light:
         spot = None
+    if not effects.body_shine:  # no earthshine/moonshine: the bodies are seen but light nothing
+        import dataclasses
+
+        meshes = [dataclasses.replace(m, ray_visibility="cameraOnly") if m.ray_visibility == "noShadow" else m
+                  for m in meshes]
     return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, sun, spot,
                             render, effects, read_meta(stage))
 

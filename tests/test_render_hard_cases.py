@@ -45,3 +45,17 @@ def test_tiny_far_anomaly_and_frame_filling_anomaly(tiny_base, tmp_path):
     assert 0 < (r_far.mask == 2).sum() < 0.005 * n       # a few pixels, still labelled
     assert (r_near.mask == 2).mean() > 0.5               # fills most of the frame
     assert np.isfinite(r_near.rgb).all() and np.isfinite(r_far.rgb).all()
+
+
+def test_body_shine_only_when_declared(tiny_base, tmp_path):
+    # The Moon 7,000 km below, its near side sunlit: moonshine brightens the station's underside.
+    spec = make_spec(resolution=(64, 36), samples=16)
+    on = read_scene(write_scene_layer(spec, tmp_path / "on.usda", tiny_base))
+    off_spec = replace(spec, effects=EffectsSpec(body_shine=False))
+    off = read_scene(write_scene_layer(off_spec, tmp_path / "off.usda", tiny_base))
+    vis = {m.path: m.ray_visibility for m in off.meshes}
+    assert vis["/World/Sky/Moon/Geom/Surface"] == "cameraOnly"
+    assert {m.path: m.ray_visibility for m in on.meshes}["/World/Sky/Moon/Geom/Surface"] == "noShadow"
+    r_on, r_off = render_scene(on), render_scene(off)
+    station = r_on.mask == 1
+    assert r_on.rgb[station].mean() > r_off.rgb[station].mean()
