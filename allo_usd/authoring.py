@@ -45,6 +45,7 @@ class _Context:
         q = plan.quality
         self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, samples=q.samples,
                                  adaptive_threshold=q.adaptive_threshold, denoise=q.denoise,
+                                 denoise_prefilter=q.denoise_prefilter, denoise_quality=q.denoise_quality,
                                  max_bounces=q.max_bounces, exposure=EXPOSURE)
         self.effects = EffectsSpec(**plan.effects.model_dump())
         self._sky_cache: dict[int, tuple] = {}

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 BACKGROUND, STATION, ANOMALY = 0, 1, 2  # mask classes; celestial bodies share STATION's label
+DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_prefilter
+DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_quality
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,6 +79,8 @@ class RenderDesc:
     exposure: float
     threads: int
     outputs: tuple[str, ...]               # RenderVar source names ordered by the product
+    denoise_prefilter: str = "FAST"
+    denoise_quality: str = "BALANCED"
 
 
 @dataclass(frozen=True)

@@ -147,7 +147,8 @@ def describe(layer: str | Path) -> dict:
     render = {"settings": settings_path, "resolution": _attr(sp, "resolution"), "preset": r("render:preset"),
               "samples": r("render:samples"), "seed": r("render:seed"), "exposure": r("render:exposure"),
               "denoise": r("render:denoise"), "max_bounces": r("render:maxBounces"),
-              "adaptive_threshold": r("render:adaptiveThreshold")}
+              "adaptive_threshold": r("render:adaptiveThreshold"),
+              "denoise_prefilter": r("render:denoisePrefilter"), "denoise_quality": r("render:denoiseQuality")}
     effects = {k: r(f"effects:{k}") for k in ("sensorNoise", "glare", "inspectionLight", "bodyShine")}
 
     sun = None

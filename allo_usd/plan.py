@@ -164,12 +164,27 @@ class Effects(_Model):
 
 
 class Quality(_Model):
-    preset: str = Field("preview", min_length=1)
+    """Render quality. A `preset` named in allo_usd.presets (draft, preview, final, paper) fills every
+    field the plan leaves out; any other name is a label and the fields keep their defaults."""
+
+    preset: str = Field("preview", min_length=1, description="draft, preview, final, paper, or a label of your own.")
     resolution: tuple[int, int] = Field((1920, 1080), description="Width, height in pixels.")
     samples: int = Field(64, description="Path-tracing samples per pixel, 1..65536.")
     denoise: bool = True
+    denoise_prefilter: Literal["NONE", "FAST", "ACCURATE"] = "FAST"
+    denoise_quality: Literal["FAST", "BALANCED", "HIGH"] = "BALANCED"
     max_bounces: int = Field(8, ge=0, le=1024)
-    adaptive_threshold: float = Field(0.0, ge=0.0)
+    adaptive_threshold: float = Field(0.0, ge=0.0, le=1.0)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_from_preset(cls, data):
+        from .presets import PRESETS
+
+        if isinstance(data, dict):
+            preset = PRESETS.get(data.get("preset", "preview"), {})
+            data = {**preset, **data}
+        return data
 
     @field_validator("resolution")
     @classmethod
@@ -280,7 +295,7 @@ def paper_plan() -> Plan:
     """
     return Plan(name="allo-paper", dates=Dates(start=date(2030, 1, 1), days=365, step_days=1),
                 counts=Counts(normal_train=29_085, normal_test=7_300, anomalous_test=15_024),
-                seeds=[2030, 2031], quality=Quality(preset="final", resolution=(1920, 1080), samples=128))
+                seeds=[2030, 2031], quality=Quality(preset="final", resolution=(1920, 1080)))
 
 
 def demo_plan() -> Plan:

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from . import schema
-from .description import (ANOMALY, BACKGROUND, STATION, CameraDesc, EffectsDesc, MaterialDesc, MeshDesc,
+from .description import (ANOMALY, BACKGROUND, DENOISE_PREFILTERS, DENOISE_QUALITIES, STATION, CameraDesc,
+                          EffectsDesc, MaterialDesc, MeshDesc,
                           RenderDesc, SceneDescription, SpotDesc, SunDesc)
 from .errors import LayerError
 
@@ -300,6 +301,12 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
             raise LayerError(f"{name} must be a bool, got {value!r}; fix the layer")
         return value
 
+    def choice(name, default, allowed):
+        value = str(_get(settings_prim, name, default))
+        if value not in allowed:
+            raise LayerError(f"{name} = {value!r} is not one of {', '.join(allowed)}; fix the layer")
+        return value
+
     samples = num("allo:render:samples", 64, True, 1, 65536)
     outputs = []
     for product_path in settings.GetProductsRel().GetForwardedTargets():
@@ -315,7 +322,9 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
                         flag("allo:render:denoise", True),
                         num("allo:render:maxBounces", 8, True, 0, 1024),
                         num("allo:render:seed", 0, True, -2 ** 31, 2 ** 32 - 1), exposure,
-                        num("allo:render:threads", 0, True, 0, 4096), tuple(outputs))
+                        num("allo:render:threads", 0, True, 0, 4096), tuple(outputs),
+                        choice("allo:render:denoisePrefilter", "FAST", DENOISE_PREFILTERS),
+                        choice("allo:render:denoiseQuality", "BALANCED", DENOISE_QUALITIES))
     effects = EffectsDesc(flag("allo:effects:sensorNoise", False), flag("allo:effects:glare", False),
                           flag("allo:effects:inspectionLight", True), flag("allo:effects:bodyShine", True))
     return render, effects

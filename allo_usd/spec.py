@@ -64,6 +64,8 @@ class RenderSpec:
     threads: int = 0
     depth: bool = False          # also write camera depth (metres, float32 EXR)
     mask_only: bool = False      # only the class mask: one sample, no lights, no path tracing
+    denoise_prefilter: str = "FAST"      # OIDN prefilter: NONE, FAST, ACCURATE
+    denoise_quality: str = "BALANCED"    # OIDN quality: FAST, BALANCED, HIGH
 
 
 @dataclass(frozen=True)

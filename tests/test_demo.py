@@ -41,5 +41,5 @@ def test_every_demo_layer_validates(demo_dir):
     layers = sorted((demo_dir / "layers").glob("*.usda"))
     assert len(layers) == 4
     for layer in layers:
-        assert layer.stat().st_size <= 4096
+        assert layer.stat().st_size <= 6144  # opinions only: a few KB, never geometry
         assert validation_errors(layer) == [], layer.name

@@ -102,7 +102,7 @@ def test_tiny_plan_layout_and_sizes(authored):
     assert sorted(p.name for p in (out / "sky").iterdir()) == ["d000.usda", "d001.usda"]
     assert len(list((out / "poses").rglob("*.usda"))) == 4 + 2 + 2   # the depths share a pose layer
     for p in paths:
-        assert p.stat().st_size <= 4096, p
+        assert p.stat().st_size <= 6144, p  # opinions only: a few KB, never geometry
         layer = Sdf.Layer.FindOrOpen(str(p))
         subs = list(layer.subLayerPaths)
         assert len(subs) == 3 and all(not s.startswith("/") for s in subs)

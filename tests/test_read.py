@@ -71,3 +71,16 @@ def test_missing_sublayer_is_named(tiny_base, tmp_path):
     broken.write_text(text)
     with pytest.raises(LayerError):
         read_scene(broken)
+
+
+def test_denoiser_settings_round_trip_and_bad_token_is_named(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    spec = make_spec()
+    spec = replace(spec, render=replace(spec.render, denoise=True, denoise_prefilter="ACCURATE", denoise_quality="HIGH"))
+    layer = write_scene_layer(spec, tmp_path / "s.usda", tiny_base)
+    render = read_scene(layer).render
+    assert (render.denoise_prefilter, render.denoise_quality) == ("ACCURATE", "HIGH")
+    layer.write_text(layer.read_text().replace('denoisePrefilter = "ACCURATE"', 'denoisePrefilter = "SHARP"'))
+    with pytest.raises(LayerError, match=r"denoisePrefilter = 'SHARP' is not one of NONE, FAST, ACCURATE"):
+        read_scene(layer)

@@ -123,6 +123,24 @@ def test_glare_builds_a_compositor_only_when_declared(tiny_base, tmp_path):
     np.testing.assert_array_equal(results[True].mask, results[False].mask)
 
 
+def test_denoiser_follows_the_layer(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    import bpy
+
+    from allo_usd.blender.render import render_scene
+    from allo_usd.read import read_scene
+
+    base = make_spec(samples=2)
+    for prefilter, quality in (("ACCURATE", "HIGH"), ("FAST", "BALANCED")):
+        spec = replace(base, render=replace(base.render, denoise=True, denoise_prefilter=prefilter,
+                                            denoise_quality=quality))
+        result = render_scene(read_scene(write_scene_layer(spec, tmp_path / f"{prefilter}.usda", tiny_base)))
+        cycles = bpy.context.scene.cycles
+        assert cycles.use_denoising and (cycles.denoising_prefilter, cycles.denoising_quality) == (prefilter, quality)
+        assert result.rgb.max() > 0
+
+
 def test_depth_and_mask_only_outputs(tiny_base, tmp_path, rendered):
     from dataclasses import replace
 

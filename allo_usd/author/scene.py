@@ -137,6 +137,8 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
         "allo:render:denoise": ("bool", bool(r.denoise)), "allo:render:maxBounces": ("int", int(r.max_bounces)),
         "allo:render:seed": ("int", int(r.seed)), "allo:render:exposure": ("float", float(r.exposure)),
         "allo:render:threads": ("int", int(r.threads)),
+        "allo:render:denoisePrefilter": ("token", r.denoise_prefilter),
+        "allo:render:denoiseQuality": ("token", r.denoise_quality),
         "allo:effects:sensorNoise": ("bool", bool(e.sensor_noise)), "allo:effects:glare": ("bool", bool(e.glare)),
         "allo:effects:inspectionLight": ("bool", bool(e.inspection_light)),
         "allo:effects:bodyShine": ("bool", bool(e.body_shine))}))

@@ -142,7 +142,7 @@ def build_spot(desc: SpotDesc):
     return obj
 
 
-def configure_render(render: RenderDesc, body_shine: bool = True) -> None:
+def configure_render(render: RenderDesc) -> None:
     bpy = _bpy()
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
@@ -158,13 +158,13 @@ def configure_render(render: RenderDesc, body_shine: bool = True) -> None:
     scene.cycles.use_denoising = render.denoise and not mask_only
     if render.denoise:
         scene.cycles.denoiser = "OPENIMAGEDENOISE"
-        scene.cycles.denoising_prefilter = "FAST"
-        scene.cycles.denoising_quality = "BALANCED"
+        scene.cycles.denoising_prefilter = render.denoise_prefilter
+        scene.cycles.denoising_quality = render.denoise_quality
         scene.cycles.denoising_use_gpu = False
     scene.cycles.seed = render.seed
     scene.cycles.use_animated_seed = False
     scene.cycles.max_bounces = 0 if mask_only else render.max_bounces
-    scene.cycles.diffuse_bounces = min(4, render.max_bounces) if body_shine else min(4, render.max_bounces)
+    scene.cycles.diffuse_bounces = min(4, render.max_bounces)
     scene.cycles.sample_clamp_direct = 0.0
     scene.cycles.sample_clamp_indirect = 0.0  # the default 10 eats ~10% of a 1361 W/m^2 sun
     scene.cycles.film_exposure = render.exposure
@@ -203,7 +203,7 @@ def build_scene(desc: SceneDescription) -> None:
         build_sun(desc.sun)
     if desc.spot is not None:
         build_spot(desc.spot)
-    configure_render(desc.render, desc.effects.body_shine)
+    configure_render(desc.render)
     from .compositor import build_glare, no_compositor
 
     if desc.effects.glare:

@@ -269,7 +269,7 @@ class Session:
             stats.changed.append("spot")
         # 5. Render settings and compositor.
         if prev.render != desc.render or prev.effects.body_shine != desc.effects.body_shine:
-            build.configure_render(desc.render, desc.effects.body_shine)
+            build.configure_render(desc.render)
             stats.changed.append("render")
         if prev.effects.glare != desc.effects.glare:
             from .compositor import build_glare, no_compositor

@@ -1,0 +1,66 @@
+"""Render presets, chosen from the measured accuracy/time Pareto front (scripts/bench_accuracy.py).
+
+Measured by scripts/bench_accuracy.py (docs/bench_accuracy.md), all four in one process on
+2 CPU cores, 480x270 demo view d045_p42_power_drill_z0 against a 2048 spp reference, seconds =
+render call only, median of 2 (load average 1.4-1.7):
+
+| preset  | setting                                          | seconds | x paper | PSNR sRGB8 | SSIM   |
+|---------|--------------------------------------------------|---------|---------|------------|--------|
+| draft   | 4 spp, OIDN fast/balanced                        | 0.54    | 0.03    | 34.50 dB   | 0.9722 |
+| preview | 32 spp, OIDN fast/balanced                       | 2.64    | 0.13    | 41.06 dB   | 0.9898 |
+| final   | 256 spp, adaptive 0.01, OIDN accurate/high       | 14.14   | 0.69    | 46.99 dB   | 0.9962 |
+| paper   | 256 spp, OIDN accurate/high, max bounces 12      | 20.50   | 1.00    | 47.87 dB   | 0.9974 |
+
+Targets: preview >= 40 dB in <= 0.25x paper time: met. final within 1 dB of paper in <= 0.6x
+paper time: within 1 dB (-0.88) but at 0.69x; nothing measured on the front reaches both (224 spp
+adaptive 0.01 accurate: 0.64x, -1.17 dB; 192 spp adaptive 0.01: 0.60x, -1.46 dB).
+All presets sit on the measured Pareto front. Max bounces 4/8/12 render the same image here.
+
+`denoise_prefilter` / `denoise_quality` are Cycles' OIDN `denoising_prefilter` ('NONE', 'FAST',
+'ACCURATE') and `denoising_quality` ('FAST', 'BALANCED', 'HIGH'), recorded in each layer as
+`allo:render:denoisePrefilter` / `allo:render:denoiseQuality`. A plan's `quality.preset` fills
+the fields the plan leaves out (allo_usd.plan.Quality).
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+from .errors import AlloError
+from .spec import RenderSpec
+
+PRESETS: dict[str, dict] = {
+    "draft": dict(samples=4, adaptive_threshold=0.0, denoise=True, max_bounces=8,
+                  denoise_prefilter="FAST", denoise_quality="BALANCED"),
+    "preview": dict(samples=32, adaptive_threshold=0.0, denoise=True, max_bounces=8,
+                    denoise_prefilter="FAST", denoise_quality="BALANCED"),
+    "final": dict(samples=256, adaptive_threshold=0.01, denoise=True, max_bounces=8,
+                  denoise_prefilter="ACCURATE", denoise_quality="HIGH"),
+    # The paper's setting: 256 spp, OIDN with Blender's defaults, Blender's default bounces.
+    "paper": dict(samples=256, adaptive_threshold=0.0, denoise=True, max_bounces=12,
+                  denoise_prefilter="ACCURATE", denoise_quality="HIGH"),
+}
+
+_SPEC_FIELDS = {f.name for f in fields(RenderSpec)}
+assert all(set(p) <= _SPEC_FIELDS for p in PRESETS.values()), "a preset names a field RenderSpec lacks"
+
+
+def preset_fields(name: str) -> dict:
+    """A copy of preset `name`'s settings (RenderSpec field names)."""
+    try:
+        return dict(PRESETS[name])
+    except KeyError:
+        raise AlloError(f"unknown render preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+
+
+def preset_spec(name: str, resolution: tuple[int, int] = (1920, 1080), exposure: float = 1.0, **overrides) -> RenderSpec:
+    """RenderSpec for preset `name` at `resolution` and `exposure`; `overrides` replace fields."""
+    values = preset_fields(name)
+    values.update(overrides)
+    unknown = set(values) - _SPEC_FIELDS
+    if unknown:
+        raise AlloError(f"RenderSpec has no field(s) {', '.join(sorted(unknown))}")
+    w, h = resolution
+    if int(w) <= 0 or int(h) <= 0:
+        raise AlloError(f"resolution must be positive, got {resolution!r}")
+    return RenderSpec(resolution=(int(w), int(h)), preset=name, exposure=float(exposure), **values)

@@ -1,0 +1,115 @@
+"""Render presets: names, fields, errors (no rendering)."""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from allo_usd.errors import AlloError
+from allo_usd.presets import PRESETS, preset_fields, preset_spec
+from allo_usd.spec import RenderSpec
+
+EXTRA = {"denoise_prefilter", "denoise_quality"}
+
+
+def test_required_presets_exist():
+    assert {"draft", "preview", "final", "paper"} <= set(PRESETS)
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_preset_fields_are_known(name):
+    known = {f.name for f in fields(RenderSpec)} | EXTRA
+    p = PRESETS[name]
+    assert set(p) <= known
+    assert {"samples", "adaptive_threshold", "denoise", "max_bounces"} <= set(p)
+    assert p["samples"] >= 1 and p["max_bounces"] >= 1 and p["adaptive_threshold"] >= 0
+    if p["denoise"]:
+        assert p.get("denoise_prefilter", "FAST") in {"NONE", "FAST", "ACCURATE"}
+        assert p.get("denoise_quality", "BALANCED") in {"FAST", "BALANCED", "HIGH"}
+
+
+def test_paper_is_the_papers_setting():
+    p = PRESETS["paper"]
+    assert p["samples"] == 256 and p["denoise"] and p["adaptive_threshold"] == 0
+    assert p["max_bounces"] == 12
+    assert p["denoise_prefilter"] == "ACCURATE" and p["denoise_quality"] == "HIGH"
+
+
+def test_presets_ordered_by_cost():
+    s = [PRESETS[n]["samples"] for n in ("draft", "preview", "final")]
+    assert s == sorted(s)
+    assert PRESETS["final"]["samples"] <= PRESETS["paper"]["samples"]
+
+
+def test_preset_spec():
+    spec = preset_spec("preview", (480, 270), 0.25)
+    assert isinstance(spec, RenderSpec)
+    assert spec.resolution == (480, 270) and spec.exposure == 0.25 and spec.preset == "preview"
+    assert spec.samples == PRESETS["preview"]["samples"]
+    assert spec.denoise == PRESETS["preview"]["denoise"]
+    assert spec.max_bounces == PRESETS["preview"]["max_bounces"]
+    assert spec.adaptive_threshold == PRESETS["preview"]["adaptive_threshold"]
+    assert preset_spec("final", (64, 36), seed=7).seed == 7
+
+
+def test_preset_fields_is_a_copy():
+    f = preset_fields("draft")
+    f["samples"] = 99999
+    assert PRESETS["draft"]["samples"] != 99999
+
+
+def test_unknown_preset_names_the_choices():
+    with pytest.raises(AlloError, match=r"unknown render preset 'fast'.*draft.*preview.*final.*paper"):
+        preset_spec("fast", (64, 36), 1.0)
+
+
+def test_bad_override_and_resolution():
+    with pytest.raises(AlloError, match="no field"):
+        preset_spec("draft", (64, 36), 1.0, bogus=1)
+    with pytest.raises(AlloError, match="resolution"):
+        preset_spec("draft", (0, 36), 1.0)
+
+
+def _bench():
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_accuracy.py"
+    spec = importlib.util.spec_from_file_location("bench_accuracy", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_bench_metrics_and_front():
+    b = _bench()
+    rng = np.random.default_rng(0)
+    ref = rng.uniform(0, 0.8, (36, 64, 3)).astype(np.float32)
+    same = b.metrics(ref, ref)
+    assert same["psnr_srgb8"] == float("inf") and same["ssim_srgb8"] == pytest.approx(1.0)
+    noisy = b.metrics(ref + rng.normal(0, 0.05, ref.shape).astype(np.float32), ref)
+    assert 15 < noisy["psnr_linear"] < 35 and noisy["ssim_srgb8"] < 0.99
+    half = b.metrics(ref.reshape(18, 2, 32, 2, 3).mean(axis=(1, 3)), ref)  # compared with the box-averaged reference
+    assert half["psnr_linear"] == float("inf")
+    rows = [dict(seconds=s, psnr_srgb8=p, scale=1.0) for s, p in [(1, 30), (2, 29), (3, 35), (4, 40), (5, 39)]]
+    assert [r["seconds"] for r in b.pareto(rows)] == [1, 3, 4]
+    for name in PRESETS:
+        assert b.preset_config(name)["samples"] == PRESETS[name]["samples"]
+
+
+def test_preset_spec_carries_the_denoiser():
+    spec = preset_spec("final", (64, 36))
+    assert (spec.denoise_prefilter, spec.denoise_quality) == ("ACCURATE", "HIGH")
+    assert preset_spec("preview", (64, 36)).denoise_prefilter == "FAST"
+
+
+def test_plan_quality_preset_fills_what_the_plan_leaves_out():
+    from allo_usd.plan import Quality
+
+    final = Quality(preset="final")
+    assert final.samples == PRESETS["final"]["samples"] and final.adaptive_threshold == PRESETS["final"]["adaptive_threshold"]
+    assert (final.denoise_prefilter, final.denoise_quality) == ("ACCURATE", "HIGH")
+    assert Quality(preset="final", samples=100).samples == 100  # what the plan says wins
+    assert Quality(preset="my-label").samples == 64               # a label fills nothing
+    assert Quality().samples == PRESETS["preview"]["samples"]      # the default preset is preview
