@@ -197,6 +197,13 @@ NOTES = """## Notes
   CSV; 14.1 s / 46.99 dB as set by configure_render): light tree off 13.7 s / 44.74 dB; adaptive
   min samples 8 13.4 s / 46.77 dB; blue-noise pattern 14.8 s / 46.98 dB; path guiding 20.3 s /
   46.74 dB; 192 spp adaptive 0.008 13.0 s / 46.67 dB. None reaches paper - 1 dB in 0.6x paper time.
+- A second quick run (paper 22.2 s / 47.87 dB, final 15.6 s / 46.99 dB in that run): at 128 spp,
+  an indirect clamp of 500 or 2000 (display values about 1 and 4) changes nothing (45.66 / 45.63
+  dB: no fireflies to clip); caustics off costs 9 dB and Filter Glossy 0 costs 5.5 dB (both bias
+  against the reference); Filter Glossy 3 is -0.05 dB. At 256 spp adaptive 0.01: light sampling
+  threshold 0 changes nothing; quality BALANCED -0.26 dB for 0.7 s less; albedo-only denoise
+  inputs -0.12 dB; 320 spp 17.5 s / 47.19 dB. Seed to seed, PSNR moves about 0.1 dB and the same
+  image's time about 10% (paper 20.4-22.9 s), so the 0.6x bar sits inside timing noise of 0.64x.
 """
 
 
