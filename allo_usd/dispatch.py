@@ -11,6 +11,12 @@ a dead worker breaks the whole ProcessPoolExecutor and fails every pending futur
 Workers die with their parent (PR_SET_PDEATHSIG on Linux, plus a parent-watch thread), so a
 killed run leaves no orphan renderers writing behind it.
 
+When the workers' threads fit the cores this process may use, each worker is pinned to its own
+cores before it imports bpy (`core_sets`). Blender sizes its TBB pool from the process's CPU
+affinity, and an unpinned 1-thread worker keeps a second TBB thread spinning in sched_yield for
+the whole render (measured: 2 workers x 1 thread took 42.8 s unpinned vs 40.0 s pinned on 24
+scenes; docs/bench_workers.md). Pinning never changes an image.
+
 Dask (`scheduler=ADDRESS` or a `distributed.Client`): the same task function runs on the
 cluster's workers; a task whose worker dies comes back as an exception (KilledWorker) and is
 resubmitted up to `retries` times. Outputs must go to a file system every worker can reach.
@@ -252,7 +258,8 @@ def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str
     files = {p.name: sha256_file(p) for p in output_paths(layer_p, out_p).values()}
     return {"status": "ok", "scene": scene, "layer": str(layer_p.resolve()), "layer_sha256": meta["layer_sha256"],
             "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", scene),
-            "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}"}
+            "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}",
+            "cores": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
 
 
 def _workdir(out_dir: Path) -> Path:
@@ -292,9 +299,20 @@ def _fix_bpy_path() -> None:
         sys.path[:] = [p for p in sys.path if not _BPY_SCRIPTS.search(p)]
 
 
-def _worker_main(conn, env: dict, parent_pid: int) -> None:
+def core_sets(workers: int, threads: int, cores: list[int] | None = None) -> list[tuple[int, ...] | None]:
+    """Disjoint cores for each worker, or None for all when `workers * threads` exceeds them."""
+    if cores is None:
+        cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    if workers * threads > len(cores) or workers < 1 or threads < 1:
+        return [None] * max(workers, 0)
+    return [tuple(cores[i * threads:(i + 1) * threads]) for i in range(workers)]
+
+
+def _worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
     _die_with_parent(parent_pid)
+    if cores:  # before bpy: TBB sizes its pool from the affinity mask when it starts
+        os.sched_setaffinity(0, cores)
     os.environ.update(env)
     _fix_bpy_path()
     import bpy  # noqa: F401 - warm: import once per worker, not once per scene
@@ -315,9 +333,10 @@ def _worker_main(conn, env: dict, parent_pid: int) -> None:
 
 
 class _Worker:
-    def __init__(self, ctx, env: dict):
+    def __init__(self, ctx, env: dict, cores: tuple[int, ...] | None = None):
+        self.cores = cores
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, env, os.getpid()), daemon=True,
+        self.proc = ctx.Process(target=_worker_main, args=(child, env, os.getpid(), cores), daemon=True,
                                 name="allo-render-worker")
         self.proc.start()
         child.close()
@@ -416,7 +435,8 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
 
     ctx = multiprocessing.get_context("spawn")
     pending = deque(tasks)
-    pool = [_Worker(ctx, env) for _ in range(min(workers, len(tasks)))]
+    n = min(workers, len(tasks))
+    pool = [_Worker(ctx, env, cores) for cores in core_sets(n, threads)]
     disk_full: DiskFullError | None = None
     try:
         while pending or any(w.task for w in pool):
@@ -447,7 +467,7 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                     w.proc.join(5)
                     reason = _death_reason(w.proc.exitcode)
                     w.kill()
-                    pool[i] = _Worker(ctx, env)
+                    pool[i] = _Worker(ctx, env, w.cores)
                     clean_stale(out_dir)  # its half-written temporaries
                     if run.retry_or_fail(task, "crash", reason):
                         pending.appendleft(task)
@@ -530,7 +550,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
             if tasks and scheduler is not None:
                 _run_dask(tasks, out_dir, scheduler, threads, run, env)
             elif tasks:
-                cores = os.cpu_count() or 1
+                cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
                 n = max(1, workers or cores)
                 _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env)
         except KeyboardInterrupt:

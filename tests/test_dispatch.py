@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from allo_usd.author.scene import write_scene_layer
-from allo_usd.dispatch import MANIFEST, dispatch, is_verified, load_manifest
+from allo_usd.dispatch import MANIFEST, core_sets, dispatch, is_verified, load_manifest
 from allo_usd.errors import DiskFullError
 
 from conftest import make_spec
@@ -48,6 +48,14 @@ def check_outputs(out: Path, layers: list[Path]) -> None:
     assert not [p.name for p in out.iterdir() if p.name.startswith(".") and p.name != ".allo-dispatch.lock"]
 
 
+def test_core_sets_pin_only_what_fits():
+    assert core_sets(2, 1, [0, 1]) == [(0,), (1,)]
+    assert core_sets(2, 2, [3, 5, 7, 9]) == [(3, 5), (7, 9)]
+    assert core_sets(1, 2, [0, 1]) == [(0, 1)]
+    assert core_sets(2, 2, [0, 1]) == [None, None]  # oversubscribed: leave placement to the OS
+    assert core_sets(3, 1, [0, 1]) == [None, None, None]
+
+
 def test_local_pool_renders_resumes_and_repairs(tiny_base, tmp_path):
     layers = make_layers(tiny_base, tmp_path / "layers", 4)
     (tmp_path / "layers" / "shared.usda").write_text('#usda 1.0\n(\n    doc = "a shared sublayer"\n)\n')
@@ -56,6 +64,9 @@ def test_local_pool_renders_resumes_and_repairs(tiny_base, tmp_path):
     assert sorted(summary.rendered) == ["s0", "s1", "s2", "s3"] and not summary.failed
     check_outputs(out, layers)
     assert {r["worker"] for r in manifest_rows(out)}.__len__() == 2  # both workers took scenes
+    if len(os.sched_getaffinity(0)) >= 2:  # 2 workers x 1 thread: each pinned to a core of its own
+        cores = {r["worker"]: tuple(r["cores"]) for r in manifest_rows(out)}
+        assert sorted(cores.values()) == [(c,) for c in sorted(os.sched_getaffinity(0))[:2]]
 
     # corrupt one output, delete another, leave a stale temporary: only those two scenes re-render
     (out / "s1.exr").write_bytes(b"garbage")
