@@ -5,11 +5,14 @@
 
 Renders a reference (no denoise, its own seed) cached as out/bench/reference_<spp>.exr, then a
 sweep (samples x denoiser, adaptive threshold, max bounces, half resolution) and the presets of
-allo_usd.presets (median of 2 runs each, all in one process). Rows are cached in
+allo_usd.presets (3 rounds, interleaved, median per preset, all in one process). Rows are cached in
 out/bench/accuracy_rows.json so phases can be re-run separately; `report` writes
 docs/bench_accuracy.csv, .md and .png.
 
-Time = RenderResult.seconds (the render call only). PSNR on the 8-bit sRGB image
+Time = CPU seconds of the render call (`time.process_time()` around it: Cycles' and OIDN's threads
+all run in this process), the cost a dedicated core pays; wall seconds of the same call are kept
+beside it. CPU time hardly moves when other processes share the machine (about 1%, against 20% and
+more for wall time), so the ratios between settings hold on a busy machine. PSNR on the 8-bit sRGB image
 (write.linear_to_srgb8) and on linear values clipped to [0, 1]; SSIM on luminance, gaussian
 window sigma 1.5 (Wang et al. 2004 constants). The half-resolution renders are compared with the
 reference box-averaged 2x2. The OIDN prefilter/quality go through RenderDesc like any layer's.
@@ -37,7 +40,12 @@ from allo_usd.write import linear_to_srgb8  # noqa: E402
 
 BENCH = ROOT / "out" / "bench"
 ROWS = BENCH / "accuracy_rows.json"
-DENOISERS = {"off": (False, "FAST", "BALANCED"), "fast": (True, "FAST", "BALANCED"), "accurate": (True, "ACCURATE", "HIGH")}
+# name -> (denoise, OIDN prefilter, OIDN quality). "clean": no prefilter of the albedo/normal passes
+# (at 128 spp and up they are already nearly noise-free), full-quality network.
+DENOISERS = {"off": (False, "FAST", "BALANCED"), "fast": (True, "FAST", "BALANCED"),
+             "accurate": (True, "ACCURATE", "HIGH"), "clean": (True, "NONE", "HIGH")}
+DENOISER_LABEL = {"off": "no denoise", "fast": "OIDN fast/balanced", "accurate": "OIDN accurate/high",
+                  "clean": "OIDN no prefilter/high"}
 
 
 # ----------------------------------------------------------------------------- metrics
@@ -84,7 +92,7 @@ def metrics(rgb: np.ndarray, ref: np.ndarray) -> dict:
 
 # ----------------------------------------------------------------------------- rendering
 def render(desc, samples, denoiser="off", adaptive=0.0, bounces=8, scale=1.0, seed=0):
-    """Render `desc` with the given settings; returns (rgb, seconds)."""
+    """Render `desc` with the given settings; returns (rgb, cpu seconds, wall seconds) of the render call."""
     from allo_usd.blender.build import build_scene
     from allo_usd.blender.render import render_current
 
@@ -95,8 +103,9 @@ def render(desc, samples, denoiser="off", adaptive=0.0, bounces=8, scale=1.0, se
                             denoise_prefilter=prefilter, denoise_quality=quality)
     d = dataclasses.replace(desc, render=r)
     build_scene(d)
+    cpu0 = time.process_time()
     res = render_current(d)
-    return res.rgb, res.seconds
+    return res.rgb, time.process_time() - cpu0, res.seconds
 
 
 def load_rows() -> dict:
@@ -123,7 +132,7 @@ def reference(desc, spp: int) -> np.ndarray:
         return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1).astype(np.float32)
     BENCH.mkdir(parents=True, exist_ok=True)
     la = os.getloadavg()[0]
-    rgb, sec = render(desc, spp, "off", 0.0, 12, 1.0, seed=977)
+    rgb, _, sec = render(desc, spp, "off", 0.0, 12, 1.0, seed=977)
     write_exr(path, {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2]}, half=False)
     (BENCH / f"reference_{spp}.json").write_text(json.dumps({"seconds": sec, "loadavg": la, "samples": spp}))
     print(f"reference {spp} spp: {sec:.1f} s (load {la:.2f})", flush=True)
@@ -152,6 +161,8 @@ def sweep_configs():
             cfg.append(dict(samples=spp, denoiser=dn))
     for spp, ad in ((192, 0.01), (224, 0.01), (256, 0.0125), (256, 0.015)):  # around the `final` choice
         cfg.append(dict(samples=spp, denoiser="accurate", adaptive=ad))
+    for spp, ad in ((128, 0.01), (192, 0.01), (224, 0.01), (256, 0.01), (256, 0.0), (288, 0.01), (256, 0.008)):
+        cfg.append(dict(samples=spp, denoiser="clean", adaptive=ad))
     return cfg
 
 
@@ -162,24 +173,48 @@ def key_of(c: dict) -> str:
 
 def preset_config(name: str) -> dict:
     p = PRESETS[name]
-    dn = "off" if not p["denoise"] else ("accurate" if p.get("denoise_prefilter", "FAST") == "ACCURATE" else "fast")
-    if p["denoise"] and (p.get("denoise_prefilter"), p.get("denoise_quality")) not in ((None, None), DENOISERS[dn][1:]):
-        raise SystemExit(f"preset {name}: prefilter/quality pair not in {DENOISERS}")
+    if not p["denoise"]:
+        dn = "off"
+    else:
+        pair = (p.get("denoise_prefilter"), p.get("denoise_quality"))
+        dn = next((k for k, v in DENOISERS.items() if v[0] and v[1:] == pair), None)
+        if dn is None:
+            raise SystemExit(f"preset {name}: prefilter/quality pair {pair} not in {DENOISERS}")
     return dict(samples=p["samples"], denoiser=dn, adaptive=p["adaptive_threshold"], bounces=p["max_bounces"])
 
 
 def run_one(desc, ref, c: dict, runs: int = 1, group: str = "sweep", name: str = "") -> dict:
-    secs, loads = [], []
+    cpus, walls, loads = [], [], []
     for _ in range(runs):
         loads.append(os.getloadavg()[0])
-        rgb, s = render(desc, c["samples"], c["denoiser"], c.get("adaptive", 0.0), c.get("bounces", 8), c.get("scale", 1.0))
-        secs.append(s)
+        rgb, cpu, wall = render(desc, c["samples"], c["denoiser"], c.get("adaptive", 0.0), c.get("bounces", 8), c.get("scale", 1.0))
+        cpus.append(cpu)
+        walls.append(wall)
     row = {"group": group, "preset": name, "samples": c["samples"], "denoiser": c["denoiser"],
            "adaptive": c.get("adaptive", 0.0), "bounces": c.get("bounces", 8), "scale": c.get("scale", 1.0),
-           "seconds": statistics.median(secs), "runs": secs, "loadavg": loads, **metrics(rgb, ref)}
-    print(f"{group:7s} {name:8s} {key_of(c):32s} {row['seconds']:7.2f} s  {row['psnr_srgb8']:6.2f} dB  "
-          f"ssim {row['ssim_srgb8']:.4f}  load {loads[0]:.2f}", flush=True)
+           "seconds": statistics.median(cpus), "runs": cpus, "wall": statistics.median(walls), "wall_runs": walls,
+           "loadavg": loads, **metrics(rgb, ref)}
+    print(f"{group:7s} {name:8s} {key_of(c):32s} cpu {row['seconds']:7.2f} s  wall {row['wall']:6.2f} s  "
+          f"{row['psnr_srgb8']:6.2f} dB  ssim {row['ssim_srgb8']:.4f}  load {loads[0]:.2f}", flush=True)
     return row
+
+
+def run_presets(desc, ref, rounds: int = 3) -> dict:
+    """Every preset `rounds` times, interleaved (paper, final, ... then again), so drift hits all alike."""
+    runs: dict[str, list[dict]] = {name: [] for name in PRESETS}
+    for _ in range(rounds):
+        for name in PRESETS:
+            runs[name].append(run_one(desc, ref, preset_config(name), group="preset", name=name))
+    rows = {}
+    for name, rs in runs.items():
+        row = dict(rs[-1])
+        row["runs"] = [r["seconds"] for r in rs]
+        row["wall_runs"] = [r["wall"] for r in rs]
+        row["loadavg"] = [r["loadavg"][0] for r in rs]
+        row["seconds"] = statistics.median(row["runs"])
+        row["wall"] = statistics.median(row["wall_runs"])
+        rows[f"preset_{name}"] = row
+    return rows
 
 
 # ----------------------------------------------------------------------------- report
@@ -219,7 +254,7 @@ def pareto(rows: list[dict]) -> list[dict]:
 
 
 def setting(r: dict) -> str:
-    dn = {"off": "no denoise", "fast": "OIDN fast/balanced", "accurate": "OIDN accurate/high"}[r["denoiser"]]
+    dn = DENOISER_LABEL[r["denoiser"]]
     s = f"{r['samples']} spp, {dn}"
     if r["adaptive"]:
         s += f", adaptive {r['adaptive']:g}"
@@ -236,34 +271,39 @@ def report(rows: dict, out: Path, meta: dict) -> None:
     sweep = [r for r in allrows if r["group"] == "sweep"]
     presets = {r["preset"]: r for r in allrows if r["group"] == "preset"}
     out.mkdir(parents=True, exist_ok=True)
-    cols = ["group", "preset", "samples", "denoiser", "adaptive", "bounces", "scale", "seconds", "psnr_srgb8", "psnr_linear", "ssim_srgb8", "loadavg"]
+    cols = ["group", "preset", "samples", "denoiser", "adaptive", "bounces", "scale", "seconds", "wall", "psnr_srgb8",
+            "psnr_linear", "ssim_srgb8", "loadavg"]
     with open(out / "bench_accuracy.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)
         for r in sorted(allrows, key=lambda r: (r["group"], r["scale"], r["seconds"])):
-            w.writerow([r[c] if not isinstance(r[c], float) else f"{r[c]:.4f}" for c in cols[:-1]] + [f"{r['loadavg'][0]:.2f}"])
+            w.writerow([r.get(c, "") if not isinstance(r.get(c), float) else f"{r[c]:.4f}" for c in cols[:-1]]
+                       + [f"{r['loadavg'][0]:.2f}"])
     front = pareto(sweep + list(presets.values()))
     front_ids = {id(r) for r in front}
     L = ["# Render accuracy vs time (scripts/bench_accuracy.py)", ""]
     L.append(f"Scene `{meta['layer']}` at {meta['resolution'][0]}x{meta['resolution'][1]}; reference "
              f"{meta['ref_samples']} spp, no denoise, another seed ({meta.get('ref_seconds', float('nan')):.0f} s). "
-             f"{meta['machine']}. Seconds = render call only (`RenderResult.seconds`); sweep rows 1 run, presets "
-             "median of 2, all in one process. PSNR on the 8-bit sRGB image and on linear clipped [0,1]; SSIM on "
+             f"{meta['machine']}. Seconds = CPU seconds of the render call (all of Cycles' and OIDN's threads; "
+             "wall seconds of the same call beside them in the preset table and the CSV); sweep rows 1 run, presets "
+             "median of 3 interleaved rounds, all in one process. PSNR on the 8-bit sRGB image and on linear clipped [0,1]; SSIM on "
              "luminance of the sRGB image, gaussian window sigma 1.5. Half-resolution rows are compared with the "
              "reference box-averaged 2x2 (and are left out of the front: they answer a different question). "
              "Load average (1 min) per row is in the CSV.")
     L.append("")
     if presets:
         paper = presets.get("paper")
-        L += ["## Presets", "", "| preset | setting | seconds | x paper time | PSNR sRGB (dB) | PSNR linear (dB) | SSIM | load |",
-              "|---|---|---|---|---|---|---|---|"]
+        L += ["## Presets", "", "| preset | setting | CPU s | x paper | wall s | x paper (wall) | PSNR sRGB (dB) | "
+              "PSNR linear (dB) | SSIM | load |", "|---|---|---|---|---|---|---|---|---|---|"]
         for name in PRESETS:
             r = presets.get(name)
             if r is None:
                 continue
             ratio = r["seconds"] / paper["seconds"] if paper else float("nan")
-            L.append(f"| {name} | {setting(r)} | {r['seconds']:.2f} | {ratio:.2f} | {r['psnr_srgb8']:.2f} | "
-                     f"{r['psnr_linear']:.2f} | {r['ssim_srgb8']:.4f} | {r['loadavg'][0]:.2f} |")
+            wratio = r["wall"] / paper["wall"] if paper else float("nan")
+            L.append(f"| {name} | {setting(r)} | {r['seconds']:.2f} | {ratio:.2f} | {r['wall']:.2f} | {wratio:.2f} | "
+                     f"{r['psnr_srgb8']:.2f} | {r['psnr_linear']:.2f} | {r['ssim_srgb8']:.4f} | "
+                     f"{max(r['loadavg']):.2f} |")
         L.append("")
         if paper and "preview" in presets and "final" in presets:
             pv, fi = presets["preview"], presets["final"]
@@ -291,7 +331,7 @@ def report(rows: dict, out: Path, meta: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 5.5))
-    colors = {"off": "tab:gray", "fast": "tab:blue", "accurate": "tab:orange"}
+    colors = {"off": "tab:gray", "fast": "tab:blue", "accurate": "tab:orange", "clean": "tab:purple"}
     for dn, c in colors.items():
         pts = [r for r in sweep if r["denoiser"] == dn and r["scale"] == 1.0]
         ax.scatter([r["seconds"] for r in pts], [r["psnr_srgb8"] for r in pts], c=c, s=18, label=f"denoise {dn}")
@@ -308,7 +348,7 @@ def report(rows: dict, out: Path, meta: dict) -> None:
         ax.axhline(40.0, color="gray", ls=":", lw=0.8)
         ax.axhline(p["psnr_srgb8"] - 1.0, color="gray", ls="--", lw=0.8)
     ax.set_xscale("log")
-    ax.set_xlabel("render seconds (log)")
+    ax.set_xlabel("render CPU seconds (log)")
     ax.set_ylabel("PSNR vs reference, 8-bit sRGB (dB)")
     ax.set_title(f"Cycles CPU, {meta['resolution'][0]}x{meta['resolution'][1]}, reference {meta['ref_samples']} spp")
     ax.grid(True, which="both", alpha=0.3)
@@ -322,7 +362,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--phase", default="all", choices=["all", "reference", "sweep", "presets", "report"])
     ap.add_argument("--layer", default=str(ROOT / "out/demo/layers/d045_p42_power_drill_z0.usda"))
-    ap.add_argument("--ref-samples", type=int, default=2048)
+    ap.add_argument("--ref-samples", type=int, default=4096)
     ap.add_argument("--out", default=str(ROOT / "docs"))
     ap.add_argument("--redo", action="store_true", help="re-render sweep rows already cached")
     args = ap.parse_args(argv)
@@ -346,9 +386,8 @@ def main(argv=None) -> int:
         if args.phase in ("all", "presets"):
             for k in [k for k, r in rows.items() if r["group"] == "preset"]:
                 del rows[k]
-            for name in PRESETS:
-                rows[f"preset_{name}"] = run_one(desc, ref, preset_config(name), runs=2, group="preset", name=name)
-                save_rows(rows)
+            rows.update(run_presets(desc, ref))
+            save_rows(rows)
     if refmeta.is_file():
         meta["ref_seconds"] = json.loads(refmeta.read_text())["seconds"]
     report(rows, Path(args.out), meta)
