@@ -83,7 +83,9 @@ def test_demo_composes_like_a_plan_inside_its_own_tree(demo_dir, tmp_path, monke
     assert meta["class_pixels"] == original["class_pixels"]
 
 
-def test_demo_rerun_renders_only_changed_layers(demo_dir, capsys):
+def test_demo_rerun_renders_only_changed_layers_with_a_progress_bar(demo_dir, capsys):
     before = {p.name: p.stat().st_mtime_ns for p in (demo_dir / "renders").glob("*.json")}
-    run_demo(demo_dir, resolution=(64, 36), samples=2, progress=False)
+    run_demo(demo_dir, resolution=(64, 36), samples=2)
     assert {p.name: p.stat().st_mtime_ns for p in (demo_dir / "renders").glob("*.json")} == before
+    err = capsys.readouterr().err
+    assert "demo: 100%" in err and "4/4 [" in err  # counts, then elapsed<remaining (the ETA)
