@@ -100,7 +100,7 @@ def author_sample(ctx: _Context, keys: list[SceneKey]) -> tuple[int, list[dict]]
                           seed_path=seed_path, camera=camera, render=ctx.render, effects=ctx.effects,
                           anomaly=a, sky=ctx.sky(key.day))
         write_composed_scene(spec, path, pose_layer=pose_path, sky_layer=sky_layer_path(ctx.out_dir, key.day),
-                             base_stage=ctx.base_stage)
+                             base_stage=ctx.base_stage, root=ctx.out_dir)
     return len(keys), skipped
 
 
@@ -141,27 +141,49 @@ def _existing(out_dir: Path) -> set[str]:
     return found
 
 
-def with_station_stage(plan: Plan, out_dir: Path) -> Plan:
-    """A plan whose station is a model file gets its own base stage, built once under
-    `out_dir/stages` (before any worker starts) and used instead of the committed one."""
-    if plan.station.source == "procedural":
-        return plan
-    from .author.build_stage import build_base_stage
+def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
+    """The plan, pointed at the output tree's own base stage `out_dir/stages/base.usda`, made before
+    any worker starts. A procedural station's tree gets a byte copy of the plan's base stage and its
+    assets; a station that is a model file gets a base stage built from it (into a temporary
+    directory, then renamed). Scene layers then refer only to files inside the tree, so the tree
+    can be moved or copied as a whole and re-authoring elsewhere gives the same bytes."""
+    from .author.compose import copy_base_stage, tree_base_stage
 
-    base = Path(out_dir) / "stages" / "base.usda"
-    if not base.is_file():
+    base = tree_base_stage(out_dir)
+    if plan.station.source == "procedural":
+        copy_base_stage(plan.resolve_base_stage(), out_dir)
+    elif not base.is_file():
+        import shutil
+        import uuid
+
+        from .author.build_stage import build_base_stage
+
         source = Path(plan.station.source)
         if not source.is_file():
             raise PlanError(f"station.source: {source} does not exist; fix: give the path of a glTF/OBJ/STL "
                             "model, or 'procedural'")
-        build_base_stage(base.parent, str(source), plan.station.units)
+        tmp = base.parent.with_name(f".{base.parent.name}.{uuid.uuid4().hex}.tmp")
+        try:
+            build_base_stage(tmp, str(source), plan.station.units)
+            if base.parent.exists():  # an incomplete build of an older version: replace it
+                shutil.rmtree(base.parent)
+            os.replace(tmp, base.parent)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     return plan.model_copy(update={"base_stage": str(base.resolve())})
+
+
+class AuthoringInterrupted(PlanError):
+    """Ctrl-C stopped authoring; finished layers are kept (the CLI exits 130)."""
 
 
 def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
                 workers: int | None = None) -> list[Path]:
     """Author the plan's scenes (the first `limit` of them) under `out_dir`; returns their layer paths
-    (skipped depths excluded; they are listed in `out_dir/skipped.csv` with the reason)."""
+    (skipped depths excluded; they are listed in `out_dir/skipped.csv` with the reason). The tree
+    is self-contained (allo_usd.author.compose): its own base stage in `out_dir/stages`, shared
+    `sky/` and `poses/` layers, `scenes/`, and `plan.toml` (the plan as given)."""
     from tqdm import tqdm
 
     from .sky import Orbit, compute_sky
@@ -169,8 +191,8 @@ def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: b
     out_dir = Path(out_dir)
     keys = enumerate_scenes(plan)[: limit if limit is not None else None]
     out_dir.mkdir(parents=True, exist_ok=True)
-    plan = with_station_stage(plan, out_dir)
-    save_plan(plan, out_dir / "plan.toml")
+    given, plan = plan, with_tree_stage(plan, out_dir)
+    save_plan(given, out_dir / "plan.toml")  # as given: the tree's record, and its root for allo_usd.safety
     sky = compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch))
     ctx = _Context(plan, out_dir, sky)
     for day in sorted({k.day for k in keys}):
@@ -208,7 +230,7 @@ def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: b
         bar.close()
         write_skipped(skipped_path, skipped)
     if interrupted:
-        raise PlanError(f"interrupted after {bar.n} of {n_todo} scenes ({time.perf_counter() - t0:.0f} s); "
+        raise AuthoringInterrupted(f"interrupted after {bar.n} of {n_todo} scenes ({time.perf_counter() - t0:.0f} s); "
                         f"finished layers are kept and no partial file is left; fix: re-run the same command "
                         f"to resume")
     return [scene_layer_path(out_dir, k.split, k.kind, k.scene_id) for k in keys if k.scene_id not in skipped]

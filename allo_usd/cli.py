@@ -63,7 +63,12 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out"),
     """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet."""
     from .demo import run_demo
 
-    sheet = run_demo(out, (width, height), samples)
+    try:
+        sheet = run_demo(out, (width, height), samples)
+    except KeyboardInterrupt:
+        typer.echo(f"interrupted: finished scenes are kept under {out}; re-run the same command to render the "
+                   "rest", err=True)
+        raise SystemExit(130) from None
     typer.echo(f"contact sheet: {sheet}")
 
 
@@ -123,15 +128,35 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
             out: Path = typer.Option(..., "--out", help="Dataset directory."),
             category: str = typer.Option("allo", help="MVTec category name."),
             copy: bool = typer.Option(False, "--copy", help="Copy files instead of hard-linking them.")):
-    """Assemble renders into an MVTec-AD-style tree, 3-class masks, a manifest and contact sheets."""
+    """Assemble renders into an MVTec-AD-style tree, 3-class masks, a manifest and contact sheets.
+
+    Re-runs add only new or re-rendered scenes. Ctrl-C stops after the scene in hand (exit 130);
+    the manifest always lists every file in the tree. Mask-only renders are left out (no image)."""
+    import warnings
+
     from .dataset import assemble, read_manifest
 
-    manifest = assemble(render_dirs, out, link=not copy, category=category)
+    with warnings.catch_warnings(record=True) as notes:
+        warnings.simplefilter("always")
+        try:
+            manifest = assemble(render_dirs, out, link=not copy, category=category, progress=True)
+        except KeyboardInterrupt as exc:
+            _notes(notes)
+            typer.echo(f"interrupted: {exc or 'before any file was placed; re-run the same command'}", err=True)
+            raise SystemExit(130) from None
+    _notes(notes)
     rows = [r for r in read_manifest(manifest) if r["category"] == category]
     counts = {k: sum(1 for r in rows if (r["split"], r["kind"]) == k) for k in
               (("train", "good"), ("test", "good"), ("test", "anomaly"))}
     typer.echo(f"{out / category}: " + ", ".join(f"{s}/{k} {n}" for (s, k), n in counts.items())
                + f"; manifest {manifest}")
+
+
+def _notes(caught) -> None:
+    """The library's warnings (UserWarning: scenes left out, files cleaned up) as plain notes."""
+    for w in caught:
+        if issubclass(w.category, UserWarning):
+            typer.echo(f"note: {w.message}", err=True)
 
 
 @app.command("plan")
@@ -156,10 +181,17 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
            workers: int = typer.Option(None, "--workers", help="Processes (default: 2 for large plans)."),
            progress: bool = typer.Option(True, help="Show a progress bar.")):
     """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done)."""
-    from .authoring import author_plan
+    from .authoring import AuthoringInterrupted, author_plan
     from .plan import load_plan
 
-    paths = author_plan(load_plan(plan_file), out, limit=limit, progress=progress, workers=workers)
+    try:
+        paths = author_plan(load_plan(plan_file), out, limit=limit, progress=progress, workers=workers)
+    except AuthoringInterrupted as exc:
+        typer.echo(f"{exc}", err=True)
+        raise SystemExit(130) from None
+    except KeyboardInterrupt:  # before the first scene: nothing but finished files was written
+        typer.echo("interrupted before authoring began; re-run the same command", err=True)
+        raise SystemExit(130) from None
     typer.echo(f"{len(paths)} scene layers under {out / 'scenes'}; skipped depths in {out / 'skipped.csv'}")
 
 

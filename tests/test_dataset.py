@@ -13,6 +13,10 @@ import hashlib
 import json
 import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,7 +27,7 @@ from typer.testing import CliRunner
 
 from allo_usd.author.scene import write_scene_layer
 from allo_usd.cli import app
-from allo_usd.dataset import assemble, read_manifest
+from allo_usd.dataset import AssemblyInterrupted, assemble, label_lines, read_manifest
 from allo_usd.errors import AlloError
 from allo_usd.job import render_layer
 
@@ -119,6 +123,7 @@ def test_manifest_has_one_row_per_image_with_provenance(renders, tmp_path):
     assert meta["anomaly_fraction"] > 0 and float(a["anomaly_fraction"]) == pytest.approx(meta["anomaly_fraction"])
     assert a["mask"].endswith("_mask.png") and a["allo_mask"].startswith("allo_masks/allo/test/anomaly/")
     assert a["layer"] == meta["layer"] and a["epoch"] == "2030-01-01T00:00:00Z"
+    assert a["seed_path"] == "1/0/1/14" and a["plan_seed"] == "1"  # which pipeline run (plan seed) made it
     for r in rows.values():
         assert r["sha256"] == sha(out / r["image"])
         assert r["sha256"] == sha(renders / f"{r['name']}.png")
@@ -159,8 +164,133 @@ def test_cli_dataset_copies_when_asked(renders, tmp_path):
     result = CliRunner().invoke(app, ["dataset", str(renders), "--out", str(out), "--category", "gateway", "--copy"])
     assert result.exit_code == 0, result.output
     assert "train/good 2, test/good 1, test/anomaly 1" in result.output
+    assert "assembling gateway: 100%" in result.output and "4/4 [" in result.output  # the progress bar
     image = out / "gateway/train/good/000000_d000_p01.png"
     assert image.is_file() and not os.path.samefile(image, renders / "d000_p01.png")
     with open(out / "manifest.csv", newline="") as f:
         assert {r["category"] for r in csv.DictReader(f)} == {"gateway"}
     assert not (out / "manifest.parquet").exists() or __import__("importlib").util.find_spec("pyarrow")
+
+
+def tree_files(out: Path, category: str = "allo") -> set[str]:
+    """Every indexed image and mask in the tree (what loaders and the manifest care about)."""
+    return {p.relative_to(out).as_posix() for top in (out / category, out / "allo_masks" / category)
+            for p in top.rglob("*.png")}
+
+
+def listed_files(out: Path) -> set[str]:
+    return {r[k] for r in read_manifest(out / "manifest.csv") for k in ("image", "mask", "allo_mask") if r[k]}
+
+
+def many_scenes(renders: Path, dst: Path, n: int) -> Path:
+    """n render records (real files, fabricated names): normal test scenes for bulk runs."""
+    for i in range(n):
+        fabricate(renders, "d002_p41", dst, f"bulk_{i:04d}_d{i % 365:03d}_p41", day=i % 365)
+    return dst
+
+
+def test_mask_only_renders_are_left_out_with_a_note(renders, tiny_base, tmp_path):
+    spec = make_spec(scene_id="masks", day=5, seed=15)
+    spec = replace(spec, split="test", pose=41, render=replace(spec.render, mask_only=True))
+    masks = tmp_path / "mask_renders"
+    meta = render_layer(write_scene_layer(spec, tmp_path / "layers" / "masks.usda", tiny_base), masks)
+    assert "rgb" not in meta["files"] and (masks / meta["files"]["mask"]).is_file()  # a real mask-only render
+    with pytest.warns(UserWarning, match="1 mask-only render.*no color image.*masks"):
+        rows = read_manifest(assemble([renders, masks], tmp_path / "ds"))
+    assert sorted(r["name"] for r in rows) == sorted(SCENES)
+
+
+def test_stale_temporaries_and_unlisted_images_are_removed(renders, tmp_path):
+    out = tmp_path / "ds"
+    assemble([renders], out)
+    gt = out / "allo/ground_truth/anomaly"
+    stale = [gt / ".000003_d003_p41_crate_z0_mask.png.k2j_9x0a.png",  # write.atomic_path's, after SIGKILL
+             out / "allo/train/good" / f".000000_d000_p01.png.{'ab' * 16}.tmp",  # place()'s
+             out / ".manifest.csv.abcd1234.csv"]
+    for p in stale:
+        p.write_bytes(b"partial")
+    orphan = out / "allo/test/good/000099_gone.png"
+    shutil.copyfile(renders / "d002_p41.png", orphan)
+    keep = out / "allo" / "README.txt"  # not ours to remove: neither a temporary nor an indexed image
+    keep.write_text("x")
+    with pytest.warns(UserWarning, match="removed 3 stale temporary file.*1 image"):
+        assemble([renders], out)
+    assert not any(p.exists() for p in stale + [orphan]) and keep.is_file()
+    keep.unlink()
+    mvtec_pairs(out / "allo")
+    assert tree_files(out) == listed_files(out)
+
+
+def test_contact_sheet_labels_keep_the_whole_name(renders, tmp_path):
+    from PIL import ImageDraw
+
+    draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    name = "s2031_d364_p50_mli_torn_sheet-silver_z4"
+    lines = label_lines(name, 160, draw)
+    assert "".join(lines) == name and len(lines) >= 2 and lines[-1].endswith("_z4")
+    assert all(draw.textlength(line) <= 160 for line in lines)
+    assert label_lines("x" * 80, 60, draw) and "".join(label_lines("x" * 80, 60, draw)) == "x" * 80
+    out = tmp_path / "ds"
+    long = fabricate(renders, "d003_p41_crate_z0", tmp_path / "long", name, split="test")
+    assemble([renders, long], out)
+    sheet = Image.open(out / "contact_sheets/allo_test.png")
+    short = tmp_path / "short"
+    assemble([renders], short)
+    assert sheet.height > Image.open(short / "contact_sheets/allo_test.png").height  # room for two lines
+
+
+def test_ctrl_c_stops_after_the_scene_in_hand_and_a_rerun_completes(renders, tmp_path):
+    many = many_scenes(renders, tmp_path / "many", 12)
+    reference = tmp_path / "reference"
+    assemble([renders, many], reference)
+    out = tmp_path / "ds"
+    seen = []
+
+    def press_ctrl_c(name):
+        seen.append(name)
+        if len(seen) == 3:
+            os.kill(os.getpid(), signal.SIGINT)  # a real SIGINT, as a terminal sends it
+
+    with pytest.raises(AssemblyInterrupted, match="interrupted after 3 of 16 scenes"):
+        assemble([renders, many], out, on_scene=press_ctrl_c)
+    assert len(read_manifest(out / "manifest.csv")) == 3
+    assert tree_files(out) == listed_files(out) and len(tree_files(out)) == 6
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+    assemble([renders, many], out)
+    assert (out / "manifest.csv").read_bytes() == (reference / "manifest.csv").read_bytes()
+    assert tree_files(out) == tree_files(reference)
+
+
+def _run_cli_until_files_appear(args, out: Path, sig: int) -> subprocess.CompletedProcess:
+    """Start `allo-usd dataset` and send `sig` once its first image exists."""
+    cli = [sys.executable, "-c", "from allo_usd.cli import main; main()", "dataset"]
+    proc = subprocess.Popen(cli + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not ((out / "allo").is_dir() and any((out / "allo").rglob("*.png"))):
+        assert proc.poll() is None and time.monotonic() < deadline, "the run ended before it placed a file"
+        time.sleep(0.002)
+    proc.send_signal(sig)
+    stdout, stderr = proc.communicate(timeout=120)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["ctrl-c", "kill-9"])
+def test_an_interrupted_cli_run_never_leaves_unlisted_files(renders, tmp_path, sig):
+    many = many_scenes(renders, tmp_path / "many", 600)
+    out = tmp_path / "ds"
+    r = _run_cli_until_files_appear([str(renders), str(many), "--out", str(out)], out, sig)
+    present, listed = tree_files(out), listed_files(out)
+    assert present <= listed, present - listed  # every file in the tree is in the manifest
+    if sig == signal.SIGINT:
+        assert r.returncode == 130 and "interrupted after" in r.stderr and "re-run" in r.stderr, r.stderr
+        n = len(read_manifest(out / "manifest.csv"))
+        assert present == listed and 0 < n < 604, n
+        print(f"SIGINT stopped after {n} of 604 scenes")
+    else:
+        assert r.returncode == -signal.SIGKILL
+    assemble([renders, many], out)  # the re-run completes the rows whose files did not arrive
+    rows = read_manifest(out / "manifest.csv")
+    assert len(rows) == 604 and sorted(int(r["index"]) for r in rows) == list(range(604))
+    assert tree_files(out) == listed_files(out)
+    assert not [p for p in out.rglob(".*") if p.is_file()]
+    mvtec_pairs(out / "allo")

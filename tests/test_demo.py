@@ -10,6 +10,7 @@ from PIL import Image
 
 from allo_usd.demo import run_demo
 
+from test_plan import plain_usd_report
 from test_validation import validation_errors
 
 pytestmark = pytest.mark.render
@@ -41,5 +42,50 @@ def test_every_demo_layer_validates(demo_dir):
     layers = sorted((demo_dir / "layers").glob("*.usda"))
     assert len(layers) == 4
     for layer in layers:
-        assert layer.stat().st_size <= 6144  # opinions only: a few KB, never geometry
+        assert layer.stat().st_size <= 4096  # issue 6: a scene layer's own file is at most 4 KB
         assert validation_errors(layer) == [], layer.name
+    shared = sorted(p for d in ("sky", "poses") for p in (demo_dir / "layers" / d).rglob("*.usda"))
+    assert [p.parent.name for p in shared].count("sky") == 4 and len(shared) == 8
+    for layer in shared:
+        assert validation_errors(layer) == [], layer.name
+
+
+def test_demo_composes_like_a_plan_inside_its_own_tree(demo_dir, tmp_path, monkeypatch):
+    """Scene layers stack shared pose and sky layers over the tree's own base stage copy, with
+    relative paths only; the tree, moved elsewhere, opens with usd-core alone and renders."""
+    import shutil
+
+    from pxr import Sdf
+
+    from allo_usd.job import render_layer
+    from allo_usd.paths import STAGES
+
+    tree = demo_dir / "layers"
+    for path in sorted(tree.glob("*.usda")):
+        layer = Sdf.Layer.FindOrOpen(str(path))
+        subs = list(layer.subLayerPaths)
+        assert subs[0].startswith("./poses/s2030/") and subs[1].startswith("./sky/d"), subs
+        assert subs[2] == "./stages/base.usda"
+        assert layer.GetPrimAtPath("/World/Camera") is None
+    assert (tree / "stages" / "base.usda").read_bytes() == (STAGES / "base.usda").read_bytes()
+    moved = tmp_path / "x" / "y" / "layers"
+    shutil.copytree(tree, moved)
+    report = plain_usd_report(moved, sorted(moved.glob("*.usda")))
+    assert len(report["layers"]) == 4
+    for path, r in report["layers"].items():
+        assert r["composition_errors"] == [] and r["outside"] == [] and r["validation_errors"] == [], (path, r)
+    from allo_usd.safety import ENV_ROOTS
+
+    monkeypatch.delenv(ENV_ROOTS, raising=False)  # the layer's own directory is an allowed root
+    meta = render_layer(moved / "d045_p42_power_drill_z0.usda", tmp_path / "renders")
+    assert meta["class_pixels"]["anomaly"] > 0
+    original = json.loads((demo_dir / "renders" / "d045_p42_power_drill_z0.json").read_text())
+    assert meta["class_pixels"] == original["class_pixels"]
+
+
+def test_demo_rerun_renders_only_changed_layers_with_a_progress_bar(demo_dir, capsys):
+    before = {p.name: p.stat().st_mtime_ns for p in (demo_dir / "renders").glob("*.json")}
+    run_demo(demo_dir, resolution=(64, 36), samples=2)
+    assert {p.name: p.stat().st_mtime_ns for p in (demo_dir / "renders").glob("*.json")} == before
+    err = capsys.readouterr().err
+    assert "demo: 100%" in err and "4/4 [" in err  # counts, then elapsed<remaining (the ETA)

@@ -102,12 +102,19 @@ def test_tiny_plan_layout_and_sizes(authored):
     assert sorted(p.name for p in (out / "sky").iterdir()) == ["d000.usda", "d001.usda"]
     assert len(list((out / "poses").rglob("*.usda"))) == 4 + 2 + 2   # the depths share a pose layer
     for p in paths:
-        assert p.stat().st_size <= 6144, p  # opinions only: a few KB, never geometry
+        assert p.stat().st_size <= 4096, p  # issue 6: a scene layer's own file is at most 4 KB
         layer = Sdf.Layer.FindOrOpen(str(p))
         subs = list(layer.subLayerPaths)
-        assert len(subs) == 3 and all(not s.startswith("/") for s in subs)
-        assert "/poses/" in subs[0] and "/sky/" in subs[1] and subs[2].endswith("base.usda")
+        assert subs[0].startswith("../../../poses/s2030/") and subs[1].startswith("../../../sky/d00"), subs
+        assert subs[2] == "../../../stages/base.usda", subs  # the tree's own copy, never the repo's
         assert layer.GetPrimAtPath("/World/Camera") is None and layer.GetPrimAtPath("/World/Sky") is None
+        anomaly = layer.GetPrimAtPath("/World/Anomaly")
+        if anomaly is not None:
+            ref, = anomaly.referenceList.prependedItems
+            assert ref.assetPath == "../../../stages/anomalies/power_drill.usda"
+    stages = sorted(p.relative_to(BASE_STAGE.parent) for p in BASE_STAGE.parent.rglob("*") if p.is_file())
+    assert sorted(p.relative_to(out / "stages") for p in (out / "stages").rglob("*") if p.is_file()) == stages
+    assert all((out / "stages" / f).read_bytes() == (BASE_STAGE.parent / f).read_bytes() for f in stages)
     anomalous = [p for p in paths if "_z" in p.name]
     by_sample = Counter(_sublayers(p)[0] for p in anomalous)
     assert len(by_sample) <= 2 and sum(by_sample.values()) == len(anomalous)  # depths share a pose layer
@@ -116,7 +123,9 @@ def test_tiny_plan_layout_and_sizes(authored):
 
 def test_every_layer_validates(authored):
     out, _ = authored
-    for p in sorted(out.rglob("*.usda")):
+    authored_layers = sorted(p for d in ("sky", "poses", "scenes") for p in (out / d).rglob("*.usda"))
+    assert len(authored_layers) == 2 + 8 + len(list((out / "scenes").rglob("*.usda")))
+    for p in authored_layers:  # (stages/ is the base stage's byte copy, checked in test_tiny_plan_layout...)
         layer = Sdf.Layer.FindOrOpen(str(p))
         assert layer.defaultPrim == "World"
         assert layer.pseudoRoot.GetInfo("upAxis") == "Z" and layer.pseudoRoot.GetInfo("metersPerUnit") == 1.0
@@ -127,7 +136,7 @@ def test_reauthoring_is_byte_identical_and_resumes(authored, tmp_path_factory):
     from allo_usd.authoring import author_plan
 
     out, paths = authored
-    again = tmp_path_factory.mktemp("tiny")  # same depth, so relative paths to the base stage match
+    again = tmp_path_factory.mktemp("tiny") / "deeper" / "still" / "deeper"  # other place, other depth
     author_plan(tiny_plan(), again, progress=False)
     assert _files(again) == _files(out)
     victim = paths[0]
@@ -167,3 +176,79 @@ def test_composed_values_equal_resolve_scene(authored, tmp_path):
                 assert got == want, (path.name, prim_spec.path, name)
                 checked += 1
     assert checked > 40
+
+
+# ---------------------------------------------------------------------------------------------
+# A self-contained tree: moved, it opens with plain usd-core
+
+PLAIN_USD = r"""
+import json, os, sys
+from pxr import Usd, UsdValidation
+root = os.path.realpath(sys.argv[1])
+validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+report = {"validators": len(validators), "layers": {}}
+for path in sys.argv[2:]:
+    stage = Usd.Stage.Open(path)
+    used = [layer.realPath for layer in stage.GetUsedLayers() if not layer.anonymous]
+    errors = UsdValidation.ValidationContext(validators).Validate(stage)
+    report["layers"][path] = {
+        "composition_errors": [str(e) for e in stage.GetCompositionErrors()],
+        "outside": [u for u in used if os.path.commonpath([root, os.path.realpath(u)]) != root],
+        "used": len(used),
+        "anomaly_loaded": (len(stage.GetPrimAtPath("/World/Anomaly").GetAllChildren()) > 0
+                           if stage.GetPrimAtPath("/World/Anomaly") else None),
+        "validation_errors": [f"{e.GetName()}: {e.GetMessage()}" for e in errors
+                              if e.GetType() == UsdValidation.ValidationErrorType.Error]}
+report["allo_usd_imported"] = any(m.startswith("allo_usd") for m in sys.modules)
+print(json.dumps(report))
+"""
+
+
+def plain_usd_report(root: Path, layers: list[Path]) -> dict:
+    """Open each layer with usd-core alone, in a fresh process: no allo_usd import, no plugin path
+    or asset-root variables, run from an unrelated directory. Returns what it found."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k in ("PATH", "HOME", "LANG", "TMPDIR")}
+    proc = subprocess.run([sys.executable, "-c", PLAIN_USD, str(root), *map(str, layers)], env=env,
+                          cwd=Path(root).anchor, capture_output=True, text=True, check=True)
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["validators"] > 10 and report["allo_usd_imported"] is False
+    return report
+
+
+def test_a_moved_tree_opens_with_plain_usd(authored, tmp_path, monkeypatch):
+    import shutil
+
+    out, paths = authored
+    moved = tmp_path / "a" / "b" / "moved"  # another place and depth; "outside" proves nothing leaks back
+    shutil.copytree(out, moved)
+    layers = [moved / p.relative_to(out) for p in paths]
+    report = plain_usd_report(moved, layers)
+    for path, r in report["layers"].items():
+        assert r["composition_errors"] == [] and r["outside"] == [], (path, r)
+        assert r["used"] >= 4 and r["validation_errors"] == [], (path, r)
+        assert r["anomaly_loaded"] in (None, True), (path, r)  # the reference reached the copied asset
+    assert any(r["anomaly_loaded"] for r in report["layers"].values())
+    from allo_usd.read import read_scene
+    from allo_usd.safety import ENV_ROOTS
+
+    monkeypatch.delenv(ENV_ROOTS, raising=False)  # allo_usd.safety allows the plan tree by itself
+    assert read_scene(layers[-1]).meta["sceneId"] == paths[-1].stem
+
+
+def test_an_existing_tree_stage_that_differs_is_refused(authored, tmp_path):
+    import shutil
+
+    from allo_usd.authoring import author_plan
+    from allo_usd.errors import LayerError
+
+    out, _ = authored
+    other = tmp_path / "other"
+    shutil.copytree(out, other)
+    victim = next((other / "stages" / "anomalies").glob("*.usda"))
+    victim.write_text(victim.read_text() + "\n")
+    with pytest.raises(LayerError, match="not a copy of .*files differ"):
+        author_plan(tiny_plan(), other, progress=False)
