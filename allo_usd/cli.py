@@ -19,28 +19,29 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                          help="A scene layer (.usda), a directory of them, or a plan (.toml/.yaml)."),
            out: Path = typer.Option(Path("out/render"), "--out", help="Output directory."),
            force: bool = typer.Option(False, help="Re-render a single layer even if its outputs exist."),
-           workers: int = typer.Option(0, "--workers", help="Local worker processes (default: all cores)."),
+           workers: int = typer.Option(0, "--workers",
+                                       help="Local worker processes (default: the cores this process may use)."),
            scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (tcp://host:8786)."),
            threads: int = typer.Option(0, "--threads", help="Cycles threads per worker (default: cores // workers)."),
            retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed.")):
     """Render scene layers: RGB PNG, linear EXR, 3-class mask PNG and a metadata JSON per scene.
 
-    One .usda layer renders in this process. A directory renders all its scene layers on a local
-    pool (--workers) or a Dask cluster (--scheduler), resuming from OUT/manifest.jsonl; failures
-    go to OUT/failed.jsonl. A plan is authored into OUT/layers first, then rendered into OUT/renders.
+    One .usda layer renders in this process. A directory renders all its scene layers (searched
+    recursively; an authored plan's scenes/) on a local pool (--workers) or a Dask cluster
+    (--scheduler), resuming from OUT/manifest.jsonl; failures go to OUT/failed.jsonl and Blender's
+    output to OUT/logs/. A plan is authored into OUT/layers first, then rendered into OUT/renders.
     """
-    import os
-
-    from .dispatch import author_and_dispatch, dispatch
+    from .dispatch import author_and_dispatch, dispatch, output_to
 
     suffix = source.suffix.lower()
-    if suffix == ".usda" and not source.is_dir() and scheduler is None and not workers:
+    if suffix == ".usda" and source.is_file() and scheduler is None and not workers:
         from .job import render_layer
 
-        meta = render_layer(source, out, force=force, threads=threads or None)
+        with output_to(out / "logs" / "render.log"):  # Blender's own prints
+            meta = render_layer(source, out, force=force, threads=threads or None)
         typer.echo(f"{source} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
         return
-    kwargs = dict(workers=workers or os.cpu_count(), scheduler=scheduler, threads=threads or None, retries=retries)
+    kwargs = dict(workers=workers or None, scheduler=scheduler, threads=threads or None, retries=retries)
     if source.is_file() and suffix in (".toml", ".yaml", ".yml"):
         summary = author_and_dispatch(source, out, **kwargs)
     elif source.is_dir() or (source.is_file() and suffix == ".usda"):

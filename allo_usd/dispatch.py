@@ -1,8 +1,17 @@
 """Run render tasks (one scene layer each) on a local pool of worker processes or a Dask cluster.
 
+Which layers: a directory is searched recursively for scene layers (a .usda whose
+customLayerData holds allo.sceneId); in an authored plan's tree (a directory with plan.toml and
+scenes/) only scenes/SPLIT/KIND/ is searched, since sky/, poses/ and stages/ hold shared
+sublayers, not scenes. Finding no scene layer is an error, not an empty success. Paths are made
+absolute before any task is sent, so Dask workers (another working directory, another host with
+the same mounts) find the same files.
+
 Local pool (the default): N warm worker processes, started with the *spawn* method (bpy is not
 fork-safe), each importing bpy once and rendering one layer at a time with `cores // N` Cycles
-threads (the layer is not edited; Cycles gives the same image for any thread count). The
+threads (the layer is not edited; Cycles gives the same image for any thread count). Each
+worker's stdout and stderr (the file descriptors: Blender prints from C) go to
+`OUT/logs/worker-N.log`, so the terminal shows only the progress bar and our messages. The
 parent hands one task at a time to each idle worker over a pipe and watches the worker's process
 sentinel, so when a worker dies (segfault, out-of-memory kill) the parent knows exactly which
 task it held: that task alone is retried, up to `retries` times, on a freshly started worker;
@@ -18,8 +27,16 @@ the whole render (measured: 2 workers x 1 thread took 42.8 s unpinned vs 40.0 s 
 scenes; docs/bench_workers.md). Pinning never changes an image.
 
 Dask (`scheduler=ADDRESS` or a `distributed.Client`): the same task function runs on the
-cluster's workers; a task whose worker dies comes back as an exception (KilledWorker) and is
-resubmitted up to `retries` times. Outputs must go to a file system every worker can reach.
+cluster's workers. bpy is one global, non-thread-safe state, so `render_task` holds a
+per-process lock (a worker started with `--nthreads 2` renders one scene at a time; start
+workers with `--nthreads 1` and as many processes as you like) and keeps one warm Session per
+worker process, created on its first task. A task whose worker dies comes back as KilledWorker
+and is resubmitted up to `retries` times. Dask's own retry of tasks whose worker died
+(`distributed.scheduler.allowed-failures`, 3 by default) would multiply that bound (4 worker
+deaths per attempt), so while a run is going it sets the scheduler's allowed-failures to 0 (and
+puts the old value back at the end; concurrent runs count holds) and submits with retries=0:
+each of our attempts costs at most one worker death. Outputs must go to a file system every
+worker can reach.
 
 Crash safety, for both backends:
 - every output is written under a temporary name and renamed (allo_usd.write.atomic_path);
@@ -27,11 +44,16 @@ Crash safety, for both backends:
   file), appended with a single write and fsync; a torn last line (power cut) is ignored;
 - a re-run skips a scene only if the manifest lists it, its layer is unchanged and every output
   exists with a matching checksum; anything else is rendered again;
-- stale temporaries (`.NAME.XXXXXXXX.ext` from atomic_path, `OUT/.allo-tmp/`) are removed at the
-  start and end of a run; a lock file keeps two runs from sharing one output directory;
-- a bad layer (AlloError) is recorded as failed at once, without retries;
-- a full disk (DiskFullError) stops the run: pending tasks are dropped, workers stopped, and
-  DiskFullError is raised; finished outputs stay valid and are skipped next time;
+- stale temporaries (`.NAME.PID.XXXXXXXX.ext` from atomic_path, Blender's render files under
+  `OUT/.allo-tmp/PID/`) are removed at the start and end of a run; when a local worker dies, only
+  the temporaries named for its pid go, never those its live neighbours are writing; a lock file
+  keeps two runs from sharing one output directory;
+- a bad layer (AlloError) is recorded as failed at once, without retries; a render that failed
+  for reasons outside the layer (RenderFailedError, any other exception) is retried like a crash;
+- a full disk (DiskFullError: ENOSPC/EDQUOT from our writes, or a device found full after
+  Blender's own EXR write, which Blender does not report; allo_usd.blender.render) stops the run:
+  pending tasks are dropped, workers stopped, and DiskFullError is raised (exit 2 from the CLI);
+  finished outputs stay valid and are skipped next time; a manifest line is never left torn;
 - Ctrl-C stops the run the same way and returns a summary with `interrupted=True`.
 
 Test hooks (environment variables read by the worker, test-only): ALLO_TEST_CRASH_SCENE and
@@ -41,6 +63,7 @@ that scene's EXR), ALLO_TEST_DELAY (seconds to sleep before each render).
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -50,19 +73,20 @@ import sys
 import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .errors import AlloError, DiskFullError, LayerError
+from .errors import AlloError, DiskFullError, LayerError, RenderFailedError
 from .job import output_paths
 from .safety import ENV_ROOTS
-from .write import sha256_file
+from .write import DISK_FULL_ERRNOS, sha256_file, temp_name_re
 
 MANIFEST = "manifest.jsonl"
 FAILED = "failed.jsonl"
 LOCK = ".allo-dispatch.lock"
 WORKDIR = ".allo-tmp"
-_TEMP_RE = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.[A-Za-z0-9]+)?$")  # tempfile.mkstemp names from atomic_path
+LOGS = "logs"
 
 
 @dataclass
@@ -90,14 +114,39 @@ def _is_scene_layer(path: Path) -> bool:
     return re.search(rb"\bsceneId\s*=", head) is not None
 
 
+def _scene_layers_under(root: Path) -> list[Path]:
+    """Every scene layer below `root`, recursively, skipping hidden directories; in an authored
+    plan's tree (plan.toml beside scenes/) only scenes/ is searched: sky/, poses/ and stages/
+    hold shared sublayers, and a paper plan has ~39,000 pose layers not worth opening."""
+    from .author.compose import SCENE_DIR
+
+    found = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        here = Path(dirpath)
+        if SCENE_DIR in dirnames and (here / "plan.toml").is_file():
+            dirnames[:] = [SCENE_DIR]
+        else:
+            dirnames[:] = [d for d in dirnames if not d.startswith(".")]
+        found += [here / f for f in filenames if f.endswith(".usda") and not f.startswith(".")]
+    return sorted(p for p in found if _is_scene_layer(p))
+
+
 def find_layers(source: str | Path | list) -> list[Path]:
-    """A directory (its *.usda scene layers), a single layer, or a list of layers."""
+    """A directory (its scene layers, recursively), a single layer, or a list of layers.
+    Raises AlloError when there is nothing to render."""
     if isinstance(source, (list, tuple)):
         layers = [Path(p) for p in source]
+        if not layers:
+            raise AlloError("no layers to render (an empty list); pass scene layers, their directory or a plan")
     else:
         source = Path(source)
         if source.is_dir():
-            layers = sorted(p for p in source.glob("*.usda") if _is_scene_layer(p))
+            layers = _scene_layers_under(source)
+            if not layers:
+                raise AlloError(f"no scene layers under {source} (a scene layer is a .usda whose customLayerData "
+                                "holds allo.sceneId; sky/, poses/ and stages/ layers are shared sublayers, not "
+                                f"scenes); author a plan there with `allo-usd author PLAN --out {source}`, or "
+                                "pass the directory that holds the scene layers")
         elif source.is_file():
             layers = [source]
         else:
@@ -132,16 +181,28 @@ def load_manifest(out_dir: Path) -> dict[str, dict]:
 
 
 def _append_jsonl(path: Path, row: dict) -> None:
-    """One os.write of one line on an O_APPEND descriptor, then fsync: a crash loses at most the line."""
+    """One os.write of one line on an O_APPEND descriptor, then fsync: a crash loses at most the line.
+    A line torn by an earlier crash is ended first, so it cannot swallow this one; a write cut
+    short by a full disk is truncated away, so the file never ends in half a line."""
     data = (json.dumps(row, sort_keys=True) + "\n").encode()
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
     try:
-        os.write(fd, data)
-        os.fsync(fd)
-    except OSError as exc:
-        if exc.errno == 28:
-            raise DiskFullError(f"no space left on the device while appending to {path}; free space and re-run") from exc
-        raise
+        size = os.fstat(fd).st_size
+        try:
+            if size and os.pread(fd, 1, size - 1) != b"\n":
+                data = b"\n" + data
+            if os.write(fd, data) != len(data):
+                raise OSError(errno.ENOSPC, "short write", str(path))
+            os.fsync(fd)
+        except OSError as exc:
+            if exc.errno in DISK_FULL_ERRNOS:
+                try:
+                    os.ftruncate(fd, size)
+                except OSError:
+                    pass
+                raise DiskFullError(f"no space left on the device while appending to {path}; free space and "
+                                    "re-run") from exc
+            raise
     finally:
         os.close(fd)
 
@@ -172,16 +233,18 @@ def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
                for name, digest in files.items())
 
 
-def clean_stale(out_dir: Path) -> int:
-    """Remove temporaries left by killed writers; returns how many."""
+def clean_stale(out_dir: Path, pid: int | None = None) -> int:
+    """Remove temporaries left by killed writers (only those of writer `pid` when given: the
+    others may belong to live workers); returns how many files beside the outputs went."""
     out_dir = Path(out_dir)
+    pattern = temp_name_re(pid)
     n = 0
     if out_dir.is_dir():
         for p in out_dir.iterdir():
-            if p.is_file() and _TEMP_RE.match(p.name):
+            if pattern.match(p.name) and p.is_file():
                 p.unlink(missing_ok=True)
                 n += 1
-    shutil.rmtree(out_dir / WORKDIR, ignore_errors=True)
+    shutil.rmtree(out_dir / WORKDIR if pid is None else out_dir / WORKDIR / str(int(pid)), ignore_errors=True)
     return n
 
 
@@ -230,15 +293,23 @@ def _test_hooks(scene: str) -> None:
         job.write_rgb_exr = full_disk
 
 
-_SESSION = None  # a local-pool worker's warm Blender session (allo_usd.blender.session); None elsewhere
+_BPY_LOCK = threading.Lock()  # bpy is one global state and not thread-safe: one render per process at a time
+_SESSION = None  # this process's warm Blender session (allo_usd.blender.session), made by its first task
 
 
 def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str = "") -> dict:
     """Render one layer (forced: the parent decided it is not done) and checksum its outputs.
 
     Never raises for a bad layer or a full disk: returns {"status": "error", "kind": ...} so
-    the parent can tell them apart from a crash, which it sees as a dead worker instead.
+    the parent can tell them apart from a crash, which it sees as a dead worker instead. Safe to
+    call from several threads of one process (a Dask worker with --nthreads > 1): they take turns.
     """
+    with _BPY_LOCK:
+        return _render_task(layer, out_dir, threads, roots)
+
+
+def _render_task(layer: str, out_dir: str, threads: int | None, roots: str) -> dict:
+    global _SESSION
     _fix_bpy_path()
     from .job import render_layer
 
@@ -246,26 +317,91 @@ def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str
         os.environ[ENV_ROOTS] = roots
     layer_p, out_p = Path(layer), Path(out_dir)
     scene = layer_p.stem
+
+    def error(kind: str, exc: BaseException, prefix: bool = True) -> dict:
+        return {"status": "error", "kind": kind, "scene": scene,
+                "message": f"{type(exc).__name__}: {exc}" if prefix else str(exc)}
+
     try:
         _test_hooks(scene)
+        if _SESSION is None:
+            from .blender.session import Session
+
+            _SESSION = Session()  # one Blender scene per process, patched from scene to scene
         meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=_workdir(out_p), session=_SESSION)
     except DiskFullError as exc:
-        return {"status": "error", "kind": "disk_full", "scene": scene, "message": str(exc)}
+        return error("disk_full", exc, prefix=False)
+    except RenderFailedError as exc:  # not the layer's fault: retried
+        return error("error", exc)
     except AlloError as exc:
-        return {"status": "error", "kind": "layer", "scene": scene, "message": f"{type(exc).__name__}: {exc}"}
+        return error("layer", exc)
+    except OSError as exc:
+        if exc.errno in DISK_FULL_ERRNOS:
+            return error("disk_full", DiskFullError(f"no space left on the device holding {out_p} ({exc}); free "
+                                                    "space and re-run"), prefix=False)
+        return error("error", exc)
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which retries it
-        return {"status": "error", "kind": "error", "scene": scene, "message": f"{type(exc).__name__}: {exc}"}
+        return error("error", exc)
     files = {p.name: sha256_file(p) for p in output_paths(layer_p, out_p).values()}
     return {"status": "ok", "scene": scene, "layer": str(layer_p.resolve()), "layer_sha256": meta["layer_sha256"],
             "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", scene),
             "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}",
+            "full_build": bool(_SESSION.last.full_build),
             "cores": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
 
 
 def _workdir(out_dir: Path) -> Path:
-    d = out_dir / WORKDIR
+    """This process's own directory for Blender's render files (removed if the process dies)."""
+    d = out_dir / WORKDIR / str(os.getpid())
     d.mkdir(parents=True, exist_ok=True)
     return d
+
+
+# ---------------------------------------------------------------- worker output
+
+def _send_output_to(log: Path) -> None:
+    """Point this process's stdout and stderr at `log` (appending), at the file-descriptor level:
+    Blender prints from C ("Saved: ...", "CUEW initialization failed"), past sys.stdout."""
+    try:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    except OSError:  # a full or read-only disk: the output is not worth failing for
+        fd = os.open(os.devnull, os.O_WRONLY)
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+
+
+def _flush_c_stdio() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
+
+
+@contextmanager
+def output_to(log: Path):
+    """Send this process's stdout and stderr (file descriptors, so Blender's C output too) to
+    `log` for the block, then restore them (the single-layer `allo-usd render LAYER`)."""
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    saved = os.dup(1), os.dup(2)
+    try:
+        _send_output_to(Path(log))
+        yield Path(log)
+    finally:
+        _flush_c_stdio()
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
 
 
 # ---------------------------------------------------------------- local pool
@@ -299,6 +435,11 @@ def _fix_bpy_path() -> None:
         sys.path[:] = [p for p in sys.path if not _BPY_SCRIPTS.search(p)]
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity, as Blender's TBB sees it), not the machine's."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def core_sets(workers: int, threads: int, cores: list[int] | None = None) -> list[tuple[int, ...] | None]:
     """Disjoint cores for each worker, or None for all when `workers * threads` exceeds them."""
     if cores is None:
@@ -308,19 +449,19 @@ def core_sets(workers: int, threads: int, cores: list[int] | None = None) -> lis
     return [tuple(cores[i * threads:(i + 1) * threads]) for i in range(workers)]
 
 
-def _worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None) -> None:
+def _worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
+                 log: str | None = None, index: int = 0) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
     _die_with_parent(parent_pid)
+    if log:
+        _send_output_to(Path(log))
+        print(f"--- allo-usd render worker {index}, pid {os.getpid()}, started "
+              f"{time.strftime('%Y-%m-%dT%H:%M:%S%z')} ---", flush=True)
     if cores:  # before bpy: TBB sizes its pool from the affinity mask when it starts
         os.sched_setaffinity(0, cores)
     os.environ.update(env)
     _fix_bpy_path()
-    import bpy  # noqa: F401 - warm: import once per worker, not once per scene
-
-    from .blender.session import Session
-
-    global _SESSION
-    _SESSION = Session()  # one Blender scene per worker, patched from scene to scene
+    import bpy  # noqa: F401 - warm: import once per worker, not per scene (its Session comes with the first task)
 
     while True:
         try:
@@ -333,11 +474,14 @@ def _worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None
 
 
 class _Worker:
-    def __init__(self, ctx, env: dict, cores: tuple[int, ...] | None = None):
-        self.cores = cores
+    def __init__(self, ctx, env: dict, cores: tuple[int, ...] | None = None, index: int = 0,
+                 log_dir: Path | None = None):
+        self.cores, self.index = cores, index
+        self.log = None if log_dir is None else Path(log_dir) / f"worker-{index}.log"
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, env, os.getpid(), cores), daemon=True,
-                                name="allo-render-worker")
+        self.proc = ctx.Process(target=_worker_main, daemon=True, name=f"allo-render-worker-{index}",
+                                args=(child, env, os.getpid(), cores, None if self.log is None else str(self.log),
+                                      index))
         self.proc.start()
         child.close()
         self.task: _Task | None = None
@@ -417,7 +561,10 @@ class _Run:
             self.fail(task, "layer", result["message"])
             return False
         if result["kind"] == "disk_full":
-            self.fail(task, "disk_full", result["message"])
+            try:
+                self.fail(task, "disk_full", result["message"])
+            except DiskFullError:
+                pass  # failed.jsonl cannot grow on a full disk; the exception below says it all
             raise DiskFullError(result["message"])
         return self.retry_or_fail(task, "error", result["message"])
 
@@ -436,7 +583,8 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
     ctx = multiprocessing.get_context("spawn")
     pending = deque(tasks)
     n = min(workers, len(tasks))
-    pool = [_Worker(ctx, env, cores) for cores in core_sets(n, threads)]
+    log_dir = out_dir / LOGS
+    pool = [_Worker(ctx, env, cores, i, log_dir) for i, cores in enumerate(core_sets(n, threads))]
     disk_full: DiskFullError | None = None
     try:
         while pending or any(w.task for w in pool):
@@ -465,10 +613,10 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                 task, w.task = w.task, None
                 if dead:
                     w.proc.join(5)
-                    reason = _death_reason(w.proc.exitcode)
+                    reason = f"{_death_reason(w.proc.exitcode)}; its output is in {w.log}"
                     w.kill()
-                    pool[i] = _Worker(ctx, env, w.cores)
-                    clean_stale(out_dir)  # its half-written temporaries
+                    pool[i] = _Worker(ctx, env, w.cores, w.index, log_dir)
+                    clean_stale(out_dir, pid=w.proc.pid)  # its half-written temporaries, not its neighbours'
                     if run.retry_or_fail(task, "crash", reason):
                         pending.appendleft(task)
                 elif run.settle(task, result):
@@ -480,15 +628,49 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
 
 # ---------------------------------------------------------------- Dask
 
+def _hold_one_death_per_attempt(client, hold: bool) -> bool:
+    """Set the scheduler's allowed-failures to 0 while a run holds it (restore it when the last
+    hold is released): a task whose worker dies then errs with KilledWorker at once, and our
+    retry bound counts worker deaths. The function is pickled by value, so the scheduler needs
+    no allo_usd. Returns False (with a warning) where the scheduler refuses to run it."""
+
+    def swap(hold, dask_scheduler=None):
+        holds = getattr(dask_scheduler, "_allo_dispatch_holds", 0)
+        if hold:
+            if holds == 0:
+                dask_scheduler._allo_saved_allowed_failures = dask_scheduler.allowed_failures
+            dask_scheduler.allowed_failures = 0
+            dask_scheduler._allo_dispatch_holds = holds + 1
+        else:
+            dask_scheduler._allo_dispatch_holds = holds = max(holds - 1, 0)
+            if holds == 0:
+                dask_scheduler.allowed_failures = getattr(dask_scheduler, "_allo_saved_allowed_failures",
+                                                          dask_scheduler.allowed_failures)
+        return dask_scheduler.allowed_failures
+
+    try:
+        client.run_on_scheduler(swap, hold)
+        return True
+    except Exception as exc:  # noqa: BLE001 - a scheduler that forbids run_on_scheduler
+        if hold:
+            print(f"warning: could not set the Dask scheduler's allowed-failures to 0 ({type(exc).__name__}: {exc}); "
+                  "each attempt may cost several worker deaths; start the scheduler with "
+                  "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES=0", file=sys.stderr)
+        return False
+
+
 def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict) -> None:
     from distributed import Client, as_completed
 
     client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
     roots = env.get(ENV_ROOTS, "")
+    held = False
     try:
+        held = _hold_one_death_per_attempt(client, True)
+
         def submit(task: _Task):
             task.attempts += 1
-            return client.submit(render_task, str(task.layer), str(out_dir), threads, roots, pure=False,
+            return client.submit(render_task, str(task.layer), str(out_dir), threads, roots, pure=False, retries=0,
                                  key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
 
         futures = {submit(t): t for t in tasks}
@@ -512,6 +694,8 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
             if futures:
                 client.cancel(list(futures), force=True)
     finally:
+        if held:
+            _hold_one_death_per_attempt(client, False)
         if client is not scheduler:
             client.close()
 
@@ -522,14 +706,15 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
              retries: int = 2, progress: bool | None = None, extra_roots: tuple = ()) -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
 
-    `workers` local processes (default: all cores) with `threads` Cycles threads each (default:
-    cores // workers), or the Dask cluster at `scheduler` (an address or a Client). Returns a
-    Summary; raises DiskFullError when the disk fills (after stopping cleanly).
+    `workers` local processes (default: the cores this process may use) with `threads` Cycles
+    threads each (default: cores // workers), or the Dask cluster at `scheduler` (an address or
+    a Client). Returns a Summary; raises DiskFullError when the disk fills (after stopping
+    cleanly) and AlloError when `source` holds no scene layer.
     """
     t0 = time.perf_counter()
-    out_dir = Path(out_dir)
+    out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
+    layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
     out_dir.mkdir(parents=True, exist_ok=True)
-    layers = find_layers(source)
     roots = sorted({str(p.resolve().parent) for p in layers} | {str(Path(r).resolve()) for r in extra_roots})
     prior = os.environ.get(ENV_ROOTS, "")
     env = {ENV_ROOTS: os.pathsep.join([*roots, *([prior] if prior else [])])}
@@ -550,7 +735,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
             if tasks and scheduler is not None:
                 _run_dask(tasks, out_dir, scheduler, threads, run, env)
             elif tasks:
-                cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+                cores = usable_cores()
                 n = max(1, workers or cores)
                 _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env)
         except KeyboardInterrupt:
@@ -558,7 +743,10 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         finally:
             run.close()
             clean_stale(out_dir)
-            _compact_manifest(out_dir)
+            try:
+                _compact_manifest(out_dir)
+            except DiskFullError:
+                pass  # the appended manifest is valid as it is; compaction waits for the next run
     summary.seconds = time.perf_counter() - t0
     return summary
 
@@ -590,9 +778,9 @@ def author_and_dispatch(plan_path: Path, out_dir: Path, **kwargs) -> Summary:
     load_plan, author_plan = funcs
     layers_dir = Path(out_dir) / "layers"
     layers = author_plan(load_plan(Path(plan_path)), layers_dir)
-    source = list(layers) if layers else sorted(p for p in layers_dir.rglob("*.usda") if _is_scene_layer(p))
-    return dispatch(source, Path(out_dir) / "renders", extra_roots=(Path(out_dir),), **kwargs)
+    return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", extra_roots=(Path(out_dir),),
+                    **kwargs)
 
 
 __all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "load_manifest", "is_verified",
-           "clean_stale", "render_task", "LayerError"]
+           "clean_stale", "render_task", "output_to", "usable_cores", "LayerError"]

@@ -45,6 +45,11 @@ class DiskFullError(AlloError, OSError):
     """The output device is full (ENOSPC): a batch stops cleanly; finished outputs are kept."""
 
 
+class RenderFailedError(AlloError, RuntimeError):
+    """Blender produced no usable image for reasons outside the layer (an I/O error, a cut-short
+    file): the dispatcher retries it like a crash instead of recording the layer as bad."""
+
+
 class RenderCrashError(AlloError, RuntimeError):
     """A render worker died (segfault, out of memory, killed) more times than the retry budget."""
 

@@ -18,6 +18,12 @@ from .errors import LayerError
 
 CLASS_IDS = {"station": STATION, "celestial_body": STATION, "anomaly": ANOMALY}
 
+# Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
+MAX_POSITION_M = 1e12          # any prim, from the station at the origin (the Sun is ~1.5e11 m away)
+MAX_CAMERA_DISTANCE_M = 1e4    # the camera, from the station (ALLO cameras sit within ~70 m of it)
+MAX_SIDE_PX = 8192             # render resolution per side ...
+MAX_PIXELS = 40_000_000        # ... and in all (8192 x 4608 fits; 8192 x 8192 would take ~1 GB per pass)
+
 
 def _tf_message(exc) -> str:
     """The last line of a Tf error, safe against bytes that are not UTF-8 (garbage layers)."""
@@ -118,10 +124,45 @@ def _check_xform_ops(prim) -> None:
                                      "layer that sets it")
                 if not np.isfinite(np.asarray(values, dtype=np.float64)).all():
                     raise LayerError(f"{op.GetAttr().GetPath()} = {v} is not finite; fix the layer that sets it")
+                if op.GetOpType() == UsdGeom.XformOp.TypeOrient:
+                    _check_quaternion(op.GetAttr().GetPath(), v, values)
         p = p.GetParent()
 
 
-def _matrix(cache, prim) -> np.ndarray:
+def _check_quaternion(where, value, wxyz) -> None:
+    """An orient op's quaternion must have a length: USD reads (0, 0, 0, 0) as no rotation, silently."""
+    norm = float(np.linalg.norm(np.asarray(wxyz, dtype=np.float64)))
+    if norm < 1e-6:
+        raise LayerError(f"{where} = {value} is not a rotation (a quaternion of length {norm:.3g}, which USD would "
+                         "silently read as no rotation); fix the layer: write a unit quaternion (real, i, j, k), "
+                         "e.g. (1, 0, 0, 0) for none")
+
+
+def _check_position(cache, prim, m: np.ndarray, max_distance: float) -> None:
+    """The prim's world position lies within `max_distance` metres of the station (the origin);
+    the error names the outermost prim that is already too far (the one whose transform to fix)."""
+    distance = float(np.linalg.norm(m[:3, 3]))
+    if distance <= max_distance:
+        return
+    culprit, where = prim, m[:3, 3]
+    parent = prim.GetParent()
+    while parent and not parent.IsPseudoRoot():
+        t = np.array(cache.GetLocalToWorldTransform(parent), dtype=np.float64)[3, :3]  # row-vector: last row
+        if not np.linalg.norm(t) > max_distance:
+            break
+        culprit, where, parent = parent, t, parent.GetParent()
+    raise LayerError(f"{culprit.GetPath()} is at {tuple(float(c) for c in where)}, {np.linalg.norm(where):.3g} m "
+                     f"from the station at the origin, beyond the {max_distance:,.0f} m allowed for it; fix the "
+                     "xformOp:translate (or parent transform) that puts it there")
+
+
+def _check_resolution(w: int, h: int, where) -> None:
+    if not (1 <= w <= MAX_SIDE_PX and 1 <= h <= MAX_SIDE_PX) or w * h > MAX_PIXELS:
+        raise LayerError(f"{where}.resolution = ({w}, {h}) is outside 1..{MAX_SIDE_PX} per side or above "
+                         f"{MAX_PIXELS:,} pixels in all; fix the layer: choose a real image size, e.g. (1920, 1080)")
+
+
+def _matrix(cache, prim, max_distance: float = MAX_POSITION_M) -> np.ndarray:
     from pxr import Tf
 
     _check_xform_ops(prim)
@@ -131,6 +172,7 @@ def _matrix(cache, prim) -> np.ndarray:
         raise LayerError(f"{prim.GetPath()} has an unreadable transform ({_tf_message(exc)}); fix the layer") from None
     if not np.isfinite(m).all():
         raise LayerError(f"{prim.GetPath()} has a non-finite transform; fix the layer that sets it")
+    _check_position(cache, prim, m, max_distance)
     return m
 
 
@@ -238,7 +280,8 @@ def read_camera(prim, cache) -> CameraDesc:
               cam.GetVerticalApertureAttr().Get()]
     if not all(v is not None and np.isfinite(v) and v > 0 for v in values):
         raise LayerError(f"camera {prim.GetPath()} needs positive focalLength and apertures, got {values}")
-    return CameraDesc(_matrix(cache, prim), values[0] * to_mm, values[1] * to_mm, values[2] * to_mm,
+    m = _matrix(cache, prim, MAX_CAMERA_DISTANCE_M)
+    return CameraDesc(m, values[0] * to_mm, values[1] * to_mm, values[2] * to_mm,
                       (float(clip[0]), float(clip[1])))
 
 
@@ -289,8 +332,7 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
     if not isinstance(res, Gf.Vec2i):
         raise LayerError(f"{settings_prim.GetPath()}.resolution must be an int2, got {res!r}; fix the layer")
     w, h = int(res[0]), int(res[1])
-    if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise LayerError(f"render resolution {w}x{h} is outside 1..16384 per side; fix {settings_prim.GetPath()}")
+    _check_resolution(w, h, settings_prim.GetPath())
 
     def num(name, default, integer=False, lo=-np.inf, hi=np.inf):
         return _number(_get(settings_prim, name, default), name, integer, lo, hi)
@@ -316,7 +358,7 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
             outputs.append(str(var.GetSourceNameAttr().Get()))
     exposure = num("allo:render:exposure", 1.0)
     if not exposure > 0:
-        raise LayerError(f"allo:render:exposure must be a positive number, got {exposure}")
+        raise LayerError(f"allo:render:exposure must be a positive number, got {exposure}; fix the layer")
     render = RenderDesc((w, h), str(_get(settings_prim, "allo:render:preset", "preview")), samples,
                         num("allo:render:adaptiveThreshold", 0.0, lo=0.0, hi=1.0),
                         flag("allo:render:denoise", True),

@@ -6,8 +6,10 @@ crash or a full disk never leaves a truncated output under a final name.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -20,12 +22,25 @@ from .errors import AlloError, DiskFullError
 MASK_PALETTE = np.array([[0, 0, 0], [70, 130, 255], [255, 40, 40]], dtype=np.uint8)
 
 
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)  # no space, or the user's quota is spent
+
+
+def temp_name_re(pid: int | None = None) -> re.Pattern:
+    """Names of atomic_path temporaries: `.NAME.PID.XXXXXXXX.EXT` (mkstemp's 8 random characters),
+    those of writer `pid` only when given. Without a pid it also matches the names of earlier
+    versions, which had no pid. The pid lets a dispatcher remove a dead worker's temporaries
+    without touching those its live workers are writing."""
+    who = r".+" if pid is None else rf".+\.{int(pid)}"
+    return re.compile(rf"^\.{who}\.[a-z0-9_]{{8}}(\.[A-Za-z0-9]+)?$")
+
+
 @contextmanager
 def atomic_path(path: Path, suffix: str = ""):
-    """Yield a temporary path beside `path`; on success rename it over `path`, else remove it."""
+    """Yield a temporary path beside `path` (named for this process, see temp_name_re); on success
+    rename it over `path`, else remove it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix or path.suffix)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=suffix or path.suffix)
     os.close(fd)
     try:
         yield Path(tmp)
@@ -33,7 +48,7 @@ def atomic_path(path: Path, suffix: str = ""):
         os.replace(tmp, path)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
-        if exc.errno == 28:
+        if exc.errno in DISK_FULL_ERRNOS:
             raise DiskFullError(f"no space left on the device while writing {path}; free space and re-run "
                             "(finished outputs are kept and will be skipped)") from exc
         raise

@@ -12,16 +12,22 @@ from pathlib import Path
 
 import numpy as np
 import OpenEXR
+import psutil
 import pytest
 from PIL import Image
 
 from allo_usd.author.scene import write_scene_layer
-from allo_usd.dispatch import MANIFEST, core_sets, dispatch, is_verified, load_manifest
-from allo_usd.errors import DiskFullError
+from allo_usd.dispatch import (MANIFEST, WORKDIR, _append_jsonl, _workdir, clean_stale, core_sets, dispatch,
+                               find_layers, is_verified, load_manifest)
+from allo_usd.errors import AlloError, DiskFullError, RenderFailedError
+from allo_usd.write import temp_name_re
 
 from conftest import make_spec
 
 pytestmark = pytest.mark.render
+
+CLI = [sys.executable, "-c", "from allo_usd.cli import main; main()", "render"]
+BLENDER_NOISE = ("Saved:", "CUEW", "Fra:", "Time:", "cycles", "| ")
 
 
 def make_layers(base, root: Path, n: int) -> list[Path]:
@@ -33,16 +39,17 @@ def manifest_rows(out: Path) -> list[dict]:
     return [json.loads(line) for line in (out / MANIFEST).read_text().splitlines()]
 
 
-def check_outputs(out: Path, layers: list[Path]) -> None:
+def check_outputs(out: Path, layers: list[Path], size=(64, 36)) -> None:
     """Every scene has decodable outputs, one unique manifest row, and no temporaries are left."""
+    w, h = size
     rows = manifest_rows(out)
     assert sorted(r["scene"] for r in rows) == sorted(p.stem for p in layers)  # unique, complete
     for layer in layers:
         s = layer.stem
-        assert np.asarray(Image.open(out / f"{s}.png")).shape == (36, 64, 3)
+        assert np.asarray(Image.open(out / f"{s}.png")).shape == (h, w, 3)
         assert set(np.unique(np.asarray(Image.open(out / f"{s}_mask.png")))) <= {0, 1, 2}
         with OpenEXR.File(str(out / f"{s}.exr"), separate_channels=True) as f:
-            assert f.channels()["R"].pixels.shape == (36, 64)
+            assert f.channels()["R"].pixels.shape == (h, w)
         assert json.loads((out / f"{s}.json").read_text())["files"]["rgb"] == f"{s}.png"
         assert is_verified(load_manifest(out)[s], layer, out)
     assert not [p.name for p in out.iterdir() if p.name.startswith(".") and p.name != ".allo-dispatch.lock"]
@@ -63,9 +70,11 @@ def test_local_pool_renders_resumes_and_repairs(tiny_base, tmp_path):
     summary = dispatch(tmp_path / "layers", out, workers=2, progress=False)
     assert sorted(summary.rendered) == ["s0", "s1", "s2", "s3"] and not summary.failed
     check_outputs(out, layers)
-    assert {r["worker"] for r in manifest_rows(out)}.__len__() == 2  # both workers took scenes
+    rows = manifest_rows(out)
+    assert len({r["worker"] for r in rows}) == 2  # both workers took scenes ...
+    assert sum(r["full_build"] for r in rows) == 2  # ... and each built its Blender scene once, then patched it
     if len(os.sched_getaffinity(0)) >= 2:  # 2 workers x 1 thread: each pinned to a core of its own
-        cores = {r["worker"]: tuple(r["cores"]) for r in manifest_rows(out)}
+        cores = {r["worker"]: tuple(r["cores"]) for r in rows}
         assert sorted(cores.values()) == [(c,) for c in sorted(os.sched_getaffinity(0))[:2]]
 
     # corrupt one output, delete another, leave a stale temporary: only those two scenes re-render
@@ -79,6 +88,76 @@ def test_local_pool_renders_resumes_and_repairs(tiny_base, tmp_path):
     check_outputs(out, layers)
 
 
+# ---------------------------------------------------------------- which layers
+
+@pytest.fixture(scope="module")
+def authored_plan(tmp_path_factory):
+    """A tiny authored plan over the committed base stage: 2 days x 2 poses (one train, one test) at
+    64x36, laid out as `allo-usd author` writes it (scenes/SPLIT/KIND/, sky/, poses/, plan.toml)."""
+    from allo_usd.authoring import author_plan
+    from allo_usd.paths import BASE_STAGE
+    from allo_usd.plan import Anomalies, Dates, Plan, Poses, Quality
+
+    plan = Plan(name="dispatch", dates=Dates(days=2), poses=Poses(train=[1], test=[41]),
+                anomalies=Anomalies(assets=[]), quality=Quality(resolution=(64, 36), samples=2),
+                base_stage=str(BASE_STAGE))
+    root = tmp_path_factory.mktemp("plan")
+    layers = author_plan(plan, root, progress=False)
+    assert len(layers) == 4
+    return root, layers
+
+
+def test_find_layers_recurses_into_an_authored_plan(authored_plan, tmp_path):
+    root, layers = authored_plan
+    assert find_layers(root) == sorted(layers)  # scenes/SPLIT/KIND only: not sky/, poses/
+    assert {p.parent.parent.name for p in find_layers(root)} == {"train", "test"}
+    assert find_layers(root / "scenes" / "test") == sorted(p for p in layers if "/test/" in str(p))
+    nested = tmp_path / "a" / "b"  # any directory is searched recursively, hidden ones skipped
+    nested.mkdir(parents=True)
+    (nested / "x.usda").write_text(layers[0].read_text())
+    (tmp_path / ".hidden").mkdir()
+    (tmp_path / ".hidden" / "y.usda").write_text(layers[1].read_text())
+    assert find_layers(tmp_path) == [nested / "x.usda"]
+    for empty in (root / "sky", root / "poses"):
+        with pytest.raises(AlloError, match=r"no scene layers under .*sky/, poses/ and stages/ .* not scenes"):
+            find_layers(empty)
+    with pytest.raises(AlloError, match="no layers to render"):
+        find_layers([])
+
+
+def test_cli_renders_an_authored_plan_quietly(authored_plan, tmp_path):
+    """`allo-usd render PLAN_DIR` renders every scene of the plan; Blender's prints go to the
+    workers' logs, so the terminal shows only our summary. An empty directory is an error."""
+    root, layers = authored_plan
+    out = tmp_path / "out"
+    r = subprocess.run(CLI + [str(root), "--out", str(out), "--workers", "2"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "4 rendered" in r.stdout and "0 failed" in r.stdout
+    terminal = r.stdout + r.stderr
+    assert not [n for n in BLENDER_NOISE if n in terminal], terminal
+    check_outputs(out, layers)
+    logs = sorted((out / "logs").glob("worker-*.log"))
+    assert [p.name for p in logs] == ["worker-0.log", "worker-1.log"]
+    assert sum(p.read_text().count("Saved:") for p in logs) == 4  # Blender's own line per render, in the logs
+
+    (tmp_path / "empty" / "sky").mkdir(parents=True)
+    r = subprocess.run(CLI + [str(tmp_path / "empty"), "--out", str(tmp_path / "out2")], capture_output=True,
+                       text=True)
+    assert r.returncode == 2 and "no scene layers under" in r.stderr, r.stderr
+
+
+def test_cli_single_layer_keeps_blender_output_in_its_log(tiny_base, tmp_path):
+    [layer] = make_layers(tiny_base, tmp_path / "layers", 1)
+    out = tmp_path / "out"
+    r = subprocess.run(CLI + [str(layer), "--out", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith(f"{layer} -> {out}: ") and not [n for n in BLENDER_NOISE if n in r.stdout + r.stderr]
+    assert "Saved:" in (out / "logs" / "render.log").read_text()
+    assert np.asarray(Image.open(out / "s0.png")).shape == (36, 64, 3)
+
+
+# ---------------------------------------------------------------- Dask
+
 def test_dask_local_cluster_renders(tiny_base, tmp_path):
     from distributed import Client, LocalCluster
 
@@ -91,29 +170,161 @@ def test_dask_local_cluster_renders(tiny_base, tmp_path):
     check_outputs(out, layers)
 
 
-def test_sigkill_mid_run_then_resume(tiny_base, tmp_path):
-    layers = make_layers(tiny_base, tmp_path / "layers", 6)
+def test_dask_worker_with_two_threads_renders_one_scene_at_a_time(tiny_base, tmp_path):
+    """bpy is not thread-safe: a Dask worker with 2 threads takes the per-process lock in turn
+    (without it, two renders in one process crash it) and keeps one warm Blender scene."""
+    from distributed import Client, LocalCluster
+
+    layers = make_layers(tiny_base, tmp_path / "layers", 4)
     out = tmp_path / "out"
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as client:
+        summary = dispatch(layers, out, scheduler=client, threads=1, retries=0, progress=False)
+    assert sorted(summary.rendered) == ["s0", "s1", "s2", "s3"] and not summary.failed
+    check_outputs(out, layers)
+    rows = manifest_rows(out)
+    assert len({r["worker"] for r in rows}) == 1 and all(r["attempts"] == 1 for r in rows)
+    assert sum(r["full_build"] for r in rows) == 1  # one Session per worker process, warm after its first scene
+
+
+def test_dask_by_address_renders_an_authored_plan_from_relative_paths(authored_plan, tmp_path, monkeypatch):
+    """Connect by the scheduler's address; pass the plan directory and the output as paths
+    relative to a working directory the workers do not share (they started elsewhere)."""
+    from distributed import Client, LocalCluster
+
+    root, layers = authored_plan
+    started_in = tmp_path / "workers_cwd"
+    started_in.mkdir()
+    monkeypatch.chdir(started_in)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        monkeypatch.chdir(root.parent)
+        summary = dispatch(root.name, Path(tmp_path.name) / "renders", scheduler=cluster.scheduler_address,
+                           threads=1, progress=False)
+        with Client(cluster) as client:  # the run put the scheduler's allowed-failures back
+            assert client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.allowed_failures) == 3
+    assert sorted(summary.rendered) == sorted(p.stem for p in layers) and not summary.failed
+    out = tmp_path / "renders"
+    check_outputs(out, layers)
+    assert not (started_in / root.name).exists() and not list(started_in.iterdir())
+    assert {r["layer"] for r in manifest_rows(out)} == {str(p.resolve()) for p in layers}
+
+
+def test_dask_crash_costs_one_worker_death_per_attempt(tiny_base, tmp_path, monkeypatch):
+    """Dask would retry a task whose worker died `allowed-failures` (3) times on its own; the run
+    makes each of its attempts cost exactly one worker death, so `retries` bounds the deaths."""
+    from distributed import Client, LocalCluster
+
+    layers = make_layers(tiny_base, tmp_path / "layers", 3)
+    out = tmp_path / "out"
+    monkeypatch.setenv("ALLO_TEST_CRASH_SCENE", "s1")  # the workers inherit it when they start
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as client:
+        summary = dispatch(layers, out, scheduler=client, threads=1, retries=1, progress=False)
+        events = [msg for _, msg in client.get_events("all")  # one event per worker removal
+                  if isinstance(msg, dict) and msg.get("action") == "remove-worker" and not msg.get("expected")]
+        assert client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.allowed_failures) == 3
+    assert sorted(summary.rendered) == ["s0", "s2"]
+    [row] = summary.failed
+    assert row["scene"] == "s1" and row["kind"] == "crash" and row["attempts"] == 2
+    assert "KilledWorker" in row["reason"] and len(row["reasons"]) == 2
+    deaths = [e for e in events if any("allo-render-s1-" in str(k) for k in e.get("processing-tasks", ()))]
+    assert len(deaths) == 2, events  # 2 attempts, 2 worker deaths (Dask's own retries would make it 4 each)
+    check_outputs(out, [p for p in layers if p.stem != "s1"])
+
+
+# ---------------------------------------------------------------- crash safety
+
+def _writer_processes(pid: int) -> list:
+    try:
+        return psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
+
+
+def _check_nothing_corrupt(out: Path, ref: Path, layers: list[Path]) -> set[str]:
+    """After a kill: every manifest row is verified, every file under a final name is complete
+    (byte-identical to the uninterrupted run's, or a parsable JSON), and anything else is a
+    recognisable temporary. Returns the finished scenes."""
+    stems = {p.stem: p for p in layers}
+    finished = set()
+    for row in manifest_rows(out) if (out / MANIFEST).is_file() else []:
+        assert is_verified(row, stems[row["scene"]], out), row["scene"]
+        finished.add(row["scene"])
+    for p in out.iterdir():
+        if p.name in (MANIFEST, "failed.jsonl", ".allo-dispatch.lock", "logs", WORKDIR):
+            continue
+        if p.name.startswith("."):
+            assert temp_name_re().match(p.name), p.name  # a writer's temporary, removed by the next run
+        elif p.suffix == ".json":
+            assert json.loads(p.read_text())["files"]
+        else:
+            assert p.read_bytes() == (ref / p.name).read_bytes(), p.name  # same layer -> same bytes
+    return finished
+
+
+def test_sigkill_at_random_moments_then_resume(tiny_base, tmp_path):
+    """Kill the whole run (parent and workers) with SIGKILL at seeded-random moments, three times
+    over the same output directory (so later kills hit resumed runs), then resume: no missing,
+    duplicated or corrupt file; finished scenes are never rendered again; the rest render once.
+
+    Each kill moment is random across the run's timeline: after a random number k of the
+    remaining scenes has finished, plus a random delay within one scene's time (k = 0: within
+    the start-up, which the uninterrupted reference run measures), so kills land in start-up,
+    mid-render and mid-write alike."""
+    layers = make_layers(tiny_base, tmp_path / "layers", 6)
+    names = sorted(p.stem for p in layers)
     code = ("import sys; from allo_usd.dispatch import dispatch; "
             "dispatch(sys.argv[1], sys.argv[2], workers=2, progress=False)")
-    env = {**os.environ, "ALLO_TEST_DELAY": "0.6"}
-    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "layers"), str(out)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 120
-    while time.time() < deadline and not (out / MANIFEST).is_file():
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    time.sleep(1.5)  # workers die with their parent (PR_SET_PDEATHSIG)
-    finished = {r["scene"] for r in manifest_rows(out)}
-    assert 1 <= len(finished) < 6
-    mtimes = {s: (out / f"{s}.png").stat().st_mtime_ns for s in finished}
+    delay = 0.4  # widen each render so kills land mid-render too
+    env = {**os.environ, "ALLO_TEST_DELAY": str(delay)}
+
+    def start(out: Path) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "layers"), str(out)], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def wait_for(out: Path, rows: int, proc) -> None:
+        deadline = time.monotonic() + 120
+        while proc.poll() is None and time.monotonic() < deadline:
+            if (out / MANIFEST).is_file() and len(load_manifest(out)) >= rows:
+                return
+            time.sleep(0.02)
+
+    ref = tmp_path / "ref"
+    t0 = time.monotonic()
+    proc = start(ref)
+    wait_for(ref, 1, proc)
+    startup = time.monotonic() - t0  # until the first scene is done
+    assert proc.wait() == 0
+    check_outputs(ref, layers)
+    per_scene = delay + max(r["render_seconds"] for r in manifest_rows(ref))
+
+    out = tmp_path / "out"
+    rng = np.random.default_rng(20300101)
+    finished: set[str] = set()
+    for _ in range(3):
+        kept = {s: ((out / f"{s}.png").stat().st_mtime_ns, load_manifest(out)[s]) for s in finished}
+        k = int(rng.integers(0, len(names) - len(finished))) if len(finished) < len(names) else 0
+        proc = start(out)
+        if k:
+            wait_for(out, len(finished) + k, proc)
+        time.sleep(float(rng.uniform(0.0, per_scene if k else startup)))
+        children = _writer_processes(proc.pid)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        gone, alive = psutil.wait_procs(children, timeout=30)  # workers die with their parent
+        assert not alive
+        now = _check_nothing_corrupt(out, ref, layers) if out.is_dir() else set()
+        assert now >= finished  # finished scenes stay finished ...
+        assert {s: ((out / f"{s}.png").stat().st_mtime_ns, load_manifest(out)[s]) for s in finished} == kept
+        finished = now  # ... and were not rendered again
 
     summary = dispatch(tmp_path / "layers", out, workers=2, progress=False)
     assert sorted(summary.skipped) == sorted(finished)
-    assert sorted(summary.rendered) == sorted({p.stem for p in layers} - finished)
-    assert {s: (out / f"{s}.png").stat().st_mtime_ns for s in finished} == mtimes
+    assert sorted(summary.rendered) == sorted(set(names) - finished)
     check_outputs(out, layers)
+    for s in names:
+        for suffix in (".png", ".exr", "_mask.png"):
+            assert (out / f"{s}{suffix}").read_bytes() == (ref / f"{s}{suffix}").read_bytes()
 
 
 def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path, monkeypatch):
@@ -125,6 +336,7 @@ def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path, monkeypat
     [row] = [json.loads(line) for line in (out / "failed.jsonl").read_text().splitlines()]
     assert row["scene"] == "s1" and row["kind"] == "crash" and row["attempts"] == 3
     assert "SIGSEGV" in row["reason"] and len(row["reasons"]) == 3
+    assert "logs/worker-" in row["reason"]  # where the dead worker's own output went
     assert not (out / "s1.png").exists()
 
     monkeypatch.delenv("ALLO_TEST_CRASH_SCENE")  # the next run retries the failed scene only
@@ -132,6 +344,54 @@ def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path, monkeypat
     assert summary.rendered == ["s1"] and not (out / "failed.jsonl").exists()
     check_outputs(out, layers)
 
+
+WRITER = """
+import sys
+from pathlib import Path
+from allo_usd.dispatch import _workdir
+from allo_usd.write import atomic_path
+out = Path(sys.argv[1])
+(_workdir(out) / "render.exr").write_bytes(b"Blender's file")
+with atomic_path(out / sys.argv[2]) as tmp:
+    tmp.write_bytes(b"complete")
+    print("writing", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def test_cleanup_after_a_crash_spares_live_writers(tmp_path):
+    """When a worker dies, only its own temporaries go: a live worker's half-written output (and its
+    Blender render directory) stay, and its rename then succeeds."""
+    out = tmp_path / "out"
+    out.mkdir()
+    writers = [subprocess.Popen([sys.executable, "-c", WRITER, str(out), f"s{i}.png"], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, text=True) for i in range(2)]
+    dead, live = writers
+    for w in writers:
+        assert w.stdout.readline().strip() == "writing"
+    dead.kill()
+    dead.wait()
+    temps = sorted(p.name for p in out.iterdir() if p.name.startswith("."))
+    assert [temp_name_re(w.pid).match(n) is not None for w in writers for n in temps].count(True) == 2
+
+    assert clean_stale(out, pid=dead.pid) == 1
+    assert not (out / WORKDIR / str(dead.pid)).exists() and (out / WORKDIR / str(live.pid) / "render.exr").is_file()
+    assert [n for n in os.listdir(out) if temp_name_re(live.pid).match(n)]
+    live.communicate("go\n")
+    assert live.returncode == 0 and (out / "s1.png").read_bytes() == b"complete"
+    assert not (out / "s0.png").exists()
+    assert clean_stale(out) == 0 and not (out / WORKDIR).exists()
+
+
+def test_manifest_appends_never_leave_a_torn_line(tmp_path):
+    path = tmp_path / MANIFEST
+    path.write_text('{"scene": "a"}\n{"scene": "b", "fil')  # a line torn by a power cut
+    _append_jsonl(path, {"scene": "c"})
+    assert [r["scene"] for r in load_manifest(tmp_path).values()] == ["a", "c"]
+    assert path.read_text().endswith('"fil\n{"scene": "c"}\n')
+
+
+# ---------------------------------------------------------------- full disk
 
 def test_full_disk_stops_cleanly(tiny_base, tmp_path, monkeypatch):
     layers = make_layers(tiny_base, tmp_path / "layers", 4)
@@ -152,14 +412,93 @@ def test_full_disk_stops_cleanly(tiny_base, tmp_path, monkeypatch):
     check_outputs(out, layers)
 
 
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A 1 MiB tmpfs (a real file system that fills up); skipped where mounting is not permitted.
+    Always unmounted, lazily if a process still holds it."""
+    mnt = tmp_path / "tmpfs"
+    mnt.mkdir()
+    try:
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m,mode=0755", "tmpfs", str(mnt)],
+                           capture_output=True, text=True)
+    except FileNotFoundError:
+        pytest.skip("no `mount` command here: cannot make a small tmpfs to fill")
+    if r.returncode != 0:
+        pytest.skip(f"mounting a tmpfs is not permitted here (needs root or CAP_SYS_ADMIN): {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
+            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def _fill(path: Path, leave: int) -> Path:
+    """A ballast file that leaves `leave` bytes free on the file system holding `path`."""
+    ballast = path / "ballast"
+    with open(ballast, "wb") as f:
+        f.write(b"\0" * (os.statvfs(path).f_bfree * os.statvfs(path).f_frsize - leave))
+    return ballast
+
+
+def test_real_full_disk_stops_the_run_at_blenders_write(tiny_base, tmp_path, small_tmpfs):
+    """On a real full device Blender's own EXR write is cut short (Blender still says "Saved" and
+    FINISHED); the run must stop with exit 2 and a clear error instead of recording bad layers,
+    leave nothing corrupt, and finish everything once there is space again."""
+    layers = make_layers(tiny_base, tmp_path / "layers", 3)
+    out = small_tmpfs / "out"
+    out.mkdir()
+    ballast = _fill(small_tmpfs, leave=8192)  # Blender's 64x36 render file is ~8.4 kB
+    r = subprocess.run(CLI + [str(tmp_path / "layers"), "--out", str(out), "--workers", "1"], capture_output=True,
+                       text=True)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert "error: no space left on the device" in r.stderr and "Blender" in r.stderr, r.stderr
+    assert "failed" not in r.stdout  # stopped: no summary of bad layers
+    failed = out / "failed.jsonl"
+    assert not failed.is_file() or all(json.loads(x)["kind"] == "disk_full" for x in failed.read_text().splitlines())
+    assert not [p.name for p in out.iterdir() if p.suffix in (".png", ".exr", ".json")]  # nothing half-made
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".") and p.name != ".allo-dispatch.lock"]
+
+    ballast.unlink()
+    r = subprocess.run(CLI + [str(tmp_path / "layers"), "--out", str(out), "--workers", "1"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0 and "3 rendered" in r.stdout, r.stderr
+    check_outputs(out, layers)
+
+
+def test_a_cut_short_render_file_is_retried_unless_the_disk_is_full(tmp_path, small_tmpfs):
+    """What Blender leaves on a failed write: with room on the device it is a retriable render
+    failure (not the layer's fault), on a full device it is DiskFullError."""
+    from allo_usd.blender.render import _read_multilayer_exr, _unreadable, check_render_file
+    from allo_usd.write import write_exr
+
+    good = write_exr(tmp_path / "good.exr", {"R": np.ones((36, 64), np.float32)}, half=False)
+    for d in (tmp_path / "roomy", small_tmpfs / "full"):
+        d.mkdir()
+        cut = d / "render.exr"
+        cut.write_bytes(good.read_bytes()[:300])
+        if d.parent == small_tmpfs:
+            _fill(small_tmpfs, leave=0)
+        with pytest.raises(Exception) as err:
+            _read_multilayer_exr(cut)
+        problem = _unreadable(cut, "s.usda", f"cannot be read ({err.value})")
+        expected = DiskFullError if d.parent == small_tmpfs else RenderFailedError
+        assert type(problem) is expected
+        if expected is DiskFullError:
+            with pytest.raises(DiskFullError, match="Blender does not report a failed write"):
+                check_render_file(cut, True, "s.usda")
+        else:
+            check_render_file(cut, True, "s.usda")  # plenty of room: the file may be read
+            with pytest.raises(RenderFailedError, match="retries it"):
+                check_render_file(d / "missing.exr", True, "s.usda")
+
+
 def test_cli_renders_a_directory_and_rejects_plans_cleanly(tiny_base, tmp_path):
     layers = make_layers(tiny_base, tmp_path / "layers", 2)
     out = tmp_path / "out"
-    cli = [sys.executable, "-c", "from allo_usd.cli import main; main()", "render"]
-    r = subprocess.run(cli + [str(tmp_path / "layers"), "--out", str(out), "--workers", "2"],
+    r = subprocess.run(CLI + [str(tmp_path / "layers"), "--out", str(out), "--workers", "2"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "2 rendered" in r.stdout
     check_outputs(out, layers)
-    r = subprocess.run(cli + [str(tmp_path / "nothing.txt"), "--out", str(out)], capture_output=True, text=True)
+    r = subprocess.run(CLI + [str(tmp_path / "nothing.txt"), "--out", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and "error:" in r.stderr

@@ -1,9 +1,10 @@
 """Fuzz the reader: 500 mutated scene layers each give a clear AlloError (or a valid scene), fast.
 
 Every mutation except random garbage is invalid by construction and must be rejected with an
-`AlloError` that names the problem; garbage bytes may land somewhere harmless (a comment, a
-string), so those may also read successfully, but never raise anything else. A small batch with
-a few bad layers then goes through the dispatcher: good layers render, bad ones are recorded.
+`AlloError` that names the problem and the fix; garbage bytes may land somewhere harmless (a
+comment, a string), so those may also read successfully, but never raise anything else. A share
+of the same layers then goes through the dispatcher beside good ones: good layers render intact,
+every bad one is recorded in failed.jsonl with the reader's own message.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from allo_usd.author.scene import write_scene_layer
 from allo_usd.description import SceneDescription
@@ -30,6 +32,16 @@ def _sub(pattern: str, repl: str):
         out, n = re.subn(pattern, repl, text, count=1)
         assert n == 1, pattern
         return out
+    return mutate
+
+
+def _sub_nth(pattern: str, repl: str):
+    """Replace one of the pattern's occurrences, chosen at random."""
+    def mutate(text: str, rng) -> str:
+        hits = list(re.finditer(pattern, text))
+        assert hits, pattern
+        m = hits[int(rng.integers(len(hits)))]
+        return text[:m.start()] + repl + text[m.end():]
     return mutate
 
 
@@ -52,6 +64,7 @@ def _garbage(text: str, rng) -> str:
 
 
 BAD_NUMBERS = ["nan", "inf", "-inf"]
+FAR_CAMERAS = ["(1e300, 8, 5)", "(15, 2e4, 5)", "(0, 0, -1e13)"]  # beyond 10 km (or 1e12 m) of the station
 INVALID = {
     # wrong attribute types
     "samples_type": _sub(r"int allo:render:samples = \d+", 'string allo:render:samples = "many"'),
@@ -92,8 +105,31 @@ INVALID = {
     "adaptive": lambda t, rng: _sub(r"float allo:render:adaptiveThreshold = \S+",
                                     f"float allo:render:adaptiveThreshold = {rng.choice(['nan', '-1', '5'])}")(t, rng),
     "truncated": _truncate,
+    # values that are finite and well typed but absurd (USD itself would accept them silently)
+    "orient_zero": _sub_nth(r"quatd xformOp:orient = \([^)]*\)", "quatd xformOp:orient = (0, 0, 0, 0)"),
+    "camera_far": lambda t, rng: _sub(r"double3 xformOp:translate = \(15, 8, 5\)",
+                                      f"double3 xformOp:translate = {rng.choice(FAR_CAMERAS)}")(t, rng),
+    "body_far": lambda t, rng: _sub(r"double3 xformOp:translate = \(0, 0, -7000000\)",
+                                    f"double3 xformOp:translate = (0, 0, {rng.choice(['-2e12', '1e300'])})")(t, rng),
+    "resolution_huge": lambda t, rng: _sub(r"uniform int2 resolution = \(\d+, \d+\)",
+                                           "uniform int2 resolution = ({}, {})".format(
+                                               *rng.choice([(16384, 16384), (8193, 36), (8192, 8192)])))(t, rng),
 }
 KINDS = sorted(INVALID) + ["garbage"] * 6
+NAMES = {"orient_zero": "xformOp:orient = (0, 0, 0, 0)", "camera_far": "/World/Camera is at (",
+         "body_far": "/World/Sky/Moon is at (", "resolution_huge": ".resolution = ("}  # what the message names
+REMEDY = re.compile(r"fix|restore|re-author|regenerate|choose|move|rename")  # ... and how to put it right
+
+
+def mutated_layers(text: str):
+    """(index, kind, bytes) of the N_CASES mutations of a valid layer's text, in a seeded order."""
+    rng = np.random.default_rng(20300101)
+    for i in range(N_CASES):
+        kind = KINDS[i % len(KINDS)]
+        if kind == "garbage":
+            yield i, kind, _garbage(text, rng).encode("latin-1")
+        else:
+            yield i, kind, INVALID[kind](text, rng).encode()
 
 
 @pytest.fixture(scope="module")
@@ -108,18 +144,18 @@ def test_valid_layer_reads(valid_layer):
 
 def test_500_mutated_layers_give_clear_errors_fast(valid_layer):
     text = valid_layer.read_text()
-    rng = np.random.default_rng(20300101)
     failures, t0 = [], time.perf_counter()
-    for i in range(N_CASES):
-        kind = KINDS[i % len(KINDS)]
-        mutated = _garbage(text, rng) if kind == "garbage" else INVALID[kind](text, rng)
+    for i, kind, data in mutated_layers(text):
         path = valid_layer.parent / f"mut_{i:03d}.usda"
-        path.write_bytes(mutated.encode("latin-1") if kind == "garbage" else mutated.encode())
+        path.write_bytes(data)
         try:
             read_scene(path)
         except AlloError as exc:
-            if not str(exc):
-                failures.append((i, kind, "empty message"))
+            message = str(exc)
+            if not REMEDY.search(message):
+                failures.append((i, kind, f"no fix named: {message}"))
+            if kind in NAMES and NAMES[kind] not in message:
+                failures.append((i, kind, f"does not name {NAMES[kind]!r}: {message}"))
         except Exception as exc:  # noqa: BLE001 - the point is to catch everything else
             failures.append((i, kind, f"{type(exc).__name__}: {exc}"))
         else:
@@ -133,23 +169,45 @@ def test_500_mutated_layers_give_clear_errors_fast(valid_layer):
 
 
 @pytest.mark.render
-def test_dispatch_batch_with_bad_layers(valid_layer, tiny_base, tmp_path):
-    from allo_usd.dispatch import dispatch
+def test_dispatch_a_share_of_the_fuzzed_layers(valid_layer, tiny_base, tmp_path):
+    """Every 9th of the first 450 fuzzed layers (50, every kind of mutation) goes through the local
+    pool beside good layers: the good ones render and verify, every bad one is in failed.jsonl
+    (once, not retried) with the message the reader gives in this process; the parent lives on."""
+    from allo_usd.dispatch import FAILED, dispatch, is_verified, load_manifest
 
-    layers = tmp_path / "layers"
-    good = [write_scene_layer(make_spec(seed=s, scene_id=f"good_{s}"), layers / f"good_{s}.usda", tiny_base)
-            for s in (1, 2)]
-    text = good[0].read_text()
-    (layers / "bad_truncated.usda").write_text(text[: len(text) // 2])
-    (layers / "bad_variant.usda").write_text(
-        write_scene_layer(make_spec(anomaly=True, scene_id="bad_variant"), layers / "bad_variant.usda",
-                          tiny_base).read_text().replace('string variant = "blue"', 'string variant = "purple"'))
-    (layers / "bad_nan.usda").write_text(text.replace("(15, 8, 5)", "(nan, 8, 5)").replace("good_1", "bad_nan"))
+    batch = valid_layer.parent.parent / "batch"  # beside layers/: relative sublayer paths still resolve
+    batch.mkdir(exist_ok=True)
+    layers = [write_scene_layer(make_spec(seed=s, scene_id=f"good_{s}", samples=2, anomaly=s == 2),
+                                batch / f"good_{s}.usda", tiny_base) for s in (1, 2, 3)]
+    for i, kind, data in mutated_layers(valid_layer.read_text()):
+        if i % 9 == 0 and i < 450:  # 9 is prime to len(KINDS): all kinds come up
+            layers.append(batch / f"mut_{i:03d}_{kind}.usda")
+            layers[-1].write_bytes(data)
+    assert len(layers) == 3 + 50 and {p.stem.split("_", 2)[2] for p in layers[3:]} >= set(INVALID)
+    expected = {}
+    for p in layers:
+        try:
+            read_scene(p)
+            expected[p.stem] = None
+        except AlloError as exc:
+            expected[p.stem] = f"{type(exc).__name__}: {exc}"
+    good = sorted(s for s, e in expected.items() if e is None)
+    assert {"good_1", "good_2", "good_3"} <= set(good) and len(good) < 10
+
     out = tmp_path / "out"
     summary = dispatch(layers, out, workers=2, progress=False)
-    assert sorted(summary.rendered) == ["good_1", "good_2"]
-    failed = {r["scene"]: r for r in map(json.loads, (out / "failed.jsonl").read_text().splitlines())}
-    assert set(failed) == {"bad_truncated", "bad_variant", "bad_nan"}
-    assert all(r["kind"] == "layer" and r["attempts"] == 1 for r in failed.values())
-    assert "purple" in failed["bad_variant"]["reason"]
-    assert (out / "good_1.png").is_file() and not (out / "bad_nan.png").exists()
+    assert sorted(summary.rendered) == good
+    failed = {r["scene"]: r for r in map(json.loads, (out / FAILED).read_text().splitlines())}
+    assert set(failed) == {s for s, e in expected.items() if e is not None}
+    for scene, row in failed.items():
+        assert (row["kind"], row["attempts"], row["reason"]) == ("layer", 1, expected[scene]), scene
+        assert not list(out.glob(f"{scene}*"))
+    variants = [r["reason"] for s, r in failed.items() if s.endswith("unknown_variant")]
+    assert variants and all("is not one of ['blue', 'red']" in r for r in variants)
+    done = load_manifest(out)
+    for p in layers:
+        if p.stem in good:
+            assert is_verified(done[p.stem], p, out)
+            rgb = np.asarray(Image.open(out / f"{p.stem}.png"))
+            assert rgb.shape == (36, 64, 3) and rgb.max() > 0
+    assert (np.asarray(Image.open(out / "good_2_mask.png")) == 2).any()  # its anomaly is in the mask

@@ -1,7 +1,18 @@
-"""Render the built scene with Cycles and return arrays (the caller writes files)."""
+"""Render the built scene with Cycles and return arrays (the caller writes files).
+
+Blender writes its multilayer EXR into a temporary directory (`workdir`), and it does not report
+a failed write to Python: on a full disk it logs "IMB_exr_write_channels: Failed to write pixel
+data ... No space left on device", then "Saved: ..." and returns FINISHED with a cut-short file
+(seen on a full tmpfs with bpy 5.0.1). So the free space of that directory's file system is
+checked after every render: less free than the file Blender just wrote (or no free inode) means
+the file may be cut short and our outputs would not fit either, so DiskFullError stops the run.
+Any other failure to get an image is RenderFailedError, which the dispatcher retries: it is not
+the layer's fault.
+"""
 
 from __future__ import annotations
 
+import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -9,8 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from ..description import SceneDescription
-from ..errors import AlloError
+from ..errors import DiskFullError, RenderFailedError
 from .build import build_scene
+
+MIN_FREE_BYTES = 1 << 20  # after a failed render, less free than this on the temp device means "disk full"
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +53,44 @@ def _find(channels: dict, *suffixes: str) -> np.ndarray | None:
     return None
 
 
+def free_space(path: Path) -> tuple[int, int]:
+    """(bytes, inodes) this process may still allocate on the file system holding `path`
+    (root may use the blocks reserved for root, so it counts those too)."""
+    st = os.statvfs(path)
+    root = hasattr(os, "geteuid") and os.geteuid() == 0
+    blocks, inodes = (st.f_bfree, st.f_ffree) if root else (st.f_bavail, st.f_favail)
+    return blocks * st.f_frsize, (inodes if st.f_files else 1 << 30)  # f_files 0: no inode limit
+
+
+def _disk_full(where: Path, detail: str) -> DiskFullError:
+    return DiskFullError(f"no space left on the device holding {where} ({detail}); free space and re-run "
+                         "(finished outputs are kept and will be skipped)")
+
+
+def check_render_file(out: Path, finished: bool, desc_layer: str) -> None:
+    """Raise DiskFullError if the device holding Blender's render file `out` is full, or
+    RenderFailedError if Blender did not produce the file; return if it looks written."""
+    size = out.stat().st_size if out.is_file() else 0
+    free, inodes = free_space(out.parent)
+    if inodes == 0 or (size and free < size):
+        raise _disk_full(out.parent.parent, f"{free} bytes and {inodes} inodes free after Blender wrote {size} "
+                         "bytes of its render; Blender does not report a failed write, so that file may be cut short")
+    if not finished or not size:
+        if free < MIN_FREE_BYTES:
+            raise _disk_full(out.parent.parent, f"only {free} bytes free and Blender wrote no render")
+        state = f"render {'finished' if finished else 'cancelled'}, file {'empty' if out.is_file() else 'missing'}"
+        raise RenderFailedError(f"Blender did not write a render of {desc_layer} ({state}); see the worker's log; "
+                                "the dispatcher retries it")
+
+
+def _unreadable(out: Path, desc_layer: str, problem: str) -> Exception:
+    """A render file we cannot use: disk full if the device is (nearly) full, else a retriable failure."""
+    free, inodes = free_space(out.parent)
+    if inodes == 0 or free < MIN_FREE_BYTES:
+        return _disk_full(out.parent.parent, f"{free} bytes free; Blender's render file {problem}")
+    return RenderFailedError(f"the render of {desc_layer} {problem}; the dispatcher retries it")
+
+
 def render_current(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
     import time
 
@@ -53,22 +104,27 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
     with tempfile.TemporaryDirectory(dir=workdir, prefix="allo-render-") as tmp:
         out = Path(tmp) / "render.exr"
         scene.render.filepath = str(out)
+        free, inodes = free_space(out.parent)
+        if inodes == 0 or free == 0:
+            raise _disk_full(out.parent.parent, f"{free} bytes and {inodes} inodes free before rendering")
         t0 = time.perf_counter()
         result = bpy.ops.render.render(write_still=True)
         seconds = time.perf_counter() - t0
-        if "FINISHED" not in result or not out.is_file():
-            raise AlloError(f"Cycles did not produce an image for {desc.layer}; see Blender's log above")
-        ch = _read_multilayer_exr(out)
-    from .compositor import has_compositor
+        check_render_file(out, "FINISHED" in result, desc.layer)
+        try:
+            ch = _read_multilayer_exr(out)
+        except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain exceptions for cut-short files
+            raise _unreadable(out, desc.layer, f"cannot be read ({type(exc).__name__}: {exc})") from exc
+        from .compositor import has_compositor
 
-    layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
-    r, g, b = (ch.get(f"{layer}.{c}") for c in "RGB")
-    if r is None:
-        raise AlloError(f"the render of {desc.layer} has no {layer} pass; channels: {sorted(ch)}")
+        layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
+        r, g, b = (ch.get(f"{layer}.{c}") for c in "RGB")
+        if r is None:
+            raise _unreadable(out, desc.layer, f"has no {layer} pass (channels: {sorted(ch)})")
+        index = _find(ch, "IndexOB.X", "Object Index.X", "IndexOB.V")
+        if index is None:
+            raise _unreadable(out, desc.layer, f"has no object index pass (channels: {sorted(ch)})")
     rgb = np.stack([r, g, b], axis=-1).astype(np.float32)  # EXR rows run top-down, like PNG
-    index = _find(ch, "IndexOB.X", "Object Index.X", "IndexOB.V")
-    if index is None:
-        raise AlloError(f"the render of {desc.layer} has no object index pass; channels: {sorted(ch)}")
     mask = np.rint(index).astype(np.uint8)
     depth = _find(ch, "Depth.Z", "Depth.V") if "depth" in desc.render.outputs else None
     return RenderResult(rgb, mask, depth, seconds)
