@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 BACKGROUND, STATION, ANOMALY = 0, 1, 2  # mask classes; celestial bodies share STATION's label
+STATION_SUN = "/World/Sky/SunLight"     # the sun lamp that lights the station (not the bodies)
 DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_prefilter
 DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_quality
 
@@ -50,11 +51,21 @@ class CameraDesc:
 
 
 @dataclass(frozen=True)
+class LightLink:
+    """Which meshes a light lights, resolved by the reader from the light's USD `lightLink`
+    collection: every mesh except `paths` (exclude=True), or only `paths` (exclude=False)."""
+    exclude: bool
+    paths: tuple[str, ...]                 # MeshDesc paths
+
+
+@dataclass(frozen=True)
 class SunDesc:
     direction: tuple[float, float, float]  # unit, towards the Sun
-    irradiance: float                      # W/m^2 (0 in umbra)
+    irradiance: float                      # W/m^2 (> 0: a lamp at 0 is left out of the description)
     angle_deg: float
     color: tuple[float, float, float]
+    path: str = STATION_SUN                # the UsdLux.DistantLight prim
+    link: LightLink | None = None          # None: lights every mesh
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,8 +108,13 @@ class SceneDescription:
     meshes: tuple[MeshDesc, ...]
     materials: dict[str, MaterialDesc]
     camera: CameraDesc
-    sun: SunDesc | None
+    suns: tuple[SunDesc, ...]              # sun lamps that are on, in stage order (station's, bodies')
     spot: SpotDesc | None
     render: RenderDesc
     effects: EffectsDesc
     meta: dict = field(default_factory=dict)  # scene identity and provenance (epoch, pose, seed, ...)
+
+    @property
+    def sun(self) -> SunDesc | None:
+        """The station's sun lamp (/World/Sky/SunLight), None when it is off (umbra)."""
+        return next((s for s in self.suns if s.path == STATION_SUN), None)

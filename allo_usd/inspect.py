@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .description import STATION_SUN
 from .read import _matrix, open_stage
 
 ROOTS = ("/World", "/Render")
@@ -151,18 +152,24 @@ def describe(layer: str | Path) -> dict:
               "denoise_prefilter": r("render:denoisePrefilter"), "denoise_quality": r("render:denoiseQuality")}
     effects = {k: r(f"effects:{k}") for k in ("sensorNoise", "glare", "inspectionLight", "bodyShine")}
 
-    sun = None
-    sun_prim = next((p for p in stage.GetPrimAtPath("/World/Sky").GetChildren() if p.IsA(UsdLux.DistantLight)),
-                    None) if stage.GetPrimAtPath("/World/Sky") else None
-    if sun_prim:
-        m = _matrix(cache, sun_prim)
+    def lamp(prim) -> dict:
+        m = _matrix(cache, prim)
         d = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z: +Z points at the Sun
-        sun = {"path": str(sun_prim.GetPath()), "irradiance": _attr(sun_prim, "inputs:intensity"),
-               "irradiance_unoccluded": _attr(sun_prim, "allo:irradianceUnoccluded"),
-               "lit_fraction": _attr(sun_prim, "allo:litFraction"),
-               "eclipse_state": _attr(sun_prim, "allo:eclipseState"), "eclipse_body": _attr(sun_prim, "allo:eclipseBody"),
-               "angular_diameter_deg": _attr(sun_prim, "inputs:angle"), "distance_m": _attr(sun_prim, "allo:sunDistance"),
-               "direction": tuple(map(float, d))}
+        link = UsdLux.LightAPI(prim).GetLightLinkCollectionAPI()
+        return {"path": str(prim.GetPath()), "irradiance": _attr(prim, "inputs:intensity"),
+                "irradiance_unoccluded": _attr(prim, "allo:irradianceUnoccluded"),
+                "lit_fraction": _attr(prim, "allo:litFraction"),
+                "eclipse_state": _attr(prim, "allo:eclipseState"), "eclipse_body": _attr(prim, "allo:eclipseBody"),
+                "angular_diameter_deg": _attr(prim, "inputs:angle"), "distance_m": _attr(prim, "allo:sunDistance"),
+                "direction": tuple(map(float, d)),
+                "light_link": {"include_root": bool(link.GetIncludeRootAttr().Get()),
+                               "includes": [str(t) for t in link.GetIncludesRel().GetTargets()],
+                               "excludes": [str(t) for t in link.GetExcludesRel().GetTargets()]}}
+
+    sky = stage.GetPrimAtPath("/World/Sky")
+    lamps = [lamp(p) for p in sky.GetChildren() if p.IsA(UsdLux.DistantLight)] if sky else []
+    sun = next((s for s in lamps if s["path"] == STATION_SUN), lamps[0] if lamps else None)
+    body_suns = [s for s in lamps if s is not sun]
 
     camera = None
     targets = UsdRender.Settings(sp).GetCameraRel().GetForwardedTargets() if sp else []
@@ -183,7 +190,8 @@ def describe(layer: str | Path) -> dict:
         "package_version": provenance.get("packageVersion"),
         "camera_perturbation": {"convention": a("perturbation"), "offset_position": a("cameraOffsetPosition"),
                                 "offset_rotation": a("cameraOffsetRotation"), "attempts": a("cameraAttempts")},
-        "anomaly": anomaly, "effects": effects, "render": render, "sun": sun, "camera": camera,
+        "anomaly": anomaly, "effects": effects, "render": render, "sun": sun, "body_suns": body_suns,
+        "camera": camera,
         "layer_stack": {"sublayers": list(root.subLayerPaths),
                         "layers": [_rel(l.realPath, start) or l.identifier for l in _stack(stage)]},
     }
@@ -197,6 +205,13 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def _lights(link: dict) -> str:
+    """A lamp's lightLink collection in words."""
+    if link["include_root"]:
+        return "all but " + ", ".join(link["excludes"]) if link["excludes"] else "all"
+    return "only " + ", ".join(link["includes"]) if link["includes"] else "nothing"
+
+
 def format_description(d: dict) -> str:
     """The description for humans: one topic per line."""
     lines = [f"scene    {d['scene_id']}  ({d['split']}, {d['variant']})  layer {d['layer']}",
@@ -207,11 +222,11 @@ def format_description(d: dict) -> str:
                  f"orientation(wxyz) {_fmt(cam.get('orientation_wxyz'))}  forward {_fmt(cam.get('forward'))}")
     lines.append(f"         perturbation {cp['convention']}  offset {_fmt(cp['offset_position'])} m  "
                  f"rot {_fmt(cp['offset_rotation'])}  attempts {cp['attempts']}")
-    if d["sun"]:
-        s = d["sun"]
-        lines.append(f"sun      {_fmt(s['irradiance'])} W/m2 (unoccluded {_fmt(s['irradiance_unoccluded'])}, lit "
+    for s in ([d["sun"]] if d["sun"] else []) + d.get("body_suns", []):
+        name = "sun" if s is d["sun"] else s["path"].rsplit("/", 1)[-1]
+        lines.append(f"{name:<8} {_fmt(s['irradiance'])} W/m2 (unoccluded {_fmt(s['irradiance_unoccluded'])}, lit "
                      f"{_fmt(s['lit_fraction'])})  eclipse {s['eclipse_state']}/{s['eclipse_body']}  "
-                     f"direction {_fmt(s['direction'])}")
+                     f"direction {_fmt(s['direction'])}  lights {_lights(s['light_link'])}")
     an = d["anomaly"]
     lines.append("anomaly  none" if an is None else
                  f"anomaly  {an['asset']}/{an['variant']}  depth {an['depth_index']} ({_fmt(an['depth_offset'])} m)  "

@@ -12,7 +12,7 @@ import numpy as np
 
 from . import schema
 from .description import (ANOMALY, BACKGROUND, DENOISE_PREFILTERS, DENOISE_QUALITIES, STATION, CameraDesc,
-                          EffectsDesc, MaterialDesc, MeshDesc,
+                          EffectsDesc, LightLink, MaterialDesc, MeshDesc,
                           RenderDesc, SceneDescription, SpotDesc, SunDesc)
 from .errors import LayerError
 
@@ -285,7 +285,24 @@ def read_camera(prim, cache) -> CameraDesc:
                       (float(clip[0]), float(clip[1])))
 
 
-def read_sun(prim, cache) -> SunDesc | None:
+def read_light_link(prim, mesh_paths) -> LightLink | None:
+    """The meshes a light lights, from its UsdLux `collection:lightLink` membership: None when it
+    lights every mesh, else the shorter list (the meshes it skips, or the only ones it lights)."""
+    from pxr import Sdf, UsdLux
+
+    query = UsdLux.LightAPI(prim).GetLightLinkCollectionAPI().ComputeMembershipQuery()
+    lit = [query.IsPathIncluded(Sdf.Path(p)) for p in mesh_paths]
+    if all(lit):
+        return None
+    on = tuple(p for p, x in zip(mesh_paths, lit) if x)
+    off = tuple(p for p, x in zip(mesh_paths, lit) if not x)
+    return LightLink(True, off) if len(off) <= len(on) else LightLink(False, on)
+
+
+def read_sun(prim, cache, mesh_paths=None) -> SunDesc | None:
+    """A UsdLux.DistantLight as a sun lamp; None when it is off (intensity 0: umbra, or a total eclipse
+    of the body it lights) or lights none of `mesh_paths` (when given, its light linking is resolved
+    against them)."""
     from pxr import UsdLux
 
     light = UsdLux.DistantLight(prim)
@@ -293,11 +310,14 @@ def read_sun(prim, cache) -> SunDesc | None:
     intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0) * 2.0 ** _number(
         light.GetExposureAttr().Get() or 0.0, f"{where}.inputs:exposure", lo=-64, hi=64)
     if intensity == 0.0:
-        return None  # umbra: the sun lamp is off
+        return None  # the lamp is off
+    link = None if mesh_paths is None else read_light_link(prim, mesh_paths)
+    if link is not None and not (link.exclude or link.paths):
+        return None  # it lights nothing
     m = _matrix(cache, prim)
     direction = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z, so +Z points at the Sun
     return SunDesc(tuple(direction), intensity, _number(light.GetAngleAttr().Get(), f"{where}.inputs:angle", lo=0, hi=180),
-                   _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3))
+                   _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3), str(where), link)
 
 
 def read_spot(prim, cache) -> SpotDesc:
@@ -420,7 +440,7 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     camera = read_camera(stage.GetPrimAtPath(cam_targets[0]), cache)
 
-    meshes, materials, sun, spot = [], {}, None, None
+    meshes, materials, sun_prims, spot = [], {}, [], None
     it = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.PrimIsActive & Usd.PrimIsDefined & ~Usd.PrimIsAbstract))
     for prim in it:
         if prim.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
@@ -433,12 +453,14 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
         if prim.IsA(UsdGeom.Mesh):
             meshes.append(read_mesh(prim, cache, materials))
         elif prim.IsA(UsdLux.DistantLight):
-            sun = read_sun(prim, cache)
+            sun_prims.append(prim)  # read once every mesh is known: light linking names meshes
         elif prim.IsA(UsdLux.SphereLight):
             spot = read_spot(prim, cache)
     if not meshes:
         raise LayerError(f"{layer_path}: the composed stage has no meshes; the base stage or its station "
                          "payload did not load (check subLayers and stages/)")
+    mesh_paths = [m.path for m in meshes]
+    suns = tuple(s for s in (read_sun(p, cache, mesh_paths) for p in sun_prims) if s is not None)
     if not effects.inspection_light:
         spot = None
     if not effects.body_shine:  # no earthshine/moonshine: the bodies are seen but light nothing
@@ -446,7 +468,7 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
 
         meshes = [dataclasses.replace(m, ray_visibility="cameraOnly") if m.ray_visibility == "noShadow" else m
                   for m in meshes]
-    return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, sun, spot,
+    return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, suns, spot,
                             render, effects, read_meta(stage))
 
 

@@ -80,7 +80,8 @@ class World:
 
 
 def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
-    from .sky import body_placement, sun_light
+    """The station's sun lamp, and each body with its place and (Earth, Moon) its own sun lamp."""
+    from .sky import body_placement, body_sun_light, sun_light
 
     at = sky.at(day)
     light = sun_light(at)
@@ -88,7 +89,12 @@ def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
                   float(at.sun_irradiance_w_m2), math.degrees(float(light["angular_diameter_rad"])),
                   float(at.distance_m["sun"]), float(light["lit_fraction"]), str(light["state"]),
                   str(at.eclipse_body or "none"))
-    bodies = {name.capitalize(): BodySpec(tuple(map(float, pos)), float(radius))
+    lamps = {name: SunSpec(tuple(map(float, b["direction_to_sun"])), float(b["irradiance_w_m2"]),
+                           float(b["irradiance_unoccluded_w_m2"]), math.degrees(b["angular_diameter_rad"]),
+                           float(b["distance_m"]), float(b["lit_fraction"]), str(b["state"]),
+                           str(b["eclipse_body"] or "none"))
+             for name, b in body_sun_light(at).items()}
+    bodies = {name.capitalize(): BodySpec(tuple(map(float, pos)), float(radius), lamps.get(name))
               for name, (pos, radius) in body_placement(at).items()}
     return sun, bodies
 

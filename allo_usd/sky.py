@@ -48,6 +48,21 @@ Eclipses (PHYSICS.md section 6)
     a lunar eclipse while the station is behind the Moon), the uncovered area of the Sun's disc
     is computed exactly (Green's theorem over the boundary arcs); ``eclipse_body`` and ``eclipse_state``
     then follow the body that alone would leave less light.
+
+Sunlight on the bodies (PHYSICS.md sections 5 and 6)
+    The station's sun lamp carries the STATION's eclipse, so it must not light the Earth and the
+    Moon (a station in the Moon's shadow still sees a sunlit Earth). Each body in
+    :data:`LIT_BODIES` gets the Sun as seen from its own centre: direction body -> Sun (station
+    frame), irradiance 1361 (1 AU / d_body_sun)^2, the Sun's angular radius there, and the body's
+    own lit fraction with the other body as the occluder (the Moon in the Earth's shadow: a lunar
+    eclipse; the Earth under the Moon's penumbra: a solar eclipse). That lit fraction is the mean
+    over the body's sunlit face, as the Sun sees it, of the two-disc lit fraction at each point
+    (a fixed 256-point sunflower quadrature over the cross-section, lifted onto the sphere), so a
+    shadow smaller than the body dims it by the share of sunlight it takes: the total solar eclipse
+    of 2030-11-25 dims the Earth by 7.5 per cent, not to black. Epochs where no point of the body can see the
+    occluder near the Sun (a strict angular bound at the centre) are exactly 1 and skip the
+    quadrature. One lamp lights the whole body, so a partial lunar eclipse dims the Moon evenly
+    instead of drawing the umbra's edge across it.
 """
 
 from __future__ import annotations
@@ -73,6 +88,7 @@ __all__ = [
     "EARTH_RADIUS_M",
     "ECLIPSE_STATES",
     "EclipseEvent",
+    "LIT_BODIES",
     "MOON_RADIUS_M",
     "Orbit",
     "SOLAR_CONSTANT_W_M2",
@@ -80,7 +96,9 @@ __all__ = [
     "Sky",
     "SkyAt",
     "angle_between",
+    "body_lit_fraction",
     "body_placement",
+    "body_sun_light",
     "classify_eclipse",
     "compute_sky",
     "de421_range",
@@ -101,6 +119,8 @@ SUN_RADIUS_M = 696_340e3
 BODIES: tuple[str, ...] = ("sun", "earth", "moon")
 BODY_RADIUS_M: dict[str, float] = {"sun": SUN_RADIUS_M, "earth": EARTH_RADIUS_M, "moon": MOON_RADIUS_M}
 SHADOW_BODIES: tuple[str, ...] = ("moon", "earth")
+LIT_BODIES: tuple[str, ...] = ("earth", "moon")  # bodies with a sun lamp of their own
+OCCLUDER: dict[str, str] = {"earth": "moon", "moon": "earth"}  # what can shadow each lit body
 AU_M = 149_597_870_700.0
 SOLAR_CONSTANT_W_M2 = 1361.0
 GM_SUN_M3_S2 = 1.32712440041e20  # for the Sun's tide on the Earth-Moon orbit normal (z_dot)
@@ -485,6 +505,64 @@ def eclipse_from_vectors(u_sun, u_body, sun_radius_m: float = SUN_RADIUS_M, body
     return code, lit, theta_s, theta_b, sep
 
 
+QUADRATURE_POINTS = 256
+
+
+@functools.lru_cache(maxsize=4)
+def _sunflower(n: int) -> np.ndarray:
+    """n points of equal area over the unit disc (Vogel's spiral), (n, 2): a deterministic quadrature."""
+    k = np.arange(n, dtype=np.float64) + 0.5
+    r = np.sqrt(k / n)
+    phi = k * (np.pi * (3.0 - math.sqrt(5.0)))
+    q = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
+    q.flags.writeable = False
+    return q
+
+
+def body_lit_fraction(sun, body, body_radius_m: float, occluder, occluder_radius_m: float,
+                      points: int = QUADRATURE_POINTS) -> np.ndarray:
+    """Share of the sunlight a body intercepts that reaches it past an occluding body, per epoch.
+
+    ``sun``, ``body``, ``occluder``: centres (N, 3) or (3,), metres, any common frame. The body's
+    cross-section as the Sun sees it is sampled with ``points`` equal-area points, each lifted
+    onto the sunlit hemisphere; the result is the mean of the two-disc lit fraction of the Sun
+    seen from each point (:func:`eclipse_from_vectors`), in [0, 1]: 1 exactly where no point of
+    the body can see the occluder overlap the Sun (tested at the centre with a strict bound, so
+    those epochs skip the quadrature), 0 in total eclipse.
+    """
+    sun, body, occ = (np.atleast_2d(np.asarray(x, dtype=np.float64)) for x in (sun, body, occluder))
+    if not (np.isfinite(sun).all() and np.isfinite(body).all() and np.isfinite(occ).all()):
+        raise SkyInputError("body_lit_fraction: positions contain NaN or inf")
+    r_b, r_o = _finite("body_radius_m", body_radius_m), _finite("occluder_radius_m", occluder_radius_m)
+    if r_b <= 0.0 or r_o <= 0.0:
+        raise SkyInputError("body_lit_fraction: radii must be positive")
+    u_s, u_o = sun - body, occ - body
+    d_s, d_o = np.linalg.norm(u_s, axis=-1), np.linalg.norm(u_o, axis=-1)
+    if np.any(d_s <= SUN_RADIUS_M + r_b) or np.any(d_o <= r_o + r_b):
+        raise SkyInputError("body_lit_fraction: the bodies overlap the Sun or each other")
+    # From any point within r_b of the centre the Sun and the occluder move by at most asin(r_b/d)
+    # and grow to at most asin(R/(d - r_b)); if even that cannot make them overlap, all is lit.
+    reach = (np.arcsin(SUN_RADIUS_M / (d_s - r_b)) + np.arcsin(r_b / d_s)
+             + np.arcsin(r_o / (d_o - r_b)) + np.arcsin(r_b / d_o))
+    out = np.ones(d_s.shape)
+    cand = np.flatnonzero((angle_between(u_s, u_o) < reach) & (d_o < d_s))
+    if cand.size:
+        s_hat = _unit(u_s[cand])
+        helper = np.where(np.abs(s_hat[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+        e1 = _unit(np.cross(s_hat, helper))
+        e2 = np.cross(s_hat, e1)
+        if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
+            raise SkyInputError(f"points must be a positive integer, got {points!r}")
+        q = _sunflower(int(points))
+        up = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", q, q), 0.0))
+        offset = (q[None, :, 0, None] * e1[:, None, :] + q[None, :, 1, None] * e2[:, None, :]
+                  + up[None, :, None] * s_hat[:, None, :])
+        p = body[cand, None, :] + r_b * offset  # (m, points, 3) on the sunlit face
+        _, lit, *_ = eclipse_from_vectors(sun[cand, None, :] - p, occ[cand, None, :] - p, SUN_RADIUS_M, r_o)
+        out[cand] = lit.mean(axis=1)
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # Core geometry
 
@@ -493,8 +571,9 @@ def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ni,ni->n", a, b)
 
 
-def _geometry(t, orbit: Orbit) -> dict[str, np.ndarray]:
-    """Everything for the (already range-checked) skyfield Time array ``t``."""
+def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]:
+    """Everything for the (already range-checked) skyfield Time array ``t`` (the sunlight on the
+    Earth and the Moon only with ``body_light``; eclipse scans of the station skip it)."""
     e = _ephemeris()
     with _quiet_expiry(), _translate_range_error():
         sun = e.sun.at(t)
@@ -550,6 +629,17 @@ def _geometry(t, orbit: Orbit) -> dict[str, np.ndarray]:
         out[f"direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, u) / d[:, None]
         out[f"angular_radius_rad.{body}"] = np.arcsin(BODY_RADIUS_M[body] / d)
     out["sun_irradiance_w_m2"] = SOLAR_CONSTANT_W_M2 * (AU_M / out["distance_m.sun"]) ** 2
+    if body_light:  # the Sun as each body sees it, for the lamp that lights only that body
+        centres = {"earth": p_earth, "moon": p_moon}
+        for body in LIT_BODIES:
+            to_sun = p_sun - centres[body]
+            d = np.linalg.norm(to_sun, axis=1)
+            occ = OCCLUDER[body]
+            out[f"body_sun_distance_m.{body}"] = d
+            out[f"body_sun_direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, to_sun) / d[:, None]
+            out[f"body_sun_irradiance_w_m2.{body}"] = SOLAR_CONSTANT_W_M2 * (AU_M / d) ** 2
+            out[f"body_lit_fraction.{body}"] = body_lit_fraction(
+                p_sun, centres[body], BODY_RADIUS_M[body], centres[occ], BODY_RADIUS_M[occ])
 
     codes, lits = [], []
     sep_sun = {}
@@ -695,6 +785,10 @@ class SkyAt:
     eclipse_state: str
     eclipse_body: str
     station_moon_distance_m: float
+    body_sun_direction: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    body_sun_distance_m: dict[str, float] = field(default_factory=dict)
+    body_sun_irradiance_w_m2: dict[str, float] = field(default_factory=dict)
+    body_lit_fraction: dict[str, float] = field(default_factory=dict)
     orbit: Orbit = field(default_factory=Orbit)
 
 
@@ -708,6 +802,9 @@ class Sky:
     ``icrf_to_station[i] @ v_icrf`` maps ICRF vectors into it. Distances are centre to centre.
     ``sun_irradiance_w_m2`` is the unocculted 1361 (1 AU / d)^2; multiply by ``lit_fraction``
     (or use :func:`sun_light`) for the light that reaches the station.
+    ``body_sun_*[body]`` and ``body_lit_fraction[body]`` (for :data:`LIT_BODIES`) are the Sun as
+    seen from that body's centre: direction body -> Sun in the station frame, distance, unocculted
+    irradiance, and the share of it that reaches the body (:func:`body_sun_light`).
     """
 
     epochs: tuple[str, ...]
@@ -723,6 +820,10 @@ class Sky:
     eclipse_state: np.ndarray
     eclipse_body: np.ndarray
     station_moon_distance_m: np.ndarray
+    body_sun_direction: dict[str, np.ndarray]
+    body_sun_distance_m: dict[str, np.ndarray]
+    body_sun_irradiance_w_m2: dict[str, np.ndarray]
+    body_lit_fraction: dict[str, np.ndarray]
     orbit: Orbit = field(default_factory=Orbit)
     positions: str = "geometric"
     ephemeris: str = "de421.bsp"
@@ -754,6 +855,10 @@ class Sky:
             eclipse_state=str(self.eclipse_state[i]),
             eclipse_body=str(self.eclipse_body[i]),
             station_moon_distance_m=float(self.station_moon_distance_m[i]),
+            body_sun_direction={b: vec(self.body_sun_direction[b]) for b in LIT_BODIES},
+            body_sun_distance_m={b: float(self.body_sun_distance_m[b][i]) for b in LIT_BODIES},
+            body_sun_irradiance_w_m2={b: float(self.body_sun_irradiance_w_m2[b][i]) for b in LIT_BODIES},
+            body_lit_fraction={b: float(self.body_lit_fraction[b][i]) for b in LIT_BODIES},
             orbit=self.orbit,
         )
 
@@ -798,6 +903,10 @@ def compute_sky(epochs: Iterable[datetime], orbit: Orbit = Orbit()) -> Sky:
         eclipse_state=_readonly(_STATE_NAMES[g["eclipse_code"]]),
         eclipse_body=_readonly(_BODY_NAMES[g["eclipse_body_code"]]),
         station_moon_distance_m=_readonly(g["station_moon_distance_m"]),
+        body_sun_direction={b: _readonly(g[f"body_sun_direction.{b}"]) for b in LIT_BODIES},
+        body_sun_distance_m={b: _readonly(g[f"body_sun_distance_m.{b}"]) for b in LIT_BODIES},
+        body_sun_irradiance_w_m2={b: _readonly(g[f"body_sun_irradiance_w_m2.{b}"]) for b in LIT_BODIES},
+        body_lit_fraction={b: _readonly(g[f"body_lit_fraction.{b}"]) for b in LIT_BODIES},
         orbit=orbit,
     )
 
@@ -839,6 +948,35 @@ def sun_light(sky_at: SkyAt) -> dict:
     }
 
 
+def body_sun_light(sky_at: SkyAt) -> dict[str, dict]:
+    """{body: distant-light parameters of the lamp that lights only that body} for LIT_BODIES.
+
+    Like :func:`sun_light`, but for the Sun seen from the body's centre: ``irradiance_w_m2`` is
+    1361 (1 AU / d_body_sun)^2 times the body's lit fraction (0, the lamp off, in total eclipse);
+    ``state`` is lit (fraction 1), umbra (0) or penumbra (in between), and ``eclipse_body`` the
+    occluder when the fraction is below 1, else ''.
+    """
+    _check_sky_at(sky_at)
+    out = {}
+    for b in LIT_BODIES:
+        lit = float(sky_at.body_lit_fraction[b])
+        d = float(sky_at.body_sun_distance_m[b])
+        unocc = float(sky_at.body_sun_irradiance_w_m2[b])
+        if not (math.isfinite(lit) and math.isfinite(d) and math.isfinite(unocc) and d > SUN_RADIUS_M):
+            raise SkyInputError(f"sky at {sky_at.epoch}: the sunlight on the {b} is not finite")
+        out[b] = {
+            "direction_to_sun": np.asarray(sky_at.body_sun_direction[b], dtype=np.float64),
+            "irradiance_w_m2": unocc * lit,
+            "irradiance_unoccluded_w_m2": unocc,
+            "angular_diameter_rad": 2.0 * math.asin(SUN_RADIUS_M / d),
+            "distance_m": d,
+            "lit_fraction": lit,
+            "state": "lit" if lit == 1.0 else "umbra" if lit == 0.0 else "penumbra",
+            "eclipse_body": OCCLUDER[b] if lit < 1.0 else "",
+        }
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # Eclipse search over a span (scan + vectorised bisection of every contact)
 
@@ -864,7 +1002,7 @@ def _span_geometry(start: datetime, offsets_s: np.ndarray, orbit: Orbit, chunk: 
         off = offsets_s[lo:lo + chunk]
         t = _time_from_start(start, off)
         _check_range(t, None)
-        g = _geometry(t, orbit)
+        g = _geometry(t, orbit, body_light=False)
         for k in keys:
             parts[k].append(g[k])
     return {k: np.concatenate(v) for k, v in parts.items()}

@@ -13,11 +13,12 @@ import numpy as np
 
 @dataclass(frozen=True)
 class SunSpec:
-    direction: tuple[float, float, float]   # unit vector station -> Sun, station frame
-    irradiance: float                        # W/m^2 at the station, times lit fraction
+    """A sun lamp: the Sun as seen from where the lamp's light lands (the station, or one body)."""
+    direction: tuple[float, float, float]   # unit vector towards the Sun, station frame
+    irradiance: float                        # W/m^2 there, times lit fraction (0 in umbra: lamp off)
     irradiance_unoccluded: float
     angular_diameter_deg: float
-    distance_m: float
+    distance_m: float                        # to the Sun
     lit_fraction: float = 1.0
     eclipse_state: str = "lit"
     eclipse_body: str = "none"
@@ -27,6 +28,9 @@ class SunSpec:
 class BodySpec:
     position: tuple[float, float, float]    # metres, station frame (true scale, scheme C)
     radius: float
+    # The lamp that lights only this body (Earth, Moon): the Sun seen from the body's centre, times
+    # the body's own lit fraction. None: the author lights it with the station sun, unoccluded.
+    light: SunSpec | None = None
 
 
 @dataclass(frozen=True)

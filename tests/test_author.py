@@ -25,7 +25,8 @@ def test_layer_holds_only_scene_opinions(tiny_base, tmp_path):
     assert layer.GetPrimAtPath("/World/Station") is None
     assert layer.GetPrimAtPath("/World/Camera").specifier == Sdf.SpecifierOver
     assert layer.GetPrimAtPath("/World/Anomaly").specifier == Sdf.SpecifierDef
-    assert path.stat().st_size < 4096
+    # A self-contained layer (sky and pose included) with an anomaly: three sun lamps of ~600 bytes.
+    assert path.stat().st_size < 5120
 
 
 def test_composed_values(tiny_base, tmp_path):
@@ -82,3 +83,66 @@ def test_unknown_anomaly_asset(tiny_base, tmp_path):
     with pytest.raises(LayerError, match="NoSuchThing"):
         write_scene_layer(spec, tmp_path / "s.usda", tiny_base)
     assert not (tmp_path / "s.usda").exists()
+
+
+def test_each_body_has_a_sun_lamp_that_lights_only_it(tiny_base, tmp_path):
+    """The station's sun lights all but the Earth and Moon; each body's own lamp lights only it (UsdLux
+    light linking), with the Sun's direction and irradiance at that body and its own eclipse."""
+    from dataclasses import replace
+
+    from pxr import UsdLux
+
+    from allo_usd.spec import SunSpec
+
+    spec = make_spec()
+    moon_sun = SunSpec((0.0, 0.6, 0.8), 651.0, 1370.0, 0.53, 1.49e11, 0.475, "penumbra", "earth")
+    spec = replace(spec, bodies={**spec.bodies, "Moon": replace(spec.bodies["Moon"], light=moon_sun)})
+    stage = Usd.Stage.Open(str(write_scene_layer(spec, tmp_path / "s.usda", tiny_base)))
+
+    def members(path):
+        query = UsdLux.LightAPI(stage.GetPrimAtPath(path)).GetLightLinkCollectionAPI().ComputeMembershipQuery()
+        return {p: query.IsPathIncluded(Sdf.Path(p)) for p in
+                ("/World/Station", "/World/Sky/Earth/Geom/Surface", "/World/Sky/Moon/Geom/Surface", "/World/Sky/Sun")}
+
+    assert members("/World/Sky/SunLight") == {"/World/Station": True, "/World/Sky/Earth/Geom/Surface": False,
+                                              "/World/Sky/Moon/Geom/Surface": False, "/World/Sky/Sun": True}
+    assert [k for k, v in members("/World/Sky/EarthSunLight").items() if v] == ["/World/Sky/Earth/Geom/Surface"]
+    assert [k for k, v in members("/World/Sky/MoonSunLight").items() if v] == ["/World/Sky/Moon/Geom/Surface"]
+    moon = stage.GetPrimAtPath("/World/Sky/MoonSunLight")
+    assert moon.HasAPI("AlloEclipseAPI")
+    values = {n: moon.GetAttribute(f"allo:{n}").Get() for n in
+              ("litFraction", "eclipseState", "eclipseBody", "irradianceUnoccluded", "sunDistance")}
+    assert values == {"litFraction": 0.475, "eclipseState": "penumbra", "eclipseBody": "earth",
+                      "irradianceUnoccluded": 1370.0, "sunDistance": 1.49e11}
+    assert UsdLux.DistantLight(moon).GetIntensityAttr().Get() == pytest.approx(651.0)
+    m = np.array(UsdGeom.Xformable(moon).ComputeLocalToWorldTransform(Usd.TimeCode.Default())).T
+    np.testing.assert_allclose(m[:3, 2], moon_sun.direction, atol=1e-12)
+    # No lamp given for the Earth: it gets the station's Sun, unoccluded and unshadowed.
+    earth = stage.GetPrimAtPath("/World/Sky/EarthSunLight")
+    assert UsdLux.DistantLight(earth).GetIntensityAttr().Get() == pytest.approx(spec.sun.irradiance_unoccluded)
+    assert earth.GetAttribute("allo:litFraction").Get() == 1.0
+
+
+def test_bad_body_lamp_writes_nothing(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    spec = make_spec()
+    bad = SunSpec((0.0, 0.0, 1.0), 1361.0, 1361.0, 0.533, 1.5e11, 1.5)  # lit fraction above 1
+    spec = replace(spec, bodies={**spec.bodies, "Earth": replace(spec.bodies["Earth"], light=bad)})
+    with pytest.raises(LayerError, match="Earth's sun lamp"):
+        write_scene_layer(spec, tmp_path / "bad.usda", tiny_base)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_inspect_shows_every_sun_lamp_and_what_it_lights(tiny_base, tmp_path):
+    from allo_usd.inspect import describe, format_description
+
+    d = describe(write_scene_layer(make_spec(), tmp_path / "s.usda", tiny_base))
+    assert d["sun"]["path"] == "/World/Sky/SunLight"
+    assert d["sun"]["light_link"] == {"include_root": True, "includes": [],
+                                      "excludes": ["/World/Sky/Earth", "/World/Sky/Moon"]}
+    assert [(s["path"], s["light_link"]["includes"], s["lit_fraction"]) for s in d["body_suns"]] == [
+        ("/World/Sky/EarthSunLight", ["/World/Sky/Earth"], 1.0), ("/World/Sky/MoonSunLight", ["/World/Sky/Moon"], 1.0)]
+    text = format_description(d)
+    assert "lights all but /World/Sky/Earth, /World/Sky/Moon" in text
+    assert "MoonSunLight" in text and "lights only /World/Sky/Moon" in text

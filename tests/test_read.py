@@ -41,11 +41,58 @@ def test_reader_describes_the_scene(tiny_base, tmp_path):
     assert moon.base_color_texture and moon.base_color_texture.endswith(".png")
 
 
-def test_umbra_turns_the_sun_off(tiny_base, tmp_path):
+def test_umbra_turns_the_station_sun_off_not_the_bodies_suns(tiny_base, tmp_path):
+    from dataclasses import replace
+
     from allo_usd.spec import SunSpec
 
     spec = make_spec(sun=SunSpec((0.0, 0.0, 1.0), 0.0, 1361.0, 0.533, 1.5e11, 0.0, "umbra", "moon"))
-    assert read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base)).sun is None
+    desc = read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base))
+    assert desc.sun is None
+    # A spec without body lamps lights each body with the station's Sun, unoccluded.
+    assert [(s.path, s.irradiance) for s in desc.suns] == [("/World/Sky/EarthSunLight", 1361.0),
+                                                          ("/World/Sky/MoonSunLight", 1361.0)]
+    off = SunSpec((0.0, 1.0, 0.0), 0.0, 1300.0, 0.53, 1.5e11, 0.0, "umbra", "earth")  # a total lunar eclipse
+    spec = replace(spec, bodies={**spec.bodies, "Moon": replace(spec.bodies["Moon"], light=off)})
+    desc = read_scene(write_scene_layer(spec, tmp_path / "t.usda", tiny_base))
+    assert [s.path for s in desc.suns] == ["/World/Sky/EarthSunLight"]
+
+
+def test_reader_resolves_light_linking_from_the_collections(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    from allo_usd.description import LightLink
+    from allo_usd.spec import SunSpec
+
+    moon_sun = SunSpec((0.0, 0.6, 0.8), 1300.0, 1370.0, 0.53, 1.49e11, 0.95, "penumbra", "earth")
+    spec = make_spec(anomaly=True)
+    spec = replace(spec, bodies={**spec.bodies, "Moon": replace(spec.bodies["Moon"], light=moon_sun)})
+    layer = write_scene_layer(spec, tmp_path / "s.usda", tiny_base)
+    desc = read_scene(layer)
+    suns = {s.path: s for s in desc.suns}
+    earth, moon = "/World/Sky/Earth/Geom/Surface", "/World/Sky/Moon/Geom/Surface"
+    assert list(suns) == ["/World/Sky/SunLight", "/World/Sky/EarthSunLight", "/World/Sky/MoonSunLight"]
+    assert suns["/World/Sky/SunLight"].link == LightLink(True, (moon, earth))  # all but the bodies
+    assert suns["/World/Sky/EarthSunLight"].link == LightLink(False, (earth,))
+    assert suns["/World/Sky/MoonSunLight"].link == LightLink(False, (moon,))
+    assert suns["/World/Sky/MoonSunLight"].irradiance == pytest.approx(1300.0)
+    np.testing.assert_allclose(suns["/World/Sky/MoonSunLight"].direction, moon_sun.direction, atol=1e-7)
+    assert suns["/World/Sky/MoonSunLight"].angle_deg == pytest.approx(0.53)
+    # The membership is USD's, not a naming convention: exclude the station from the station's sun
+    # and it lights only the Sun's disc and the anomaly.
+    from pxr import Sdf, Usd, UsdLux
+
+    stage = Usd.Stage.Open(str(layer))
+    UsdLux.LightAPI(stage.GetPrimAtPath("/World/Sky/SunLight")).GetLightLinkCollectionAPI() \
+        .GetExcludesRel().AddTarget(Sdf.Path("/World/Station"))
+    stage.GetRootLayer().Save()
+    link = {s.path: s for s in read_scene(layer).suns}["/World/Sky/SunLight"].link
+    assert link == LightLink(False, ("/World/Sky/Sun/Geom/Surface", "/World/Anomaly/Geom/Body"))
+    # A lamp whose collection holds nothing lights nothing: it is left out like a lamp that is off.
+    UsdLux.LightAPI(stage.GetPrimAtPath("/World/Sky/MoonSunLight")).GetLightLinkCollectionAPI() \
+        .GetIncludesRel().SetTargets([])
+    stage.GetRootLayer().Save()
+    assert "/World/Sky/MoonSunLight" not in {s.path for s in read_scene(layer).suns}
 
 
 def test_reader_never_imports_bpy(tiny_base, tmp_path):

@@ -10,6 +10,7 @@ import pytest
 
 from allo_usd.author.scene import write_scene_layer
 from allo_usd.blender.render import render_scene
+from allo_usd.geometry import look_at
 from allo_usd.read import read_scene
 from allo_usd.spec import EffectsSpec, SunSpec
 
@@ -22,16 +23,44 @@ def _render(spec, base, path):
     return render_scene(read_scene(write_scene_layer(spec, path, base)))
 
 
-def test_eclipsed_station_is_lit_by_the_inspection_light_only(tiny_base, tmp_path):
-    umbra = SunSpec((0.3, 0.5, 0.8), 0.0, 1361.0, 0.533, 1.5e11, 0.0, "umbra", "moon")
+def test_eclipsed_station_is_lit_by_the_inspection_light_and_body_shine_only(tiny_base, tmp_path):
+    # In the Moon's umbra the Sun is behind the Moon (straight down): the Moon shows the station its
+    # night side, and the Earth, on the horizon, half of its day side.
+    umbra = SunSpec((0.0, 0.0, -1.0), 0.0, 1361.0, 0.533, 1.5e11, 0.0, "umbra", "moon")
     base = replace(make_spec(resolution=(64, 36), samples=16), sun=umbra)
     on = _render(base, tiny_base, tmp_path / "on.usda")
     off = _render(replace(base, effects=EffectsSpec(inspection_light=False)), tiny_base, tmp_path / "off.usda")
+    dark = _render(replace(base, effects=EffectsSpec(inspection_light=False, body_shine=False)), tiny_base,
+                   tmp_path / "dark.usda")
     lit = _render(replace(make_spec(resolution=(64, 36), samples=16)), tiny_base, tmp_path / "lit.usda")
     station = on.mask == 1
     assert np.isfinite(on.rgb).all()
     assert on.rgb[station].mean() > 5 * max(off.rgb[station].mean(), 1e-9)  # the spot is what lights it
     assert on.rgb[station].mean() < 0.1 * lit.rgb[station].mean()           # far dimmer than sunlight
+    # Without the spot only the sunlit Earth (its own lamp) can light the station: earthshine, ~1e-4 of
+    # sunlight, which 16 samples rarely find (tests/test_sky_render.py measures it on the real umbra day).
+    assert off.rgb[station].mean() < 1e-3 * lit.rgb[station].mean()
+    assert dark.rgb.max() == 0.0  # and without body shine, nothing
+
+
+def test_station_sun_never_lights_the_bodies(tiny_base, tmp_path):
+    """Toggle the station's sun (lit, umbra, and three times too bright): the Moon looks the same, since
+    only its own lamp lights it (light linking); the station changes."""
+    pos = np.array([0.0, 0.0, -5.0])  # under the station, looking straight down at the Moon
+    cam = replace(make_spec().camera, position=tuple(pos), rotation=look_at(pos, pos + [0.0, 0.0, -1.0]))
+    spec = replace(make_spec(resolution=(64, 36), samples=4), camera=cam, effects=EffectsSpec(inspection_light=False))
+    suns = {"lit": spec.sun, "umbra": replace(spec.sun, irradiance=0.0, lit_fraction=0.0, eclipse_state="umbra"),
+            "bright": replace(spec.sun, irradiance=3 * 1361.0)}
+    moon = {name: _render(replace(spec, sun=s), tiny_base, tmp_path / f"moon_{name}.usda").rgb
+            for name, s in suns.items()}
+    assert moon["lit"].mean() > 0.01  # the Moon's near side is sunlit and fills the frame
+    np.testing.assert_allclose(moon["umbra"], moon["lit"], rtol=1e-5, atol=0)
+    np.testing.assert_allclose(moon["bright"], moon["lit"], rtol=1e-5, atol=0)
+    station = {name: _render(replace(make_spec(resolution=(64, 36), samples=4), sun=s), tiny_base,
+                             tmp_path / f"station_{name}.usda") for name, s in suns.items()}
+    lit_station = station["lit"].rgb[station["lit"].mask == 1].mean()
+    assert station["bright"].rgb[station["lit"].mask == 1].mean() == pytest.approx(3 * lit_station, rel=0.02)
+    assert station["umbra"].rgb[station["lit"].mask == 1].mean() < 0.05 * lit_station
 
 
 def test_tiny_far_anomaly_and_frame_filling_anomaly(tiny_base, tmp_path):

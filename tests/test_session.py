@@ -9,7 +9,7 @@ import pytest
 
 from allo_usd.author.scene import write_scene_layer
 from allo_usd.geometry import look_at
-from allo_usd.spec import AnomalySpec, EffectsSpec
+from allo_usd.spec import AnomalySpec, EffectsSpec, SunSpec
 
 from conftest import make_spec
 
@@ -17,7 +17,8 @@ pytestmark = pytest.mark.render
 
 
 def _sequence() -> list[tuple[str, object]]:
-    """normal -> anomaly A -> anomaly B -> other camera and day -> umbra -> glare -> normal."""
+    """normal -> anomaly A -> anomaly B -> other camera and day -> umbra -> lunar eclipse (the Moon's
+    lamp off, the Earth's turned) -> glare -> no body shine -> normal."""
     base = make_spec(samples=2)
     red = replace(base, anomaly=AnomalySpec("Crate", "red", (8.0, 4.0, 2.5), np.eye(3)))
     blue = replace(red, anomaly=replace(red.anomaly, variant="blue"))
@@ -29,9 +30,16 @@ def _sequence() -> list[tuple[str, object]]:
     umbra = replace(other, sun=replace(other.sun, irradiance=0.0, lit_fraction=0.0, eclipse_state="umbra",
                                        eclipse_body="Earth"),
                     render=replace(other.render, seed=5, samples=3))
+    earth_dir = np.array([-0.3, 0.3, 0.9]) / np.linalg.norm([-0.3, 0.3, 0.9])
+    lunar = replace(umbra, bodies={
+        **umbra.bodies,
+        "Moon": replace(umbra.bodies["Moon"], light=SunSpec(tuple(sun_dir), 0.0, 1300.0, 0.52, 1.5e11, 0.0, "umbra",
+                                                            "earth")),
+        "Earth": replace(umbra.bodies["Earth"], light=SunSpec(tuple(earth_dir), 1290.0, 1290.0, 0.52, 1.5e11))})
     glare = replace(base, effects=EffectsSpec(glare=True))
+    no_shine = replace(base, effects=EffectsSpec(body_shine=False))
     return [("normal", base), ("anomaly_red", red), ("anomaly_blue", blue), ("other_day", other),
-            ("umbra", umbra), ("glare", glare), ("normal_again", base)]
+            ("umbra", umbra), ("lunar", lunar), ("glare", glare), ("no_shine", no_shine), ("normal_again", base)]
 
 
 @pytest.fixture(scope="module")
@@ -66,10 +74,20 @@ def test_incremental_renders_are_byte_identical_to_fresh_builds(descs):
         assert got.rgb.dtype == fresh[name].rgb.dtype
         np.testing.assert_array_equal(got.rgb, fresh[name].rgb, err_msg=name)
         np.testing.assert_array_equal(got.mask, fresh[name].mask, err_msg=name)
+        # Every patched matrix went in as a quaternion, never as Euler angles (PHYSICS.md section 3).
+        assert {o.rotation_mode for o in bpy.context.scene.objects} == {"QUATERNION"}, name
+        lamps = {o.name: o for o in bpy.context.scene.objects if o.type == "LIGHT" and o.data.type == "SUN"}
+        assert sorted(lamps) == sorted(s.path for s in d.suns), name
+        for sun in d.suns:  # the receiver collections a fresh build would make, member for member
+            coll = lamps[sun.path].light_linking.receiver_collection
+            assert sorted(o.name for o in coll.objects) == sorted(sun.link.paths), name
+            assert {m.light_linking.link_state for m in coll.collection_objects} == \
+                {"EXCLUDE" if sun.link.exclude else "INCLUDE"}, name
     assert session.full_builds == 1
     # The sequence exercised every kind of change.
     assert fresh["anomaly_red"].mask.max() == 2 and fresh["normal"].mask.max() == 1
     assert fresh["umbra"].rgb.mean() < fresh["other_day"].rgb.mean()
+    assert len(dict(descs)["lunar"].suns) == 1  # only the Earth's lamp is on
 
 
 def test_session_applies_only_differences(descs):
@@ -84,6 +102,8 @@ def test_session_applies_only_differences(descs):
     assert not s.meshes_added and not s.meshes_removed and s.materials_patched
     s = session.apply(d["umbra"])
     assert "sun" in s.changed and "camera" in s.changed
+    s = session.apply(d["lunar"])
+    assert s.changed == ["sun"] and not (s.meshes_added or s.meshes_removed)
     s = session.apply(d["glare"])
     assert "compositor" in s.changed and s.meshes_removed
     s = session.apply(d["glare"])
@@ -99,14 +119,17 @@ def test_anomaly_in_and_out_leaves_no_orphans(descs):
     session = Session()
     counts = []
     for _ in range(3):
-        for name in ("normal", "anomaly_red", "glare", "anomaly_blue", "umbra"):
+        for name in ("normal", "anomaly_red", "glare", "anomaly_blue", "umbra", "lunar"):
             session.apply(d[name])
         session.apply(d["normal"])
         counts.append((len(bpy.data.meshes), len(bpy.data.materials), len(bpy.data.objects), len(bpy.data.lights),
-                       len(bpy.data.node_groups), len(bpy.data.worlds)))
+                       len(bpy.data.node_groups), len(bpy.data.worlds), len(bpy.data.collections)))
     assert counts[0] == counts[1] == counts[2]
-    assert counts[0][:3] == (len(d["normal"].meshes), len(d["normal"].materials), len(d["normal"].meshes) + 1 + (d["normal"].sun is not None) + (d["normal"].spot is not None))
+    n = d["normal"]
+    lights = len(n.suns) + (n.spot is not None)
+    assert counts[0][:4] == (len(n.meshes), len(n.materials), len(n.meshes) + 1 + lights, lights)
     assert counts[0][4] == 0 and counts[0][5] == 1
+    assert counts[0][6] == len(n.suns) == 3  # one receiver collection per sun lamp
 
 
 def test_render_layer_uses_a_session(tiny_base, tmp_path):

@@ -245,6 +245,73 @@ def test_umbra_day_gives_zero_irradiance(year):
     assert np.all(np.asarray(year.eclipse_body)[lit] == "")
 
 
+def test_each_body_sees_its_own_sun(year):
+    """The body lamps' Sun: direction and distance from the body's centre (an identity in the station
+    frame), irradiance 1361 (1 AU / d)^2, and a lit fraction of 1 outside eclipses."""
+    sun = year.direction["sun"] * year.distance_m["sun"][:, None]
+    for b in S.LIT_BODIES:
+        v = sun - year.direction[b] * year.distance_m[b][:, None]
+        d = np.linalg.norm(v, axis=1)
+        np.testing.assert_allclose(year.body_sun_distance_m[b], d, rtol=1e-12)
+        assert angle_between(year.body_sun_direction[b], v).max() < 1e-12
+        np.testing.assert_allclose(year.body_sun_irradiance_w_m2[b], 1361.0 * (S.AU_M / d) ** 2, rtol=1e-12)
+        # A different Sun from the station's: the parallax is the body's distance over 1 AU at most.
+        parallax = angle_between(year.body_sun_direction[b], year.direction["sun"])
+        assert 0 < parallax.max() <= np.arcsin(year.distance_m[b] / year.distance_m["sun"]).max() * 1.001
+    assert np.all(year.body_lit_fraction["earth"] == 1.0)
+    moon_eclipsed = np.flatnonzero(year.body_lit_fraction["moon"] < 1.0)
+    assert [year.epochs[i] for i in moon_eclipsed] == ["2030-12-10T00:00:00Z"]  # penumbral lunar eclipse
+    lamps = S.body_sun_light(year.at(int(moon_eclipsed[0])))
+    moon = lamps["moon"]
+    assert 0.9 < moon["lit_fraction"] < 0.99 and (moon["state"], moon["eclipse_body"]) == ("penumbra", "earth")
+    assert moon["irradiance_w_m2"] == pytest.approx(moon["irradiance_unoccluded_w_m2"] * moon["lit_fraction"])
+    assert (lamps["earth"]["state"], lamps["earth"]["eclipse_body"]) == ("lit", "")
+    assert moon["angular_diameter_rad"] == pytest.approx(math.radians(0.533), rel=0.03)
+    assert year.lit_fraction[int(moon_eclipsed[0])] == 1.0  # the station itself is in sunlight
+
+
+def test_total_lunar_eclipse_turns_the_moon_lamp_off_and_a_solar_eclipse_barely_dims_the_earth():
+    sky = compute_sky(["2029-12-20T22:40:00Z", "2030-11-25T06:50:00Z", "2030-11-25T12:00:00Z"])
+    lunar, solar, after = (S.body_sun_light(sky.at(i)) for i in range(3))
+    assert lunar["moon"]["lit_fraction"] == 0.0 and lunar["moon"]["irradiance_w_m2"] == 0.0
+    assert lunar["moon"]["state"] == "umbra" and lunar["earth"]["lit_fraction"] == 1.0
+    assert sky.lit_fraction[0] == 1.0  # the station, 60,000 km off the Moon, is out of the Earth's shadow
+    # The Moon's shadow covers a patch of the Earth's face: the Earth loses a few per cent, not all.
+    assert 0.85 < solar["earth"]["lit_fraction"] < 0.99 and solar["earth"]["state"] == "penumbra"
+    assert solar["moon"]["lit_fraction"] == 1.0 and after["earth"]["lit_fraction"] == 1.0
+
+
+@FAST
+@given(sep=st.floats(0.0, 0.02), dist=st.floats(3.6e8, 4.1e8), r=st.floats(1.0, 100.0))
+def test_body_lit_fraction_of_a_small_body_is_the_point_value(sep, dist, r):
+    """A body much smaller than the shadow sees what its centre sees (the two-disc lit fraction)."""
+    sun = np.array([[S.AU_M, 0.0, 0.0]])
+    occ = dist * np.array([[math.cos(sep), math.sin(sep), 0.0]])
+    got = S.body_lit_fraction(sun, np.zeros((1, 3)), r, occ, S.EARTH_RADIUS_M)
+    _, point, *_ = eclipse_from_vectors(sun, occ, S.SUN_RADIUS_M, S.EARTH_RADIUS_M)
+    assert 0.0 <= got[0] <= 1.0
+    assert got[0] == pytest.approx(point[0], abs=1e-4)
+
+
+def test_body_lit_fraction_quadrature_converges():
+    """256 points against 4,096 through a lunar and a solar eclipse: within 0.005."""
+    from datetime import timedelta
+
+    e = S._ephemeris()
+    start = datetime(2029, 12, 20, 20, 0, tzinfo=UTC)
+    dts = [start + timedelta(minutes=6 * k) for k in range(50)] + [datetime(2030, 11, 25, 6, 50, tzinfo=UTC)]
+    t = S._time_from_utc(dts)
+    p_sun, p_earth, p_moon = (body.at(t).position.m.T for body in (e.sun, e.earth, e.moon))
+    for body, occ, rb, ro in ((p_moon, p_earth, S.MOON_RADIUS_M, S.EARTH_RADIUS_M),
+                              (p_earth, p_moon, S.EARTH_RADIUS_M, S.MOON_RADIUS_M)):
+        coarse = S.body_lit_fraction(p_sun, body, rb, occ, ro)
+        fine = S.body_lit_fraction(p_sun, body, rb, occ, ro, points=4096)
+        assert np.abs(coarse - fine).max() < 0.005
+        assert (fine < 1.0).any()
+    with pytest.raises(SkyInputError, match="overlap"):
+        S.body_lit_fraction(p_sun[:1], p_moon[:1], rb, p_moon[:1] + 1.0, ro)
+
+
 @FAST
 @given(day=st.integers(0, 364), cam=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
        dist=st.floats(0.0, 100.0))

@@ -1,4 +1,5 @@
-"""Hard cases of the sky that need Blender: float32 transforms, vertical cameras, the Sun in frame, umbra."""
+"""Hard cases of the sky that need Blender: float32 transforms, vertical cameras, the Sun in frame, umbra,
+penumbra and a lunar eclipse (each body lit by its own sun lamp, the station by its own)."""
 
 from __future__ import annotations
 
@@ -11,15 +12,18 @@ import pytest
 from allo_usd.author.scene import write_scene_layer
 from allo_usd.blender.build import build_scene
 from allo_usd.blender.render import render_scene
-from allo_usd.geometry import look_at
+from allo_usd.geometry import camera_intrinsics, look_at, matrix_to_quat
 from allo_usd.read import read_scene
 from allo_usd.scenes import sun_and_bodies
 from allo_usd.sky import compute_sky, default_epochs
-from allo_usd.spec import CameraSpec, SunSpec
+from allo_usd.spec import CameraSpec, EffectsSpec, SunSpec
 
 from conftest import make_spec
 
 pytestmark = pytest.mark.render
+
+UMBRA_DAY = 269          # 2030-09-27 00:00: the station in the Moon's umbra, a full Earth overhead
+LUNAR_ECLIPSE_DAY = 343  # 2030-12-10 00:00: the Moon in the Earth's penumbra, the station in sunlight
 
 
 @pytest.fixture(scope="module")
@@ -66,9 +70,17 @@ def test_vertical_camera_round_trips_as_a_matrix(tiny_base, tmp_path, pitch):
     desc = read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base))
     np.testing.assert_allclose(desc.camera.matrix[:3, :3], rot, atol=1e-12)
     build_scene(desc)
+    import bpy
+
+    assert {o.rotation_mode for o in bpy.context.scene.objects} == {"QUATERNION"}
+    obj = bpy.context.scene.objects["/World/Camera"]
+    q = np.array(obj.rotation_quaternion, dtype=np.float64)  # float32, as Blender keeps it
+    np.testing.assert_allclose(q * np.sign(q[0] or 1.0), matrix_to_quat(rot), atol=1e-6)
     m = _blender_matrices()["/World/Camera"]
     np.testing.assert_allclose(m[:3, :3], rot, atol=1e-6)
     np.testing.assert_allclose(m[:3, 3], pos, atol=1e-5)
+    forward = -m[:3, 2]
+    assert forward[2] == pytest.approx(math.copysign(1.0, pitch), abs=1e-7)  # still straight up/down
 
 
 def test_camera_looking_at_the_sun(sky, tiny_base, tmp_path):
@@ -102,3 +114,119 @@ def test_umbra_scene_is_never_rendered_lit(sky, tiny_base, tmp_path):
         r = render_scene(desc)
         means[name] = float(r.rgb[r.mask == 1].mean())
     assert means["umbra"] < 0.05 * means["lit"]
+
+
+def _disc_pixels(camera: CameraSpec, resolution, direction, angular_radius: float, inner: float = 0.7) -> np.ndarray:
+    """Pixels whose centre ray lies within `inner` x the angular radius of a body's centre direction."""
+    w, h = resolution
+    f = camera_intrinsics(w, h)[0, 0]
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([(jj - w / 2) / f, -(ii - h / 2) / f, -np.ones_like(jj)], axis=-1) @ camera.rotation.T
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    return np.arccos(np.clip(rays @ np.asarray(direction), -1, 1)) < inner * angular_radius
+
+
+def _looking_at(direction, pos=(0.0, 0.0, 5.0)) -> CameraSpec:
+    pos = np.asarray(pos, dtype=np.float64)
+    return CameraSpec(tuple(pos), look_at(pos, pos + np.asarray(direction)))
+
+
+def _render_spec(spec, base, path):
+    desc = read_scene(write_scene_layer(spec, path, base))
+    return desc, render_scene(desc)
+
+
+def test_umbra_station_is_lit_by_earthshine_and_the_earth_stays_sunlit(sky, tiny_base, tmp_path):
+    """Issue 5's eclipsed scene: in the Moon's umbra, the spotlight off, the station gets only the
+    light of the sunlit Earth (about 0.1 W/m^2: far below one 8-bit level, so linear values are checked)."""
+    sun, bodies = sun_and_bodies(sky, UMBRA_DAY)
+    assert sun.eclipse_state == "umbra" and sun.irradiance == 0.0
+    earth_sun = bodies["Earth"].light
+    assert earth_sun.eclipse_state == "lit" and earth_sun.irradiance > 1300.0
+    e = np.asarray(sky.direction["earth"][UMBRA_DAY])
+    dark = EffectsSpec(inspection_light=False)
+    # The station seen from the Earth's side: every surface in view has the Earth above its horizon.
+    pos = 30.0 * e
+    above = replace(make_spec(resolution=(64, 36), samples=256), sun=sun, bodies=bodies, effects=dark,
+                    camera=CameraSpec(tuple(pos), look_at(pos, np.zeros(3))))
+    desc, shine = _render_spec(above, tiny_base, tmp_path / "shine.usda")
+    assert desc.sun is None and [s.path for s in desc.suns] == ["/World/Sky/EarthSunLight", "/World/Sky/MoonSunLight"]
+    _, no_shine = _render_spec(replace(above, effects=replace(dark, body_shine=False)), tiny_base,
+                               tmp_path / "no_shine.usda")
+    station = shine.mask == 1
+    assert station.sum() > 100 and (no_shine.mask == shine.mask).all()
+    assert no_shine.rgb[station].max() == 0.0  # no sun, no spot, no body shine: black
+    radiance = shine.rgb[station].mean() / above.render.exposure  # W/m^2/sr
+    assert 1e-3 < radiance < 0.2, f"earthshine radiance {radiance:.3g} W/m^2/sr"  # ~0.8 * 0.1 W/m^2 / pi
+    assert shine.rgb[station].mean() < 255 ** -1  # below one 8-bit level at the default exposure
+    # The Earth itself, seen from the station: its disc is sunlit, not black.
+    cam = _looking_at(e)
+    look = replace(above, camera=cam, render=replace(above.render, resolution=(192, 108), samples=4))
+    _, r = _render_spec(look, tiny_base, tmp_path / "earth.usda")
+    disc = _disc_pixels(cam, (192, 108), e, sky.angular_radius_rad["earth"][UMBRA_DAY])
+    assert disc.sum() >= 6 and (r.mask[disc] == 1).all()
+    assert r.rgb[disc].mean() > 0.05  # full Earth, albedo ~0.3: ~0.1-0.3 at the default exposure
+
+
+def _penumbra_epoch() -> str:
+    """The second of 2030-09-26T23:31 UTC when the station, entering the Moon's shadow, keeps about
+    half of the Sun (a sub-day epoch: no day of 2030 at 00:00 falls in a penumbra)."""
+    from datetime import datetime, timedelta, timezone
+
+    start = datetime(2030, 9, 26, 23, 30, tzinfo=timezone.utc)
+    span = compute_sky([start + timedelta(seconds=k) for k in range(180)])
+    i = int(np.argmin(np.abs(np.asarray(span.lit_fraction) - 0.5)))
+    return span.epochs[i]
+
+
+def test_penumbra_dims_the_station_not_the_earth(tiny_base, tmp_path):
+    sky = compute_sky([_penumbra_epoch()])
+    sun, bodies = sun_and_bodies(sky, 0)
+    assert sun.eclipse_state == "penumbra" and 0.3 < sun.lit_fraction < 0.7
+    assert sun.irradiance == pytest.approx(sun.irradiance_unoccluded * sun.lit_fraction)
+    assert bodies["Earth"].light.lit_fraction == 1.0
+    full = replace(sun, irradiance=sun.irradiance_unoccluded, lit_fraction=1.0, eclipse_state="lit", eclipse_body="none")
+    d_sun, e = np.asarray(sun.direction), np.asarray(sky.direction["earth"][0])
+    spec = replace(make_spec(resolution=(64, 36), samples=16), bodies=bodies,
+                   effects=EffectsSpec(inspection_light=False))
+    pos = 30.0 * d_sun  # the station from the Sun's side
+    station_cam = CameraSpec(tuple(pos), look_at(pos, np.zeros(3)))
+    earth_cam = _looking_at(e)
+    means = {}
+    for name, s in (("penumbra", sun), ("full", full)):
+        _, st = _render_spec(replace(spec, sun=s, camera=station_cam), tiny_base, tmp_path / f"st_{name}.usda")
+        earth_spec = replace(spec, sun=s, camera=earth_cam, render=replace(spec.render, resolution=(192, 108), samples=4))
+        _, ea = _render_spec(earth_spec, tiny_base, tmp_path / f"ea_{name}.usda")
+        disc = _disc_pixels(earth_cam, (192, 108), e, sky.angular_radius_rad["earth"][0])
+        assert disc.sum() >= 6
+        means[name] = (st.rgb[st.mask == 1].mean(), ea.rgb[disc])
+    ratio = means["penumbra"][0] / means["full"][0]
+    assert ratio == pytest.approx(sun.lit_fraction, rel=0.02), "the station's light scales with its lit fraction"
+    assert means["full"][1].mean() > 0.05
+    # The station's sun never lights the bodies: halving it leaves the Earth's pixels as they were.
+    np.testing.assert_allclose(means["penumbra"][1], means["full"][1], rtol=1e-5, atol=0)
+
+
+def test_lunar_eclipse_day_darkens_the_moon_lamp(sky, tiny_base, tmp_path):
+    sun, bodies = sun_and_bodies(sky, LUNAR_ECLIPSE_DAY)
+    moon_sun = bodies["Moon"].light
+    assert sun.eclipse_state == "lit" and sun.irradiance == pytest.approx(sun.irradiance_unoccluded)
+    assert moon_sun.eclipse_state == "penumbra" and moon_sun.eclipse_body == "earth" and moon_sun.lit_fraction < 0.99
+    assert moon_sun.irradiance == pytest.approx(moon_sun.irradiance_unoccluded * moon_sun.lit_fraction)
+    m = np.asarray(sky.direction["moon"][LUNAR_ECLIPSE_DAY])
+    cam = _looking_at(m, pos=(0.0, 0.0, -5.0))
+    spec = replace(make_spec(resolution=(192, 108), samples=4), sun=sun, camera=cam,
+                   effects=EffectsSpec(inspection_light=False))
+    uneclipsed = replace(moon_sun, irradiance=moon_sun.irradiance_unoccluded, lit_fraction=1.0, eclipse_state="lit",
+                         eclipse_body="none")
+    disc = _disc_pixels(cam, (192, 108), m, sky.angular_radius_rad["moon"][LUNAR_ECLIPSE_DAY], inner=0.9)
+    means = {}
+    for name, light in (("eclipse", moon_sun), ("uneclipsed", uneclipsed)):
+        s = replace(spec, bodies={**bodies, "Moon": replace(bodies["Moon"], light=light)})
+        desc, r = _render_spec(s, tiny_base, tmp_path / f"{name}.usda")
+        lamp = {x.path: x for x in desc.suns}["/World/Sky/MoonSunLight"]
+        assert lamp.irradiance == pytest.approx(light.irradiance, rel=1e-6)
+        lit = disc & (r.rgb.max(axis=-1) > 0)
+        means[name] = r.rgb[disc].mean()
+    assert lit.sum() >= 10  # the Moon is about half lit from the station that day
+    assert means["eclipse"] / means["uneclipsed"] == pytest.approx(moon_sun.lit_fraction, rel=0.01)

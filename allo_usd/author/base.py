@@ -32,6 +32,17 @@ SPOT_OFFSET_M = (0.25, -0.12, 0.0)  # beside the lens, in the camera frame
 
 DEFAULT_RESOLUTION = (1920, 1080)
 
+# Sun lamps (UsdLux light linking, PHYSICS.md sections 5-6): the station's lamp carries the station's
+# eclipse and lights everything but the Earth and the Moon; each of those has a lamp of its own that
+# lights only it, with the Sun as seen from its centre and its own eclipse.
+STATION_SUN = "/World/Sky/SunLight"
+LIT_BODIES = ("Earth", "Moon")
+
+
+def body_sun_path(body: str) -> str:
+    """The prim path of the sun lamp that lights only `body` (e.g. /World/Sky/EarthSunLight)."""
+    return f"/World/Sky/{body}SunLight"
+
 
 @dataclass(frozen=True)
 class CameraPose:
@@ -94,12 +105,26 @@ def write_base_stage(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
 
     sky = UsdGeom.Xform.Define(stage, "/World/Sky").GetPrim()
     Usd.ModelAPI(sky).SetKind(Kind.Tokens.group)
-    sun_light = UsdLux.DistantLight.Define(stage, "/World/Sky/SunLight")
-    sun_light.CreateIntensityAttr(1361.0)
-    sun_light.CreateAngleAttr(0.533)
-    sun_light.CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
-    schema.apply(sun_light.GetPrim(), "AlloEclipseAPI")
-    set_pose(sun_light.GetPrim(), (0, 0, 0), np.eye(3))
+    lit_bodies = [name for name in LIT_BODIES if name in bodies]
+
+    def define_sun(path: str, doc: str):
+        lamp = UsdLux.DistantLight.Define(stage, path)
+        lamp.CreateIntensityAttr(1361.0)
+        lamp.CreateAngleAttr(0.533)
+        lamp.CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
+        schema.apply(lamp.GetPrim(), "AlloEclipseAPI")
+        set_pose(lamp.GetPrim(), (0, 0, 0), np.eye(3))
+        lamp.GetPrim().SetDocumentation(doc)
+        return UsdLux.LightAPI(lamp).GetLightLinkCollectionAPI()
+
+    link = define_sun(STATION_SUN, "The Sun as the station sees it, times the station's lit fraction (off in "
+                      "umbra). Lights everything but the Earth and the Moon, which have lamps of their own.")
+    link.CreateExcludesRel().SetTargets([Sdf.Path(f"/World/Sky/{name}") for name in lit_bodies])
+    for name in lit_bodies:
+        link = define_sun(body_sun_path(name), f"The Sun as the {name} sees it, times the {name}'s own lit "
+                          f"fraction (off in total eclipse). Lights only the {name}.")
+        link.CreateIncludeRootAttr(False)
+        link.CreateIncludesRel().SetTargets([Sdf.Path(f"/World/Sky/{name}")])
     default_body_pos = {"Sun": (1.495978707e11, 0, 0), "Earth": (0, 3.844e8, 0), "Moon": (0, 0, -7.0e7)}
     default_body_radius = {"Sun": 696_340e3, "Earth": 6_371e3, "Moon": 1_737.4e3}
     for name in bodies:
@@ -108,8 +133,8 @@ def write_base_stage(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
         xf = UsdGeom.Xformable(prim)
         xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*default_body_pos[name]))
         xf.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*[default_body_radius[name]] * 3))
-        # The Sun's disc is seen but lights nothing (the DistantLight does); Moon and Earth cast no
-        # shadow on the lamp's rays, since the layer's lamp intensity already holds the eclipse.
+        # The Sun's disc is seen but lights nothing (the DistantLights do); Moon and Earth cast no
+        # shadow on the lamps' rays, since each lamp's intensity already holds its eclipse.
         schema.apply(prim, "AlloRayVisibilityAPI")
         prim.GetAttribute("allo:rayVisibility").Set("cameraOnly" if name == "Sun" else "noShadow")
 

@@ -1,7 +1,8 @@
 """Write one scene as a small USD layer over the base stage.
 
 A scene's opinions fall into three groups, each built here as plain data (`Prim` lists):
-- `sky_prims`: what the day decides (sun light, true-scale bodies, eclipse state, epoch);
+- `sky_prims`: what the day decides (the sun lamps of the station and of each body, true-scale
+  bodies, eclipse states, epoch);
 - `pose_prims`: what the perturbed camera sample decides (camera transform, offsets, attempts);
 - `scene_prims`: what only this image decides (identity and seed, anomaly, effects, render).
 
@@ -22,7 +23,8 @@ import numpy as np
 from .. import __version__, schema
 from ..errors import LayerError
 from ..geometry import check_finite, matrix_to_quat, rotation_towards
-from ..spec import AnomalySpec, CameraSpec, SceneSpec, SunSpec
+from ..spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
+from .base import LIT_BODIES, STATION_SUN, body_sun_path
 
 
 @dataclass
@@ -61,11 +63,13 @@ def validate_spec(spec: SceneSpec) -> None:
     """Check every number before authoring, so a bad spec writes nothing (validate, then author)."""
     check_finite("camera position", spec.camera.position)
     check_finite("camera rotation", spec.camera.rotation)
-    check_finite("sun direction", spec.sun.direction)
+    _check_sun("sun", spec.sun)
     for name, body in spec.bodies.items():
         check_finite(f"{name} position", body.position)
         if not body.radius > 0:
             raise LayerError(f"{name} radius must be positive, got {body.radius}")
+        if body.light is not None:
+            _check_sun(f"{name}'s sun lamp", body.light)
     if spec.anomaly is not None:
         check_finite("anomaly position", spec.anomaly.position)
         check_finite("anomaly rotation", spec.anomaly.rotation)
@@ -78,18 +82,43 @@ def validate_spec(spec: SceneSpec) -> None:
         raise LayerError(f"split must be 'train' or 'test', got {spec.split!r}")
 
 
+def _check_sun(what: str, sun: SunSpec) -> None:
+    check_finite(f"{what} direction", sun.direction)
+    values = (sun.irradiance, sun.irradiance_unoccluded, sun.angular_diameter_deg, sun.distance_m, sun.lit_fraction)
+    check_finite(f"{what} irradiance, angle, distance and lit fraction", values)
+    if sun.irradiance < 0 or sun.irradiance_unoccluded < 0 or not 0 <= sun.lit_fraction <= 1:
+        raise LayerError(f"{what}: irradiance must be >= 0 and the lit fraction in [0, 1], got "
+                         f"{sun.irradiance} W/m^2 and {sun.lit_fraction}")
+
+
+def body_light(body: BodySpec, sun: SunSpec) -> SunSpec:
+    """The lamp that lights only `body`: its own, or (a spec made by hand without one) the station's
+    Sun unoccluded, so the body is never darkened by the station's eclipse."""
+    if body.light is not None:
+        return body.light
+    return SunSpec(sun.direction, sun.irradiance_unoccluded, sun.irradiance_unoccluded, sun.angular_diameter_deg,
+                   sun.distance_m)
+
+
+def sun_prim(path: str, sun: SunSpec) -> Prim:
+    """A sun lamp's opinions: direction, irradiance (lit fraction included), angle and eclipse state."""
+    return Prim(path, {
+        "xformOp:orient": ("quatd", _quatd(rotation_towards(sun.direction))),
+        "inputs:intensity": ("float", float(sun.irradiance)),
+        "inputs:angle": ("float", float(sun.angular_diameter_deg)),
+        "allo:litFraction": ("double", float(sun.lit_fraction)),
+        "allo:eclipseState": ("token", sun.eclipse_state), "allo:eclipseBody": ("token", sun.eclipse_body),
+        "allo:irradianceUnoccluded": ("double", float(sun.irradiance_unoccluded)),
+        "allo:sunDistance": ("double", float(sun.distance_m))})
+
+
 def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: dict) -> list[Prim]:
-    """The day's opinions: epoch, sun light (direction, irradiance, eclipse) and body positions."""
+    """The day's opinions: epoch, the station's sun lamp, each body's position and (Earth, Moon) its
+    own sun lamp."""
     out = [Prim("/World", {"allo:epoch": ("string", epoch), "allo:periluneEpoch": ("string", perilune_epoch),
                            "allo:day": ("int", int(day))}, api=("AlloSceneAPI",)),
-           Prim("/World/Sky/SunLight", {
-               "xformOp:orient": ("quatd", _quatd(rotation_towards(sun.direction))),
-               "inputs:intensity": ("float", float(sun.irradiance)),
-               "inputs:angle": ("float", float(sun.angular_diameter_deg)),
-               "allo:litFraction": ("double", float(sun.lit_fraction)),
-               "allo:eclipseState": ("token", sun.eclipse_state), "allo:eclipseBody": ("token", sun.eclipse_body),
-               "allo:irradianceUnoccluded": ("double", float(sun.irradiance_unoccluded)),
-               "allo:sunDistance": ("double", float(sun.distance_m))})]
+           sun_prim(STATION_SUN, sun)]
+    out += [sun_prim(body_sun_path(name), body_light(bodies[name], sun)) for name in LIT_BODIES if name in bodies]
     for name, body in bodies.items():
         out.append(Prim(f"/World/Sky/{name}", {"xformOp:translate": ("double3", _vec3d(body.position)),
                                                "xformOp:scale": ("double3", _vec3d([body.radius] * 3))}))

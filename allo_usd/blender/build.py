@@ -2,7 +2,14 @@
 
 One builder per description type. Every object is named after its USD prim path, so a
 Blender scene can be traced back to the layer that made it. Transforms go in as full
-matrices (float32 in Blender), rotations never through Euler angles.
+matrices (float32 in Blender) through `place`, which sets `rotation_mode = 'QUATERNION'`
+first: Blender stores an assigned `matrix_world` decomposed into location, rotation and scale
+in the object's rotation mode, so the default 'XYZ' would round-trip every rotation through
+Euler angles (PHYSICS.md section 3); a quaternion keeps it a rotation at any pitch.
+
+Sun lamps follow the light linking the reader resolved (`SunDesc.link`): Cycles light linking
+through a receiver collection per lamp, whose members are all EXCLUDE (the lamp lights every
+object but them: the station's sun and the bodies) or all INCLUDE (only them: a body's own sun).
 """
 
 from __future__ import annotations
@@ -31,6 +38,12 @@ def _matrix(m: np.ndarray):
     from mathutils import Matrix
 
     return Matrix([list(map(float, row)) for row in np.asarray(m)])
+
+
+def place(obj, m: np.ndarray) -> None:
+    """Set an object's world matrix, decomposed into a quaternion (never Euler angles)."""
+    obj.rotation_mode = "QUATERNION"
+    obj.matrix_world = _matrix(m)
 
 
 def build_material(desc: MaterialDesc):
@@ -80,7 +93,7 @@ def build_mesh(desc: MeshDesc, material):
     me.validate(clean_customdata=False)
     me.materials.append(material)
     obj = bpy.data.objects.new(desc.path, me)
-    obj.matrix_world = _matrix(desc.matrix)
+    place(obj, desc.matrix)
     obj.pass_index = desc.class_id
     if desc.ray_visibility == "cameraOnly":  # the Sun's disc: seen, but neither shadowing nor lighting
         obj.visible_diffuse = obj.visible_glossy = obj.visible_shadow = False
@@ -101,25 +114,45 @@ def build_camera(desc: CameraDesc):
     cam.sensor_height = desc.sensor_height_mm
     cam.clip_start, cam.clip_end = desc.clip
     obj = bpy.data.objects.new("/World/Camera", cam)
-    obj.matrix_world = _matrix(desc.matrix)
+    place(obj, desc.matrix)
     bpy.context.scene.collection.objects.link(obj)
     bpy.context.scene.camera = obj
     return obj
 
 
-def build_sun(desc: SunDesc):
-    bpy = _bpy()
+def set_sun(obj, desc: SunDesc) -> None:
+    """A sun lamp's values and direction (everything but its light linking)."""
     from ..geometry import rotation_towards
 
-    light = bpy.data.lights.new("/World/Sky/SunLight", type="SUN")
+    light = obj.data
     light.energy = desc.irradiance          # Cycles sun strength is irradiance, W/m^2
     light.angle = math.radians(desc.angle_deg)
     light.color = desc.color
-    obj = bpy.data.objects.new("/World/Sky/SunLight", light)
     m = np.eye(4)
     m[:3, :3] = rotation_towards(desc.direction)
-    obj.matrix_world = _matrix(m)
-    bpy.context.scene.collection.objects.link(obj)
+    place(obj, m)
+
+
+def receivers_name(desc: SunDesc) -> str:
+    return f"{desc.path} receivers"
+
+
+def build_sun(desc: SunDesc):
+    """A SUN lamp named after its prim; with a link, a receiver collection of the linked mesh objects."""
+    bpy = _bpy()
+    light = bpy.data.lights.new(desc.path, type="SUN")
+    obj = bpy.data.objects.new(desc.path, light)
+    set_sun(obj, desc)
+    scene_objects = bpy.context.scene.collection.objects
+    scene_objects.link(obj)
+    if desc.link is not None:
+        coll = bpy.data.collections.new(receivers_name(desc))
+        for path in desc.link.paths:
+            coll.objects.link(scene_objects[path])
+        state = "EXCLUDE" if desc.link.exclude else "INCLUDE"
+        for member in coll.collection_objects:
+            member.light_linking.link_state = state
+        obj.light_linking.receiver_collection = coll
     return obj
 
 
@@ -137,7 +170,7 @@ def build_spot(desc: SpotDesc):
     light.spot_blend = min(max(desc.softness, 0.0), 1.0)
     light.color = desc.color
     obj = bpy.data.objects.new("/World/Camera/InspectionLight", light)
-    obj.matrix_world = _matrix(desc.matrix)
+    place(obj, desc.matrix)
     bpy.context.scene.collection.objects.link(obj)
     return obj
 
@@ -199,8 +232,8 @@ def build_scene(desc: SceneDescription) -> None:
     for mesh in desc.meshes:
         build_mesh(mesh, mats[mesh.material])
     build_camera(desc.camera)
-    if desc.sun is not None:
-        build_sun(desc.sun)
+    for sun in desc.suns:
+        build_sun(sun)
     if desc.spot is not None:
         build_spot(desc.spot)
     configure_render(desc.render)

@@ -3,8 +3,11 @@
 `Session.render(desc)` builds the first description from scratch (`build.build_scene`); every
 later one is diffed against the description the scene now shows, and only what differs is
 applied:
-- camera, body and anomaly matrices, pass indices, ray visibility, material assignment;
-- the sun lamp (direction, irradiance, angle, colour; removed in umbra, added back when lit);
+- camera, body and anomaly matrices, pass indices, ray visibility, material assignment (every
+  matrix through `build.place`: a quaternion rotation mode, never Euler angles);
+- the sun lamps (the station's and each body's: direction, irradiance, angle, colour patched in
+  place; a lamp that goes off is removed with its receiver collection, and one whose light
+  linking or linked meshes changed is rebuilt);
 - the inspection spot light (on/off, transform, power, cone);
 - render settings (resolution, samples, seed, exposure, threads, denoise, ...);
 - the compositor (glare on/off);
@@ -26,7 +29,7 @@ What makes the patched scene "the same scene":
   material is rebuilt unless only its plain Principled values differ;
 - names are freed before they are taken again (old objects, meshes and materials removed and
   orphans purged first), so new datablocks get exactly the fresh build's names, never `.001`;
-- objects are linked in the fresh build's order (meshes in description order, camera, sun,
+- objects are linked in the fresh build's order (meshes in description order, camera, suns,
   spot): the depsgraph, and so Cycles' object and light lists, follow the scene collection's
   order. In the tests the bytes matched even without this step (Cycles' per-object random
   numbers hash the name, not the index), but it costs only an unlink/link of the tail, no
@@ -45,7 +48,6 @@ answers with a full build.
 from __future__ import annotations
 
 import hashlib
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,7 +59,7 @@ from . import build
 from .render import RenderResult, render_current
 
 _TOKEN = "allo_session"
-CAMERA, SUN, SPOT = "/World/Camera", "/World/Sky/SunLight", "/World/Camera/InspectionLight"
+CAMERA, SPOT = "/World/Camera", "/World/Camera/InspectionLight"
 
 
 def geometry_digest(mesh: MeshDesc) -> bytes:
@@ -261,8 +263,7 @@ class Session:
                 != (nc.focal_length_mm, nc.sensor_width_mm, nc.sensor_height_mm, nc.clip):
             self._patch_camera(desc)
             stats.changed.append("camera")
-        if prev.sun != desc.sun:
-            self._patch_sun(desc)
+        if self._patch_suns(prev, desc, {m.path for m in added}):
             stats.changed.append("sun")
         if not self._spot_equal(prev.spot, desc.spot):
             self._patch_spot(desc)
@@ -313,7 +314,7 @@ class Session:
 
     def _patch_mesh(self, obj, old: MeshDesc, new: MeshDesc) -> None:
         if not _eq(old.matrix, new.matrix):
-            obj.matrix_world = build._matrix(new.matrix)
+            build.place(obj, new.matrix)
         if old.class_id != new.class_id:
             obj.pass_index = new.class_id
         if old.ray_visibility != new.ray_visibility:
@@ -345,35 +346,45 @@ class Session:
         cam.sensor_width = c.sensor_width_mm
         cam.sensor_height = c.sensor_height_mm
         cam.clip_start, cam.clip_end = c.clip
-        obj.matrix_world = build._matrix(c.matrix)
+        build.place(obj, c.matrix)
 
     def _remove_light(self, name: str) -> None:
+        """Remove a light object, its data and its light-linking collections."""
         import bpy
 
         obj = self._find(name)
         if obj is not None:
             data = obj.data
+            colls = [c for c in (obj.light_linking.receiver_collection, obj.light_linking.blocker_collection) if c]
             bpy.data.objects.remove(obj, do_unlink=True)
             if data is not None and data.users == 0:
                 bpy.data.lights.remove(data)
+            for coll in colls:
+                if coll.users == 0:
+                    bpy.data.collections.remove(coll)
 
-    def _patch_sun(self, desc: SceneDescription) -> None:
-        from ..geometry import rotation_towards
-
-        obj = self._find(SUN)
-        if desc.sun is None:
-            self._remove_light(SUN)
-            return
-        if obj is None:
-            build.build_sun(desc.sun)
-            return
-        light, s = obj.data, desc.sun
-        light.energy = s.irradiance
-        light.angle = math.radians(s.angle_deg)
-        light.color = s.color
-        m = np.eye(4)
-        m[:3, :3] = rotation_towards(s.direction)
-        obj.matrix_world = build._matrix(m)
+    def _patch_suns(self, prev: SceneDescription, desc: SceneDescription, rebuilt_meshes: set[str]) -> bool:
+        """Sun lamps: remove those now off, patch values in place, rebuild a lamp whose light linking
+        changed or names a mesh object that was rebuilt (removing an object drops it from collections)."""
+        old = {s.path: s for s in prev.suns}
+        new = {s.path: s for s in desc.suns}
+        changed = False
+        for path in old:
+            if path not in new:
+                self._remove_light(path)
+                changed = True
+        for path, s in new.items():
+            obj = self._find(path)
+            before = old.get(path)
+            if obj is None or before is None or before.link != s.link or (
+                    s.link is not None and not rebuilt_meshes.isdisjoint(s.link.paths)):
+                self._remove_light(path)
+                build.build_sun(s)
+                changed = True
+            elif before != s:
+                build.set_sun(obj, s)
+                changed = True
+        return changed
 
     @staticmethod
     def _spot_equal(a, b) -> bool:
@@ -389,12 +400,12 @@ class Session:
             build.build_spot(desc.spot)
 
     def _reorder(self, desc: SceneDescription) -> bool:
-        """Link objects in the order a fresh build does: meshes, camera, sun, spot."""
+        """Link objects in the order a fresh build does: meshes, camera, suns, spot."""
         import bpy
 
         coll = bpy.context.scene.collection
         want = [self._objects[m.path] for m in desc.meshes] + [self._find(CAMERA)]
-        for name in ((SUN,) if desc.sun is not None else ()) + ((SPOT,) if desc.spot is not None else ()):
+        for name in tuple(s.path for s in desc.suns) + ((SPOT,) if desc.spot is not None else ()):
             want.append(self._find(name))
         have = list(coll.objects)
         if have == want:
