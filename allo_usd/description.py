@@ -38,6 +38,7 @@ class MaterialDesc:
     roughness: float
     base_color_texture: str | None = None      # absolute, resolved file path
     emissive_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ior: float = 1.5                           # UsdPreviewSurface ior; 1.0 = no specular layer
 
 
 @dataclass(frozen=True, eq=False)

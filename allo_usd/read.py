@@ -190,8 +190,9 @@ def read_material(material) -> MaterialDesc:
     metallic, _ = _input(surface, "metallic", 0.0)
     roughness, _ = _input(surface, "roughness", 0.5)
     emissive, _ = _input(surface, "emissiveColor", (0.0, 0.0, 0.0))
+    ior = _number(_input(surface, "ior", 1.5)[0], f"{path} inputs:ior", lo=1.0, hi=10.0)
     return MaterialDesc(path, tuple(float(c) for c in color), float(metallic), float(roughness), texture,
-                        tuple(float(c) for c in emissive))
+                        tuple(float(c) for c in emissive), ior)
 
 
 def read_mesh(prim, cache, materials: dict) -> MeshDesc:
