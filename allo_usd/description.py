@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .effects.noise import SensorParams
+
 BACKGROUND, STATION, ANOMALY = 0, 1, 2  # mask classes; celestial bodies share STATION's label
 DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_prefilter
 DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_quality
@@ -90,6 +92,7 @@ class EffectsDesc:
     glare: bool
     inspection_light: bool
     body_shine: bool
+    sensor: SensorParams | None = None     # the layer's allo:effects:sensor:* (when sensor_noise)
 
 
 @dataclass(frozen=True, eq=False)
