@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .effects.noise import SensorParams
+
 BACKGROUND, STATION, ANOMALY = 0, 1, 2  # mask classes; celestial bodies share STATION's label
 STATION_SUN = "/World/Sky/SunLight"     # the sun lamp that lights the station (not the bodies)
 DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_prefilter
@@ -39,6 +41,7 @@ class MaterialDesc:
     roughness: float
     base_color_texture: str | None = None      # absolute, resolved file path
     emissive_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ior: float = 1.5                           # UsdPreviewSurface ior; 1.0 = no specular layer
 
 
 @dataclass(frozen=True, eq=False)
@@ -100,6 +103,7 @@ class EffectsDesc:
     glare: bool
     inspection_light: bool
     body_shine: bool
+    sensor: SensorParams | None = None     # the layer's allo:effects:sensor:* (when sensor_noise)
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,6 +23,16 @@ def check_finite(name: str, value) -> np.ndarray:
     return a
 
 
+def _unit(name: str, value) -> np.ndarray:
+    """`value` scaled to unit length; a zero vector has no direction and is an error."""
+    a = check_finite(name, value)
+    big = np.abs(a).max()
+    if big == 0:
+        raise AlloError(f"{name} has zero length; give a non-zero vector")
+    a = a / big  # pre-scaled, so tiny and huge vectors neither underflow nor overflow
+    return a / np.linalg.norm(a)
+
+
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z), w >= 0, from a proper rotation matrix (Shepperd's method)."""
     r = check_finite("rotation matrix", r)
@@ -48,7 +58,7 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
 
 
 def quat_to_matrix(q) -> np.ndarray:
-    w, x, y, z = check_finite("quaternion", q) / np.linalg.norm(q)
+    w, x, y, z = _unit("quaternion", q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
@@ -64,8 +74,8 @@ def look_at(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     if n == 0:
         raise AlloError("camera position equals its look target; give a target at a distance")
     fwd /= n
-    up = np.asarray(up, dtype=np.float64)
-    if abs(np.dot(fwd, up / np.linalg.norm(up))) > 0.999:  # looking straight up/down: pick another up
+    up = _unit("up vector", up)
+    if abs(np.dot(fwd, up)) > 0.999:  # looking straight up/down: pick another up
         up = np.array([1.0, 0.0, 0.0]) if abs(fwd[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(fwd, up)
     x /= np.linalg.norm(x)
@@ -75,8 +85,7 @@ def look_at(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 def rotation_towards(direction) -> np.ndarray:
     """A rotation whose local +Z is unit(direction) (used to aim a DistantLight's -Z away from the Sun)."""
-    z = check_finite("direction", direction)
-    z = z / np.linalg.norm(z)
+    z = _unit("direction", direction)
     helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     x = np.cross(helper, z)
     x /= np.linalg.norm(x)

@@ -61,9 +61,13 @@ def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
     if desc.effects.sensor_noise:
         from .effects.noise import SensorParams, apply_sensor_noise
 
-        params = SensorParams()
+        # The layer's sensor (allo:effects:sensor:*): its seed fixes PRNU/DSNU, the render seed
+        # draws the temporal noise. The JSON repeats the resolved parameters; the layer is the record.
+        params = (desc.effects.sensor or SensorParams()).resolved(desc.render.exposure)
         rgb = apply_sensor_noise(rgb, desc.render.exposure, seed=desc.render.seed, params=params)
-        applied["sensor_noise"] = {"model": "EMVA 1288", "seed": desc.render.seed, **params.as_dict()}
+        record = params.as_dict()
+        record["sensor_seed"] = record.pop("seed")
+        applied["sensor_noise"] = {"model": "EMVA 1288", "temporal_seed": desc.render.seed, **record}
     return rgb, applied
 
 

@@ -25,6 +25,9 @@ class Material:
     # Optional texture: key into Asset.textures (an (H, W, 3) uint8 sRGB array written as PNG).
     base_color_texture: str | None = None
     emissive_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # UsdPreviewSurface `ior` (default 1.5): the dielectric specular layer. 1.0 removes it, leaving
+    # a purely diffuse (Lambertian) surface whose reflectance is exactly its base colour.
+    ior: float = 1.5
 
 
 @dataclass(frozen=True)

@@ -232,8 +232,9 @@ def read_material(material) -> MaterialDesc:
     metallic, _ = _input(surface, "metallic", 0.0)
     roughness, _ = _input(surface, "roughness", 0.5)
     emissive, _ = _input(surface, "emissiveColor", (0.0, 0.0, 0.0))
+    ior = _number(_input(surface, "ior", 1.5)[0], f"{path} inputs:ior", lo=1.0, hi=10.0)
     return MaterialDesc(path, tuple(float(c) for c in color), float(metallic), float(roughness), texture,
-                        tuple(float(c) for c in emissive))
+                        tuple(float(c) for c in emissive), ior)
 
 
 def read_mesh(prim, cache, materials: dict) -> MeshDesc:
@@ -387,9 +388,32 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
                         num("allo:render:threads", 0, True, 0, 4096), tuple(outputs),
                         choice("allo:render:denoisePrefilter", "FAST", DENOISE_PREFILTERS),
                         choice("allo:render:denoiseQuality", "BALANCED", DENOISE_QUALITIES))
-    effects = EffectsDesc(flag("allo:effects:sensorNoise", False), flag("allo:effects:glare", False),
-                          flag("allo:effects:inspectionLight", True), flag("allo:effects:bodyShine", True))
+    noise = flag("allo:effects:sensorNoise", False)
+    effects = EffectsDesc(noise, flag("allo:effects:glare", False),
+                          flag("allo:effects:inspectionLight", True), flag("allo:effects:bodyShine", True),
+                          read_sensor(settings_prim) if noise else None)
     return render, effects
+
+
+def read_sensor(settings_prim):
+    """The sensor's EMVA 1288 parameters (allo:effects:sensor:*); unauthored ones take the schema's
+    fallbacks, and a gain or exposure time of 0 means "derive it" (allo_usd.effects.noise)."""
+    from .effects.noise import DERIVED_WHEN_ZERO, SENSOR_ATTRIBUTES, SensorParams
+    from .errors import AlloError
+
+    defaults = SensorParams()
+    values = {}
+    for key, (name, type_name) in SENSOR_ATTRIBUTES.items():
+        integer = type_name != "double"
+        default = getattr(defaults, key)
+        value = _number(_get(settings_prim, name, 0 if default is None else default), name, integer, lo=0)
+        values[key] = None if key in DERIVED_WHEN_ZERO and value == 0 else value
+    params = SensorParams(**values)
+    try:
+        params.validate()
+    except AlloError as exc:
+        raise LayerError(f"{settings_prim.GetPath()}: {exc}; fix the allo:effects:sensor:* attributes") from None
+    return params
 
 
 def _check_variants(prim) -> None:

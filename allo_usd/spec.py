@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .effects.noise import SensorParams
+
 
 @dataclass(frozen=True)
 class SunSpec:
@@ -78,6 +80,9 @@ class EffectsSpec:
     glare: bool = False
     inspection_light: bool = True
     body_shine: bool = True
+    # The camera's EMVA 1288 parameters and its own seed (fixed patterns); authored, resolved
+    # against the render exposure, when sensor_noise is on.
+    sensor: SensorParams = field(default_factory=SensorParams)
 
 
 @dataclass(frozen=True)

@@ -168,3 +168,49 @@ def test_depth_and_mask_only_outputs(tiny_base, tmp_path, rendered):
     full_layer, full_meta, d = rendered["anomaly"]
     np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "out" / meta["files"]["mask"])),
                                   np.asarray(Image.open(d / full_meta["files"]["mask"])))
+
+
+@pytest.mark.parametrize("ior", [1.0, 1.5])  # Lambertian, and Principled's default specular layer
+def test_sunlit_white_plate_renders_near_but_below_white(tmp_path, ior):
+    """A white plate (base colour 1, roughness 1, metallic 0) facing a 1361 W/m^2 sun at normal
+    incidence, at the default exposure 0.9*pi/1361: linear 0.9 (radiance E/pi times exposure),
+    sRGB 8-bit 243, not 255. Spot off; the bodies sit behind the plate, unseen and lighting nothing."""
+    from dataclasses import replace
+
+    from allo_usd.assets.primitives import grid, uv_sphere
+    from allo_usd.author.base import CameraPose, write_base_stage
+    from allo_usd.geometry import look_at, rotation_towards
+    from allo_usd.mesh import Asset, Material
+    from allo_usd.spec import BodySpec, CameraSpec, EffectsSpec
+    from allo_usd.write import linear_to_srgb8
+
+    from conftest import EXPOSURE, tiny_anomalies
+
+    spec = make_spec(resolution=(64, 36), samples=16)
+    n = np.array(spec.sun.direction)  # the plate's normal points at the Sun
+    plate = np.eye(4)
+    plate[:3, :3] = rotation_towards(n)
+    station = Asset("Station", (grid("Plate", 200.0, 200.0, "white", matrix=plate),),
+                    (Material("white", (1.0, 1.0, 1.0), 0.0, 1.0, ior=ior),))
+    bodies = {name: Asset(name, (uv_sphere("Surface", 1.0, "Grey"),), (Material("Grey", (0.2, 0.2, 0.2)),))
+              for name in ("Moon", "Earth", "Sun")}
+    cam = 20.0 * (n + 0.4 * rotation_towards(n)[:, 0])  # 22 deg off the normal, 22 m from the plate
+    poses = [CameraPose(1, "train", cam, look_at(cam, [0, 0, 0]))]
+    base = write_base_stage(tmp_path / "stages", station, bodies, tiny_anomalies(), poses)
+    behind = {name: BodySpec(tuple(-n * d), r) for name, d, r in
+              (("Moon", 7e6, 1.7374e6), ("Earth", 3.8e8, 6.371e6), ("Sun", 1.496e11, 6.9634e8))}
+    spec = replace(spec, camera=CameraSpec(tuple(cam), look_at(cam, [0, 0, 0])), bodies=behind,
+                   effects=EffectsSpec(inspection_light=False))
+    assert spec.render.exposure == EXPOSURE and spec.sun.irradiance == 1361.0
+    layer = write_scene_layer(spec, tmp_path / "plate.usda", base)
+    meta = render_layer(layer, tmp_path / "out")
+    mask = np.asarray(Image.open(tmp_path / "out" / meta["files"]["mask"]))
+    assert (mask == 1).all()  # the plate fills the frame
+    with OpenEXR.File(str(tmp_path / "out" / meta["files"]["exr"]), separate_channels=True) as f:
+        linear = np.stack([f.channels()[c].pixels for c in "RGB"], -1).astype(np.float64)
+    assert 0.85 <= linear.min() and linear.max() <= 0.95
+    if ior == 1.0:  # Lambertian: exactly E/pi * albedo * exposure
+        assert linear.mean() == pytest.approx(0.9, abs=0.005)
+    png = np.asarray(Image.open(tmp_path / "out" / meta["files"]["rgb"]))
+    assert 240 <= png.min() and png.max() <= 250  # near white, never clipped to 255
+    assert int(linear_to_srgb8(np.full((1, 1, 3), 0.9, np.float32)).max()) == 243

@@ -230,3 +230,77 @@ def test_lunar_eclipse_day_darkens_the_moon_lamp(sky, tiny_base, tmp_path):
         means[name] = r.rgb[disc].mean()
     assert lit.sum() >= 10  # the Moon is about half lit from the station that day
     assert means["eclipse"] / means["uneclipsed"] == pytest.approx(moon_sun.lit_fraction, rel=0.01)
+
+def _random_rotation(rng) -> np.ndarray:
+    from allo_usd.geometry import quat_to_matrix
+
+    return quat_to_matrix(rng.standard_normal(4))  # uniform on SO(3)
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    """Rotation angle between two rotation matrices: ||A - B||_F = 2 sqrt(2) sin(angle / 2)."""
+    return 2.0 * math.asin(min(1.0, np.linalg.norm(a - b) / (2.0 * math.sqrt(2.0))))
+
+
+def _ulps32(x) -> float:
+    """One float32 ulp at the magnitude of x (the spacing Blender stores a coordinate with)."""
+    return float(np.spacing(np.float32(np.max(np.abs(x)))))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_every_authored_transform_survives_float32_in_blender(tiny_base, tmp_path, seed):
+    """A randomly posed camera, the sun light, an anomaly and the inspection light: the Blender
+    objects built from a real layer match the authored float64 transforms to float32 precision
+    (budget 1e-5 rad; measured at most 4e-8 rad, and positions within half a float32 ulp)."""
+    from pxr import Usd, UsdGeom
+
+    from allo_usd.read import open_stage
+    from allo_usd.spec import AnomalySpec, BodySpec, EffectsSpec
+
+    rng = np.random.default_rng(seed)
+    cam_pos = rng.uniform(-100.0, 100.0, 3)
+    cam_rot = _random_rotation(rng)
+    assert abs(cam_rot[2, 2]) < 0.95  # looking along a slant (vertical poses: the test above)
+    sun_dir = rng.standard_normal(3)
+    sun_dir /= np.linalg.norm(sun_dir)
+    anomaly = AnomalySpec("Crate", "blue", tuple(rng.uniform(-30.0, 30.0, 3)), _random_rotation(rng))
+    base = make_spec(anomaly=True)
+    spec = replace(base, camera=CameraSpec(tuple(cam_pos), cam_rot), anomaly=anomaly,
+                   sun=replace(base.sun, direction=tuple(sun_dir)),
+                   bodies={**base.bodies, "Sun": BodySpec(tuple(sun_dir * 1.496e11), 6.9634e8)},
+                   effects=EffectsSpec(inspection_light=True))
+    layer = write_scene_layer(spec, tmp_path / "s.usda", tiny_base)
+    desc = read_scene(layer)
+    build_scene(desc)
+    got = _blender_matrices()
+
+    # Camera: Blender's float32 matrix against the spec's float64 pose.
+    m = got["/World/Camera"]
+    assert _angle(m[:3, :3], cam_rot) <= 1e-5
+    assert np.abs(m[:3, 3] - cam_pos).max() <= _ulps32(cam_pos)
+    # Sun light: its local +Z points at the Sun (light travels along -Z).
+    z = got["/World/Sky/SunLight"][:3, 2]
+    assert math.atan2(np.linalg.norm(np.cross(z, sun_dir)), z @ sun_dir) <= 1e-5
+
+    # Anomaly and inspection light: composed in float64 by USD from the authored ops.
+    stage = open_stage(layer)
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+
+    def authored(path: str) -> np.ndarray:
+        return np.array(cache.GetLocalToWorldTransform(stage.GetPrimAtPath(path)), dtype=np.float64).T
+
+    root = authored("/World/Anomaly")
+    assert _angle(root[:3, :3], anomaly.rotation) <= 1e-12
+    np.testing.assert_allclose(root[:3, 3], anomaly.position, rtol=0, atol=1e-12)
+    parts = [name for name in got if name.startswith("/World/Anomaly/")]
+    assert parts
+    for name in parts:
+        want = authored(name)
+        scale = np.linalg.norm(want[:3, :3], axis=0)
+        assert _angle(got[name][:3, :3] / scale, want[:3, :3] / scale) <= 1e-5, name
+        assert np.abs(got[name][:3, 3] - want[:3, 3]).max() <= _ulps32(want[:3, 3]), name
+    spot = authored("/World/Camera/InspectionLight")
+    assert _angle(spot[:3, :3], cam_rot) <= 1e-12  # rides on the camera, unrotated
+    m = got["/World/Camera/InspectionLight"]
+    assert _angle(m[:3, :3], spot[:3, :3]) <= 1e-5
+    assert np.abs(m[:3, 3] - spot[:3, 3]).max() <= _ulps32(spot[:3, 3])

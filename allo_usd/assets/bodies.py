@@ -1,10 +1,32 @@
 """Moon, Earth and Sun as unit spheres with procedural equirectangular textures.
 
 The sky module places them at true scale (scale = body radius, translate = true position),
-so one unit sphere per body serves every day. Albedos follow PHYSICS.md section 5: the
-textures average to the Moon's geometric albedo 0.12 and the Earth's Bond albedo about 0.31.
-The Sun's disc is an emitter of constant radiance (radiance does not fall with distance; its
-solid angle does), so its value lives in the asset, not in each scene.
+so one unit sphere per body serves every day. The Sun's disc is an emitter of constant radiance
+(radiance does not fall with distance; its solid angle does), so its value lives in the asset,
+not in each scene.
+
+Albedo convention: BOND albedo, area-weighted, for both bodies (PHYSICS.md section 5: Moon
+0.11, Earth 0.306). Both bodies are Lambertian (UsdPreviewSurface `ior = 1`: no specular layer),
+and for a Lambertian sphere the fraction of the incident sunlight it reflects back into space, its Bond albedo, equals
+the diffuse reflectance. So a texture whose *area-weighted* mean reflectance equals the Bond albedo
+reflects the right total energy, which is what moonshine and earthshine on the station depend on.
+(A geometric albedo is a different quantity, the full-phase brightness against a Lambertian disc;
+using it for one body and the Bond albedo for the other mixed conventions.) The mean is taken:
+- over area: each texel row weighted by cos(latitude) of its centre, proportional to the area the
+  row covers on the sphere (an equirectangular map over-counts the poles);
+- over the decoded texture: the 8-bit sRGB PNG as Blender reads it, back to linear reflectance;
+- over the three channels with equal weights (a white sun; Bond albedo is a bolometric figure).
+`area_weighted_reflectance` computes it, and the textures are normalised to it after quantisation.
+The Earth's surfaces keep plausible reflectances (ocean about 0.06, vegetation and desert 0.1-0.3,
+ice and cloud tops about 0.8, land about 29% of the area) and its cloud cover is solved for so that
+the planet reaches 0.306: most of the Earth's Bond albedo is cloud.
+
+Why `ior = 1`, measured in Cycles (bpy 5.0.1): with the default ior 1.5, the Principled BSDF adds a
+dielectric specular layer over the diffuse base. A plane of base colour 0.11 (roughness 0.95) lit
+at normal incidence then reflects 0.123 of the light instead of 0.110, and the Moon seen at
+quarter phase renders 1.40x the Lambertian prediction (the Earth 1.02x). With ior 1 the
+reflectance is the base colour (0.1099, 0.3057 measured) and the rendered bodies match the
+Lambertian prediction (tests/test_bodies.py).
 """
 
 from __future__ import annotations
@@ -20,8 +42,12 @@ SUN_RADIUS_M = 696_340e3
 # Radiance of the solar disc: irradiance / solid angle = E / (pi sin^2 theta) at 1 AU.
 SUN_RADIANCE = SOLAR_CONSTANT_W_M2 / (np.pi * (SUN_RADIUS_M / AU_M) ** 2)
 
-MOON_ALBEDO = 0.12
-EARTH_ALBEDO = 0.306
+MOON_ALBEDO = 0.11    # Bond albedo (geometric: 0.12)
+EARTH_ALBEDO = 0.306  # Bond albedo (geometric: 0.434)
+MOON_MARIA_FRACTION = 0.17   # of the surface area (about 31% of the near side, 2% of the far side)
+EARTH_LAND_FRACTION = 0.29   # of the surface area
+EARTH_ICE_LATITUDE_DEG = 72.0
+EARTH_CLOUD_TOP = 0.8        # linear reflectance of thick cloud tops
 
 
 def _fbm(h: int, w: int, seed: int, octaves: int = 6, base: int = 4) -> np.ndarray:
@@ -54,11 +80,60 @@ def _to_srgb8(linear: np.ndarray) -> np.ndarray:
     return np.round(s * 255).astype(np.uint8)
 
 
+def srgb8_to_linear(texture: np.ndarray) -> np.ndarray:
+    """Linear reflectance of an 8-bit sRGB texture, decoded as Blender reads an sRGB image."""
+    c = np.asarray(texture, dtype=np.float64) / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def row_latitudes(h: int) -> np.ndarray:
+    """Latitude (radians) of each texel row's centre; row 0 is the north pole's row (uv_sphere's v)."""
+    return np.pi / 2 - (np.arange(h) + 0.5) * np.pi / h
+
+
+def area_weights(h: int) -> np.ndarray:
+    """(h, 1) weights proportional to the sphere area each equirectangular row covers."""
+    return np.cos(row_latitudes(h))[:, None]
+
+
+def area_weighted_reflectance(texture: np.ndarray) -> float:
+    """Mean linear reflectance of an (H, W, 3) 8-bit sRGB equirectangular texture over the sphere's area."""
+    linear = srgb8_to_linear(texture).mean(axis=2)
+    w = area_weights(linear.shape[0]) * np.ones((1, linear.shape[1]))
+    return float((linear * w).sum() / w.sum())
+
+
+def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+    order = np.argsort(values, axis=None)
+    cum = np.cumsum(weights.ravel()[order])
+    return float(values.ravel()[order][np.searchsorted(cum, q * cum[-1])])
+
+
+def _normalised_srgb8(linear: np.ndarray, albedo: float) -> np.ndarray:
+    """`linear` scaled so the 8-bit sRGB texture it becomes has area-weighted reflectance `albedo`.
+
+    Iterated, because quantisation (and clipping, if any texel reaches 1) shifts the mean a little.
+    """
+    h = linear.shape[0]
+    w = area_weights(h)[..., None] * np.ones((1, linear.shape[1], 1))
+    scale = albedo / float((linear * w).sum() / (w.sum() * linear.shape[2]))
+    for _ in range(8):
+        tex = _to_srgb8(linear * scale)
+        got = area_weighted_reflectance(tex)
+        if abs(got - albedo) < 1e-4 * albedo:
+            break
+        scale *= albedo / got
+    return tex
+
+
 def moon_texture(h: int = 512, w: int = 1024) -> np.ndarray:
+    """Grey regolith: dark maria, brighter highlands, bright-rimmed craters; Bond albedo 0.11."""
+    weights = area_weights(h) * np.ones((1, w))
     n = _fbm(h, w, seed=1737)
-    maria = _fbm(h, w, seed=42, octaves=3, base=3) > 0.56
+    mare = _fbm(h, w, seed=42, octaves=3, base=3)
+    maria = mare > _weighted_quantile(mare, weights, 1.0 - MOON_MARIA_FRACTION)
     rng = np.random.default_rng(7)
-    lat = np.linspace(np.pi / 2, -np.pi / 2, h)[:, None]
+    lat = row_latitudes(h)[:, None]
     lon = np.linspace(-np.pi, np.pi, w, endpoint=False)[None, :]
     craters = np.zeros((h, w))
     for _ in range(160):  # bright-rimmed craters with dark floors
@@ -67,35 +142,49 @@ def moon_texture(h: int = 512, w: int = 1024) -> np.ndarray:
         d = np.arccos(np.clip(np.sin(lat) * np.sin(clat) + np.cos(lat) * np.cos(clat) * np.cos(lon - clon), -1, 1))
         craters += np.exp(-((d - r) / (0.15 * r)) ** 2) * 0.35 - (d < r) * 0.08
     albedo = 1.0 + 0.5 * (n - 0.5) - 0.35 * maria + craters
-    albedo *= MOON_ALBEDO / albedo.mean()
-    return _to_srgb8(np.repeat(albedo[..., None], 3, axis=2))
+    return _normalised_srgb8(np.repeat(albedo[..., None], 3, axis=2), MOON_ALBEDO)
 
 
 def earth_texture(h: int = 512, w: int = 1024) -> np.ndarray:
+    """Oceans, continents (vegetation to desert), polar ice and clouds; Bond albedo 0.306.
+
+    The surface reflectances are fixed at plausible values; the cloud cover is solved for (by
+    bisection on its threshold) so that the area-weighted reflectance reaches EARTH_ALBEDO.
+    """
+    weights = area_weights(h) * np.ones((1, w))
     land = _fbm(h, w, seed=6371, octaves=6, base=3)
     clouds = _fbm(h, w, seed=2030, octaves=6, base=6)
-    lat = np.linspace(90, -90, h)[:, None] * np.ones((1, w))
-    ocean = np.array([0.02, 0.05, 0.14])
+    lat = np.degrees(row_latitudes(h))[:, None] * np.ones((1, w))
+    ocean = np.array([0.03, 0.05, 0.10])
     green = np.array([0.08, 0.12, 0.05])
     desert = np.array([0.35, 0.27, 0.16])
-    ice = np.array([0.85, 0.87, 0.9])
-    is_land = land > 0.53
+    ice = np.array([0.80, 0.82, 0.85])
+    is_land = land > _weighted_quantile(land, weights, 1.0 - EARTH_LAND_FRACTION)
     dry = _fbm(h, w, seed=11, octaves=3, base=4)[..., None]
-    col = np.where(is_land[..., None], green * (1 - dry) + desert * dry, ocean)
-    col = np.where((np.abs(lat) > 72)[..., None], ice, col)
-    cover = np.clip((clouds - 0.45) * 3.0, 0, 1)[..., None]
-    col = col * (1 - cover) + 0.8 * cover
-    col *= EARTH_ALBEDO / col.mean()
-    return _to_srgb8(col)
+    surface = np.where(is_land[..., None], green * (1 - dry) + desert * dry, ocean)
+    surface = np.where((np.abs(lat) > EARTH_ICE_LATITUDE_DEG)[..., None], ice, surface)
+
+    def with_clouds(threshold: float) -> np.ndarray:
+        cover = np.clip((clouds - threshold) * 3.0, 0, 1)[..., None]
+        return surface * (1 - cover) + EARTH_CLOUD_TOP * cover
+
+    def mean(col: np.ndarray) -> float:
+        return float((col.mean(axis=2) * weights).sum() / weights.sum())
+
+    lo, hi = 0.0, 1.0  # higher threshold, fewer clouds, darker planet
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mean(with_clouds(mid)) > EARTH_ALBEDO else (lo, mid)
+    return _normalised_srgb8(with_clouds(0.5 * (lo + hi)), EARTH_ALBEDO)
 
 
 def build_bodies() -> dict[str, Asset]:
     """Unit spheres named Moon, Earth and Sun with their materials and textures."""
     moon = Asset("Moon", (uv_sphere("Surface", 1.0, "Regolith", segments=128, rings=64),),
-                 (Material("Regolith", (1.0, 1.0, 1.0), 0.0, 0.95, base_color_texture="moon_albedo"),),
+                 (Material("Regolith", (1.0, 1.0, 1.0), 0.0, 1.0, base_color_texture="moon_albedo", ior=1.0),),
                  {"moon_albedo": moon_texture()})
     earth = Asset("Earth", (uv_sphere("Surface", 1.0, "EarthSurface", segments=128, rings=64),),
-                  (Material("EarthSurface", (1.0, 1.0, 1.0), 0.0, 0.8, base_color_texture="earth_albedo"),),
+                  (Material("EarthSurface", (1.0, 1.0, 1.0), 0.0, 1.0, base_color_texture="earth_albedo", ior=1.0),),
                   {"earth_albedo": earth_texture()})
     sun_color = np.array([1.0, 0.97, 0.92])
     sun = Asset("Sun", (uv_sphere("Surface", 1.0, "Photosphere", segments=48, rings=24),),

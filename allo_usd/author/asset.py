@@ -75,6 +75,8 @@ def write_geometry(asset: Asset, usdc_path: Path, root: str, texture_dir: str = 
         shader.CreateIdAttr("UsdPreviewSurface")
         shader.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(float(mat.metallic))
         shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(mat.roughness))
+        if mat.ior != 1.5:  # the UsdPreviewSurface default; authored only where it differs
+            shader.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(float(mat.ior))
         if any(mat.emissive_color):
             shader.CreateInput("emissiveColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*map(float, mat.emissive_color)))
         diffuse = shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f)

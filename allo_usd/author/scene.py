@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, schema
-from ..errors import LayerError
+from ..effects.noise import SENSOR_ATTRIBUTES, SensorParams
+from ..errors import AlloError, LayerError
 from ..geometry import check_finite, matrix_to_quat, rotation_towards
 from ..spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
 from .base import LIT_BODIES, STATION_SUN, body_sun_path
@@ -73,6 +74,8 @@ def validate_spec(spec: SceneSpec) -> None:
     if spec.anomaly is not None:
         check_finite("anomaly position", spec.anomaly.position)
         check_finite("anomaly rotation", spec.anomaly.rotation)
+    if spec.effects.sensor_noise:
+        sensor_attrs(spec.effects.sensor, spec.render.exposure)  # raises on parameters out of range
     w, h = spec.render.resolution
     if not (1 <= w <= 16384 and 1 <= h <= 16384):
         raise LayerError(f"resolution {w}x{h} is outside 1..16384 per side; choose a real image size")
@@ -147,6 +150,16 @@ def anomaly_prim(a: AnomalySpec, asset_ref: str) -> Prim:
         api=("AlloAnomalyAPI",), define="Xform", reference=asset_ref, variants={"variant": a.variant})
 
 
+def sensor_attrs(sensor: SensorParams, film_exposure: float) -> dict:
+    """The sensor's EMVA 1288 parameters as render-settings attributes, the derived ones resolved."""
+    try:
+        values = sensor.resolved(film_exposure).as_dict()
+    except AlloError as exc:
+        raise LayerError(f"{exc} (EffectsSpec.sensor)") from None
+    cast = {"int": int, "int64": int, "double": float}
+    return {name: (type_name, cast[type_name](values[key])) for key, (name, type_name) in SENSOR_ATTRIBUTES.items()}
+
+
 def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
     """Only this image's opinions: identity and seed, anomaly, effects and render settings."""
     from pxr import Gf
@@ -170,7 +183,8 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
         "allo:render:denoiseQuality": ("token", r.denoise_quality),
         "allo:effects:sensorNoise": ("bool", bool(e.sensor_noise)), "allo:effects:glare": ("bool", bool(e.glare)),
         "allo:effects:inspectionLight": ("bool", bool(e.inspection_light)),
-        "allo:effects:bodyShine": ("bool", bool(e.body_shine))}))
+        "allo:effects:bodyShine": ("bool", bool(e.body_shine)),
+        **(sensor_attrs(e.sensor, r.exposure) if e.sensor_noise else {})}))
     if r.depth or r.mask_only:  # the base product orders color and class mask; change only if asked
         ordered = ([] if r.mask_only else ["/Render/Vars/Color"]) + ["/Render/Vars/ClassMask"]
         ordered += ["/Render/Vars/Depth"] if r.depth else []

@@ -54,6 +54,7 @@ def build_material(desc: MaterialDesc):
     bsdf.inputs["Base Color"].default_value = (*desc.base_color, 1.0)
     bsdf.inputs["Metallic"].default_value = desc.metallic
     bsdf.inputs["Roughness"].default_value = desc.roughness
+    bsdf.inputs["IOR"].default_value = desc.ior  # 1.0: no specular layer, a Lambertian surface
     if desc.base_color_texture:
         tex = tree.nodes.new("ShaderNodeTexImage")
         tex.image = bpy.data.images.load(desc.base_color_texture, check_existing=True)

@@ -311,6 +311,7 @@ class Session:
         bsdf.inputs["Base Color"].default_value = (*desc.base_color, 1.0)
         bsdf.inputs["Metallic"].default_value = desc.metallic
         bsdf.inputs["Roughness"].default_value = desc.roughness
+        bsdf.inputs["IOR"].default_value = desc.ior
 
     def _patch_mesh(self, obj, old: MeshDesc, new: MeshDesc) -> None:
         if not _eq(old.matrix, new.matrix):

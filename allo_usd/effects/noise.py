@@ -1,48 +1,109 @@
 """EMVA 1288 sensor noise on linear radiance (PHYSICS.md section 7).
 
-electrons = Poisson(eta * mu_p + I_dark * t) + N(0, sigma_read^2), clipped to the full well,
-times the gain K, quantised to the ADC range. Photons per pixel from radiance L:
-mu_p = (pi/4) tau L A_pix t / (N^2 h c / lambda). The exposure time t is chosen so that the
-radiance the layer's exposure maps to linear 1.0 fills the full well: the noisy image keeps the
-clean image's brightness, and the noise is what that camera would show at that exposure.
-Shot noise is Poisson on the signal itself (not added on top of it, which would double the mean).
+electrons = Poisson(eta * mu_p * PRNU + I_dark * t) + DSNU + N(0, sigma_read^2), clipped to
+[0, full well], times the gain K (DN per electron), rounded and clipped to the ADC range. PRNU is
+a per-pixel gain 1 + prnu * z, DSNU a per-pixel signed offset dsnu * z (z ~ N(0, 1), fixed). Photons
+per pixel from radiance L: mu_p = (pi/4) tau L A_pix t / (N^2 h c / lambda). Shot noise is Poisson
+on the signal itself (not added on top of it, which would double the mean).
+
+Two seeds, two kinds of noise:
+- the SENSOR's seed (`SensorParams.seed`, default 1288) draws the fixed patterns, PRNU (gain per
+  pixel) and DSNU (dark offset per pixel): one sensor, one pattern, the same in every scene it
+  takes (for a given resolution);
+- the scene's render seed draws the temporal noise (shot and read noise), new in every image.
+
+Every parameter is recorded in the scene layer (`allo:effects:sensor:*` on the render settings,
+AlloEffectsAPI). Two are derived when left at 0 (None here): the exposure time, chosen so that the
+radiance the layer's film exposure maps to linear 1.0 fills the full well (the noisy image keeps
+the clean image's brightness), and the gain, which maps the full well to the ADC's full scale.
+The author writes them resolved, so a layer holds concrete values. The result is the ADC output
+on the clean image's scale: DN / (K * full well), so 1.0 still means a full well.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from ..errors import AlloError
 
 PHOTON_ENERGY_J = 3.6e-19  # h c / lambda at 550 nm
+DEFAULT_SENSOR_SEED = 1288  # EMVA 1288
+# Stream tags: the fixed-pattern and temporal generators never share a bit stream, even when the
+# sensor seed equals a render seed.
+_FIXED_PATTERN_STREAM = 0x5EED_F1ED
+_TEMPORAL_STREAM = 0x7E4_90A1
+
+
+# SensorParams field -> (attribute on the render settings prim, Sdf value type); author and reader share it.
+SENSOR_ATTRIBUTES = {
+    "quantum_efficiency": ("allo:effects:sensor:quantumEfficiency", "double"),
+    "full_well_e": ("allo:effects:sensor:fullWell", "double"),
+    "read_noise_e": ("allo:effects:sensor:readNoise", "double"),
+    "dark_current_e_s": ("allo:effects:sensor:darkCurrent", "double"),
+    "bits": ("allo:effects:sensor:bitDepth", "int"),
+    "gain_dn_per_e": ("allo:effects:sensor:gain", "double"),
+    "prnu": ("allo:effects:sensor:prnu", "double"),
+    "dsnu_e": ("allo:effects:sensor:dsnu", "double"),
+    "seed": ("allo:effects:sensor:seed", "int64"),
+    "exposure_time_s": ("allo:effects:sensor:exposureTime", "double"),
+    "f_number": ("allo:effects:sensor:fNumber", "double"),
+    "pixel_pitch_m": ("allo:effects:sensor:pixelPitch", "double"),
+    "transmission": ("allo:effects:sensor:transmission", "double"),
+}
+DERIVED_WHEN_ZERO = ("gain_dn_per_e", "exposure_time_s")  # a 0 in a layer means "derive it"
 
 
 @dataclass(frozen=True)
 class SensorParams:
-    """Typical space CMOS (CMV4000 class; unverified figures from PHYSICS.md)."""
+    """A camera's EMVA 1288 parameters; the defaults are a typical space CMOS (CMV4000 class,
+    unverified figures from PHYSICS.md). Each maps to one `allo:effects:sensor:*` attribute."""
 
+    quantum_efficiency: float = 0.6
     full_well_e: float = 13_500.0
     read_noise_e: float = 13.0
-    quantum_efficiency: float = 0.6
     dark_current_e_s: float = 125.0
     bits: int = 12
+    gain_dn_per_e: float | None = None     # K; None: (2^bits - 1) / full well
+    prnu: float = 0.01                     # photo-response non-uniformity (relative, fixed pattern)
+    dsnu_e: float = 5.0                    # dark-signal non-uniformity (electrons rms, fixed pattern)
+    seed: int = DEFAULT_SENSOR_SEED        # draws PRNU and DSNU: the same pattern in every scene
+    exposure_time_s: float | None = None   # None: linear 1.0 of the film exposure fills the full well
     f_number: float = 4.0
     pixel_pitch_m: float = 5.5e-6
     transmission: float = 0.9
-    prnu: float = 0.01        # photo-response non-uniformity (relative, fixed pattern)
-    dsnu_e: float = 5.0       # dark-signal non-uniformity (electrons, fixed pattern)
 
     def as_dict(self) -> dict:
         return asdict(self)
 
     def validate(self) -> None:
-        bad = {k: v for k, v in asdict(self).items() if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0)}
-        if bad or self.full_well_e <= 0 or not 1 <= self.bits <= 24 or self.quantum_efficiency > 1:
-            raise AlloError(f"sensor parameters out of range: {bad or asdict(self)}; use finite, non-negative "
-                            "values, 0 < QE <= 1, 1..24 bits")
+        values = {k: v for k, v in asdict(self).items() if v is not None}
+        bad = {k: v for k, v in values.items()
+               if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0}
+        positive = ("full_well_e", "quantum_efficiency", "f_number", "pixel_pitch_m", "transmission",
+                    "gain_dn_per_e", "exposure_time_s")
+        bad.update({k: values[k] for k in positive if k in values and values[k] == 0})
+        if not isinstance(self.bits, int) or not 1 <= self.bits <= 24:
+            bad["bits"] = self.bits
+        if self.quantum_efficiency > 1 or self.transmission > 1:
+            bad.update(quantum_efficiency=self.quantum_efficiency, transmission=self.transmission)
+        if not isinstance(self.seed, int) or not 0 <= self.seed < 2 ** 63:
+            bad["seed"] = self.seed
+        if bad:
+            raise AlloError(f"sensor parameters out of range: {bad}; use finite values, positive full well, QE, "
+                            "f-number, pitch, transmission, gain and exposure time, QE and transmission <= 1, "
+                            "1..24 bits, a seed in 0..2^63-1")
+
+    def gain(self) -> float:
+        return (2 ** self.bits - 1) / self.full_well_e if self.gain_dn_per_e is None else self.gain_dn_per_e
+
+    def resolved(self, film_exposure: float) -> SensorParams:
+        """These parameters with the derived ones (gain, exposure time) made concrete."""
+        self.validate()
+        t = exposure_time_for(self, film_exposure) if self.exposure_time_s is None else self.exposure_time_s
+        return replace(self, gain_dn_per_e=self.gain(), exposure_time_s=t)
 
 
 def photons_per_radiance(p: SensorParams, exposure_time_s: float) -> float:
@@ -52,34 +113,42 @@ def photons_per_radiance(p: SensorParams, exposure_time_s: float) -> float:
 
 def exposure_time_for(p: SensorParams, film_exposure: float) -> float:
     """Exposure time at which radiance 1/film_exposure (linear 1.0 in the image) fills the full well."""
+    if not (math.isfinite(film_exposure) and film_exposure > 0):
+        raise AlloError(f"film exposure must be positive, got {film_exposure}")
     white_radiance = 1.0 / film_exposure
     return p.full_well_e / (p.quantum_efficiency * white_radiance * photons_per_radiance(p, 1.0))
+
+
+def fixed_patterns(params: SensorParams, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(PRNU gain, DSNU offset in electrons) per pixel, drawn from the sensor's seed alone."""
+    z = np.random.default_rng([params.seed, _FIXED_PATTERN_STREAM]).standard_normal((2, *shape))
+    return 1.0 + params.prnu * z[0], params.dsnu_e * z[1]
+
+
+def mean_electrons(image: np.ndarray, film_exposure: float, params: SensorParams) -> np.ndarray:
+    """Expected photo-electrons per pixel (before fixed patterns and dark signal) of a clean image."""
+    p = params.resolved(film_exposure)
+    radiance = np.clip(np.nan_to_num(np.asarray(image, np.float64), nan=0.0), 0.0, None) / film_exposure
+    return p.quantum_efficiency * radiance * photons_per_radiance(p, p.exposure_time_s)
 
 
 def apply_sensor_noise(image: np.ndarray, film_exposure: float, seed: int,
                        params: SensorParams = SensorParams()) -> np.ndarray:
     """Noisy linear image (same scale as `image`, float32) from a clean linear render.
 
-    `image` holds radiance x film_exposure (what Cycles wrote); the result is the ADC output
-    mapped back to that scale, so 1.0 still means full well.
+    `image` holds radiance x film_exposure (what Cycles wrote); `seed` (the scene's render seed)
+    draws the temporal noise, `params.seed` the sensor's fixed patterns.
     """
-    params.validate()
-    if not (math.isfinite(film_exposure) and film_exposure > 0):
-        raise AlloError(f"film exposure must be positive, got {film_exposure}")
-    rng = np.random.default_rng(seed)
-    t = exposure_time_for(params, film_exposure)
-    radiance = np.clip(np.nan_to_num(image.astype(np.float64), nan=0.0), 0.0, None) / film_exposure
-    mu_e = params.quantum_efficiency * radiance * photons_per_radiance(params, t)
-    h, w = image.shape[:2]
-    fixed = np.random.default_rng(seed ^ 0x5EED).standard_normal((2, h, w))  # PRNU, DSNU patterns
-    prnu = 1.0 + params.prnu * fixed[0]
-    dark = params.dark_current_e_s * t + params.dsnu_e * fixed[1]
+    p = params.resolved(film_exposure)
+    mu_e = mean_electrons(image, film_exposure, p)
+    prnu, dsnu = fixed_patterns(p, image.shape[:2])
     if image.ndim == 3:
-        prnu, dark = prnu[..., None], dark[..., None]
-    mean = np.clip(mu_e * prnu + np.clip(dark, 0, None), 0, 10 * params.full_well_e)
-    electrons = rng.poisson(mean).astype(np.float64) + rng.normal(0.0, params.read_noise_e, mean.shape)
-    electrons = np.clip(electrons, 0.0, params.full_well_e)
-    levels = 2 ** params.bits - 1
-    gain = levels / params.full_well_e  # K in DN per electron: full well = full scale
-    dn = np.rint(electrons * gain)
-    return (dn / levels).astype(np.float32)
+        prnu, dsnu = prnu[..., None], dsnu[..., None]
+    mean = np.clip(mu_e * prnu + p.dark_current_e_s * p.exposure_time_s, 0, 10 * p.full_well_e)
+    rng = np.random.default_rng([int(seed) % 2 ** 63, _TEMPORAL_STREAM])
+    # DSNU is a signed fixed offset, like the read noise a temporal one: both act after the Poisson draw.
+    electrons = rng.poisson(mean).astype(np.float64) + dsnu + rng.normal(0.0, p.read_noise_e, mean.shape)
+    electrons = np.clip(electrons, 0.0, p.full_well_e)
+    k = p.gain_dn_per_e
+    dn = np.clip(np.rint(electrons * k), 0, 2 ** p.bits - 1)
+    return (dn / (k * p.full_well_e)).astype(np.float32)

@@ -1,0 +1,130 @@
+"""Property tests of the float64 rotation helpers: quaternions, look-at frames, aiming a light."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from allo_usd.errors import AlloError
+from allo_usd.geometry import look_at, matrix_to_quat, quat_to_matrix, rotation_towards
+
+finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
+vec3 = st.tuples(finite, finite, finite).map(np.array)
+quat = st.tuples(finite, finite, finite, finite).map(np.array).filter(lambda q: np.linalg.norm(q) > 1e-3)
+
+
+def unit(v) -> np.ndarray:
+    return np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+
+
+def assert_rotation(r: np.ndarray, atol: float = 1e-12) -> None:
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=atol)
+    assert np.linalg.det(r) == pytest.approx(1.0, abs=atol)
+
+
+# Directions close to and exactly on the vertical, where a look-at frame is most fragile.
+near_vertical = st.builds(lambda s, e, a: np.array([e * math.cos(a), e * math.sin(a), s]),
+                          st.sampled_from([1.0, -1.0]), st.floats(0.0, 1e-2), st.floats(0.0, 2 * math.pi))
+direction = st.one_of(vec3.filter(lambda v: np.linalg.norm(v) > 1e-6), near_vertical,
+                      st.sampled_from([np.array(v, float) for v in
+                                       [(0, 0, 1), (0, 0, -1), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)]]))
+
+
+@settings(max_examples=400, deadline=None)
+@given(quat)
+def test_quaternion_matrix_round_trip(q):
+    r = quat_to_matrix(q)
+    assert_rotation(r)
+    back = matrix_to_quat(r)
+    assert np.linalg.norm(back) == pytest.approx(1.0, abs=1e-14)
+    assert back[0] >= 0.0
+    expected = unit(q) * (1.0 if q[0] >= 0 else -1.0)  # q and -q are the same rotation
+    if abs(expected[0]) < 1e-9:  # w = 0: both signs have w >= 0; compare the rotations instead
+        np.testing.assert_allclose(quat_to_matrix(back), r, atol=1e-12)
+    else:
+        np.testing.assert_allclose(back, expected, atol=1e-12)
+    np.testing.assert_allclose(quat_to_matrix(back), r, atol=1e-12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.sampled_from([(1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1),
+                        (math.sqrt(0.5), 0, math.sqrt(0.5), 0), (0, math.sqrt(0.5), math.sqrt(0.5), 0)]))
+def test_half_turns_and_identity_round_trip(q):  # every branch of Shepperd's method
+    r = quat_to_matrix(np.array(q, float))
+    np.testing.assert_allclose(quat_to_matrix(matrix_to_quat(r)), r, atol=1e-15)
+
+
+@settings(max_examples=400, deadline=None)
+@given(vec3, direction, st.floats(0.1, 1e6))
+def test_look_at_is_orthonormal_and_points_at_the_target(position, view, distance):
+    target = position + unit(view) * distance
+    assume(np.linalg.norm(target - position) > 1e-3 * distance)  # not lost to float64 cancellation
+    r = look_at(position, target)
+    assert_rotation(r, atol=1e-12)
+    forward = -r[:, 2]  # cameras look down local -Z
+    true = unit(target - position)
+    assert math.acos(min(1.0, float(forward @ true))) < 1e-7
+    if abs(true[2]) < 0.999:  # +Y up: the camera's up lies in the plane of the view and world +Z
+        assert r[2, 1] > 0.0
+        assert abs(r[2, 0]) < 1e-9  # no roll: camera x stays horizontal
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_look_at_exactly_vertical(sign):
+    p = np.array([12.0, 3.0, 4.0])
+    r = look_at(p, p + [0.0, 0.0, sign * 10.0])
+    assert_rotation(r)
+    np.testing.assert_allclose(-r[:, 2], [0.0, 0.0, sign], atol=1e-15)
+
+
+@settings(max_examples=400, deadline=None)
+@given(direction)
+def test_rotation_towards_maps_z_to_the_direction(d):
+    r = rotation_towards(d)
+    assert_rotation(r)
+    np.testing.assert_allclose(r @ [0.0, 0.0, 1.0], unit(d), atol=1e-14)
+    q = matrix_to_quat(r)  # what the author writes as xformOp:orient
+    np.testing.assert_allclose(quat_to_matrix(q) @ [0.0, 0.0, 1.0], unit(d), atol=1e-14)
+
+
+@pytest.mark.parametrize("call", [
+    lambda: matrix_to_quat(np.full((3, 3), np.nan)),
+    lambda: quat_to_matrix([np.nan, 0, 0, 1]),
+    lambda: look_at([0, 0, np.nan], [1, 0, 0]),
+    lambda: look_at([0, 0, 0], [np.inf, 0, 0]),
+    lambda: rotation_towards([np.nan, 0, 1]),
+])
+def test_nan_input_raises_the_package_error(call):
+    with pytest.raises(AlloError, match="NaN or infinity"):
+        call()
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: matrix_to_quat(np.diag([1.0, 1.0, -1.0])), "det"),
+    (lambda: matrix_to_quat(2 * np.eye(3)), "orthonormal"),
+    (lambda: look_at([1, 2, 3], [1, 2, 3]), "target"),
+])
+def test_degenerate_input_raises_the_package_error(call, match):
+    with pytest.raises(AlloError, match=match):
+        call()
+
+
+@pytest.mark.parametrize("call", [
+    lambda: quat_to_matrix([0.0, 0.0, 0.0, 0.0]),
+    lambda: rotation_towards([0.0, 0.0, 0.0]),
+    lambda: look_at([0, 0, 0], [1, 0, 0], up=(0.0, 0.0, 0.0)),
+])
+def test_zero_vectors_raise_instead_of_returning_nan(call):
+    with pytest.raises(AlloError, match="zero length"):
+        call()
+
+
+@pytest.mark.parametrize("scale", [1e-200, 1e200])
+def test_tiny_and_huge_directions_keep_their_direction(scale):
+    d = np.array([0.3, -0.5, 0.8]) * scale
+    np.testing.assert_allclose(rotation_towards(d)[:, 2], unit([0.3, -0.5, 0.8]), atol=1e-15)
+    np.testing.assert_allclose(quat_to_matrix(np.array([1.0, 0, 0, 0]) * scale), np.eye(3), atol=1e-15)
