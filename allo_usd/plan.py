@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import PlanError
+from .spec import resolution_problem
 
 DEPTH_COUNT = 5  # allo_usd.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
 N_POSES = 50
@@ -189,8 +190,9 @@ class Quality(_Model):
     @field_validator("resolution")
     @classmethod
     def _resolution(cls, v):
-        if not all(1 <= x <= 16384 for x in v):
-            raise ValueError(f"resolution {v[0]}x{v[1]} must be 1..16384 per side; fix: e.g. [1920, 1080]")
+        problem = resolution_problem(*v)
+        if problem:
+            raise ValueError(f"{problem}; fix: e.g. [1920, 1080]")
         return v
 
     @field_validator("samples")

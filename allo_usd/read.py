@@ -15,14 +15,13 @@ from .description import (ANOMALY, BACKGROUND, DENOISE_PREFILTERS, DENOISE_QUALI
                           EffectsDesc, LightLink, MaterialDesc, MeshDesc,
                           RenderDesc, SceneDescription, SpotDesc, SunDesc)
 from .errors import LayerError
+from .spec import resolution_problem
 
 CLASS_IDS = {"station": STATION, "celestial_body": STATION, "anomaly": ANOMALY}
 
 # Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
 MAX_POSITION_M = 1e12          # any prim, from the station at the origin (the Sun is ~1.5e11 m away)
 MAX_CAMERA_DISTANCE_M = 1e4    # the camera, from the station (ALLO cameras sit within ~70 m of it)
-MAX_SIDE_PX = 8192             # render resolution per side ...
-MAX_PIXELS = 40_000_000        # ... and in all (8192 x 4608 fits; 8192 x 8192 would take ~1 GB per pass)
 
 
 def _tf_message(exc) -> str:
@@ -157,9 +156,9 @@ def _check_position(cache, prim, m: np.ndarray, max_distance: float) -> None:
 
 
 def _check_resolution(w: int, h: int, where) -> None:
-    if not (1 <= w <= MAX_SIDE_PX and 1 <= h <= MAX_SIDE_PX) or w * h > MAX_PIXELS:
-        raise LayerError(f"{where}.resolution = ({w}, {h}) is outside 1..{MAX_SIDE_PX} per side or above "
-                         f"{MAX_PIXELS:,} pixels in all; fix the layer: choose a real image size, e.g. (1920, 1080)")
+    problem = resolution_problem(w, h)
+    if problem:
+        raise LayerError(f"{where}.resolution = ({w}, {h}): {problem}; fix the layer")
 
 
 def _matrix(cache, prim, max_distance: float = MAX_POSITION_M) -> np.ndarray:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -252,3 +253,18 @@ def test_an_existing_tree_stage_that_differs_is_refused(authored, tmp_path):
     victim.write_text(victim.read_text() + "\n")
     with pytest.raises(LayerError, match="not a copy of .*files differ"):
         author_plan(tiny_plan(), other, progress=False)
+
+
+def test_plan_refuses_a_resolution_no_layer_could_render():
+    """Plans, authoring and the reader share one size bound (allo_usd.spec.MAX_SIDE_PX / MAX_PIXELS)."""
+    from allo_usd.author.scene import validate_spec
+    from allo_usd.errors import LayerError
+    from allo_usd.spec import MAX_SIDE_PX, RenderSpec
+
+    from conftest import make_spec
+
+    with pytest.raises(PlanError, match=r"quality.resolution.*per side"):
+        make_plan({"name": "x", "quality": {"resolution": [MAX_SIDE_PX + 1, 36]}})
+    spec = make_spec()
+    with pytest.raises(LayerError, match="per side"):
+        validate_spec(replace(spec, render=RenderSpec(resolution=(MAX_SIDE_PX, MAX_SIDE_PX))))

@@ -24,7 +24,7 @@ from .. import __version__, schema
 from ..effects.noise import SENSOR_ATTRIBUTES, SensorParams
 from ..errors import AlloError, LayerError
 from ..geometry import check_finite, matrix_to_quat, rotation_towards
-from ..spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
+from ..spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec, resolution_problem
 from .base import LIT_BODIES, STATION_SUN, body_sun_path
 
 
@@ -77,8 +77,9 @@ def validate_spec(spec: SceneSpec) -> None:
     if spec.effects.sensor_noise:
         sensor_attrs(spec.effects.sensor, spec.render.exposure)  # raises on parameters out of range
     w, h = spec.render.resolution
-    if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise LayerError(f"resolution {w}x{h} is outside 1..16384 per side; choose a real image size")
+    problem = resolution_problem(w, h)
+    if problem:
+        raise LayerError(problem)
     if not 1 <= spec.render.samples <= 65536:
         raise LayerError(f"samples={spec.render.samples} is outside 1..65536")
     if spec.split not in ("train", "test"):
