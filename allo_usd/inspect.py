@@ -151,6 +151,8 @@ def describe(layer: str | Path) -> dict:
               "adaptive_threshold": r("render:adaptiveThreshold"),
               "denoise_prefilter": r("render:denoisePrefilter"), "denoise_quality": r("render:denoiseQuality")}
     effects = {k: r(f"effects:{k}") for k in ("sensorNoise", "glare", "inspectionLight", "bodyShine")}
+    sensor = ({a.GetName().rsplit(":", 1)[1]: _attr(sp, a.GetName()) for a in sp.GetAttributes()
+               if a.GetName().startswith("allo:effects:sensor:")} if effects["sensorNoise"] else None)
 
     def lamp(prim) -> dict:
         m = _matrix(cache, prim)
@@ -190,7 +192,7 @@ def describe(layer: str | Path) -> dict:
         "package_version": provenance.get("packageVersion"),
         "camera_perturbation": {"convention": a("perturbation"), "offset_position": a("cameraOffsetPosition"),
                                 "offset_rotation": a("cameraOffsetRotation"), "attempts": a("cameraAttempts")},
-        "anomaly": anomaly, "effects": effects, "render": render, "sun": sun, "body_suns": body_suns,
+        "anomaly": anomaly, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
         "camera": camera,
         "layer_stack": {"sublayers": list(root.subLayerPaths),
                         "layers": [_rel(l.realPath, start) or l.identifier for l in _stack(stage)]},
@@ -236,6 +238,8 @@ def format_description(d: dict) -> str:
     lines.append(f"render   {res[0]}x{res[1]}  {r['samples']} spp  preset {r['preset']}  seed {r['seed']}  "
                  f"exposure {_fmt(r['exposure'])}  denoise {r['denoise']}")
     lines.append("effects  " + "  ".join(f"{k}={v}" for k, v in d["effects"].items()))
+    if d.get("sensor"):
+        lines.append("sensor   " + "  ".join(f"{k}={_fmt(v)}" for k, v in sorted(d["sensor"].items())))
     lines.append("stack    " + " -> ".join(d["layer_stack"]["layers"]))
     return "\n".join(lines)
 

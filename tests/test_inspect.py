@@ -147,3 +147,17 @@ def test_cli_inspect_and_diff(anomalous, tiny_base, tmp_path):
     b = write_scene_layer(make_spec(), tmp_path / "b.usda", tiny_base)
     differ = runner.invoke(app, ["diff", str(a), str(b)])
     assert differ.exit_code == 1 and "/World/Anomaly" in differ.output
+
+
+def test_describe_shows_the_sensor_only_when_noise_is_on(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    from allo_usd.spec import EffectsSpec
+
+    quiet = describe(write_scene_layer(make_spec(), tmp_path / "quiet.usda", tiny_base))
+    assert quiet["sensor"] is None and "sensor " not in format_description(quiet)
+    noisy_spec = replace(make_spec(), effects=EffectsSpec(sensor_noise=True))
+    noisy = describe(write_scene_layer(noisy_spec, tmp_path / "noisy.usda", tiny_base))
+    assert noisy["sensor"]["fullWell"] == noisy_spec.effects.sensor.full_well_e
+    assert noisy["sensor"]["seed"] == noisy_spec.effects.sensor.seed
+    assert "fullWell=" in format_description(noisy)
