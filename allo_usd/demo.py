@@ -7,6 +7,7 @@ The demo authors exactly as a plan does (allo_usd.author.compose), into a self-c
     OUT/layers/stages/              the tree's own byte copy of the base stage and its assets
     OUT/renders/                    PNG, EXR, mask and JSON per scene
     OUT/contact_sheet.png
+    OUT/logs/demo.log               what Blender printed while rendering
 
 Every path in a layer is relative and stays inside OUT/layers, the directory a scene layer lies
 in (an allowed root of allo_usd.safety), so OUT/layers can be moved, copied or opened in any USD
@@ -120,6 +121,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     atomic file writes, so finished scenes are kept and a re-run renders only what is missing."""
     from tqdm import tqdm
 
+    from .dispatch import output_to
     from .sky import Orbit, compute_sky, default_epochs
 
     out_dir = Path(out_dir)
@@ -134,7 +136,8 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
         for i in range(len(DEMO_SCENES)):
             spec = demo_spec(world, i, resolution, samples)
             layer = write_demo_layer(spec, tree, stage)
-            meta = _render(layer, out_dir / "renders")
+            with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
+                meta = _render(layer, out_dir / "renders")
             bar.write(f"{spec.scene_id}: {meta['render_seconds']:.1f} s, anomaly {meta['anomaly_fraction']:.3%}, "
                       f"sun {spec.sun.eclipse_state}")
             rgb = np.asarray(Image.open(out_dir / "renders" / meta["files"]["rgb"]))
