@@ -7,8 +7,10 @@ and most of its structure lie 5-40 m away, the structure neither leaves the fram
 nor fills it like a wall, and little of the frame is closer than 5 m. The best view of each
 position is kept; positions are then taken greedily by view score, at least `MIN_SPACING_M`
 apart. Poses 41-50 (test) are taken first, and every training position (poses 1-40) keeps at
-least `TEST_SEPARATION_M` from every test position, so after the N(0, 1 m) perturbation train
-and test cameras still stand in different places.
+least `TEST_SEPARATION_M` (8 m) from every test position, so after the N(0, 1 m) perturbation
+train and test cameras still stand in different places; a training camera within
+`TEST_NEIGHBOUR_M` (16 m) of a test camera also looks at least `TEST_TURN_DEG` (30 degrees) away
+from it, so the two never show the same structure from a few metres apart.
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ MIN_IN_RANGE = 0.75            # of the rays that hit structure, this many are 5
 MAX_NEAR = 0.1                 # at most this fraction of the frame is structure under 5 m
 MIN_SPACING_M = 4.0            # between any two base positions
 TEST_SEPARATION_M = 8.0        # between every test position and every training position
+TEST_NEIGHBOUR_M, TEST_TURN_DEG = 16.0, 30.0   # a training camera within 16 m of a test camera looks
+                                               # at least 30 degrees away from it
 QUALITY_GRID = (32, 18)        # rays across x down the image for `view_quality`
 _SCREEN_GRID = (16, 9)         # the cheaper grid every candidate direction is screened with
 _N_DIRECTIONS = 96
@@ -112,8 +116,9 @@ def _fibonacci_directions(n: int) -> np.ndarray:
 def best_view(station: Scene, position) -> tuple[ViewQuality, np.ndarray, float] | None:
     """The best qualifying look direction from `position` (Z-up camera): (its quality, rotation,
     robust score), or None if none qualifies. The robust score averages `ViewQuality.value` over
-    the view and the view panned and tilted by one perturbation sigma (+-0.2 rad), so a pose whose
-    perturbed cameras still see structure wins over one that only works when aimed exactly."""
+    the view, the view panned and tilted by one perturbation sigma (+-0.2 rad), and the camera moved
+    by one sigma (1 m) forward and to either side, so a pose whose perturbed cameras still see
+    structure at a distance wins over one that only works when placed and aimed exactly."""
     p = np.asarray(position, dtype=np.float64)
     rots = np.array([look_at(p, p + d) for d in _fibonacci_directions(_N_DIRECTIONS)])
     coarse = np.array([q.score for q in _qualities(station, p, rots, _SCREEN_GRID)])
@@ -126,7 +131,13 @@ def best_view(station: Scene, position) -> tuple[ViewQuality, np.ndarray, float]
     turns = np.array([_ry(a), _ry(-a), _rx(a), _rx(-a)])
     tilted = _qualities(station, p, np.einsum("kij,tjl->ktil", rots[[k for k, _ in top]], turns).reshape(-1, 3, 3),
                         _SCREEN_GRID)
-    robust = [(q.value + sum(t.value for t in tilted[4 * i:4 * i + 4])) / 5 for i, (_, q) in enumerate(top)]
+    robust = []
+    for i, (k, q) in enumerate(top):
+        r = rots[k]
+        moved = [_qualities(station, p + POSITION_SIGMA_M * step, r[None], _SCREEN_GRID)[0]
+                 for step in (-r[:, 2], r[:, 0], -r[:, 0])]
+        views = [q, *tilted[4 * i:4 * i + 4], *moved]
+        robust.append(sum(v.value for v in views) / len(views))
     i = max(range(len(top)), key=lambda j: (robust[j], -j))
     return top[i][1], rots[top[i][0]].copy(), float(robust[i])
 
@@ -152,9 +163,14 @@ def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangl
                              f"structure {VIEW_RANGE_M[0]:.0f}-{VIEW_RANGE_M[1]:.0f} m away; 50 are needed: give "
                              "more fixture points (rig.fixtures_from_mesh(count=...)) or check the model's units")
     dist = np.sqrt(((pos[:, None, :] - pos[None, :, :]) ** 2).sum(axis=2))
+    ahead = np.array([-views[i][1][:, 2] if views[i] is not None else np.zeros(3) for i in range(len(pos))])
+    turned = ahead @ ahead.T < np.cos(np.radians(TEST_TURN_DEG))   # views at least TEST_TURN_DEG apart
 
     def train_pool(test: list[int]) -> list[int]:
-        allowed = dist[:, test].min(axis=1) >= TEST_SEPARATION_M if test else None
+        if not test:
+            return _spaced(order, dist, MIN_SPACING_M)
+        d, t = dist[:, test], turned[:, test]
+        allowed = ((d >= TEST_SEPARATION_M) & ((d >= TEST_NEIGHBOUR_M) | t)).all(axis=1)
         return _spaced(order, dist, MIN_SPACING_M, allowed)
 
     test: list[int] = []
@@ -169,6 +185,7 @@ def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangl
     if len(test) < N_TEST or len(train) < N_TRAIN:
         raise PlacementError(f"could not choose {N_TRAIN} training and {N_TEST} test positions "
                              f"{MIN_SPACING_M:.0f} m apart with test {TEST_SEPARATION_M:.0f} m from training "
+                             f"(and {TEST_TURN_DEG:.0f} degrees turned within {TEST_NEIGHBOUR_M:.0f} m) "
                              f"({len(train)} and {len(test)} found among {len(order)} good views); give more, "
                              "more widely spread fixture points")
     return [CameraPose(k + 1, "train" if k < N_TRAIN else "test", pos[i].copy(), views[i][1].copy())

@@ -76,7 +76,7 @@ def test_base_stage_contents():
 
 
 def test_rig_has_50_disjoint_poses():
-    from allo_usd.rig import MIN_SPACING_M, TEST_SEPARATION_M
+    from allo_usd.rig import MIN_SPACING_M, TEST_NEIGHBOUR_M, TEST_SEPARATION_M, TEST_TURN_DEG
 
     poses = read_rig(BASE_STAGE)
     assert [p.index for p in poses] == list(range(1, 51))
@@ -90,6 +90,11 @@ def test_rig_has_50_disjoint_poses():
     # Test viewpoints are not training viewpoints: every test camera stands TEST_SEPARATION_M (8 m) from
     # every training camera, so after the N(0, 1 m) perturbation they still stand in different places.
     assert gap[:40, 40:].min() >= TEST_SEPARATION_M - 1e-9, gap[:40, 40:].min()
+    # ... and a training camera within 16 m of a test camera looks at least 30 degrees away from it.
+    ahead = np.array([-p.rotation[:, 2] for p in poses])
+    turn = np.degrees(np.arccos(np.clip(ahead[:40] @ ahead[40:].T, -1, 1)))
+    near = gap[:40, 40:] < TEST_NEIGHBOUR_M
+    assert near.any() and turn[near].min() >= TEST_TURN_DEG, turn[near].min()
     for p in poses:
         np.testing.assert_allclose(p.rotation @ p.rotation.T, np.eye(3), atol=1e-9)
 
