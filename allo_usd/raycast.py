@@ -83,6 +83,17 @@ class Scene:
             dist[rays] = np.linalg.norm(loc - origins[rays], axis=1)
         return owner, dist
 
+    def occluded(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
+        """True where a ray (unit direction) meets a surface before distance `tmax` (an any-hit query:
+        it stops at the first surface found and never looks past tmax, so it is much cheaper than
+        `first_hit` for short rays in a large scene)."""
+        origins = np.asarray(origins, dtype=np.float64)
+        if not len(origins):
+            return np.zeros(0, dtype=bool)
+        o = ((origins - self._origin) * self._factor).astype(np.float32)
+        t = (np.asarray(tmax, dtype=np.float64) * self._factor).astype(np.float32)
+        return self._embree.run(o, np.asarray(dirs).astype(np.float32), dists=t, query="OCCLUDED") != -1
+
     def hits(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int = 100) -> np.ndarray:
         """Ray index of every surface crossing (one entry per crossing), stepping past each hit face."""
         o = np.array(origins, dtype=np.float64)

@@ -115,12 +115,14 @@ def resolve_camera(world: World, *, day: int, pose: int, plan_seed: int,
 
 def resolve_placements(world: World, camera: CameraSpec, rng: np.random.Generator, anomaly: tuple[str, str],
                        resolution: tuple[int, int]) -> list[AnomalySpec | str]:
-    """All five depths of one placement from one ray-cast search: an AnomalySpec per depth, or the
-    reason that depth was skipped. Raises PlacementError when no initial placement is found."""
+    """All five depths of one placement from one ray-cast search (`placement.place`: candidates are
+    redrawn until all five depths pass, screened at 480 px wide and confirmed at `resolution`): an
+    AnomalySpec per depth, with the fraction of the image it covers at `resolution`, or the reason
+    that depth was skipped. Raises PlacementError when no initial placement is found."""
     pts, tris, centre, scene = world.anomaly_scene(*anomaly)
     pos = np.asarray(camera.position, dtype=np.float64)
-    placements = place(world.station_scene, pts, tris, pos, camera.rotation, rng,
-                       resolution[0], resolution[1], check_width=min(480, resolution[0]), anomaly=scene)
+    placements = place(world.station_scene, pts, tris, pos, camera.rotation, rng, resolution[0], resolution[1],
+                       anomaly=scene)
     out = []
     for p in placements:
         if p.position is None:

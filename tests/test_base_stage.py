@@ -76,17 +76,43 @@ def test_base_stage_contents():
 
 
 def test_rig_has_50_disjoint_poses():
+    from allo_usd.rig import MIN_SPACING_M, TEST_NEIGHBOUR_M, TEST_SEPARATION_M, TEST_TURN_DEG
+
     poses = read_rig(BASE_STAGE)
     assert [p.index for p in poses] == list(range(1, 51))
     train = [p for p in poses if p.split == "train"]
     test = [p for p in poses if p.split == "test"]
     assert [p.index for p in train] == list(range(1, 41)) and [p.index for p in test] == list(range(41, 51))
-    tr = np.array([p.position for p in train])
-    te = np.array([p.position for p in test])
-    # Test viewpoints are not training viewpoints: every test camera is away from every train camera.
-    assert np.linalg.norm(tr[:, None] - te[None], axis=2).min() > 1.0
+    pos = np.array([p.position for p in poses])
+    gap = np.linalg.norm(pos[:, None] - pos[None], axis=2) + np.eye(50) * 1e9
+    # 50 distinct camera positions, a few metres apart.
+    assert gap.min() >= MIN_SPACING_M - 1e-9, gap.min()
+    # Test viewpoints are not training viewpoints: every test camera stands TEST_SEPARATION_M (8 m) from
+    # every training camera, so after the N(0, 1 m) perturbation they still stand in different places.
+    assert gap[:40, 40:].min() >= TEST_SEPARATION_M - 1e-9, gap[:40, 40:].min()
+    # ... and a training camera within 16 m of a test camera looks at least 30 degrees away from it.
+    ahead = np.array([-p.rotation[:, 2] for p in poses])
+    turn = np.degrees(np.arccos(np.clip(ahead[:40] @ ahead[40:].T, -1, 1)))
+    near = gap[:40, 40:] < TEST_NEIGHBOUR_M
+    assert near.any() and turn[near].min() >= TEST_TURN_DEG, turn[near].min()
     for p in poses:
         np.testing.assert_allclose(p.rotation @ p.rotation.T, np.eye(3), atol=1e-9)
+
+
+def test_every_base_pose_looks_at_structure_5_to_40_m_away():
+    """Each committed pose's view, ray cast on a 32x18 grid: the optical axis hits structure 5-40 m
+    away, most structure in frame is 5-40 m away, and it neither leaves the frame empty nor fills it."""
+    from allo_usd.raycast import Scene
+    from allo_usd.read import read_triangles
+    from allo_usd.rig import COVERAGE_RANGE, MAX_NEAR, MIN_IN_RANGE, view_quality
+
+    pts, tris = read_triangles(BASE_STAGE, "/World/Station")
+    station = Scene([(pts, tris, 1)])
+    for p in read_rig(BASE_STAGE):
+        q = view_quality(station, p.position, p.rotation)
+        assert 5.0 <= q.centre_m <= 40.0, (p.index, q)
+        assert COVERAGE_RANGE[0] <= q.coverage <= COVERAGE_RANGE[1], (p.index, q)
+        assert q.in_range >= MIN_IN_RANGE and q.near <= MAX_NEAR, (p.index, q)
 
 
 def test_station_and_anomaly_assets_exist():
