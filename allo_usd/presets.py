@@ -32,10 +32,10 @@ from .spec import RenderSpec
 PRESETS: dict[str, dict] = {
     "draft": dict(samples=4, adaptive_threshold=0.0, denoise=True, max_bounces=8,
                   denoise_prefilter="FAST", denoise_quality="BALANCED"),
-    "preview": dict(samples=32, adaptive_threshold=0.0, denoise=True, max_bounces=8,
+    "preview": dict(samples=64, adaptive_threshold=0.05, denoise=True, max_bounces=8,
                     denoise_prefilter="FAST", denoise_quality="BALANCED"),
-    "final": dict(samples=256, adaptive_threshold=0.01, denoise=True, max_bounces=8,
-                  denoise_prefilter="ACCURATE", denoise_quality="HIGH"),
+    "final": dict(samples=192, adaptive_threshold=0.01, denoise=True, max_bounces=8,
+                  denoise_prefilter="NONE", denoise_quality="HIGH"),
     # The paper's setting: 256 spp, OIDN with Blender's defaults, Blender's default bounces.
     "paper": dict(samples=256, adaptive_threshold=0.0, denoise=True, max_bounces=12,
                   denoise_prefilter="ACCURATE", denoise_quality="HIGH"),

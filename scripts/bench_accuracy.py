@@ -161,8 +161,11 @@ def sweep_configs():
             cfg.append(dict(samples=spp, denoiser=dn))
     for spp, ad in ((192, 0.01), (224, 0.01), (256, 0.0125), (256, 0.015)):  # around the `final` choice
         cfg.append(dict(samples=spp, denoiser="accurate", adaptive=ad))
-    for spp, ad in ((128, 0.01), (192, 0.01), (224, 0.01), (256, 0.01), (256, 0.0), (288, 0.01), (256, 0.008)):
+    for spp, ad in ((128, 0.01), (160, 0.01), (176, 0.01), (192, 0.01), (224, 0.01), (256, 0.01), (256, 0.0),
+                    (288, 0.01), (256, 0.008)):
         cfg.append(dict(samples=spp, denoiser="clean", adaptive=ad))
+    for spp in (48, 96):  # around `preview`: adaptive 0.05 caps near 48 spp
+        cfg.append(dict(samples=spp, denoiser="fast", adaptive=0.05))
     return cfg
 
 

@@ -151,13 +151,13 @@ def test_reauthoring_is_byte_identical_and_resumes(authored, tmp_path_factory):
 def test_composed_values_equal_resolve_scene(authored, tmp_path):
     from allo_usd.author.scene import write_scene_layer
     from allo_usd.scenes import EXPOSURE, World, resolve_scene
+    from allo_usd.presets import preset_spec
     from allo_usd.sky import Orbit, compute_sky
-    from allo_usd.spec import RenderSpec
 
     out, paths = authored
     plan = tiny_plan()
     world = World(BASE_STAGE, compute_sky(plan.dates.epochs(), Orbit()), "2030-01-01T00:00:00Z")
-    render = RenderSpec((64, 36), preset="preview", samples=4, exposure=EXPOSURE)
+    render = preset_spec("preview", (64, 36), EXPOSURE, samples=4)  # what tiny_plan's quality resolves to
     keys = {k.scene_id: k for k in enumerate_scenes(plan)}
     checked = 0
     for path in [paths[0], paths[-1]]:

@@ -99,9 +99,13 @@ def test_bench_metrics_and_front():
 
 
 def test_preset_spec_carries_the_denoiser():
-    spec = preset_spec("final", (64, 36))
-    assert (spec.denoise_prefilter, spec.denoise_quality) == ("ACCURATE", "HIGH")
-    assert preset_spec("preview", (64, 36)).denoise_prefilter == "FAST"
+    for name in PRESETS:
+        spec = preset_spec(name, (64, 36))
+        assert (spec.denoise_prefilter, spec.denoise_quality) == (PRESETS[name]["denoise_prefilter"],
+                                                                  PRESETS[name]["denoise_quality"])
+    # the paper's setting is Blender's OIDN defaults
+    assert (preset_spec("paper", (64, 36)).denoise_prefilter, preset_spec("paper", (64, 36)).denoise_quality) == \
+        ("ACCURATE", "HIGH")
 
 
 def test_plan_quality_preset_fills_what_the_plan_leaves_out():
@@ -109,7 +113,8 @@ def test_plan_quality_preset_fills_what_the_plan_leaves_out():
 
     final = Quality(preset="final")
     assert final.samples == PRESETS["final"]["samples"] and final.adaptive_threshold == PRESETS["final"]["adaptive_threshold"]
-    assert (final.denoise_prefilter, final.denoise_quality) == ("ACCURATE", "HIGH")
+    assert (final.denoise_prefilter, final.denoise_quality) == (PRESETS["final"]["denoise_prefilter"],
+                                                                PRESETS["final"]["denoise_quality"])
     assert Quality(preset="final", samples=100).samples == 100  # what the plan says wins
     assert Quality(preset="my-label").samples == 64               # a label fills nothing
     assert Quality().samples == PRESETS["preview"]["samples"]      # the default preset is preview
