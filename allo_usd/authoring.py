@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 import os
 import signal
 import time
@@ -49,7 +48,7 @@ COUNT_FIELDS = ("split", "kind", "asset", "planned", "authored", "skipped", "res
                 "short")
 CHUNK_SAMPLES = 48         # planned anomaly placements per pool task
 CHUNK_NORMAL = 256         # normal camera samples per pool task
-CHUNK_RESERVE = 4          # reserve groups per pool task
+CHUNK_RESERVE = 1          # reserve groups per pool task (each walk decides as soon as one is back)
 
 _ctx = None  # the per-process authoring context (set by _init)
 
@@ -263,7 +262,8 @@ class _Walk:
     need: int                 # images still missing
     cap: int                  # reserve groups it may use
     next_k: int = 1           # the next group to decide
-    requested: int = 0        # the highest group asked of the pool
+    ahead: int = 0            # the highest group asked of the pool (or found in reserves.csv)
+    inflight: set = field(default_factory=set)      # groups asked of the pool, not back yet
     results: dict = field(default_factory=dict)     # k -> Resolved, computed and not yet decided
     entries: dict = field(default_factory=dict)     # k -> {"day", "pose", "authored", "skipped"}: decided
     authored: list = field(default_factory=list)    # SceneKeys authored from reserves
@@ -275,7 +275,7 @@ class _Walk:
 
 class _TopUp:
     """Every (seed, asset, variant)'s walk. `advance` decides every group it can (computed, or
-    recorded in reserves.csv and present on disk) and writes its layers; `requests` names the
+    recorded in reserves.csv and present on disk) and writes its layers; `next_task` names the
     groups the pool should resolve next. Decisions depend only on each walk's groups in order, so
     how far ahead the pool computes, or which task finishes first, changes nothing written."""
 
@@ -294,6 +294,8 @@ class _TopUp:
             planned[k.asset] += 1
             passed[k.asset] += k.scene_id not in skipped
         self.per_group = {a: max(1.0, len(self.depths) * passed[a] / planned[a]) for a in planned}
+        self._turn = 0
+        self.resolved = 0     # reserve groups resolved by the pool in this run (used or not)
 
     def _keys(self, walk: _Walk, k: int) -> list[SceneKey]:
         return reserve_group(self.plan, *walk.sav, k)
@@ -354,27 +356,39 @@ class _TopUp:
             if not walk.open:
                 walk.results.clear()
 
-    def requests(self, chunk: int) -> list[list[tuple]]:
-        """Pool tasks for every walk that waits on a group nobody computes yet: a batch of the next
-        groups (enough, at the asset's planned yield, for what is still missing), in chunks."""
-        tasks = []
-        for walk in self.walks.values():
-            if not walk.open or walk.requested >= walk.next_k:
-                continue
-            batch = math.ceil(walk.need / self.per_group[walk.sav[1]])
-            last = min(walk.cap, walk.next_k + batch - 1)
-            groups = [(walk.sav, k, self._keys(walk, k)) for k in range(walk.next_k, last + 1)]
-            walk.requested = last
-            tasks += [groups[i:i + chunk] for i in range(0, len(groups), chunk)]
-        return tasks
+    def next_task(self, chunk: int) -> list[tuple] | None:
+        """Up to `chunk` groups for the pool to resolve, or None: the walks take turns, and each asks
+        for the group it waits on and for more only while the groups it has in hand are not expected,
+        at its asset's planned yield, to cover what it still misses (so few are thrown away)."""
+        walks = [w for w in self.walks.values() if w.open]
+        for i in range(len(walks)):
+            walk = walks[(self._turn + i) % len(walks)]
+            ks = self._more(walk, chunk)
+            if ks:
+                self._turn = (self._turn + i + 1) % len(walks)
+                walk.inflight.update(ks)
+                return [(walk.sav, k, self._keys(walk, k)) for k in ks]
+        return None
 
-    def wanted(self, groups: list[tuple]) -> list[tuple]:
-        """The groups of a queued task whose walk may still decide them (others are not computed)."""
-        return [g for g in groups if self.walks[g[0]].open and g[1] >= self.walks[g[0]].next_k]
+    def _more(self, walk: _Walk, chunk: int) -> list[int]:
+        ks = []
+        walk.ahead = max(walk.ahead, walk.next_k - 1)
+        if walk.next_k not in walk.results and walk.next_k not in walk.inflight:
+            ks.append(walk.next_k)                   # the group it waits on (not settled by reserves.csv)
+            walk.ahead = max(walk.ahead, walk.next_k)
+        per_group = self.per_group[walk.sav[1]]
+        while len(ks) < chunk and walk.ahead < walk.cap and \
+                (len(walk.inflight) + len(walk.results) + len(ks)) * per_group < walk.need:
+            walk.ahead += 1
+            if (*walk.sav, walk.ahead) not in self.ledger:   # recorded groups are most likely settled
+                ks.append(walk.ahead)
+        return ks
 
     def receive(self, results: list[tuple]) -> None:
+        self.resolved += len(results)
         for sav, k, resolved in results:
             walk = self.walks[sav]
+            walk.inflight.discard(k)
             if walk.open and k >= walk.next_k:
                 walk.results[k] = resolved
 
@@ -496,6 +510,7 @@ class Authored:
 
     paths: list[Path]
     counts: list[dict]
+    reserve_resolved: int = 0   # reserve groups resolved in this run, including any not needed in the end
 
     @property
     def short(self) -> dict[str, int]:
@@ -560,7 +575,7 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     reserves = topup.authored() if topup is not None else []
     paths = [scene_layer_path(out_dir, k.split, k.kind, k.scene_id) for k in [*keys, *reserves]
              if k.scene_id not in skipped]
-    return Authored(paths, counts)
+    return Authored(paths, counts, topup.resolved if topup is not None else 0)
 
 
 def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
@@ -574,26 +589,25 @@ def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: b
 def _drive(runner, ctx: _Context, keys: list[SceneKey], todo: list[list[SceneKey]], skipped: dict,
            ledger: dict, bar) -> tuple[_TopUp | None, bool]:
     """Run the planned samples (anomaly placements first, then normal scenes) and the top-up on
-    `runner`, keeping a few tasks in flight: reserve batches go before normal scenes, so the pool
-    stays busy while the parent decides and writes reserve groups. Returns (top-up, interrupted)."""
+    `runner`, keeping a few tasks in flight: reserve groups go before normal scenes, and normal
+    scenes fill the pool while the walks wait for their groups. Returns (top-up, interrupted)."""
     n_anomalous, n_normal, n_reserve = runner.chunks
     anomalous = [s for s in todo if s[0].kind == "anomaly"]
     normal = [s for s in todo if s[0].kind != "anomaly"]
     main = deque(anomalous[i:i + n_anomalous] for i in range(0, len(anomalous), n_anomalous))
     fillers = deque(normal[i:i + n_normal] for i in range(0, len(normal), n_normal))
-    reserve: deque = deque()
     anomalous_left = len(main)
     pending: dict[Future, str] = {}
     topup, interrupted = None, False
 
     def next_task():
-        while reserve:
-            groups = topup.wanted(reserve.popleft())
-            if groups:
-                return "reserve", groups
-        for kind, queue in (("anomalous", main), ("normal", fillers)):
-            if queue:
-                return kind, queue.popleft()
+        if main:
+            return "anomalous", main.popleft()
+        groups = topup.next_task(n_reserve) if topup is not None else None
+        if groups:
+            return "reserve", groups
+        if fillers:
+            return "normal", fillers.popleft()
         return None
 
     while True:
@@ -605,7 +619,6 @@ def _drive(runner, ctx: _Context, keys: list[SceneKey], todo: list[list[SceneKey
                     bar.refresh()
                 if topup is not None:
                     topup.advance()
-                    reserve.extend(topup.requests(n_reserve))
                 while len(pending) < runner.in_flight and (task := next_task()) is not None:
                     kind, payload = task
                     fn = _resolve_groups if kind == "reserve" else _author_samples

@@ -3,11 +3,15 @@
 By default a scaled subset is authored in one process and the full plan is extrapolated for
 2 workers: normal scenes, planned anomaly placements (strided over the plan) and the top-up of
 their skipped depths (the reserve groups of the same (seed, asset, variant)s, decided as
-`allo_usd.authoring` does, for the subset's shortfalls) are timed separately. `--full` authors
-the whole plan through `author` (2 workers) instead and reports planned vs authored counts.
-Numerics run single-threaded (OPENBLAS/OMP/MKL_NUM_THREADS=1), as in authoring's workers.
+`allo_usd.authoring` does, for the subset's shortfalls) are timed separately. `--sample DAYS`
+authors the paper plan scaled down to DAYS days (the same poses, seeds, quality and proportions)
+end to end through `author` with `--workers` processes, as `allo-usd author` does. `--full`
+authors the whole plan that way. Both report planned vs authored counts and the top-up.
+Numerics run single-threaded (OPENBLAS/OMP/MKL_NUM_THREADS=1), as in authoring's workers, and
+the subset is timed in CPU seconds of this process (`time.process_time`), so other load on the
+machine inflates the estimate less than wall-clock time would.
 
-    python scripts/bench_author.py [--normal 1500] [--placements 300] [--full] [--out docs/bench_author.md]
+    python scripts/bench_author.py [--normal 1500] [--placements 300] [--sample DAYS | --full] [--out FILE]
 """
 
 from __future__ import annotations
@@ -54,12 +58,25 @@ class _Quiet:
         pass
 
 
+def scaled_plan(plan, days: int):
+    """The paper plan over its first `days` days, with its counts scaled by days/365."""
+    from allo_usd.plan import Counts, Dates
+
+    f = days / plan.dates.days
+    c = plan.counts
+    return plan.model_copy(update={
+        "name": f"{plan.name}-{days}d", "dates": Dates(start=plan.dates.start, days=days, step_days=1),
+        "counts": Counts(normal_train=round(c.normal_train * f), normal_test=round(c.normal_test * f),
+                         anomalous_test=round(c.anomalous_test * f))})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--normal", type=int, default=1500, help="normal camera samples to time")
     ap.add_argument("--placements", type=int, default=300, help="planned anomaly placements to time")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--full", action="store_true", help="author the whole plan (2 workers) instead")
+    ap.add_argument("--sample", type=int, metavar="DAYS", help="author the plan scaled to DAYS days instead")
+    ap.add_argument("--full", action="store_true", help="author the whole plan instead")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_author.md")
     args = ap.parse_args()
 
@@ -77,13 +94,26 @@ def main() -> None:
              f"`enumerate_scenes`: {t_enum * 1000:.0f} ms.", ""]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        if args.full:
+        if args.full or args.sample:
+            run = plan if args.full else scaled_plan(plan, args.sample)
+            n_run = len(enumerate_scenes(run))
             t = time.perf_counter()
-            done = author(plan, out, progress=True, workers=args.workers)
+            done = author(run, out, progress=True, workers=args.workers)
             total = time.perf_counter() - t
-            lines += [f"Full run, {args.workers} workers: {len(done.paths):,} scene layers in {total:.0f} s "
-                      f"({len(done.paths) / total:.0f} scenes/s).", "",
-                      *[f"- {s}" for s in summary_lines(done.counts)], ""]
+            what = "Full run" if args.full else f"The plan scaled to {args.sample} days ({n_run:,} scenes)"
+            lines += [f"{what}, {args.workers} workers: {len(done.paths):,} scene layers in {total:.1f} s "
+                      f"({n_run / total:.0f} plan scenes/s); {done.reserve_resolved} reserve groups resolved.", ""]
+            if not args.full:
+                lines += [f"Scaled by scenes to the full plan: **{total * len(keys) / n_run:.0f} s**.", ""]
+            lines += [*[f"- {s}" for s in summary_lines(done.counts)], "",
+                      "| asset | planned | skipped | skipped % | reserve groups | topped up | short |",
+                      "|---|---|---|---|---|---|---|"]
+            for r in done.counts:
+                if r["kind"] == "anomaly":
+                    lines.append(f"| {r['asset'] or 'all'} | {r['planned']} | {r['skipped']} | "
+                                 f"{100 * int(r['skipped']) / max(1, int(r['planned'])):.1f} | {r['reserve_groups']} | "
+                                 f"{r['from_reserve']} | {r['short']} |")
+            lines.append("")
         else:
             t = time.perf_counter()
             plan = with_tree_stage(plan, out)
@@ -95,21 +125,21 @@ def main() -> None:
             t_setup = time.perf_counter() - t
             step = max(1, len(normal) // args.normal)
             sub_n = normal[::step][: args.normal]
-            t = time.perf_counter()
+            t = time.process_time()
             for s in sub_n:
                 author_sample(ctx, s)
-            per_normal = (time.perf_counter() - t) / len(sub_n)
+            per_normal = (time.process_time() - t) / len(sub_n)
             step = max(1, len(placements) // args.placements)
             sub_p = placements[::step][: args.placements]
             skipped: dict = {}
-            t = time.perf_counter()
+            t = time.process_time()
             for s in sub_p:
                 skipped.update({r["scene_id"]: r for r in author_sample(ctx, s)[1]})
-            per_place = (time.perf_counter() - t) / len(sub_p)
+            per_place = (time.process_time() - t) / len(sub_p)
             # The top-up of the subset's shortfalls, decided exactly as authoring does.
-            t = time.perf_counter()
+            t = time.process_time()
             topup, _ = _drive(_Inline(ctx), ctx, [k for s in sub_p for k in s], [], skipped, {}, _Quiet())
-            t_topup = time.perf_counter() - t
+            t_topup = time.process_time() - t
             n_normal = sum(len(s) for s in normal)
             scale = len(placements) / len(sub_p)
             t_normal, t_anom, t_res = n_normal * per_normal, len(placements) * per_place, t_topup * scale
