@@ -285,7 +285,6 @@ class _TopUp:
         self.quotas = anomaly_quotas(keys)
         anomalous = [k for k in keys if k.kind == "anomaly"]
         lost = Counter((k.seed, k.asset, k.variant) for k in anomalous if k.scene_id in skipped)
-        self.main_skipped = dict(lost)
         self.walks = {sav: _Walk(sav, lost[sav], reserve_cap(self.plan, lost[sav])) for sav in self.quotas}
         # The expected images per reserve group, from the planned groups' yield of the same asset:
         # how many groups to compute ahead (a guess; it changes only how much work is thrown away).
@@ -446,8 +445,9 @@ def summary_lines(counts: list[dict]) -> list[str]:
     short = [r for r in counts if r["asset"] and int(r["short"]) > 0]
     for r in short:
         lines.append(f"SHORT: {r['asset']}: {int(r['authored']):,} of {int(r['planned']):,} "
-                     f"({int(r['short']):,} missing; its reserve groups ran out, see reserves.csv; fix: raise "
-                     f"anomalies.reserve_groups_per_slot or lower the resolution)")
+                     f"({int(r['short']):,} missing: it used every reserve group the top-up bound allows, "
+                     f"{int(r['reserve_groups']):,}, see reserves.csv; fix: raise anomalies.reserve_groups_per_slot, "
+                     f"or leave this asset out of the plan)")
     return lines
 
 
@@ -527,8 +527,11 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
 
     The tree is self-contained (allo_usd.author.compose): its own base stage in `out_dir/stages`,
     shared `sky/` and `poses/` layers, `scenes/`, `plan.toml` (the plan as given), `skipped.csv`
-    (every skipped depth and why), `reserves.csv` (the reserve groups used and their decided
-    depths) and, once finished, `counts.csv` (planned vs authored per split/kind and per asset)."""
+    (every skipped depth and why; a reserve depth carries its group number in `reserve`),
+    `reserves.csv` (per reserve group used: its (day, pose) and the depths authored and skipped)
+    and, once finished, `counts.csv`: per split/kind and per anomaly asset, `planned`, `authored`,
+    `skipped` (planned depths skipped), `reserve_groups` and `from_reserve` (the top-up) and
+    `short` (planned - authored; above 0 only where the top-up bound was reached)."""
     from tqdm import tqdm
 
     from .sky import Orbit, compute_sky

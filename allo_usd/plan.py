@@ -356,7 +356,8 @@ def enumerate_scenes(plan: Plan) -> list[SceneKey]:
     seeded subset of `counts`. Anomalous scenes: placements of len(depths) images each, split
     evenly over the seeds; per seed a seeded sample of (day, test pose) pairs without repeats,
     anomaly (asset, variant) assigned round-robin in the sampled order; a count that is not a
-    multiple of len(depths) drops the highest depths of the last placement.
+    multiple of len(depths) drops the highest depths of the last placement. These are the planned
+    scenes; depths that placement skips are topped up when authoring, from `reserve_group`s.
     """
     days, seeds = plan.dates.days, plan.seeds
     out: list[SceneKey] = []
