@@ -178,22 +178,35 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
 @app.command()
 def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml)."),
            out: Path = typer.Option(Path("out/dataset"), "--out", help="Output directory for the layers."),
-           limit: int = typer.Option(None, "--limit", help="Author only the first N scenes of the plan."),
+           limit: int = typer.Option(None, "--limit", help="Author only the first N scenes of the plan "
+                                     "(and the reserve scenes that top up their skipped depths)."),
            workers: int = typer.Option(None, "--workers", help="Processes (default: 2 for large plans)."),
            progress: bool = typer.Option(True, help="Show a progress bar.")):
-    """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done)."""
-    from .authoring import AuthoringInterrupted, author_plan
+    """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done).
+
+    Anomalous depths that the placement check skips are topped up from reserve placements of the
+    same seed, asset and variant, so each reaches its planned count (allo_usd.authoring). With
+    --limit N the quotas are those of the first N scenes, and their skipped depths are topped up
+    too. Ends with planned vs authored counts (also in OUT/counts.csv); exits 1 if an asset stays
+    short because its reserve groups ran out (anomalies.reserve_groups_per_slot).
+    """
+    from .authoring import AuthoringInterrupted, author as author_tree, summary_lines
     from .plan import load_plan
 
     try:
-        paths = author_plan(load_plan(plan_file), out, limit=limit, progress=progress, workers=workers)
+        done = author_tree(load_plan(plan_file), out, limit=limit, progress=progress, workers=workers)
     except AuthoringInterrupted as exc:
         typer.echo(f"{exc}", err=True)
         raise SystemExit(130) from None
     except KeyboardInterrupt:  # before the first scene: nothing but finished files was written
         typer.echo("interrupted before authoring began; re-run the same command", err=True)
         raise SystemExit(130) from None
-    typer.echo(f"{len(paths)} scene layers under {out / 'scenes'}; skipped depths in {out / 'skipped.csv'}")
+    typer.echo(f"{len(done.paths)} scene layers under {out / 'scenes'}; skipped depths in {out / 'skipped.csv'}, "
+               f"planned vs authored in {out / 'counts.csv'}")
+    for line in summary_lines(done.counts):
+        typer.echo(line, err=line.startswith("SHORT"))
+    if done.short:
+        raise SystemExit(1)
 
 
 def main() -> None:

@@ -100,7 +100,9 @@ def _corner_box(cam_pos, cam_rot, width: int, height: int, corners):
     return _bounds_to_pixels(width, height, u.min(), u.max(), v.min(), v.max())
 
 
-_FOOTPRINT_FROM = 8000   # pixels in an object's box above which its triangles' footprint pays off
+_FOOTPRINT_FROM = 32000  # pixels in an object's box above which its triangles' footprint pays off
+_PART_LEVELS = 5         # below it, the footprint of 2^5 part boxes (raycast.Scene.part_boxes)
+_FEW_RECTS = 64          # image boxes marked one by one (more: by a running count over the box)
 
 
 def _box_indices(box, width: int, stride: int = 1) -> np.ndarray:
@@ -126,28 +128,55 @@ def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box
         return None
     u = (k[0, 0] * c[:, 0] / depth + k[0, 2])[triangles]
     v = (k[1, 2] - k[1, 1] * c[:, 1] / depth)[triangles]
+    uu = np.stack([u[:, 0], u[:, 1], u[:, 2]])
+    vv = np.stack([v[:, 0], v[:, 1], v[:, 2]])
+    return _rects_union(width, box, stride, uu.min(axis=0), uu.max(axis=0), vv.min(axis=0), vv.max(axis=0))
+
+
+def _parts_footprint(cam_pos, cam_rot, width: int, height: int, corners, box, stride: int = 1):
+    """Like `_footprint`, for the boxes of the object's parts (`raycast.Scene.part_boxes`, posed: (P, 8, 3)
+    corners): the pixels whose centre lies in the widened image box of some part. A part's image
+    lies in the convex hull of its box corners' images, and each triangle's in its part's, so this
+    holds every pixel `_footprint` holds (exact too), at a cost that does not grow with the mesh."""
+    k = camera_intrinsics(width, height)
+    c = (np.asarray(corners, dtype=np.float64).reshape(-1, 3) - np.asarray(cam_pos, dtype=np.float64)) \
+        @ np.asarray(cam_rot)
+    depth = -c[:, 2]
+    if depth.min() <= 1e-6:
+        return None
+    u = (k[0, 0] * c[:, 0] / depth + k[0, 2]).reshape(-1, 8)
+    v = (k[1, 2] - k[1, 1] * c[:, 1] / depth).reshape(-1, 8)
+    return _rects_union(width, box, stride, u.min(axis=1), u.max(axis=1), v.min(axis=1), v.max(axis=1))
+
+
+def _rects_union(width: int, box, stride: int, u0, u1, v0, v1) -> np.ndarray:
+    """Row-major indices of the pixels in `box` (on the stride sub-grid) whose centre lies in at least
+    one image box [u0, u1] x [v0, v1], each widened by one pixel."""
     bi0, bi1, bj0, bj1 = box
     phase = stride // 2
     ci0, rj0 = bi0 + (phase - bi0) % stride, bj0 + (phase - bj0) % stride   # first sub-grid column, row
     if ci0 > bi1 or rj0 > bj1:
         return np.zeros(0, dtype=np.int64)
     bw, bh = (bi1 - ci0) // stride + 1, (bj1 - rj0) // stride + 1           # sub-grid size in the box
-    uu = np.stack([u[:, 0], u[:, 1], u[:, 2]])
-    vv = np.stack([v[:, 0], v[:, 1], v[:, 2]])
-    # Pixels (sub-grid cells) whose centre may fall in each triangle's image box, widened by one pixel.
-    i0 = np.clip(-((ci0 - np.floor(uu.min(axis=0) - 0.5).astype(np.int64) + 1) // stride), 0, bw)
-    i1 = np.clip((np.ceil(uu.max(axis=0) - 0.5).astype(np.int64) + 1 - ci0) // stride + 1, 0, bw)
-    j0 = np.clip(-((rj0 - np.floor(vv.min(axis=0) - 0.5).astype(np.int64) + 1) // stride), 0, bh)
-    j1 = np.clip((np.ceil(vv.max(axis=0) - 0.5).astype(np.int64) + 1 - rj0) // stride + 1, 0, bh)
+    # Pixels (sub-grid cells) whose centre may fall in each image box, widened by one pixel.
+    i0 = np.clip(-((ci0 - np.floor(u0 - 0.5).astype(np.int64) + 1) // stride), 0, bw)
+    i1 = np.clip((np.ceil(u1 - 0.5).astype(np.int64) + 1 - ci0) // stride + 1, 0, bw)
+    j0 = np.clip(-((rj0 - np.floor(v0 - 0.5).astype(np.int64) + 1) // stride), 0, bh)
+    j1 = np.clip((np.ceil(v1 - 0.5).astype(np.int64) + 1 - rj0) // stride + 1, 0, bh)
     ok = (i0 < i1) & (j0 < j1)
     i0, i1, j0, j1 = i0[ok], i1[ok], j0[ok], j1[ok]
-    # Mark every triangle's rectangle at once: +1/-1 at its corners, then a 2-D running sum.
-    w1 = bw + 1
-    diff = np.bincount(np.concatenate([j0 * w1 + i0, j1 * w1 + i1, j0 * w1 + i1, j1 * w1 + i0]),
-                       np.concatenate([np.ones(2 * len(i0)), -np.ones(2 * len(i0))]), (bh + 1) * w1)
-    covered = diff.reshape(bh + 1, w1).cumsum(axis=0).cumsum(axis=1)[:bh, :bw] > 0.5
+    if len(i0) <= _FEW_RECTS:                    # a few: mark each
+        covered = np.zeros((bh, bw), dtype=bool)
+        for a, b, c, d in zip(j0.tolist(), j1.tolist(), i0.tolist(), i1.tolist()):
+            covered[a:b, c:d] = True
+    else:                                        # many: +1/-1 at every corner, then a 2-D running count
+        w1, n = bw + 1, (bh + 1) * (bw + 1)
+        diff = np.bincount(np.concatenate([j0 * w1 + i0, j1 * w1 + i1]), minlength=n) - \
+            np.bincount(np.concatenate([j0 * w1 + i1, j1 * w1 + i0]), minlength=n)
+        counts = diff.astype(np.int32).reshape(bh + 1, w1).cumsum(axis=0, dtype=np.int32)
+        covered = counts.cumsum(axis=1, dtype=np.int32)[:bh, :bw] > 0
     jj, ii = np.nonzero(covered)
-    return ((rj0 + jj * stride) * width + (ci0 + ii * stride)).astype(np.int64)
+    return ((rj0 + jj * stride) * width + (ci0 + ii * stride)).astype(np.int64, copy=False)
 
 
 def sphere_pixels(cam_pos, cam_rot, width: int, height: int, centre, radius: float) -> np.ndarray | None:
@@ -179,9 +208,12 @@ def visible_fraction(station: Scene | None, anomaly: Scene, cam_pos, cam_rot, wi
     frame (p_obj = R^T (p - position)) instead of building a BVH for the posed object. `corners`:
     the object's box corners in its own frame (`box_corners`), with `pose`: their projection
     narrows the pixels cast to (also exact), which matters for long thin objects. `mesh`: the
-    object's (points, triangles) in its own frame, with `pose`: only pixels inside some triangle's
-    image box are cast (`_footprint`, exact). `stride` s > 1 (with `sphere`): cast one pixel in
-    s x s (`_box_indices`) and count each for s^2 pixels."""
+    object's (points, triangles) in its own frame, with `pose`: only pixels inside the image box
+    of some triangle (`_footprint`, for large boxes) or of some part of the object (`_parts_footprint`,
+    cheaper, for the rest) are cast; both are exact, and then the sphere test is skipped (it would
+    drop almost nothing more). `stride` s > 1 (with `sphere`): cast one pixel in s x s
+    (`_box_indices`) and count each for s^2 pixels. Every cull only leaves out rays that cannot
+    meet the object, so the count is the same whichever applies."""
     if sphere is not None:
         c, r = np.asarray(sphere[0], dtype=np.float64), float(sphere[1]) * 1.001 + 1e-9
         box = _sphere_box(cam_pos, cam_rot, width, height, c, r)
@@ -193,24 +225,32 @@ def visible_fraction(station: Scene | None, anomaly: Scene, cam_pos, cam_rot, wi
                                                  max(box[2], tight[2]), min(box[3], tight[3]))
         if box is None and stride > 1:
             box = (0, width - 1, 0, height - 1)
-        idx = None
-        if box is not None and mesh is not None and pose is not None and \
-                (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > _FOOTPRINT_FROM * stride * stride:
-            world = np.asarray(pose[0], dtype=np.float64) + np.asarray(mesh[0]) @ np.asarray(pose[1]).T
-            idx = _footprint(cam_pos, cam_rot, width, height, world, mesh[1], box, stride)
+        idx, fitted = None, False
+        if box is not None and mesh is not None and pose is not None:
+            if (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > _FOOTPRINT_FROM * stride * stride:
+                world = np.asarray(pose[0], dtype=np.float64) + np.asarray(mesh[0]) @ np.asarray(pose[1]).T
+                idx = _footprint(cam_pos, cam_rot, width, height, world, mesh[1], box, stride)
+            elif _PART_LEVELS:
+                parts = np.asarray(pose[0], dtype=np.float64) + \
+                    anomaly.part_boxes(_PART_LEVELS) @ np.asarray(pose[1], dtype=np.float64).T
+                idx = _parts_footprint(cam_pos, cam_rot, width, height, parts, box, stride)
+            fitted = idx is not None
         if idx is None and box is not None:
             idx = _box_indices(box, width, stride)
         if rays is None:
             o, d = pixel_rays(cam_pos, cam_rot, width, height, idx)
         else:
             o, d = rays if idx is None else (rays[0][idx], rays[1][idx])
-        v = c - o[0] if len(o) else c                  # every ray starts at the camera
-        t = d @ v
-        miss = (np.dot(v, v) - t * t > r * r) | (t < -r)
-        keep = np.flatnonzero(~miss)
-        if keep.size == 0:
+        if not len(o):
             return 0.0
-        o, d = o[keep], d[keep]
+        if not fitted:                                 # a footprint already keeps (nearly) only these
+            v = c - o[0]                               # every ray starts at the camera
+            t = d @ v
+            miss = (np.dot(v, v) - t * t > r * r) | (t < -r)
+            keep = np.flatnonzero(~miss)
+            if keep.size == 0:
+                return 0.0
+            o, d = o[keep], d[keep]
     else:
         if stride != 1:
             raise ValueError("stride needs sphere=(centre, radius)")
@@ -356,20 +396,38 @@ def place(station_parts: "Scene | list", anomaly_points, anomaly_tris, cam_pos, 
     reach = max(DEPTH_OFFSETS)
     ref = max(nearest, 8.0 * radius)                # where an attempt measures the object's silhouette
 
-    def one(depth_index, ray, depth, rot, size, stride=1):
+    # A draw's checks are pure functions of (attempt, depth), so each is computed once: the
+    # fallback below reuses the screening of the main loop, and the render-resolution pass
+    # reuses the resolution-free clearance test (speed only; every decision is the same).
+    clear: dict[tuple[int, int], str] = {}
+    screened: dict[tuple[int, int], tuple[bool, float, str]] = {}
+
+    def one(attempt, depth_index, ray, depth, rot, size, stride=1):
         pos = cam_pos + (depth + DEPTH_OFFSETS[depth_index]) * ray
-        why = _clear_of(station, pos, radius, cam_pos, cam_rot)
+        if (attempt, depth_index) not in clear:
+            clear[attempt, depth_index] = _clear_of(station, pos, radius, cam_pos, cam_rot)
+        why = clear[attempt, depth_index]
         if why:
             return False, 0.0, why
         return _visibility(station, anomaly, radius, corners, pos, rot, cam_pos, cam_rot, *size, min_fraction, stride,
                            mesh)
 
-    def at_full(ray, depth, rot, coarse):
-        """Each depth re-checked at the render resolution (`coarse`: the screen results)."""
+    def at_screen(attempt, depth_index, ray, depth, rot):
+        if (attempt, depth_index) not in screened:
+            screened[attempt, depth_index] = one(attempt, depth_index, ray, depth, rot, screen)
+        return screened[attempt, depth_index]
+
+    def at_full(attempt, ray, depth, rot, coarse, all_or_nothing=False):
+        """Each depth re-checked at the render resolution (`coarse`: the screen results). With
+        `all_or_nothing`, stop at the first depth that fails (the caller needs them all to pass)."""
         if screen == full:
             return coarse
-        return [one(i, ray, depth, rot, full, _stride(c[1], width * height)) if c[0] else c
-                for i, c in enumerate(coarse)]
+        out = []
+        for i, c in enumerate(coarse):
+            out.append(one(attempt, i, ray, depth, rot, full, _stride(c[1], width * height)) if c[0] else c)
+            if all_or_nothing and not out[-1][0]:
+                break
+        return out
 
     drawn = []                                      # (-depths that fit, attempt, ray, depth, rot)
     budget, short = max_attempts, 0
@@ -402,26 +460,50 @@ def place(station_parts: "Scene | list", anomaly_points, anomaly_tris, cam_pos, 
         drawn.append((-fits, attempt, ray, depth, rot))
         coarse = []
         for i in _SCREEN_ORDER:                      # the likeliest failures first; stop at one
-            coarse.append((i, one(i, ray, depth, rot, screen)))
+            coarse.append((i, at_screen(attempt, i, ray, depth, rot)))
             if not coarse[-1][1][0]:
                 break
         else:
-            results = at_full(ray, depth, rot, [r for _, r in sorted(coarse)])
+            results = at_full(attempt, ray, depth, rot, [r for _, r in sorted(coarse)], all_or_nothing=True)
             if all(r[0] for r in results):
                 return _placements(cam_pos, ray, depth, rot, results, attempt)
     # No attempt passed at every depth: of the draws with room for the most depths, the first few
     # are checked in full and the one with the most passing depths kept.
-    scored = []
-    for _, attempt, ray, depth, rot in sorted(drawn, key=lambda t: t[:2])[:FALLBACK_CHECKS]:
-        coarse = [one(i, ray, depth, rot, screen) for i in range(len(DEPTH_OFFSETS))]
-        if coarse[0][0]:
-            scored.append((-sum(r[0] for r in coarse), attempt, ray, depth, rot, coarse))
-    for *_, ray, depth, rot, coarse in sorted(scored, key=lambda t: t[:2]):
-        results = at_full(ray, depth, rot, coarse)
+    # Of the first few draws (most depths fitting first), the best ranked whose initial depth holds
+    # at the render resolution is kept (`_ranked`).
+    kept = {attempt: (ray, depth, rot) for _, attempt, ray, depth, rot
+            in sorted(drawn, key=lambda t: t[:2])[:FALLBACK_CHECKS]}
+    for attempt in _ranked(list(kept), lambda a, i: at_screen(a, i, *kept[a])[0]):
+        ray, depth, rot = kept[attempt]
+        coarse = [at_screen(attempt, i, ray, depth, rot) for i in range(len(DEPTH_OFFSETS))]
+        results = at_full(attempt, ray, depth, rot, coarse)
         if results[0][0]:
             return _placements(cam_pos, ray, depth, rot, results, budget)
     raise PlacementError(f"no visible placement in {budget} attempts (object radius {radius:.2f} m); "
                          "the view may show no station nearby — use another pose or a smaller object")
+
+
+def _ranked(attempts: list[int], passes):
+    """The attempts whose initial depth passes at the screen width, in order of (most depths passing,
+    earliest attempt), as screening each in full would rank them; `passes(attempt, depth)` screens
+    one depth. A draw is screened only as far as its rank needs: the one with the most depths that
+    could still pass is screened further (likeliest failures first), and comes next once complete."""
+    known: dict[tuple[int, int], bool] = {}
+
+    def ok(a: int, i: int) -> bool:
+        if (a, i) not in known:
+            known[a, i] = bool(passes(a, i))
+        return known[a, i]
+
+    left = [a for a in attempts if ok(a, 0)]
+    while left:
+        best = min(left, key=lambda a: (-sum(known.get((a, i), True) for i in range(len(DEPTH_OFFSETS))), a))
+        todo = [i for i in _SCREEN_ORDER if (best, i) not in known]
+        if todo:
+            ok(best, todo[0])
+            continue
+        yield best
+        left.remove(best)
 
 
 def _partial_depth(nearest: float, top: float, u: float) -> float:

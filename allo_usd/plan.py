@@ -127,6 +127,11 @@ class Anomalies(_Model):
     assets: list[AnomalyChoice] = Field(default_factory=_all_anomalies, description="Default: all 16.")
     depths: list[int] = Field(default_factory=lambda: list(range(DEPTH_COUNT)),
                               description="Depth indices 0..4 = offsets 0, -1, +1, -2, +2 m.")
+    reserve_groups_per_slot: int = Field(
+        3, ge=0, le=100,
+        description="Top-up bound: a (seed, asset, variant) whose planned depths were skipped may draw at "
+                    "most this many reserve placement groups per skipped depth to fill them; 0 turns the "
+                    "top-up off (see allo_usd.plan.reserve_group).")
 
     @field_validator("depths")
     @classmethod
@@ -293,7 +298,8 @@ def paper_plan() -> Plan:
       first seed, 1,502 for the second; each a seeded (day, test pose) with an anomaly assigned
       round-robin over the 16 assets and their variants), and the last placement keeps only
       depths 0-3. Depths that the ray-cast check skips when authoring are recorded in
-      skipped.csv, not replaced, so the authored count can be below the plan's.
+      skipped.csv and topped up from reserve groups of the same (seed, asset, variant)
+      (`reserve_group`; allo_usd.authoring), so each asset keeps its planned share of the 15,024.
     """
     return Plan(name="allo-paper", dates=Dates(start=date(2030, 1, 1), days=365, step_days=1),
                 counts=Counts(normal_train=29_085, normal_test=7_300, anomalous_test=15_024),
@@ -321,12 +327,15 @@ class SceneKey:
     asset: str | None = None
     variant: str | None = None
     depth_index: int = 0
+    reserve: int = 0        # 0: a planned scene; k >= 1: the k-th reserve group of its (seed, asset, variant)
 
     @property
     def sample_id(self) -> str:
         """The camera sample (pose layer) this scene uses."""
         base = f"s{self.seed}_d{self.day:03d}_p{self.pose:02d}"
-        return base if self.asset is None else f"{base}_{self.asset}-{self.variant}"
+        if self.asset is None:
+            return base
+        return f"{base}_{self.asset}-{self.variant}" + (f"_r{self.reserve}" if self.reserve else "")
 
 
 def _rng(*keys) -> np.random.Generator:
@@ -347,7 +356,8 @@ def enumerate_scenes(plan: Plan) -> list[SceneKey]:
     seeded subset of `counts`. Anomalous scenes: placements of len(depths) images each, split
     evenly over the seeds; per seed a seeded sample of (day, test pose) pairs without repeats,
     anomaly (asset, variant) assigned round-robin in the sampled order; a count that is not a
-    multiple of len(depths) drops the highest depths of the last placement.
+    multiple of len(depths) drops the highest depths of the last placement. These are the planned
+    scenes; depths that placement skips are topped up when authoring, from `reserve_group`s.
     """
     days, seeds = plan.dates.days, plan.seeds
     out: list[SceneKey] = []
@@ -386,6 +396,58 @@ def _round_robin(by_asset: list[list[tuple[str, str]]], j: int) -> tuple[str, st
     """Placement j's anomaly: asset j mod n, and that asset's variants in turn."""
     lst = by_asset[j % len(by_asset)]
     return lst[(j // len(by_asset)) % len(lst)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Top-up: reserve placement groups for depths the placement check skips
+
+
+def anomaly_quotas(keys: list[SceneKey]) -> dict[tuple[int, str, str], int]:
+    """The anomalous depth slots of `keys` per (seed, asset, variant), in order of first appearance:
+    the count each must reach when authored (its quota)."""
+    quotas: dict[tuple[int, str, str], int] = {}
+    for k in keys:
+        if k.kind == "anomaly" and not k.reserve:
+            sav = (k.seed, k.asset, k.variant)
+            quotas[sav] = quotas.get(sav, 0) + 1
+    return quotas
+
+
+def reserve_cap(plan: Plan, shortfall: int) -> int:
+    """At most this many reserve groups may be drawn for a (seed, asset, variant) with `shortfall`
+    skipped depth slots: `anomalies.reserve_groups_per_slot` per slot. With the paper plan's
+    worst yields (wrench and bolt cluster: ~2 of 5 depths pass) that is ~6x what the shortfall
+    needs, and it bounds the work for an asset that can never be placed."""
+    return plan.anomalies.reserve_groups_per_slot * max(0, shortfall)
+
+
+_RESERVE_PAIRS: dict[tuple, np.ndarray] = {}   # a permutation per (plan grid, seed, asset, variant)
+
+
+def _reserve_pairs(plan: Plan, seed: int, asset: str, variant: str) -> np.ndarray:
+    key = (plan.dates.days, tuple(plan.poses.test), tuple(plan.seeds), seed, asset, variant)
+    if key not in _RESERVE_PAIRS:
+        n = plan.dates.days * len(plan.poses.test)
+        _RESERVE_PAIRS[key] = _rng("reserve", seed, asset, variant, *plan.seeds).permutation(n)
+    return _RESERVE_PAIRS[key]
+
+
+def reserve_group(plan: Plan, seed: int, asset: str, variant: str, k: int) -> list[SceneKey]:
+    """The k-th (k >= 1) reserve placement group of (seed, asset, variant): one scene per plan depth.
+
+    Its (day, test pose) is entry k-1 (cycling) of a permutation of the seed's (day, test pose)
+    pairs drawn from a stream of its own (seeded by "reserve", the seed, asset and variant and the
+    plan seeds), so it never disturbs the planned scenes and does not depend on how many reserves
+    other groups use. Its scene ids end in `_r{k}_z{depth}` and its camera sample is a pose layer
+    of its own (`SceneKey.sample_id`; the camera seed path ends in `r{k}`, allo_usd.scenes), so
+    a reserve group at a (day, pose) the plan already uses is a fresh draw."""
+    if k < 1:
+        raise ValueError(f"reserve groups are numbered from 1, not {k}")
+    pairs = _reserve_pairs(plan, seed, asset, variant)
+    d, p = divmod(int(pairs[(k - 1) % len(pairs)]), len(plan.poses.test))
+    pose = plan.poses.test[p]
+    return [SceneKey(f"s{seed}_d{d:03d}_p{pose:02d}_{asset}-{variant}_r{k}_z{z}", "test", "anomaly", d, pose, seed,
+                     asset, variant, z, k) for z in plan.anomalies.depths]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -45,9 +45,37 @@ class Scene:
         normals, ok = triangle_normals(tri)
         self._normal = np.zeros((len(tri), 3))
         self._normal[ok] = normals
+        self._parts: dict[int, np.ndarray] = {}
         self._embree = rtcore_scene.EmbreeScene()
         TriangleMesh(scene=self._embree, vertices=((self.vertices - lo) * self._factor).astype(np.float32),
                      indices=self.faces.astype(np.int32))
+
+    def part_boxes(self, levels: int = 5) -> np.ndarray:
+        """(P, 8, 3) corners of axis-aligned boxes that together hold every triangle: the triangles
+        split `levels` times at the median centroid along the longest axis (up to 2^levels parts),
+        built once per scene. Each triangle lies in its part's box, so the union of the boxes'
+        images bounds the image of the mesh much more tightly than its overall box."""
+        if levels not in self._parts:
+            cent = self.vertices[self.faces].mean(axis=1)
+            groups = [np.arange(len(self.faces))]
+            for _ in range(levels):
+                split = []
+                for g in groups:
+                    if len(g) < 2:
+                        split.append(g)
+                        continue
+                    c = cent[g]
+                    order = np.argsort(c[:, int(np.argmax(np.ptp(c, axis=0)))], kind="stable")
+                    split += [g[order[:len(g) // 2]], g[order[len(g) // 2:]]]
+                groups = split
+            boxes = []
+            for g in groups:
+                p = self.vertices[np.unique(self.faces[g])]
+                lo, hi = p.min(axis=0), p.max(axis=0)
+                boxes.append([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+                              for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+            self._parts[levels] = np.array(boxes, dtype=np.float64).reshape(-1, 8, 3)
+        return self._parts[levels]
 
     def _run(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         o = ((origins - self._origin) * self._factor).astype(np.float32)
@@ -135,19 +163,26 @@ class Scene:
 def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None) -> tuple[np.ndarray, np.ndarray]:
     """One ray through each pixel centre, row-major from the top-left pixel; with `index` (row-major
     pixel numbers), only those pixels' rays. Every ray is computed element-wise on its own, so a
-    subset gives exactly the bits the full grid would."""
+    subset gives exactly the bits the full grid would. (Each direction component is computed as
+    its own contiguous array, the same operations in the same order as R @ (x, y, -1) per ray.)"""
     k = camera_intrinsics(width, height)
     if index is None:
         u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
         u, v = u.ravel(), v.ravel()
     else:
-        index = np.asarray(index, dtype=np.int64)
-        u, v = (index % width) + 0.5, (index // width) + 0.5
+        row, col = np.divmod(np.asarray(index, dtype=np.int64), width)
+        u, v = col + 0.5, row + 0.5
     x = (u - k[0, 2]) / k[0, 0]
     y = -(v - k[1, 2]) / k[1, 1]
     r = np.asarray(cam_rot, dtype=np.float64)
-    d = x[:, None] * r[:, 0] + y[:, None] * r[:, 1] - r[:, 2]   # R @ (x, y, -1)
-    d /= np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])[:, None]
+    d0 = x * r[0, 0] + y * r[0, 1] - r[0, 2]   # R @ (x, y, -1)
+    d1 = x * r[1, 0] + y * r[1, 1] - r[1, 2]
+    d2 = x * r[2, 0] + y * r[2, 1] - r[2, 2]
+    n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    d = np.empty((len(x), 3))
+    np.divide(d0, n, out=d[:, 0])
+    np.divide(d1, n, out=d[:, 1])
+    np.divide(d2, n, out=d[:, 2])
     o = np.broadcast_to(np.asarray(cam_pos, dtype=np.float64), d.shape)
     return o, d
 

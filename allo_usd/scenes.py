@@ -100,11 +100,14 @@ def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
 
 
 def resolve_camera(world: World, *, day: int, pose: int, plan_seed: int,
-                   anomaly: tuple[str, str] | None = None):
+                   anomaly: tuple[str, str] | None = None, reserve: int = 0):
     """The perturbed camera of one pose sample: (CameraSpec, the Generator after the draw, seed,
-    seed path). Every scene of the sample (the five depths of a placement) shares it."""
+    seed path). Every scene of the sample (the five depths of a placement) shares it. `reserve`
+    k >= 1: the k-th reserve group of the plan's top-up (allo_usd.plan.reserve_group), a draw of its own."""
     base = world.poses[pose]
     key = (day, pose) if anomaly is None else (day, pose, *anomaly)
+    if reserve:
+        key = (*key, f"r{reserve}")
     seed, seed_path = scene_seed(plan_seed, *key)
     rng = np.random.default_rng(seed)
     pos, rot, dpos, dang, attempts = perturb(base, rng, world.station_scene)
@@ -146,10 +149,11 @@ def build_spec(world: World, *, scene_id: str, day: int, pose: int, seed: int, s
 
 def resolve_scene(world: World, *, scene_id: str, day: int, pose: int, plan_seed: int,
                   render: RenderSpec, effects: EffectsSpec = EffectsSpec(),
-                  anomaly: tuple[str, str] | None = None, depth_index: int = 0) -> SceneSpec:
+                  anomaly: tuple[str, str] | None = None, depth_index: int = 0, reserve: int = 0) -> SceneSpec:
     """One fully resolved scene. With an anomaly, its five depths share the same draw, so depth k of
     the same (day, pose, anomaly) differs only by the offset along the view ray."""
-    camera, rng, seed, seed_path = resolve_camera(world, day=day, pose=pose, plan_seed=plan_seed, anomaly=anomaly)
+    camera, rng, seed, seed_path = resolve_camera(world, day=day, pose=pose, plan_seed=plan_seed, anomaly=anomaly,
+                                                  reserve=reserve)
     anomaly_spec = None
     if anomaly is not None:
         chosen = resolve_placements(world, camera, rng, anomaly, render.resolution)[depth_index]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from collections import Counter
 from dataclasses import replace
 from pathlib import Path
@@ -12,8 +13,9 @@ from pxr import Sdf, Usd
 
 from allo_usd.errors import PlanError
 from allo_usd.paths import BASE_STAGE, SCHEMAS
-from allo_usd.plan import (AnomalyChoice, Anomalies, Dates, Plan, Poses, Quality, enumerate_scenes, load_plan,
-                           make_plan, paper_plan, save_plan, schema_text)
+from allo_usd.plan import (AnomalyChoice, Anomalies, Counts, Dates, Plan, Poses, Quality, anomaly_quotas,
+                           enumerate_scenes, load_plan, make_plan, paper_plan, reserve_cap, reserve_group, save_plan,
+                           schema_text)
 
 from test_validation import validation_errors
 
@@ -89,6 +91,13 @@ def _files(out: Path) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
 
 
+def _csv(path: Path) -> list[dict]:
+    import csv
+
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
 def _sublayers(path: Path) -> list[str]:
     layer = Sdf.Layer.FindOrOpen(str(path))  # held while the list proxy is read
     return list(layer.subLayerPaths)
@@ -98,10 +107,13 @@ def test_tiny_plan_layout_and_sizes(authored):
     out, paths = authored
     keys = enumerate_scenes(tiny_plan())
     assert len(keys) == 4 + 2 + 10
-    skipped = (out / "skipped.csv").read_text().splitlines()[1:]
-    assert len(paths) + len(skipped) == len(keys)   # nothing silently dropped
+    main_skipped = [r for r in _csv(out / "skipped.csv") if not r["reserve"]]
+    planned = [p for p in paths if "_r" not in p.stem]
+    assert len(planned) + len(main_skipped) == len(keys)   # nothing silently dropped
+    assert len(paths) == len(keys)   # and every skipped depth topped up
     assert sorted(p.name for p in (out / "sky").iterdir()) == ["d000.usda", "d001.usda"]
-    assert len(list((out / "poses").rglob("*.usda"))) == 4 + 2 + 2   # the depths share a pose layer
+    reserve_groups = len(_csv(out / "reserves.csv"))
+    assert len(list((out / "poses").rglob("*.usda"))) <= 4 + 2 + 2 + reserve_groups   # depths share a pose layer
     for p in paths:
         assert p.stat().st_size <= 4096, p  # issue 6: a scene layer's own file is at most 4 KB
         layer = Sdf.Layer.FindOrOpen(str(p))
@@ -268,3 +280,215 @@ def test_plan_refuses_a_resolution_no_layer_could_render():
     spec = make_spec()
     with pytest.raises(LayerError, match="per side"):
         validate_spec(replace(spec, render=RenderSpec(resolution=(MAX_SIDE_PX, MAX_SIDE_PX))))
+
+
+# ---------------------------------------------------------------------------------------------
+# Top-up: skipped depths filled from reserve groups of the same (seed, asset, variant)
+
+SCENE_ID = re.compile(r"^s(\d+)_d(\d+)_p(\d+)_(.+)-(.+?)(?:_r(\d+))?_z(\d)$")
+
+
+def topup_plan(asset: str = "wrench", resolution=(64, 36), days: int = 3, **anomalies) -> Plan:
+    """The wrench at 64x36 over 3 days: about half of its depths fail (under 0.1% of the image far
+    away, against the camera near it), so the top-up really runs, and it takes a second."""
+    return Plan(name="topup", dates=Dates(days=days), poses=Poses(train=[1], test=[41, 42]),
+                anomalies=Anomalies(assets=[AnomalyChoice(id=asset)], **anomalies),
+                counts=Counts(normal_train=2, normal_test=2),
+                quality=Quality(resolution=resolution, samples=4), base_stage=str(BASE_STAGE))
+
+
+@pytest.fixture(scope="module")
+def topped_up(tmp_path_factory):
+    from allo_usd.authoring import author
+
+    out = tmp_path_factory.mktemp("topup")
+    return out, author(topup_plan(), out, progress=False, workers=1)
+
+
+def _anomalous_on_disk(out: Path) -> Counter:
+    found = Counter()
+    for p in (out / "scenes" / "test" / "anomaly").glob("*.usda"):
+        m = SCENE_ID.match(p.stem)
+        found[(int(m[1]), m[4], m[5])] += 1
+    return found
+
+
+def test_reserve_groups_are_seeded_apart_from_the_plan():
+    plan = topup_plan()
+    g = reserve_group(plan, 2030, "wrench", "chrome", 1)
+    assert [k.depth_index for k in g] == plan.anomalies.depths and {k.reserve for k in g} == {1}
+    assert all(k.scene_id.endswith(f"_wrench-chrome_r1_z{k.depth_index}") for k in g)
+    assert {k.sample_id for k in g} == {f"s2030_d{g[0].day:03d}_p{g[0].pose}_wrench-chrome_r1"}  # its own pose layer
+    assert reserve_group(topup_plan(), 2030, "wrench", "chrome", 1) == g                    # deterministic
+    # Each seed's (day, test pose) pairs, in a seeded order, before any repeats.
+    pairs = [reserve_group(plan, 2030, "wrench", "chrome", k)[0] for k in range(1, 8)]
+    assert sorted((k.day, k.pose) for k in pairs[:6]) == [(d, p) for d in range(3) for p in (41, 42)]
+    assert (pairs[6].day, pairs[6].pose) == (pairs[0].day, pairs[0].pose) and pairs[6].scene_id != pairs[0].scene_id
+    # The reserve stream leaves the planned scenes alone: the plan enumerates the same with or without it.
+    assert enumerate_scenes(topup_plan(reserve_groups_per_slot=0)) == enumerate_scenes(plan)
+    assert reserve_cap(plan, 7) == 21 and reserve_cap(topup_plan(reserve_groups_per_slot=0), 7) == 0
+    with pytest.raises(PlanError, match="reserve_groups_per_slot"):
+        make_plan({"name": "x", "anomalies": {"reserve_groups_per_slot": -1}})
+
+
+def test_topup_meets_every_quota_exactly(topped_up):
+    out, done = topped_up
+    plan = topup_plan()
+    keys = enumerate_scenes(plan)
+    quotas = anomaly_quotas(keys)
+    skipped = {r["scene_id"]: r for r in _csv(out / "skipped.csv")}
+    lost = Counter((k.seed, k.asset, k.variant) for k in keys if k.scene_id in skipped)
+    assert sum(lost.values()) >= 6 and len(lost) == 2          # the plan really skips depths of both variants
+    assert _anomalous_on_disk(out) == quotas                    # ... and each (seed, asset, variant) meets its quota
+    assert sorted(done.paths) == sorted((out / "scenes").rglob("*.usda")) and done.short == {}
+    assert len(done.paths) == len(keys)
+
+    groups = _csv(out / "reserves.csv")
+    partial = 0
+    for sav, n in lost.items():
+        mine = [g for g in groups if (int(g["seed"]), g["asset"], g["variant"]) == sav]
+        assert [int(g["reserve"]) for g in mine] == list(range(1, len(mine) + 1))      # strictly in order
+        assert sum(len(g["authored"].split()) for g in mine) == n
+        for i, g in enumerate(mine):
+            k = int(g["reserve"])
+            keys_k = reserve_group(plan, *sav, k)
+            assert (keys_k[0].day, keys_k[0].pose) == (int(g["day"]), int(g["pose"]))
+            ok, bad = set(map(int, g["authored"].split())), set(map(int, g["skipped"].split()))
+            used = sorted(ok | bad)
+            assert used == plan.anomalies.depths[:len(used)]           # depths used in depth order
+            if i < len(mine) - 1:
+                assert len(used) == len(plan.anomalies.depths)           # every earlier group used in full
+            else:
+                assert max(ok) == used[-1]                              # the last one stops at the last image needed
+                partial += len(used) < len(plan.anomalies.depths)
+            for key in keys_k:
+                layer = out / "scenes" / "test" / "anomaly" / f"{key.scene_id}.usda"
+                assert layer.is_file() == (key.depth_index in ok), key
+                row = skipped.get(key.scene_id)
+                assert (row is not None) == (key.depth_index in bad), key   # unused depths: neither authored nor listed
+                if row is not None:
+                    assert row["reserve"] == str(k)
+                    assert "was skipped" in row["reason"] or "no initial placement" in row["reason"]
+            if ok:
+                pose_layer = out / "poses" / "s2030" / f"{keys_k[0].sample_id.split('_', 1)[1]}.usda"
+                pose = Sdf.Layer.FindOrOpen(str(pose_layer))
+                assert pose.customLayerData["allo"]["seedPath"].endswith(f"/r{k}")   # a camera draw of its own
+    assert partial >= 1   # some last group really had depths left over
+
+    counts = {(r["split"], r["kind"], r["asset"]): r for r in _csv(out / "counts.csv")}
+    n_lost, n_groups = str(sum(lost.values())), str(len(groups))
+    assert counts["train", "normal", ""] == {"split": "train", "kind": "normal", "asset": "", "planned": "2",
+                                            "authored": "2", "skipped": "0", "reserve_groups": "0",
+                                            "from_reserve": "0", "short": "0"}
+    for asset in ("", "wrench"):
+        r = counts["test", "anomaly", asset]
+        assert (r["planned"], r["authored"], r["skipped"], r["from_reserve"], r["reserve_groups"], r["short"]) == \
+            ("30", "30", n_lost, n_lost, n_groups, "0")
+
+
+def test_limit_tops_up_the_scenes_within_it(tmp_path):
+    from allo_usd.authoring import author
+
+    plan = topup_plan()
+    keys = enumerate_scenes(plan)[:4 + 12]   # 4 normal scenes, then 2 placements and 2 depths of a third
+    done = author(plan, tmp_path, limit=len(keys), progress=False)
+    assert _anomalous_on_disk(tmp_path) == anomaly_quotas(keys) and done.short == {}
+    assert {r["asset"]: r["planned"] for r in _csv(tmp_path / "counts.csv") if r["kind"] == "anomaly"} == \
+        {"": "12", "wrench": "12"}
+
+
+def test_topup_cap_is_honoured_and_reported(topped_up, tmp_path):
+    from typer.testing import CliRunner
+
+    from allo_usd.authoring import author, summary_lines
+    from allo_usd.cli import app
+
+    # Off: the planned scenes are the same bytes as with the top-up, and every skipped depth is short.
+    out, _ = topped_up
+    off = author(topup_plan(reserve_groups_per_slot=0), tmp_path / "off", progress=False)
+    lost = sum(1 for r in _csv(out / "skipped.csv") if not r["reserve"])
+    assert off.short == {"wrench": lost} and _csv(tmp_path / "off" / "reserves.csv") == []
+    planned = _files(tmp_path / "off")
+    assert planned and all(_files(out)[f] == b for f, b in planned.items()
+                           if f.startswith(("scenes", "poses", "sky")))
+
+    # The bolt cluster at 8x4 pixels almost never covers a pixel centre: its reserves run out.
+    plan = topup_plan("bolt_cluster", (8, 4), days=2, reserve_groups_per_slot=1)
+    path = save_plan(plan, tmp_path / "bolts.toml")
+    result = CliRunner().invoke(app, ["author", str(path), "--out", str(tmp_path / "bolts"), "--no-progress"])
+    assert result.exit_code == 1, result.output
+    counts = _csv(tmp_path / "bolts" / "counts.csv")
+    row = next(r for r in counts if r["asset"] == "bolt_cluster")
+    assert int(row["short"]) > 0 and int(row["authored"]) == int(row["planned"]) - int(row["short"])
+    assert f"test/anomaly: {row['authored']} of {row['planned']} planned authored" in result.output
+    assert f"SHORT: bolt_cluster: {row['authored']} of {row['planned']} ({row['short']} missing" in result.output
+    assert summary_lines(counts)[-1].startswith("SHORT: bolt_cluster")
+    keys = enumerate_scenes(plan)
+    skipped = {r["scene_id"] for r in _csv(tmp_path / "bolts" / "skipped.csv")}
+    groups = Counter((int(g["seed"]), g["asset"], g["variant"]) for g in _csv(tmp_path / "bolts" / "reserves.csv"))
+    on_disk = _anomalous_on_disk(tmp_path / "bolts")
+    for sav, quota in anomaly_quotas(keys).items():
+        n_lost = sum(1 for k in keys if (k.seed, k.asset, k.variant) == sav and k.scene_id in skipped)
+        assert groups[sav] <= reserve_cap(plan, n_lost)                   # never more reserve groups than the cap
+        if on_disk[sav] < quota:
+            assert groups[sav] == reserve_cap(plan, n_lost)               # short only once the cap is reached
+
+
+def _interrupt_at(monkeypatch, n: int, reserve: bool):
+    """Ctrl-C in the parent at the n-th sample it writes (reserve groups, or planned ones), halfway
+    through the sample: its first scene is written, the rest are not."""
+    import allo_usd.authoring as authoring
+
+    real, calls = authoring.write_sample, []
+
+    def write_sample(ctx, keys, resolved):
+        if bool(keys[0].reserve) == reserve and keys[0].kind == "anomaly":
+            calls.append(keys[0].scene_id)
+            if len(calls) == n:
+                real(ctx, keys[:1], resolved)
+                raise KeyboardInterrupt
+        return real(ctx, keys, resolved)
+
+    monkeypatch.setattr(authoring, "write_sample", write_sample)
+
+
+def test_topup_is_the_same_for_any_workers_and_after_interruptions(topped_up, tmp_path, monkeypatch):
+    from allo_usd.authoring import AuthoringInterrupted, author
+
+    out, _ = topped_up
+    want = _files(out)
+    assert author(topup_plan(), tmp_path / "two", progress=False, workers=2).short == {}
+    assert _files(tmp_path / "two") == want
+
+    for n, reserve in ((2, False), (3, True), (5, True)):    # Ctrl-C while placing, and while topping up
+        tree = tmp_path / f"cut{n}{reserve}"
+        with monkeypatch.context() as m:
+            _interrupt_at(m, n, reserve)
+            with pytest.raises(AuthoringInterrupted):
+                author(topup_plan(), tree, progress=False, workers=1)
+        assert not (tree / "counts.csv").exists() and _files(tree) != want
+        if reserve:
+            assert 0 < len(_csv(tree / "reserves.csv")) < len(_csv(out / "reserves.csv"))
+        author(topup_plan(), tree, progress=False, workers=1)
+        assert _files(tree) == want, (n, reserve)
+
+    # Killed without a trace (SIGKILL): no records at all, and some reserve layers gone.
+    import shutil
+
+    tree = tmp_path / "killed"
+    shutil.copytree(out, tree)
+    for name in ("skipped.csv", "reserves.csv", "counts.csv"):
+        (tree / name).unlink()
+    for p in sorted((tree / "scenes" / "test" / "anomaly").glob("*_r*.usda"))[::2]:
+        p.unlink()
+    author(topup_plan(), tree, progress=False, workers=1)
+    assert _files(tree) == want
+
+    # Interrupted in the parent of a 2-worker pool while it writes reserve groups, resumed with 2.
+    tree = tmp_path / "pool"
+    with monkeypatch.context() as m:
+        _interrupt_at(m, 2, True)
+        with pytest.raises(AuthoringInterrupted):
+            author(topup_plan(), tree, progress=False, workers=2)
+    author(topup_plan(), tree, progress=False, workers=2)
+    assert _files(tree) == want

@@ -433,3 +433,94 @@ def test_occlusion_query_agrees_with_first_hit():
     clear = np.abs(dist - tmax) > 1e-4            # away from the float32 tie
     assert np.array_equal(scene.occluded(o, d, tmax)[clear], (dist < tmax)[clear])
     assert (dist < tmax).sum() > 100 and (dist >= tmax).sum() > 100
+
+
+# ------------------------------------------------------------ speed-ups that change no decision
+
+def test_pixel_rays_equal_the_matrix_form_bit_for_bit():
+    """pixel_rays computes each direction component as its own array; the bits equal R @ (x, y, -1)
+    normalised per ray, as written out here."""
+    from allo_usd.geometry import camera_intrinsics
+    from allo_usd.placement import random_rotation
+    from allo_usd.raycast import pixel_rays
+
+    rng = np.random.default_rng(11)
+    for w, h in ((1920, 1080), (480, 270), (64, 36)):
+        k = camera_intrinsics(w, h)
+        for _ in range(10):
+            rot, idx = random_rotation(rng), np.sort(rng.choice(w * h, min(w * h, 3000), replace=False))
+            u, v = (idx % w) + 0.5, (idx // w) + 0.5
+            x, y = (u - k[0, 2]) / k[0, 0], -(v - k[1, 2]) / k[1, 1]
+            want = x[:, None] * rot[:, 0] + y[:, None] * rot[:, 1] - rot[:, 2]
+            want /= np.sqrt(want[:, 0] * want[:, 0] + want[:, 1] * want[:, 1] + want[:, 2] * want[:, 2])[:, None]
+            o, d = pixel_rays(np.ones(3), rot, w, h, idx)
+            assert np.array_equal(d.view(np.uint64), want.view(np.uint64)) and np.array_equal(o[-1], np.ones(3))
+
+
+def test_part_footprint_and_rectangle_union_keep_every_pixel_and_the_count(monkeypatch):
+    """The part boxes' footprint holds the triangles' footprint (and so every pixel the object covers);
+    marking a few rectangles one by one equals the running count; and visible_fraction gives the
+    same value with either footprint, or with none."""
+    import allo_usd.placement as P
+    from allo_usd.assets.anomalies import build_anomaly
+    from allo_usd.raycast import pixel_rays
+
+    rng = np.random.default_rng(12)
+    st = tiny_station()
+    pts_s, tris_s = st.triangle_soup()
+    station = Scene([(pts_s, tris_s, STATION)])
+    part = build_anomaly("data_cable", "white").parts[0]            # a tube along a spline: a loose box
+    pts = part.points - 0.5 * (part.points.min(axis=0) + part.points.max(axis=0))
+    tris = part.triangles()
+    local = P.anomaly_scene(pts, tris)
+    r = np.linalg.norm(pts, axis=1).max()
+    w, h = 320, 180
+    fractions, covered_total = [], 0
+    for _ in range(25):
+        rot = P.random_rotation(rng)
+        pos = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-0.8, 0.8), -rng.uniform(1.0, 5.0)])
+        box_ = P._sphere_box(np.zeros(3), np.eye(3), w, h, pos, r * 1.001)
+        every = P._box_indices((0, w - 1, 0, h - 1), w)
+        o, d = pixel_rays(np.zeros(3), np.eye(3), w, h, every)
+        owner, _ = local.first_hit((o - pos) @ rot, d @ rot)
+        covered = set(every[owner > 0].tolist())
+        tri = set(P._footprint(np.zeros(3), np.eye(3), w, h, pts @ rot.T + pos, tris, box_).tolist())
+        parts = local.part_boxes(P._PART_LEVELS) @ rot.T + pos
+        many = P._parts_footprint(np.zeros(3), np.eye(3), w, h, parts, box_)
+        with monkeypatch.context() as m:
+            m.setattr(P, "_FEW_RECTS", 0)                               # the running count instead
+            assert np.array_equal(P._parts_footprint(np.zeros(3), np.eye(3), w, h, parts, box_), many)
+        assert covered <= tri <= set(many.tolist())
+        covered_total += len(covered)
+        cam = np.array([12.0, 6.0, 4.0])
+        cam_rot = look_at(cam, [0, 0, 0])
+        at = cam - cam_rot[:, 2] * rng.uniform(2.0, 9.0) + rng.normal(scale=0.5, size=3)
+        args = (station, local, cam, cam_rot, w, h, None, (at, r), (at, rot), P.box_corners(pts), 1, (pts, tris))
+        got = []
+        for levels, from_ in ((P._PART_LEVELS, P._FOOTPRINT_FROM), (P._PART_LEVELS, 0), (0, 10 ** 9)):
+            with monkeypatch.context() as m:
+                m.setattr(P, "_PART_LEVELS", levels)
+                m.setattr(P, "_FOOTPRINT_FROM", from_)
+                got.append(visible_fraction(*args))
+        assert got[0] == got[1] == got[2], got
+        fractions.append(got[0])
+    assert covered_total > 500 and sum(f > 0 for f in fractions) >= 5
+
+
+def test_fallback_ranking_screens_less_and_ranks_as_screening_everything():
+    """`_ranked` orders the fallback draws exactly as screening every depth of every draw would
+    (most depths passing, then earliest attempt; initial depth required), on random tables."""
+    from allo_usd.placement import _ranked
+
+    rng = np.random.default_rng(13)
+    saved = 0
+    for _ in range(300):
+        attempts = sorted(rng.choice(100, rng.integers(1, 5), replace=False).tolist())
+        table = {(a, i): bool(rng.random() < 0.6) for a in attempts for i in range(len(DEPTH_OFFSETS))}
+        asked = []
+        got = list(_ranked(attempts, lambda a, i: asked.append((a, i)) or table[a, i]))
+        want = sorted((a for a in attempts if table[a, 0]),
+                      key=lambda a: (-sum(table[a, i] for i in range(len(DEPTH_OFFSETS))), a))
+        assert got == want and len(asked) == len(set(asked))
+        saved += len(table) - len(asked)
+    assert saved > 0
