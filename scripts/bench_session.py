@@ -2,8 +2,9 @@
 
 (a) Switch cost: applying a scene change in a warm Session vs a preview-quality render of the
     same scene (480x270, 64 samples + OIDN: the RenderSpec defaults) and vs a from-scratch build.
-(b) Memory: 200 tiny scenes (64x36, 1 sample) cycling days, poses, anomalies, umbra and glare
-    through one Session, reading each layer as a worker does; RSS after each scene.
+(b) Memory: 200 DISTINCT scenes (160x90, 8 samples + OIDN: every scene a new day, pose sample,
+    anomaly asset/variant or none, some in umbra, some with glare) through one Session, reading
+    each layer as a worker does; RSS after each scene.
 (c) Byte identity on the real stage: the first distinct scenes rendered incrementally vs fresh.
 
 Writes docs/bench_session.md and docs/bench_session.png. Usage:
@@ -71,10 +72,46 @@ def author_layers(out: Path, resolution, samples, denoise) -> list[Path]:
                 continue
             if (i + j) % 4 == 1:   # some scenes in umbra: the sun lamp goes away
                 spec = replace(spec, sun=replace(spec.sun, irradiance=0.0, lit_fraction=0.0, eclipse_state="umbra",
-                                                 eclipse_body="Earth"))
+                                                 eclipse_body="moon"))
             if (i + j) % 4 == 2:   # some with glare: the compositor comes and goes
                 spec = replace(spec, effects=EffectsSpec(glare=True))
             layers.append(write_scene_layer(spec, out / "layers" / f"{spec.scene_id}.usda", BASE_STAGE))
+    return layers
+
+
+def distinct_layers(out: Path, n: int, resolution, samples: int, denoise: bool) -> list[Path]:
+    """`n` scenes that are all different: day k*37 % 365, pose k % 50 + 1, the 16 assets and their
+    variants in turn on test poses (none on training poses), every 5th in umbra, every 7th with glare."""
+    from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+    from allo_usd.author.scene import write_scene_layer
+    from allo_usd.errors import PlacementError
+    from allo_usd.paths import BASE_STAGE
+    from allo_usd.scenes import EXPOSURE, World, resolve_scene
+    from allo_usd.sky import Orbit, compute_sky, default_epochs
+    from allo_usd.spec import EffectsSpec, RenderSpec
+
+    orbit = Orbit()
+    world = World(Path(BASE_STAGE), compute_sky(default_epochs(), orbit),
+                  orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    render = RenderSpec(resolution=tuple(resolution), preset="bench", samples=samples, denoise=denoise,
+                        exposure=EXPOSURE, seed=1)
+    choices = [(a, v) for a in sorted(ANOMALY_VARIANTS) for v in ANOMALY_VARIANTS[a]]
+    layers, k = [], 0
+    while len(layers) < n:
+        day, pose = (k * 37) % 365, k % 50 + 1
+        anomaly = choices[k % len(choices)] if pose > 40 else None
+        k += 1
+        try:
+            spec = resolve_scene(world, scene_id=f"m{k:03d}_d{day}_p{pose}", day=day, pose=pose, plan_seed=2030,
+                                 render=render, anomaly=anomaly)
+        except PlacementError:
+            continue
+        if k % 5 == 0:
+            spec = replace(spec, sun=replace(spec.sun, irradiance=0.0, lit_fraction=0.0, eclipse_state="umbra",
+                                             eclipse_body="moon"))
+        if k % 7 == 0:
+            spec = replace(spec, effects=EffectsSpec(glare=True))
+        layers.append(write_scene_layer(spec, out / "layers" / f"{spec.scene_id}.usda", BASE_STAGE))
     return layers
 
 
@@ -126,7 +163,7 @@ def bench_memory(layers: list[Path], n: int) -> dict:
     session = Session()
     rss, apply_s, render_s, ids = [], [], [], []
     for i in range(n):
-        d = read_scene(layers[(i * 7) % len(layers)])   # 7 is prime to the layer count: every pair comes up
+        d = read_scene(layers[i % len(layers)])
         r = session.render(d)
         apply_s.append(session.last.seconds)
         render_s.append(r.seconds)
@@ -170,18 +207,19 @@ def main() -> None:
     t0 = time.perf_counter()
     preview = author_layers(args.out / "preview", (480, 270), 64, True)
     tiny = author_layers(args.out / "tiny", (64, 36), 1, False)
+    many = distinct_layers(args.out / "many", args.scenes, (160, 90), 8, True)
     author_s = time.perf_counter() - t0
-    print(f"authored {len(preview)} + {len(tiny)} layers in {author_s:.1f} s", flush=True)
+    print(f"authored {len(preview)} + {len(tiny)} + {len(many)} layers in {author_s:.1f} s", flush=True)
     switch = bench_switch(preview, args.repeats)
     print(json.dumps({k: v for k, v in switch.items() if not k.endswith("_all")}), flush=True)
     identity = bench_identity(tiny, args.identity)
     print(identity, flush=True)
-    memory = bench_memory(tiny, args.scenes)
+    memory = bench_memory(many, args.scenes)
     print(f"RSS {memory['rss_mb'][9]:.0f} MB at scene 10 -> {memory['rss_mb'][-1]:.0f} MB at {args.scenes}: "
           f"{memory['growth_10_to_end']:+.1%}", flush=True)
     load1 = os.getloadavg()
     results = {"switch": switch, "identity": identity, "memory": memory, "load_before": load0, "load_after": load1,
-               "cpu_count": os.cpu_count(), "layers": len(tiny)}
+               "cpu_count": os.cpu_count(), "layers": len(many)}
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
     write_docs(results, args.docs, args.scenes)
 
@@ -197,7 +235,7 @@ def write_docs(r: dict, docs: Path, n: int) -> None:
     ax1.plot(range(1, len(mem["rss_mb"]) + 1), mem["rss_mb"], lw=1.2)
     ax1.axhline(mem["rss_mb"][9] * 1.10, color="r", ls="--", lw=0.8, label="scene-10 RSS + 10%")
     ax1.axvline(10, color="gray", ls=":", lw=0.8)
-    ax1.set_xlabel("scene index (one Session, 64x36, 1 sample)")
+    ax1.set_xlabel("scene index (one Session, 200 distinct scenes, 160x90, 8 spp + OIDN)")
     ax1.set_ylabel("resident memory (MB)")
     ax1.set_title(f"RSS: {mem['growth_10_to_end']:+.1%} from scene 10 to {n}")
     ax1.legend(loc="lower right")
@@ -246,9 +284,9 @@ Target: switch <= 5% of the preview render -> **{'met' if sw['switch_s'] <= 0.05
 
 ## (b) Memory over {n} scenes
 
-{n} scenes at 64x36, 1 sample, cycling {r.get('layers', 16)} distinct layers (4 days x 4 poses x
-{{no anomaly, 2 variants of one asset, another asset}}, some in umbra, some with glare), each read with
-`read_scene` and rendered through one Session ({mem['full_builds']} full build).
+{n} distinct scenes at 160x90, 8 samples with OpenImageDenoise ({r.get('layers', n)} layers: each a new
+day, pose sample and anomaly asset/variant or none, every 5th in umbra, every 7th with glare), each read
+with `read_scene` and rendered through one Session ({mem['full_builds']} full build), as a worker does.
 
 - RSS at scene 10: {mem['rss_mb'][9]:.0f} MB; at scene {n}: {mem['rss_mb'][-1]:.0f} MB;
   growth **{mem['growth_10_to_end']:+.1%}** (max after scene 10: {mem['growth_max_after_10']:+.1%}).
@@ -266,9 +304,10 @@ scratch with `render_scene`: RGB float arrays and masks equal for
 
 ## Notes
 
-- Where the remaining RSS drift comes from (a separate run, 300 scenes over the same 16 tiny
-  layers): `Session.apply` alone with pre-read descriptions 433 -> 434 MB, `Session.render`
-  alone 500 -> 501 MB (flat); `read_scene` alone 201 -> 203 MB (pxr-side, ~7 KB per layer read).
+- An earlier run cycled 16 tiny layers (64x36, 1 sample, no denoiser) 200 times: +0.4%. Where
+  drift comes from there (300 scenes): `Session.apply` alone with pre-read descriptions 433 -> 434
+  MB, `Session.render` alone 500 -> 501 MB (flat); `read_scene` alone 201 -> 203 MB (pxr-side,
+  ~7 KB per layer read).
 - The warm/cold gap on a whole preview scene is small and noisy on shared cores (one run under a
   load average of 3-6 measured 9.3 s warm vs 12.2 s cold, a quieter one 5.6 vs 5.9 s): with
   this station the render itself dominates. The switch itself is ~12 ms in both.

@@ -146,3 +146,15 @@ def test_inspect_shows_every_sun_lamp_and_what_it_lights(tiny_base, tmp_path):
     text = format_description(d)
     assert "lights all but /World/Sky/Earth, /World/Sky/Moon" in text
     assert "MoonSunLight" in text and "lights only /World/Sky/Moon" in text
+
+
+def test_a_sun_token_outside_the_schema_is_refused_before_writing(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    from allo_usd.errors import LayerError
+
+    spec = make_spec()
+    bad = replace(spec, sun=replace(spec.sun, eclipse_body="Earth"))  # the schema's token is "earth"
+    with pytest.raises(LayerError, match="eclipse_body 'Earth' is not one of none, moon, earth"):
+        write_scene_layer(bad, tmp_path / "bad.usda", tiny_base)
+    assert not (tmp_path / "bad.usda").exists()

@@ -28,7 +28,7 @@ def _sequence() -> list[tuple[str, object]]:
                     sun=replace(blue.sun, direction=tuple(sun_dir), irradiance=1300.0, angular_diameter_deg=0.52),
                     day=7, epoch="2030-01-08T00:00:00Z")
     umbra = replace(other, sun=replace(other.sun, irradiance=0.0, lit_fraction=0.0, eclipse_state="umbra",
-                                       eclipse_body="Earth"),
+                                       eclipse_body="earth"),
                     render=replace(other.render, seed=5, samples=3))
     earth_dir = np.array([-0.3, 0.3, 0.9]) / np.linalg.norm([-0.3, 0.3, 0.9])
     lunar = replace(umbra, bodies={

@@ -86,6 +86,10 @@ def validate_spec(spec: SceneSpec) -> None:
         raise LayerError(f"split must be 'train' or 'test', got {spec.split!r}")
 
 
+ECLIPSE_STATES = ("lit", "penumbra", "annular", "umbra")   # allo:eclipseState's allowed tokens
+ECLIPSE_BODIES = ("none", "moon", "earth")                 # allo:eclipseBody's allowed tokens
+
+
 def _check_sun(what: str, sun: SunSpec) -> None:
     check_finite(f"{what} direction", sun.direction)
     values = (sun.irradiance, sun.irradiance_unoccluded, sun.angular_diameter_deg, sun.distance_m, sun.lit_fraction)
@@ -93,6 +97,11 @@ def _check_sun(what: str, sun: SunSpec) -> None:
     if sun.irradiance < 0 or sun.irradiance_unoccluded < 0 or not 0 <= sun.lit_fraction <= 1:
         raise LayerError(f"{what}: irradiance must be >= 0 and the lit fraction in [0, 1], got "
                          f"{sun.irradiance} W/m^2 and {sun.lit_fraction}")
+    for field, value, allowed in (("eclipse_state", sun.eclipse_state, ECLIPSE_STATES),
+                                  ("eclipse_body", sun.eclipse_body, ECLIPSE_BODIES)):
+        if value not in allowed:
+            raise LayerError(f"{what}: {field} {value!r} is not one of {', '.join(allowed)} (the schema's "
+                             "allowed tokens); fix the spec")
 
 
 def body_light(body: BodySpec, sun: SunSpec) -> SunSpec:
