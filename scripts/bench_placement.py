@@ -410,8 +410,10 @@ def main() -> int:
         "Also measured: the mask-only render (what the truth check used) takes "
         f"{render1_s:.2f} s render only, {wall1_s:.2f} s build + render (median of {n}); resolving a whole "
         f"group (camera perturbation, all attempts, five depths confirmed at {W}x{H}) {resolve_ms:.0f} ms "
-        f"median, median {pct([r['attempts'] for r in rows], 50):.0f} attempt(s); a draw with no initial "
-        f"placement {pct(skipped_ms, 50):.0f} ms median. The station BVH ({n_station_tris:,} triangles) is "
+        f"median, median {pct([r['attempts'] for r in rows], 50):.0f} attempt(s); "
+        + (f"a draw with no initial placement {pct(skipped_ms, 50):.0f} ms median. " if skipped_ms else
+           "no draw went without an initial placement. ")
+        + f"The station BVH ({n_station_tris:,} triangles) is "
         f"built once per world: {station_bvh_s:.2f} s (with the rig read).",
         "",
         "## Why prediction and mask agree pixel for pixel",
