@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import os
 import signal
 import time
@@ -431,8 +432,9 @@ def count_rows(plan: Plan, keys: list[SceneKey], skipped: dict, topup: _TopUp | 
     return rows
 
 
-def summary_lines(counts: list[dict]) -> list[str]:
-    """Planned vs authored, one line per (split, kind), and a line per asset left short."""
+def summary_lines(counts: list[dict], topup: bool = True) -> list[str]:
+    """Planned vs authored, one line per (split, kind), and a line per asset left short (SHORT when
+    the top-up ran out of reserve groups; a plain note when the plan turned the top-up off)."""
     lines = []
     for r in counts:
         if r["asset"]:
@@ -444,6 +446,10 @@ def summary_lines(counts: list[dict]) -> list[str]:
         lines.append(line)
     short = [r for r in counts if r["asset"] and int(r["short"]) > 0]
     for r in short:
+        if not topup:
+            lines.append(f"{r['asset']}: {int(r['authored']):,} of {int(r['planned']):,} ({int(r['short']):,} skipped "
+                         "depths not replaced: the plan turns the top-up off, anomalies.reserve_groups_per_slot = 0)")
+            continue
         lines.append(f"SHORT: {r['asset']}: {int(r['authored']):,} of {int(r['planned']):,} "
                      f"({int(r['short']):,} missing: it used every reserve group the top-up bound allows, "
                      f"{int(r['reserve_groups']):,}, see reserves.csv; fix: raise anomalies.reserve_groups_per_slot, "
@@ -466,30 +472,47 @@ def _existing(out_dir: Path) -> set[str]:
     return found
 
 
+STATION_MARKER = "station_source.json"  # in a model-built stages/: which file (and sha256) it was built from
+
+
 def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
     """The plan, pointed at the output tree's own base stage `out_dir/stages/base.usda`, made before
     any worker starts. A procedural station's tree gets a byte copy of the plan's base stage and its
     assets; a station that is a model file gets a base stage built from it (into a temporary
-    directory, then renamed). Scene layers then refer only to files inside the tree, so the tree
-    can be moved or copied as a whole and re-authoring elsewhere gives the same bytes."""
+    directory, then renamed, with `stages/station_source.json` naming the file and its sha256; a tree
+    built from another station is refused). Scene layers then refer only to files inside the tree,
+    so the tree can be moved or copied as a whole and re-authoring elsewhere gives the same bytes
+    (for a model-built stage, on machines whose OpenBLAS rounds alike: scripts/make_base_stage.py
+    pins that kernel for the committed stage)."""
     from .author.compose import copy_base_stage, tree_base_stage
 
     base = tree_base_stage(out_dir)
     if plan.station.source == "procedural":
         copy_base_stage(plan.resolve_base_stage(), out_dir)
-    elif not base.is_file():
+        return plan.model_copy(update={"base_stage": str(base.resolve())})
+    source = Path(plan.station.source)
+    if not source.is_file():
+        raise PlanError(f"station.source: {source} does not exist; fix: give the path of a glTF/OBJ/STL "
+                        "model, or 'procedural'")
+    from .write import sha256_file
+
+    made_from = {"source": source.name, "sha256": sha256_file(source), "units": plan.station.units}
+    marker = base.parent / STATION_MARKER
+    if base.is_file():
+        recorded = json.loads(marker.read_text()) if marker.is_file() else None
+        if recorded != made_from:
+            raise PlanError(f"{base.parent} was built from {recorded or 'another station'}, not from {made_from}; "
+                            "fix: author this plan into a new output directory (or delete that stages/ folder)")
+    else:
         import shutil
         import uuid
 
         from .author.build_stage import build_base_stage
 
-        source = Path(plan.station.source)
-        if not source.is_file():
-            raise PlanError(f"station.source: {source} does not exist; fix: give the path of a glTF/OBJ/STL "
-                            "model, or 'procedural'")
         tmp = base.parent.with_name(f".{base.parent.name}.{uuid.uuid4().hex}.tmp")
         try:
             build_base_stage(tmp, str(source), plan.station.units)
+            (tmp / STATION_MARKER).write_text(json.dumps(made_from, indent=1, sort_keys=True) + "\n")
             if base.parent.exists():  # an incomplete build of an older version: replace it
                 shutil.rmtree(base.parent)
             os.replace(tmp, base.parent)
@@ -560,15 +583,19 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     t0 = time.perf_counter()
     topup = None
     interrupted = False
+    finished = False
     try:
         with _runner(ctx, plan, out_dir, sky, workers) as runner:
             topup, interrupted = _drive(runner, ctx, keys, todo, skipped, ledger, bar)
+        finished = not interrupted
     finally:
         bar.close()
         write_skipped(skipped_path, skipped)
         if topup is not None:
             entries = topup.entries()
-            write_reserves(reserves_path, entries if not interrupted else {**ledger, **entries})
+            # A finished run's entries are exactly the groups it used (ledger entries it reused
+            # included); a run cut short by Ctrl-C or an error keeps what earlier runs recorded too.
+            write_reserves(reserves_path, entries if finished else {**ledger, **entries})
     if interrupted:
         raise AuthoringInterrupted(f"interrupted after {bar.n} scenes ({time.perf_counter() - t0:.0f} s); "
                                    f"finished layers are kept and no partial file is left; fix: re-run the "
@@ -695,7 +722,12 @@ def _runner(ctx: _Context, plan: Plan, out_dir: Path, sky, workers: int):
     with _single_threaded_numerics(), \
             ProcessPoolExecutor(workers, mp_context=mpctx, initializer=_init,
                                 initargs=(plan.model_dump_json(), str(out_dir), sky, stop)) as pool:
-        yield _Pool(pool, stop, workers)
+        try:
+            yield _Pool(pool, stop, workers)
+        except BaseException:  # a failed task or Ctrl-C: stop the workers now, not after their queued chunks
+            stop.set()
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
 
 
 _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")

@@ -194,7 +194,8 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     from .plan import load_plan
 
     try:
-        done = author_tree(load_plan(plan_file), out, limit=limit, progress=progress, workers=workers)
+        plan = load_plan(plan_file)
+        done = author_tree(plan, out, limit=limit, progress=progress, workers=workers)
     except AuthoringInterrupted as exc:
         typer.echo(f"{exc}", err=True)
         raise SystemExit(130) from None
@@ -203,9 +204,10 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
         raise SystemExit(130) from None
     typer.echo(f"{len(done.paths)} scene layers under {out / 'scenes'}; skipped depths in {out / 'skipped.csv'}, "
                f"planned vs authored in {out / 'counts.csv'}")
-    for line in summary_lines(done.counts):
+    topup = plan.anomalies.reserve_groups_per_slot > 0
+    for line in summary_lines(done.counts, topup):
         typer.echo(line, err=line.startswith("SHORT"))
-    if done.short:
+    if done.short and topup:
         raise SystemExit(1)
 
 

@@ -56,7 +56,7 @@ import numpy as np
 from PIL import Image
 
 from .errors import AlloError
-from .write import atomic_path, mask_overlay, sha256_file, write_png
+from .write import RunLock, atomic_path, mask_overlay, sha256_file, write_png
 
 LAYOUTS = ("mvtec",)
 COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "kind", "scene_id", "pose", "day",
@@ -277,13 +277,23 @@ def _stop_at_scene_boundary():
         signal.signal(signal.SIGINT, old if old is not None else signal.SIG_DFL)
 
 
+LOCK = ".allo-dataset.lock"
+
+
 def assemble(render_dirs, out_dir, layout: str = "mvtec", link: bool = True, category: str = "allo",
              sheet_limit: int = 48, progress: bool = False, on_scene=None) -> Path:
     """Build (or update) the dataset tree under out_dir from render directories; returns the manifest.
 
     `progress` shows bars (counts, ETA) for reading the renders and placing the scenes;
     `on_scene(name)` is called after each scene's files are in place. Ctrl-C raises
-    AssemblyInterrupted once the manifest is final for what was placed."""
+    AssemblyInterrupted once the manifest is final for what was placed. One run at a time per
+    out_dir (`LOCK`): a second would remove the first one's temporaries and unlisted images."""
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    with RunLock(out_dir, LOCK, "dataset"):
+        return _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene)
+
+
+def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene) -> Path:
     from tqdm import tqdm
 
     if layout not in LAYOUTS:

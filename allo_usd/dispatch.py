@@ -80,7 +80,7 @@ from pathlib import Path
 from .errors import AlloError, DiskFullError, LayerError, RenderFailedError
 from .job import output_paths
 from .safety import ENV_ROOTS
-from .write import DISK_FULL_ERRNOS, sha256_file, temp_name_re
+from .write import DISK_FULL_ERRNOS, RunLock, sha256_file, temp_name_re
 
 MANIFEST = "manifest.jsonl"
 FAILED = "failed.jsonl"
@@ -246,26 +246,6 @@ def clean_stale(out_dir: Path, pid: int | None = None) -> int:
                 n += 1
     shutil.rmtree(out_dir / WORKDIR if pid is None else out_dir / WORKDIR / str(int(pid)), ignore_errors=True)
     return n
-
-
-class _RunLock:
-    def __init__(self, out_dir: Path):
-        self.path = Path(out_dir) / LOCK
-
-    def __enter__(self):
-        import fcntl
-
-        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(self.fd)
-            raise AlloError(f"another render run is writing to {self.path.parent}; wait for it or use another "
-                            "--out") from None
-        return self
-
-    def __exit__(self, *exc):
-        os.close(self.fd)
 
 
 # ---------------------------------------------------------------- the task (runs in a worker)
@@ -615,8 +595,8 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                     w.proc.join(5)
                     reason = f"{_death_reason(w.proc.exitcode)}; its output is in {w.log}"
                     w.kill()
-                    pool[i] = _Worker(ctx, env, w.cores, w.index, log_dir)
                     clean_stale(out_dir, pid=w.proc.pid)  # its half-written temporaries, not its neighbours'
+                    pool[i] = _Worker(ctx, env, w.cores, w.index, log_dir)  # after: a reused pid keeps its files
                     if run.retry_or_fail(task, "crash", reason):
                         pending.appendleft(task)
                 elif run.settle(task, result):
@@ -719,7 +699,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     prior = os.environ.get(ENV_ROOTS, "")
     env = {ENV_ROOTS: os.pathsep.join([*roots, *([prior] if prior else [])])}
     summary = Summary()
-    with _RunLock(out_dir):
+    with RunLock(out_dir, LOCK, "render"):
         clean_stale(out_dir)
         (out_dir / FAILED).unlink(missing_ok=True)  # failures of this run only; earlier ones are retried
         _compact_manifest(out_dir)

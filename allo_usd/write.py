@@ -135,3 +135,26 @@ def mask_overlay(rgb8: np.ndarray, mask: np.ndarray, alpha: float = 0.5) -> np.n
     colour = MASK_PALETTE[np.clip(mask, 0, 2)].astype(np.float32)
     a = (mask > 0)[..., None] * alpha
     return np.rint(rgb8 * (1 - a) + colour * a).astype(np.uint8)
+
+
+class RunLock:
+    """One writer per output directory: an exclusive, non-blocking flock on `out_dir/name`, held for
+    the block (released by the kernel if the process dies). A second run gets a clear error."""
+
+    def __init__(self, out_dir: Path, name: str, what: str):
+        self.path, self.what = Path(out_dir) / name, what
+
+    def __enter__(self):
+        import fcntl
+
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.fd)
+            raise AlloError(f"another {self.what} run is writing to {self.path.parent}; wait for it or use "
+                            "another --out") from None
+        return self
+
+    def __exit__(self, *exc):
+        os.close(self.fd)

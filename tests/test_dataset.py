@@ -292,5 +292,17 @@ def test_an_interrupted_cli_run_never_leaves_unlisted_files(renders, tmp_path, s
     rows = read_manifest(out / "manifest.csv")
     assert len(rows) == 604 and sorted(int(r["index"]) for r in rows) == list(range(604))
     assert tree_files(out) == listed_files(out)
-    assert not [p for p in out.rglob(".*") if p.is_file()]
+    assert not [p for p in out.rglob(".*") if p.is_file() and p.name != ".allo-dataset.lock"]  # no temporaries
     mvtec_pairs(out / "allo")
+
+
+def test_one_assembly_at_a_time_per_output(tmp_path):
+    from allo_usd.dataset import LOCK, assemble
+    from allo_usd.errors import AlloError
+    from allo_usd.write import RunLock
+
+    (tmp_path / "ds").mkdir()
+    with RunLock(tmp_path / "ds", LOCK, "dataset"):  # another assembly holds the directory
+        with pytest.raises(AlloError, match="another dataset run is writing to"):
+            assemble([tmp_path / "renders"], tmp_path / "ds")
+    assert not (tmp_path / "ds" / "manifest.csv").exists()  # refused before touching anything

@@ -411,6 +411,11 @@ def test_topup_cap_is_honoured_and_reported(topped_up, tmp_path):
     planned = _files(tmp_path / "off")
     assert planned and all(_files(out)[f] == b for f, b in planned.items()
                            if f.startswith(("scenes", "poses", "sky")))
+    # ... and the command says so plainly and succeeds: with the top-up off, skips are expected.
+    path = save_plan(topup_plan(reserve_groups_per_slot=0), tmp_path / "off.toml")
+    result = CliRunner().invoke(app, ["author", str(path), "--out", str(tmp_path / "off"), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert "SHORT" not in result.output and "the plan turns the top-up off" in result.output
 
     # The bolt cluster at 8x4 pixels almost never covers a pixel centre: its reserves run out.
     plan = topup_plan("bolt_cluster", (8, 4), days=2, reserve_groups_per_slot=1)
@@ -492,3 +497,32 @@ def test_topup_is_the_same_for_any_workers_and_after_interruptions(topped_up, tm
             author(topup_plan(), tree, progress=False, workers=2)
     author(topup_plan(), tree, progress=False, workers=2)
     assert _files(tree) == want
+
+
+def test_a_tree_built_from_one_model_refuses_another(tmp_path):
+    """A model-built stages/ records its source; a plan naming another model is refused, not
+    silently authored over the old station (the procedural station's mesh stands in for a model)."""
+    import shutil
+
+    import trimesh
+
+    from allo_usd.assets.station import build_station
+    from allo_usd.authoring import STATION_MARKER, with_tree_stage
+    from allo_usd.plan import Station
+
+    pts, tris = build_station().triangle_soup()
+    a, b = tmp_path / "a.stl", tmp_path / "b.stl"
+    trimesh.Trimesh(pts, tris, process=False).export(a)
+    shutil.copy(a, b)
+    with open(b, "ab") as f:
+        f.write(b"\0")  # another file: another sha256
+    out = tmp_path / "tree"
+    plan = tiny_plan().model_copy(update={"station": Station(source=str(a), units="m")})
+    with_tree_stage(plan, out)
+    recorded = json.loads((out / "stages" / STATION_MARKER).read_text())
+    assert recorded["source"] == "a.stl" and len(recorded["sha256"]) == 64 and recorded["units"] == "m"
+    before = (out / "stages" / "base.usda").read_bytes()
+    with_tree_stage(plan, out)  # the same model: reused as it is
+    with pytest.raises(PlanError, match=r"was built from .*a\.stl.*new output directory"):
+        with_tree_stage(plan.model_copy(update={"station": Station(source=str(b), units="m")}), out)
+    assert (out / "stages" / "base.usda").read_bytes() == before
