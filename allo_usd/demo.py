@@ -98,10 +98,10 @@ def contact_sheet(rows: list[tuple[str, np.ndarray, np.ndarray]], path: Path) ->
 def _render(layer: Path, renders: Path) -> dict:
     """Render a layer unless its outputs exist for these very layer bytes (a changed layer, e.g.
     another resolution, is rendered again)."""
-    import hashlib
     import json
 
     from .job import output_paths, render_layer
+    from .write import sha256_file
 
     meta_path = output_paths(layer, renders)["meta"]
     force = False
@@ -110,7 +110,7 @@ def _render(layer: Path, renders: Path) -> dict:
             old = json.loads(meta_path.read_text()).get("layer_sha256")
         except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
             old = None
-        force = old != hashlib.sha256(layer.read_bytes()).hexdigest()
+        force = old != sha256_file(layer)
     return render_layer(layer, renders, force=force)
 
 
@@ -121,6 +121,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     atomic file writes, so finished scenes are kept and a re-run renders only what is missing."""
     from tqdm import tqdm
 
+    from .dataset import _pixels
     from .dispatch import output_to
     from .sky import Orbit, compute_sky, default_epochs
 
@@ -140,8 +141,8 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
                 meta = _render(layer, out_dir / "renders")
             bar.write(f"{spec.scene_id}: {meta['render_seconds']:.1f} s, anomaly {meta['anomaly_fraction']:.3%}, "
                       f"sun {spec.sun.eclipse_state}")
-            rgb = np.asarray(Image.open(out_dir / "renders" / meta["files"]["rgb"]))
-            mask = np.asarray(Image.open(out_dir / "renders" / meta["files"]["mask"]))
+            rgb = _pixels(out_dir / "renders" / meta["files"]["rgb"])
+            mask = _pixels(out_dir / "renders" / meta["files"]["mask"])
             rows.append((spec.scene_id, rgb, mask))
             bar.update(1)
     return contact_sheet(rows, out_dir / "contact_sheet.png")

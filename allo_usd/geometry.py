@@ -96,3 +96,19 @@ def camera_intrinsics(width: int, height: int) -> np.ndarray:
     """3x3 pinhole matrix (pixels) for the 25 mm / 36 mm-wide camera, sensor fit horizontal."""
     f = FOCAL_LENGTH_MM / SENSOR_WIDTH_MM * width
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (Fibonacci lattice), deterministic."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
+def box_corners(points) -> np.ndarray:
+    """(8, 3) corners of the axis-aligned box around `points` (an object in its own frame)."""
+    p = np.asarray(points, dtype=np.float64)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    return np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])

@@ -26,7 +26,7 @@ import numpy as np
 
 from .description import ANOMALY
 from .errors import PlacementError
-from .geometry import camera_intrinsics, quat_to_matrix
+from .geometry import box_corners, camera_intrinsics, fibonacci_sphere, quat_to_matrix
 from .raycast import Scene, pixel_rays
 
 DEPTH_OFFSETS = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -187,14 +187,6 @@ def sphere_pixels(cam_pos, cam_rot, width: int, height: int, centre, radius: flo
     return None if box is None else _box_indices(box, width)
 
 
-def box_corners(points) -> np.ndarray:
-    """(8, 3) corners of the axis-aligned box around `points` (an object in its own frame)."""
-    p = np.asarray(points, dtype=np.float64)
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    return np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
-                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-
-
 def visible_fraction(station: Scene | None, anomaly: Scene, cam_pos, cam_rot, width: int, height: int,
                      rays=None, sphere=None, pose=None, corners=None, stride: int = 1, mesh=None) -> float:
     """Fraction of pixel centres whose first hit is the anomaly (station and anomaly BVHs kept apart,
@@ -327,14 +319,7 @@ def check(station: Scene, anomaly_points, anomaly_tris, position, rotation, cam_
                        cam_rot, width, height, min_fraction, 1, (anomaly_points, np.asarray(anomaly_tris)))
 
 
-def _fibonacci_sphere(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5 ** 0.5) * i
-    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
-
-
-_SPHERE_DIRS = _fibonacci_sphere(128)
+_SPHERE_DIRS = fibonacci_sphere(128)
 
 
 def _image_rays(cam_rot, k: np.ndarray, px, py) -> np.ndarray:
@@ -344,12 +329,6 @@ def _image_rays(cam_rot, k: np.ndarray, px, py) -> np.ndarray:
     y = -(np.asarray(py, dtype=np.float64) - k[1, 2]) / k[1, 1]
     d = x[..., None] * r[:, 0] + y[..., None] * r[:, 1] - r[:, 2]
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
-def _face_areas(points) -> np.ndarray:
-    """Areas of the object's bounding-box faces normal to its own x, y, z axes."""
-    e = np.ptp(np.asarray(points, dtype=np.float64), axis=0)
-    return np.array([e[1] * e[2], e[0] * e[2], e[0] * e[1]])
 
 
 def _stride(fraction: float, n_pixels: int) -> int:

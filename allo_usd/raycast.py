@@ -13,7 +13,7 @@ import numpy as np
 from trimesh.triangles import normals as triangle_normals
 from trimesh.util import diagonal_dot, unitize
 
-from .geometry import camera_intrinsics
+from .geometry import box_corners, camera_intrinsics
 
 _RAY_OFFSET_FACTOR, _RAY_OFFSET_FLOOR = 1e-6, 1e-8   # step past a hit face (multiple hits)
 _PARALLEL = 1e-5                                      # |cos| under this: the ray grazes the plane
@@ -70,10 +70,7 @@ class Scene:
                 groups = split
             boxes = []
             for g in groups:
-                p = self.vertices[np.unique(self.faces[g])]
-                lo, hi = p.min(axis=0), p.max(axis=0)
-                boxes.append([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
-                              for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+                boxes.append(box_corners(self.vertices[np.unique(self.faces[g])]))
             self._parts[levels] = np.array(boxes, dtype=np.float64).reshape(-1, 8, 3)
         return self._parts[levels]
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from .author.base import CameraPose
 from .errors import PlacementError
-from .geometry import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM, check_finite, look_at
+from .geometry import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM, check_finite, fibonacci_sphere, look_at
 from .raycast import Scene
 
 N_TRAIN, N_TEST = 40, 10
@@ -106,13 +106,6 @@ def view_quality(station: Scene, position, rotation, grid: tuple[int, int] = QUA
     return _qualities(station, position, np.asarray(rotation, dtype=np.float64)[None], grid)[0]
 
 
-def _fibonacci_directions(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5 ** 0.5) * i
-    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
-
-
 def best_view(station: Scene, position) -> tuple[ViewQuality, np.ndarray, float] | None:
     """The best qualifying look direction from `position` (Z-up camera): (its quality, rotation,
     robust score), or None if none qualifies. The robust score averages `ViewQuality.value` over
@@ -120,7 +113,7 @@ def best_view(station: Scene, position) -> tuple[ViewQuality, np.ndarray, float]
     by one sigma (1 m) forward and to either side, so a pose whose perturbed cameras still see
     structure at a distance wins over one that only works when placed and aimed exactly."""
     p = np.asarray(position, dtype=np.float64)
-    rots = np.array([look_at(p, p + d) for d in _fibonacci_directions(_N_DIRECTIONS)])
+    rots = np.array([look_at(p, p + d) for d in fibonacci_sphere(_N_DIRECTIONS)])
     coarse = np.array([q.score for q in _qualities(station, p, rots, _SCREEN_GRID)])
     top = [int(k) for k in np.argsort(-coarse, kind="stable")[:_REFINE] if coarse[k] > 0]
     fine = _qualities(station, p, rots[top], QUALITY_GRID) if top else []

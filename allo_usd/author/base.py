@@ -13,7 +13,8 @@ import numpy as np
 
 from ..geometry import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM, matrix_to_quat
 from ..mesh import Asset
-from .. import schema
+from .. import schema, sky
+from ..description import STATION_SUN
 from .asset import commit_layer, new_layer, stage_metadata, write_asset, write_variant_asset
 
 # UsdGeom.Camera lens values are tenths of a scene unit (PHYSICS.md section 4).
@@ -35,8 +36,7 @@ DEFAULT_RESOLUTION = (1920, 1080)
 # Sun lamps (UsdLux light linking, PHYSICS.md sections 5-6): the station's lamp carries the station's
 # eclipse and lights everything but the Earth and the Moon; each of those has a lamp of its own that
 # lights only it, with the Sun as seen from its centre and its own eclipse.
-STATION_SUN = "/World/Sky/SunLight"
-LIT_BODIES = ("Earth", "Moon")
+LIT_BODIES = tuple(name.capitalize() for name in sky.LIT_BODIES)  # prim names of the bodies with a lamp
 
 
 def body_sun_path(body: str) -> str:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__, schema
+from .. import __version__, schema, sky
 from ..effects.noise import SENSOR_ATTRIBUTES, SensorParams
 from ..errors import AlloError, LayerError
 from ..geometry import check_finite, matrix_to_quat, rotation_towards
@@ -86,8 +86,8 @@ def validate_spec(spec: SceneSpec) -> None:
         raise LayerError(f"split must be 'train' or 'test', got {spec.split!r}")
 
 
-ECLIPSE_STATES = ("lit", "penumbra", "annular", "umbra")   # allo:eclipseState's allowed tokens
-ECLIPSE_BODIES = ("none", "moon", "earth")                 # allo:eclipseBody's allowed tokens
+ECLIPSE_STATES = sky.ECLIPSE_STATES                 # allo:eclipseState's allowed tokens
+ECLIPSE_BODIES = ("none", *sky.SHADOW_BODIES)      # allo:eclipseBody's allowed tokens
 
 
 def _check_sun(what: str, sun: SunSpec) -> None:
