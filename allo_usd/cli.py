@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from .errors import AlloError
+from allo_usd.core.errors import AlloError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Author, record and render the ALLO lunar-orbit anomaly dataset as USD layers.")
@@ -31,11 +31,11 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
     (--scheduler), resuming from OUT/manifest.jsonl; failures go to OUT/failed.jsonl and Blender's
     output to OUT/logs/. A plan is authored into OUT/layers first, then rendered into OUT/renders.
     """
-    from .dispatch import author_and_dispatch, dispatch, output_to
+    from allo_usd.run.dispatch import author_and_dispatch, dispatch, output_to
 
     suffix = source.suffix.lower()
     if suffix == ".usda" and source.is_file() and scheduler is None and not workers:
-        from .job import render_layer
+        from allo_usd.run.job import render_layer
 
         with output_to(out / "logs" / "render.log"):  # Blender's own prints
             meta = render_layer(source, out, force=force, threads=threads or None)
@@ -62,7 +62,7 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
 def demo(out: Path = typer.Option(Path("out/demo"), "--out"),
          width: int = 480, height: int = 270, samples: int = 32):
     """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet."""
-    from .demo import run_demo
+    from allo_usd.run.demo import run_demo
 
     try:
         sheet = run_demo(out, (width, height), samples)
@@ -76,8 +76,8 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out"),
 @app.command()
 def sky(out: Path = typer.Option(Path("out/sky"), "--out"), year: int = 2030, days: int = 365):
     """Write a year's sky table (CSV) and plot (PNG): distance, irradiance, eclipses, angular sizes."""
-    from .sky import Orbit, compute_sky, default_epochs
-    from .sky_report import write_sky_report
+    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+    from allo_usd.sky.report import write_sky_report
 
     s = compute_sky(default_epochs(year, days), Orbit())
     out.mkdir(parents=True, exist_ok=True)
@@ -91,8 +91,8 @@ def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ or STL fil
                  units: str = typer.Option("auto", help="m, cm, mm, in, ft or auto."),
                  label: str = typer.Option("station", help="Class label: station or anomaly.")):
     """Convert a real mesh (through trimesh) into a USD asset in metres, Z up."""
-    from .assets.importer import import_mesh_report
-    from .author.asset import write_asset
+    from allo_usd.assets.importer import import_mesh_report
+    from allo_usd.usd.asset import write_asset
 
     report = import_mesh_report(file, units=units)
     path = write_asset(report.asset, out, label)
@@ -105,7 +105,7 @@ def inspect(layer: Path = typer.Argument(..., help="Scene layer (.usda)."),
     """Describe a scene from its USD layer alone: identity, seed, sky, camera, anomaly, render, layer stack."""
     import json
 
-    from .inspect import describe, format_description
+    from allo_usd.usd.inspect import describe, format_description
 
     d = describe(layer)
     typer.echo(json.dumps(d, indent=2) if as_json else format_description(d))
@@ -115,8 +115,8 @@ def inspect(layer: Path = typer.Argument(..., help="Scene layer (.usda)."),
 def diff(a: Path = typer.Argument(..., help="First scene layer."), b: Path = typer.Argument(..., help="Second."),
          full: bool = typer.Option(False, help="Compare every prim, not only those the non-shared layers touch.")):
     """List composed values that differ between two scene layers (exit 1 if any differ, like diff)."""
-    from .inspect import diff as diff_layers
-    from .inspect import format_diff
+    from allo_usd.usd.inspect import diff as diff_layers
+    from allo_usd.usd.inspect import format_diff
 
     rows = diff_layers(a, b, full=full)
     typer.echo(format_diff(rows))
@@ -135,7 +135,7 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
     the manifest always lists every file in the tree. Mask-only renders are left out (no image)."""
     import warnings
 
-    from .dataset import assemble, read_manifest
+    from allo_usd.output.dataset import assemble, read_manifest
 
     with warnings.catch_warnings(record=True) as notes:
         warnings.simplefilter("always")
@@ -165,8 +165,10 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
              paper: bool = typer.Option(False, "--paper", help="The ALLO paper's Table II plan (51,409 scenes)."),
              demo: bool = typer.Option(False, "--demo", help="A tiny plan: 2 days, 3 poses, 1 anomaly.")):
     """Write a dataset plan file (the paper's, or a tiny demo one) to edit and author."""
-    from .errors import PlanError
-    from .plan import demo_plan, enumerate_scenes, paper_plan, save_plan
+    from allo_usd.core.errors import PlanError
+    from allo_usd.plan.model import demo_plan, paper_plan
+    from allo_usd.plan.enumeration import enumerate_scenes
+    from allo_usd.plan.io import save_plan
 
     if paper == demo:
         raise PlanError("choose exactly one of --paper or --demo")
@@ -185,13 +187,13 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done).
 
     Anomalous depths that the placement check skips are topped up from reserve placements of the
-    same seed, asset and variant, so each reaches its planned count (allo_usd.authoring). With
+    same seed, asset and variant, so each reaches its planned count (allo_usd.run.author). With
     --limit N the quotas are those of the first N scenes, and their skipped depths are topped up
     too. Ends with planned vs authored counts (also in OUT/counts.csv); exits 1 if an asset stays
     short because its reserve groups ran out (anomalies.reserve_groups_per_slot).
     """
-    from .authoring import AuthoringInterrupted, author as author_tree, summary_lines
-    from .plan import load_plan
+    from allo_usd.run.author import AuthoringInterrupted, author as author_tree, summary_lines
+    from allo_usd.plan.io import load_plan
 
     try:
         plan = load_plan(plan_file)

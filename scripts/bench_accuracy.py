@@ -5,7 +5,7 @@
 
 Renders a reference (no denoise, its own seed) cached as out/bench/reference_<spp>.exr, then a
 sweep (samples x denoiser, adaptive threshold, max bounces, half resolution) and the presets of
-allo_usd.presets (3 rounds, interleaved, median per preset, all in one process). Rows are cached in
+allo_usd.plan.settings (3 rounds, interleaved, median per preset, all in one process). Rows are cached in
 out/bench/accuracy_rows.json so phases can be re-run separately; `report` writes
 docs/bench_accuracy.csv, .md and .png.
 
@@ -35,8 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from allo_usd.presets import PRESETS  # noqa: E402
-from allo_usd.write import linear_to_srgb8  # noqa: E402
+from allo_usd.plan.settings import PRESETS
+from allo_usd.output.writers import linear_to_srgb8
 
 BENCH = ROOT / "out" / "bench"
 ROWS = BENCH / "accuracy_rows.json"
@@ -123,7 +123,7 @@ def reference(desc, spp: int) -> np.ndarray:
     """The reference image, cached as out/bench/reference_<spp>.exr (float32 R, G, B)."""
     import OpenEXR
 
-    from allo_usd.write import write_exr
+    from allo_usd.output.writers import write_exr
 
     path = BENCH / f"reference_{spp}.exr"
     if path.is_file():
@@ -385,7 +385,7 @@ def main(argv=None) -> int:
     ap.add_argument("--redo", action="store_true", help="re-render sweep rows already cached")
     args = ap.parse_args(argv)
 
-    from allo_usd.read import read_scene
+    from allo_usd.usd.read import read_scene
 
     desc = read_scene(args.layer)
     meta = {"layer": os.path.relpath(args.layer, ROOT), "resolution": desc.render.resolution, "ref_samples": args.ref_samples,

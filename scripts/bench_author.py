@@ -3,7 +3,7 @@
 By default a scaled subset is authored in one process and the full plan is extrapolated for
 2 workers: normal scenes, planned anomaly placements (strided over the plan) and the top-up of
 their skipped depths (the reserve groups of the same (seed, asset, variant)s, decided as
-`allo_usd.authoring` does, for the subset's shortfalls) are timed separately. `--sample DAYS`
+`allo_usd.run.author` does, for the subset's shortfalls) are timed separately. `--sample DAYS`
 authors the paper plan scaled down to DAYS days (the same poses, seeds, quality and proportions)
 end to end through `author` with `--workers` processes, as `allo-usd author` does. `--full`
 authors the whole plan that way. Both report planned vs authored counts and the top-up.
@@ -29,10 +29,11 @@ from collections import Counter  # noqa: E402
 from itertools import groupby  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from allo_usd.authoring import (_Context, _drive, _Inline, author, author_sample, ensure_sky_layer,  # noqa: E402
-                                summary_lines, with_tree_stage)
-from allo_usd.plan import enumerate_scenes, paper_plan  # noqa: E402
-from allo_usd.sky import Orbit, compute_sky  # noqa: E402
+from allo_usd.run.author import (_Context, _drive, _Inline, author, author_sample, ensure_sky_layer,
+                                 summary_lines, with_tree_stage)
+from allo_usd.plan.enumeration import enumerate_scenes
+from allo_usd.plan.model import paper_plan
+from allo_usd.sky.model import Orbit, compute_sky
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -60,7 +61,7 @@ class _Quiet:
 
 def scaled_plan(plan, days: int):
     """The paper plan over its first `days` days, with its counts scaled by days/365."""
-    from allo_usd.plan import Counts, Dates
+    from allo_usd.plan.model import Counts, Dates
 
     f = days / plan.dates.days
     c = plan.counts

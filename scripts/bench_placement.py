@@ -3,7 +3,7 @@
     .venv/bin/python scripts/bench_placement.py [--n 200] [--quick] [--seed 2030] [--resolution 1920x1080] [--out docs]
 
 Truth: ``--n`` test-split scenes (poses 41-50, days 0-364, a random anomaly asset and variant) are
-resolved at the render resolution (default 1920x1080, the paper's) with ``allo_usd.scenes``
+resolved at the render resolution (default 1920x1080, the paper's) with ``allo_usd.scene.resolve``
 (``resolve_camera`` + ``resolve_placements``, as authoring does: candidates screened at 480 px wide,
 then every depth confirmed at the render resolution, whose fraction ``AnomalySpec.predicted_area_fraction``
 records). The initial depth of each group is authored as a USD layer, read back and rendered by
@@ -13,7 +13,7 @@ counted and compared with the prediction. A placement passes when |predicted - r
 rendered area, or <= 50 px (small objects). Draws for which no placement is found (PlacementError)
 are counted and replaced by a new draw; the depths each group had to skip are counted too.
 
-Speed: ``allo_usd.placement.check`` (one placement attempt at the render resolution: the touch test,
+Speed: ``allo_usd.scene.placement.check`` (one placement attempt at the render resolution: the touch test,
 one ray per pixel centre in the object's image box) is timed on the first ``--check-scenes``
 placements with the inputs ``resolve_placements`` used (warm-up call, then the median of ``--reps``
 calls per scene; the station BVH is built once per world and reported separately). The paper's
@@ -44,16 +44,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from allo_usd.assets.anomalies import ANOMALY_VARIANTS  # noqa: E402
-from allo_usd.author.scene import write_scene_layer  # noqa: E402
-from allo_usd.description import ANOMALY  # noqa: E402
-from allo_usd.errors import PlacementError  # noqa: E402
-from allo_usd.placement import check  # noqa: E402
-from allo_usd.placement import sphere_pixels  # noqa: E402
-from allo_usd.raycast import Scene, pixel_rays  # noqa: E402
-from allo_usd.scenes import EXPOSURE, World, build_spec, resolve_camera, resolve_placements  # noqa: E402
-from allo_usd.sky import Orbit, compute_sky, default_epochs  # noqa: E402
-from allo_usd.spec import EffectsSpec, RenderSpec  # noqa: E402
+from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.core.labels import ANOMALY
+from allo_usd.core.errors import PlacementError
+from allo_usd.scene.placement import check
+from allo_usd.scene.placement import sphere_pixels
+from allo_usd.scene.raycast import RayScene, pixel_rays
+from allo_usd.core.constants import EXPOSURE
+from allo_usd.usd.read import scene_inputs
+from allo_usd.scene.resolve import SceneInputs, build_spec, resolve_camera, resolve_placements
+from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+from allo_usd.plan.settings import EffectsSpec, RenderSpec
 
 UTC = timezone.utc
 W, H = 1920, 1080   # --resolution
@@ -104,7 +106,7 @@ def blender_log_captured():
             os.close(saved)
 
 
-def check_inputs(world: World, spec):
+def check_inputs(world: SceneInputs, spec):
     """The arguments resolve_placements gave placement.check for the chosen depth: the asset
     recentred on its bounding-box centre, and the placed centre (prim position + R @ centre)."""
     a = spec.anomaly
@@ -117,11 +119,11 @@ def check_inputs(world: World, spec):
     return pts - centre, tris, position, rot, cam_pos, cam_rot
 
 
-def predicted_mask(world: World, inputs) -> np.ndarray:
+def predicted_mask(world: SceneInputs, inputs) -> np.ndarray:
     """(H, W) bool: the pixels whose centre ray meets the anomaly before the station, every pixel in
     the object's bounding-sphere image box cast (exact, no sub-sampling)."""
     pts, tris, position, rot, cam_pos, cam_rot = inputs
-    anomaly = Scene([(pts @ rot.T + position, tris, ANOMALY)])
+    anomaly = RayScene([(pts @ rot.T + position, tris, ANOMALY)])
     idx = sphere_pixels(cam_pos, cam_rot, W, H, position, np.linalg.norm(pts, axis=1).max() * 1.001)
     idx = np.arange(W * H) if idx is None else idx
     o, d = pixel_rays(cam_pos, cam_rot, W, H, idx)
@@ -134,7 +136,7 @@ def predicted_mask(world: World, inputs) -> np.ndarray:
     return visible.reshape(H, W)
 
 
-def resolve_group(world: World, *, scene_id: str, day: int, pose: int, seed: int, render, anomaly):
+def resolve_group(world: SceneInputs, *, scene_id: str, day: int, pose: int, seed: int, render, anomaly):
     """What authoring does for one (day, pose, asset) group: (spec of the initial depth or None when
     it was skipped, number of depths skipped, the five results)."""
     camera, rng, scene_seed_, seed_path = resolve_camera(world, day=day, pose=pose, plan_seed=seed, anomaly=anomaly)
@@ -150,7 +152,7 @@ def resolve_group(world: World, *, scene_id: str, day: int, pose: int, seed: int
 def render_layer_timed(spec, workdir: Path, base_stage: Path):
     """Author, read and render one spec; (RenderResult, read s, build+render wall s)."""
     from allo_usd.blender.render import render_scene
-    from allo_usd.read import read_scene
+    from allo_usd.usd.read import read_scene
 
     layer = write_scene_layer(spec, workdir / f"{spec.scene_id}.usda", base_stage)
     t0 = time.perf_counter()
@@ -199,7 +201,7 @@ def main() -> int:
 
     orbit = Orbit()
     sky = compute_sky(default_epochs(), orbit)
-    world = World(base_stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    world = scene_inputs(base_stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
     t0 = time.perf_counter()
     _ = world.poses
     _ = world.station_scene

@@ -40,15 +40,17 @@ def author_layers(out: Path, resolution, samples, denoise) -> list[Path]:
     """Distinct scenes: 4 days x 4 poses, each normal or with one of three anomaly variants; plus umbra
     and glare variants of some. Returns layer paths in a cycling order that changes something every step."""
     from allo_usd.assets.anomalies import ANOMALY_VARIANTS
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.errors import PlacementError
-    from allo_usd.paths import BASE_STAGE
-    from allo_usd.scenes import EXPOSURE, World, resolve_scene
-    from allo_usd.sky import Orbit, compute_sky, default_epochs
-    from allo_usd.spec import EffectsSpec, RenderSpec
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.core.errors import PlacementError
+    from allo_usd.core.paths import BASE_STAGE
+    from allo_usd.core.constants import EXPOSURE
+    from allo_usd.scene.resolve import resolve_scene
+    from allo_usd.usd.read import scene_inputs
+    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+    from allo_usd.plan.settings import EffectsSpec, RenderSpec
 
     orbit = Orbit()
-    world = World(Path(BASE_STAGE), compute_sky(default_epochs(), orbit),
+    world = scene_inputs(Path(BASE_STAGE), compute_sky(default_epochs(), orbit),
                   orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
     render = RenderSpec(resolution=tuple(resolution), preset="bench", samples=samples, denoise=denoise,
                         exposure=EXPOSURE, seed=1)
@@ -83,15 +85,17 @@ def distinct_layers(out: Path, n: int, resolution, samples: int, denoise: bool) 
     """`n` scenes that are all different: day k*37 % 365, pose k % 50 + 1, the 16 assets and their
     variants in turn on test poses (none on training poses), every 5th in umbra, every 7th with glare."""
     from allo_usd.assets.anomalies import ANOMALY_VARIANTS
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.errors import PlacementError
-    from allo_usd.paths import BASE_STAGE
-    from allo_usd.scenes import EXPOSURE, World, resolve_scene
-    from allo_usd.sky import Orbit, compute_sky, default_epochs
-    from allo_usd.spec import EffectsSpec, RenderSpec
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.core.errors import PlacementError
+    from allo_usd.core.paths import BASE_STAGE
+    from allo_usd.core.constants import EXPOSURE
+    from allo_usd.scene.resolve import resolve_scene
+    from allo_usd.usd.read import scene_inputs
+    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+    from allo_usd.plan.settings import EffectsSpec, RenderSpec
 
     orbit = Orbit()
-    world = World(Path(BASE_STAGE), compute_sky(default_epochs(), orbit),
+    world = scene_inputs(Path(BASE_STAGE), compute_sky(default_epochs(), orbit),
                   orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
     render = RenderSpec(resolution=tuple(resolution), preset="bench", samples=samples, denoise=denoise,
                         exposure=EXPOSURE, seed=1)
@@ -120,7 +124,7 @@ def bench_switch(layers: list[Path], repeats: int) -> dict:
     from allo_usd.blender.build import build_scene
     from allo_usd.blender.render import render_current
     from allo_usd.blender.session import Session
-    from allo_usd.read import read_scene
+    from allo_usd.usd.read import read_scene
 
     a_layer, b_layer = layers[0], layers[5]   # normal on day 0 pose 3 -> anomaly on day 45 pose 42
     t0 = time.perf_counter()
@@ -158,7 +162,7 @@ def bench_memory(layers: list[Path], n: int) -> dict:
     import bpy
 
     from allo_usd.blender.session import Session
-    from allo_usd.read import read_scene
+    from allo_usd.usd.read import read_scene
 
     session = Session()
     rss, apply_s, render_s, ids = [], [], [], []
@@ -177,7 +181,7 @@ def bench_memory(layers: list[Path], n: int) -> dict:
 def bench_identity(layers: list[Path], k: int) -> dict:
     from allo_usd.blender.render import render_scene
     from allo_usd.blender.session import Session
-    from allo_usd.read import read_scene
+    from allo_usd.usd.read import read_scene
 
     descs = [read_scene(layers[(i * 7) % len(layers)]) for i in range(k)]
     session = Session()

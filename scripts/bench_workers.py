@@ -25,10 +25,11 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def make_layers(root: Path, n: int, resolution, samples: int, mask_only: bool = False) -> list[Path]:
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.geometry import look_at
-    from allo_usd.paths import BASE_STAGE
-    from allo_usd.spec import BodySpec, CameraSpec, RenderSpec, SceneSpec, SunSpec
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.core.geometry import look_at
+    from allo_usd.core.paths import BASE_STAGE
+    from allo_usd.scene.spec import BodySpec, CameraSpec, SceneSpec, SunSpec
+    from allo_usd.plan.settings import RenderSpec
 
     sun = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
     bodies = {"Sun": BodySpec(tuple(sun * 1.496e11), 6.9634e8), "Moon": BodySpec((0.0, 0.0, -7.0e6), 1.7374e6),
@@ -50,7 +51,7 @@ def make_layers(root: Path, n: int, resolution, samples: int, mask_only: bool = 
 
 def run_configs(layers: list[Path], configs, tmp: Path, tag: str, first_file: str) -> tuple[list[dict], bool]:
     """Render `layers` once per (workers, threads); images per hour and whether outputs agree."""
-    from allo_usd.dispatch import dispatch
+    from allo_usd.run.dispatch import dispatch
 
     results = []
     for workers, threads in configs:
@@ -118,7 +119,7 @@ def main() -> None:
     (args.out / "bench_workers.md").write_text(f"""# Workers vs threads (scripts/bench_workers.py)
 
 {args.scenes} scene layers over the committed base stage, {args.width}x{args.height}, rendered with
-`allo_usd.dispatch` (local pool) on this machine ({cores} cores): full renders at {args.samples} samples
+`allo_usd.run.dispatch` (local pool) on this machine ({cores} cores): full renders at {args.samples} samples
 without denoising, and mask-only renders (one sample, no lights). Each configuration starts its own
 warm workers (bpy import included in the time).
 
@@ -133,7 +134,7 @@ warm workers (bpy import included in the time).
 - {cores} workers x 1 thread vs 1 worker x {cores} threads, mask-only renders: **x{mask_ratio:.2f}**.
 - Outputs byte-identical across configurations: full {same_full}, masks {same_masks}.
 
-Workers are pinned to cores of their own when their threads fit (allo_usd.dispatch.core_sets).
+Workers are pinned to cores of their own when their threads fit (allo_usd.run.dispatch.core_sets).
 Unpinned, each 1-thread worker's TBB pool keeps a second thread spinning in sched_yield through
 the whole render, so two 1-thread workers fight over the cores with four busy threads (measured
 before pinning: x0.72-0.91 against 1 worker x {cores} threads, x1.35 against 1 worker x 1 thread).

@@ -38,8 +38,8 @@ if __name__ == "__main__":  # before numpy is imported; importing this file (tes
 import argparse  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from allo_usd.author.build_stage import build_base_stage as build  # noqa: E402
-from allo_usd.paths import STAGES  # noqa: E402
+from allo_usd.usd.build_stage import build_base_stage as build
+from allo_usd.core.paths import STAGES
 
 
 def main(argv=None) -> int:

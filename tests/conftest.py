@@ -9,10 +9,12 @@ import pytest
 
 from allo_usd.assets.bodies import build_bodies
 from allo_usd.assets.primitives import box, cylinder, rot_y, transform
-from allo_usd.author.base import CameraPose, write_base_stage
-from allo_usd.geometry import look_at
-from allo_usd.mesh import Asset, Material
-from allo_usd.spec import AnomalySpec, BodySpec, CameraSpec, RenderSpec, SceneSpec, SunSpec
+from allo_usd.scene.spec import CameraPose
+from allo_usd.usd.base_stage import write_base_stage
+from allo_usd.core.geometry import look_at
+from allo_usd.assets.mesh import Asset, Material
+from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
+from allo_usd.plan.settings import RenderSpec
 
 EXPOSURE = 0.9 * math.pi / 1361.0
 
@@ -60,10 +62,10 @@ def make_spec(anomaly: bool = False, resolution=(64, 36), samples=4, seed=7, **k
 @pytest.fixture(scope="session", autouse=True)
 def _allow_test_asset_roots(tmp_path_factory):
     """Test layers live in pytest's temp dirs, over a tiny base stage in another temp dir: allow
-    that tree as an asset root (allo_usd.safety), for this process and the workers it spawns."""
+    that tree as an asset root (allo_usd.usd.safety), for this process and the workers it spawns."""
     import os
 
-    from allo_usd.safety import ENV_ROOTS
+    from allo_usd.usd.safety import ENV_ROOTS
 
     old = os.environ.get(ENV_ROOTS)
     os.environ[ENV_ROOTS] = str(tmp_path_factory.getbasetemp())

@@ -7,12 +7,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from allo_usd.assets.anomalies import (ANOMALY_IDS, ANOMALY_TRIANGLE_BUDGET, ANOMALY_VARIANTS,
-                                       build_anomaly)
-from allo_usd.assets.primitives import (extrude_polygon, lathe, ring_prism, smooth_path, superellipsoid,
-                                        sweep, triangulate_polygon)
-from allo_usd.errors import AlloError, UnknownAnomalyError
-from allo_usd.mesh import Asset
+from allo_usd.assets.anomalies import ANOMALY_IDS, ANOMALY_TRIANGLE_BUDGET, ANOMALY_VARIANTS, build_anomaly
+from allo_usd.assets.primitives import (extrude_polygon, lathe, ring_prism, smooth_path, superellipsoid, sweep,
+                                        triangulate_polygon)
+from allo_usd.core.errors import AlloError, UnknownAnomalyError
+from allo_usd.assets.mesh import Asset
 
 ALL = [(name, v) for name, variants in ANOMALY_VARIANTS.items() for v in variants]
 

@@ -7,9 +7,9 @@ import pytest
 from pxr import Sdf, Usd, UsdGeom
 
 from allo_usd import __version__
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.errors import AlloError, LayerError
-from allo_usd.spec import CameraSpec, SunSpec
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.core.errors import AlloError, LayerError
+from allo_usd.scene.spec import CameraSpec, SunSpec
 
 from conftest import make_spec
 
@@ -75,7 +75,7 @@ def test_missing_base_stage_is_named(tmp_path):
 
 
 def test_unknown_anomaly_asset(tiny_base, tmp_path):
-    from allo_usd.spec import AnomalySpec
+    from allo_usd.scene.spec import AnomalySpec
 
     from dataclasses import replace
 
@@ -92,7 +92,7 @@ def test_each_body_has_a_sun_lamp_that_lights_only_it(tiny_base, tmp_path):
 
     from pxr import UsdLux
 
-    from allo_usd.spec import SunSpec
+    from allo_usd.scene.spec import SunSpec
 
     spec = make_spec()
     moon_sun = SunSpec((0.0, 0.6, 0.8), 651.0, 1370.0, 0.53, 1.49e11, 0.475, "penumbra", "earth")
@@ -135,7 +135,7 @@ def test_bad_body_lamp_writes_nothing(tiny_base, tmp_path):
 
 
 def test_inspect_shows_every_sun_lamp_and_what_it_lights(tiny_base, tmp_path):
-    from allo_usd.inspect import describe, format_description
+    from allo_usd.usd.inspect import describe, format_description
 
     d = describe(write_scene_layer(make_spec(), tmp_path / "s.usda", tiny_base))
     assert d["sun"]["path"] == "/World/Sky/SunLight"
@@ -151,7 +151,7 @@ def test_inspect_shows_every_sun_lamp_and_what_it_lights(tiny_base, tmp_path):
 def test_a_sun_token_outside_the_schema_is_refused_before_writing(tiny_base, tmp_path):
     from dataclasses import replace
 
-    from allo_usd.errors import LayerError
+    from allo_usd.core.errors import LayerError
 
     spec = make_spec()
     bad = replace(spec, sun=replace(spec.sun, eclipse_body="Earth"))  # the schema's token is "earth"

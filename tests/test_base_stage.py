@@ -10,12 +10,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdSemantics
 
-from allo_usd import schema
-from allo_usd.paths import BASE_STAGE, ROOT, STAGES
-from allo_usd.read import read_rig
+from allo_usd.usd import schema
+from allo_usd.core.paths import BASE_STAGE, ROOT, STAGES
+from allo_usd.usd.read import read_rig
 
 
 def _generator():
@@ -76,7 +75,7 @@ def test_base_stage_contents():
 
 
 def test_rig_has_50_disjoint_poses():
-    from allo_usd.rig import MIN_SPACING_M, TEST_NEIGHBOUR_M, TEST_SEPARATION_M, TEST_TURN_DEG
+    from allo_usd.scene.rig import MIN_SPACING_M, TEST_NEIGHBOUR_M, TEST_SEPARATION_M, TEST_TURN_DEG
 
     poses = read_rig(BASE_STAGE)
     assert [p.index for p in poses] == list(range(1, 51))
@@ -102,12 +101,12 @@ def test_rig_has_50_disjoint_poses():
 def test_every_base_pose_looks_at_structure_5_to_40_m_away():
     """Each committed pose's view, ray cast on a 32x18 grid: the optical axis hits structure 5-40 m
     away, most structure in frame is 5-40 m away, and it neither leaves the frame empty nor fills it."""
-    from allo_usd.raycast import Scene
-    from allo_usd.read import read_triangles
-    from allo_usd.rig import COVERAGE_RANGE, MAX_NEAR, MIN_IN_RANGE, view_quality
+    from allo_usd.scene.raycast import RayScene
+    from allo_usd.usd.read import read_triangles
+    from allo_usd.scene.rig import COVERAGE_RANGE, MAX_NEAR, MIN_IN_RANGE, view_quality
 
     pts, tris = read_triangles(BASE_STAGE, "/World/Station")
-    station = Scene([(pts, tris, 1)])
+    station = RayScene([(pts, tris, 1)])
     for p in read_rig(BASE_STAGE):
         q = view_quality(station, p.position, p.rotation)
         assert 5.0 <= q.centre_m <= 40.0, (p.index, q)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from allo_usd.paths import STAGES
+from allo_usd.core.paths import STAGES
 
 TEXTURES = STAGES / "bodies" / "textures"
 
@@ -117,13 +117,14 @@ def test_rendered_body_has_its_albedo_and_a_terminator(tiny_base, tmp_path, body
 
     from pxr import Sdf
 
-    from allo_usd.author.scene import write_scene_layer
+    from allo_usd.usd.scene_layer import write_scene_layer
     from allo_usd.blender.render import render_scene
-    from allo_usd.geometry import look_at
-    from allo_usd.read import read_scene
-    from allo_usd.scenes import sun_and_bodies
-    from allo_usd.sky import compute_sky, default_epochs
-    from allo_usd.spec import CameraSpec, EffectsSpec
+    from allo_usd.core.geometry import look_at
+    from allo_usd.usd.read import read_scene
+    from allo_usd.scene.resolve import sun_and_bodies
+    from allo_usd.sky.model import compute_sky, default_epochs
+    from allo_usd.scene.spec import CameraSpec
+    from allo_usd.plan.settings import EffectsSpec
 
     from conftest import make_spec
 
@@ -166,8 +167,8 @@ def test_bodies_are_lambertian_in_the_layer_and_the_description():
     """ior = 1 (no specular layer) is authored on both bodies and reaches the description."""
     from pxr import Usd, UsdShade
 
-    from allo_usd import schema
-    from allo_usd.read import read_material
+    from allo_usd.usd import schema
+    from allo_usd.usd.read import read_material
 
     schema.register()
     for body, look in (("Moon", "Regolith"), ("Earth", "EarthSurface")):

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import csv
 import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from allo_usd.cli import app
-from allo_usd.paths import ROOT
+from allo_usd.core.paths import ROOT
 
 from test_validation import validation_errors
 
@@ -55,17 +54,19 @@ def test_base_stage_from_the_real_iss_renders(tmp_path):
     base = gen.build(tmp_path / "stages", str(ISS))
     assert validation_errors(base) == []
 
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.job import render_layer
-    from allo_usd.read import read_triangles
-    from allo_usd.scenes import EXPOSURE, World, resolve_scene
-    from allo_usd.sky import compute_sky, default_epochs
-    from allo_usd.spec import RenderSpec
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.run.job import render_layer
+    from allo_usd.usd.read import read_triangles
+    from allo_usd.core.constants import EXPOSURE
+    from allo_usd.scene.resolve import resolve_scene
+    from allo_usd.usd.read import scene_inputs
+    from allo_usd.sky.model import compute_sky, default_epochs
+    from allo_usd.plan.settings import RenderSpec
 
     pts, _ = read_triangles(base, "/World/Station")
     extent = np.sort(pts.max(axis=0) - pts.min(axis=0))
     np.testing.assert_allclose(extent, np.sort([80.3, 108.4, 25.5]), rtol=0.05)  # inches became metres
-    world = World(base, compute_sky(default_epochs(2030, 10)), "2030-01-01T00:00:00Z")
+    world = scene_inputs(base, compute_sky(default_epochs(2030, 10)), "2030-01-01T00:00:00Z")
     scene = resolve_scene(world, scene_id="iss", day=1, pose=5, plan_seed=1,
                           render=RenderSpec((64, 36), samples=4, exposure=EXPOSURE, denoise=False))
     meta = render_layer(write_scene_layer(scene, tmp_path / "iss.usda", base), tmp_path / "out")
@@ -76,16 +77,16 @@ def test_base_stage_from_the_real_iss_renders(tmp_path):
 @pytest.mark.render
 def test_plan_station_option_uses_the_imported_model(tmp_path):
     """A plan naming a model file gets its own base stage; a scene of it renders on its own."""
-    from allo_usd.authoring import author_plan
-    from allo_usd.job import render_layer
-    from allo_usd.plan import Anomalies, Dates, Plan, Poses, Quality, Station
+    from allo_usd.run.author import author_plan
+    from allo_usd.run.job import render_layer
+    from allo_usd.plan.model import Anomalies, Dates, Plan, Poses, Quality, Station
 
     plan = Plan(name="iss", dates=Dates(days=1), poses=Poses(train=[3], test=[41]),
                 anomalies=Anomalies(assets=[]), quality=Quality(resolution=(64, 36), samples=2),
                 station=Station(source=str(ISS)))
     layers = author_plan(plan, tmp_path / "plan", progress=False)
     assert layers and (tmp_path / "plan" / "stages" / "base.usda").is_file()
-    from allo_usd.read import open_stage
+    from allo_usd.usd.read import open_stage
 
     stage = open_stage(layers[0])  # keep the stage alive while its layers are read
     used = [str(layer.identifier) for layer in stage.GetUsedLayers()]

@@ -25,11 +25,11 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from allo_usd.author.scene import write_scene_layer
+from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.cli import app
-from allo_usd.dataset import AssemblyInterrupted, assemble, label_lines, read_manifest
-from allo_usd.errors import AlloError
-from allo_usd.job import render_layer
+from allo_usd.output.dataset import AssemblyInterrupted, assemble, label_lines, read_manifest
+from allo_usd.core.errors import AlloError
+from allo_usd.run.job import render_layer
 
 from conftest import make_spec
 
@@ -297,9 +297,9 @@ def test_an_interrupted_cli_run_never_leaves_unlisted_files(renders, tmp_path, s
 
 
 def test_one_assembly_at_a_time_per_output(tmp_path):
-    from allo_usd.dataset import LOCK, assemble
-    from allo_usd.errors import AlloError
-    from allo_usd.write import RunLock
+    from allo_usd.output.dataset import LOCK, assemble
+    from allo_usd.core.errors import AlloError
+    from allo_usd.core.files import RunLock
 
     (tmp_path / "ds").mkdir()
     with RunLock(tmp_path / "ds", LOCK, "dataset"):  # another assembly holds the directory

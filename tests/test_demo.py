@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from allo_usd.demo import run_demo
+from allo_usd.run.demo import run_demo
 
 from test_plan import plain_usd_report
 from test_validation import validation_errors
@@ -57,8 +57,8 @@ def test_demo_composes_like_a_plan_inside_its_own_tree(demo_dir, tmp_path, monke
 
     from pxr import Sdf
 
-    from allo_usd.job import render_layer
-    from allo_usd.paths import STAGES
+    from allo_usd.run.job import render_layer
+    from allo_usd.core.paths import STAGES
 
     tree = demo_dir / "layers"
     for path in sorted(tree.glob("*.usda")):
@@ -74,7 +74,7 @@ def test_demo_composes_like_a_plan_inside_its_own_tree(demo_dir, tmp_path, monke
     assert len(report["layers"]) == 4
     for path, r in report["layers"].items():
         assert r["composition_errors"] == [] and r["outside"] == [] and r["validation_errors"] == [], (path, r)
-    from allo_usd.safety import ENV_ROOTS
+    from allo_usd.usd.safety import ENV_ROOTS
 
     monkeypatch.delenv(ENV_ROOTS, raising=False)  # the layer's own directory is an allowed root
     meta = render_layer(moved / "d045_p42_power_drill_z0.usda", tmp_path / "renders")

@@ -16,11 +16,11 @@ import psutil
 import pytest
 from PIL import Image
 
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.dispatch import (MANIFEST, WORKDIR, _append_jsonl, _workdir, clean_stale, core_sets, dispatch,
-                               find_layers, is_verified, load_manifest)
-from allo_usd.errors import AlloError, DiskFullError, RenderFailedError
-from allo_usd.write import temp_name_re
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.run.dispatch import (MANIFEST, WORKDIR, _append_jsonl, clean_stale, core_sets, dispatch, find_layers,
+                                   is_verified, load_manifest)
+from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
+from allo_usd.core.files import temp_name_re
 
 from conftest import make_spec
 
@@ -113,9 +113,9 @@ def test_same_layers_same_bytes_across_processes_and_thread_counts(tiny_base, tm
 def authored_plan(tmp_path_factory):
     """A tiny authored plan over the committed base stage: 2 days x 2 poses (one train, one test) at
     64x36, laid out as `allo-usd author` writes it (scenes/SPLIT/KIND/, sky/, poses/, plan.toml)."""
-    from allo_usd.authoring import author_plan
-    from allo_usd.paths import BASE_STAGE
-    from allo_usd.plan import Anomalies, Dates, Plan, Poses, Quality
+    from allo_usd.run.author import author_plan
+    from allo_usd.core.paths import BASE_STAGE
+    from allo_usd.plan.model import Anomalies, Dates, Plan, Poses, Quality
 
     plan = Plan(name="dispatch", dates=Dates(days=2), poses=Poses(train=[1], test=[41]),
                 anomalies=Anomalies(assets=[]), quality=Quality(resolution=(64, 36), samples=2),
@@ -292,7 +292,7 @@ def test_sigkill_at_random_moments_then_resume(tiny_base, tmp_path):
     mid-render and mid-write alike."""
     layers = make_layers(tiny_base, tmp_path / "layers", 6)
     names = sorted(p.stem for p in layers)
-    code = ("import sys; from allo_usd.dispatch import dispatch; "
+    code = ("import sys; from allo_usd.run.dispatch import dispatch; "
             "dispatch(sys.argv[1], sys.argv[2], workers=2, progress=False)")
     delay = 0.4  # widen each render so kills land mid-render too
     env = {**os.environ, "ALLO_TEST_DELAY": str(delay)}
@@ -367,7 +367,7 @@ def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path, monkeypat
 WRITER = """
 import sys
 from pathlib import Path
-from allo_usd.dispatch import _workdir
+from allo_usd.run.worker import _workdir
 from allo_usd.write import atomic_path
 out = Path(sys.argv[1])
 (_workdir(out) / "render.exr").write_bytes(b"Blender's file")
@@ -488,7 +488,7 @@ def test_a_cut_short_render_file_is_retried_unless_the_disk_is_full(tmp_path, sm
     """What Blender leaves on a failed write: with room on the device it is a retriable render
     failure (not the layer's fault), on a full device it is DiskFullError."""
     from allo_usd.blender.render import _read_multilayer_exr, _unreadable, check_render_file
-    from allo_usd.write import write_exr
+    from allo_usd.output.writers import write_exr
 
     good = write_exr(tmp_path / "good.exr", {"R": np.ones((36, 64), np.float32)}, half=False)
     for d in (tmp_path / "roomy", small_tmpfs / "full"):

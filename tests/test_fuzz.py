@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.description import SceneDescription
-from allo_usd.errors import AlloError
-from allo_usd.read import read_scene
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.usd.description import SceneDescription
+from allo_usd.core.errors import AlloError
+from allo_usd.usd.read import read_scene
 
 from conftest import make_spec
 
@@ -173,7 +173,7 @@ def test_dispatch_a_share_of_the_fuzzed_layers(valid_layer, tiny_base, tmp_path)
     """Every 9th of the first 450 fuzzed layers (50, every kind of mutation) goes through the local
     pool beside good layers: the good ones render and verify, every bad one is in failed.jsonl
     (once, not retried) with the message the reader gives in this process; the parent lives on."""
-    from allo_usd.dispatch import FAILED, dispatch, is_verified, load_manifest
+    from allo_usd.run.dispatch import FAILED, dispatch, is_verified, load_manifest
 
     batch = valid_layer.parent.parent / "batch"  # beside layers/: relative sublayer paths still resolve
     batch.mkdir(exist_ok=True)

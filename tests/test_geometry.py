@@ -9,8 +9,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from allo_usd.errors import AlloError
-from allo_usd.geometry import look_at, matrix_to_quat, quat_to_matrix, rotation_towards
+from allo_usd.core.errors import AlloError
+from allo_usd.core.geometry import look_at, matrix_to_quat, quat_to_matrix, rotation_towards
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 vec3 = st.tuples(finite, finite, finite).map(np.array)

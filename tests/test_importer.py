@@ -9,16 +9,10 @@ import pytest
 import trimesh
 from PIL import Image
 
-from allo_usd.assets.importer import (
-    DEFAULT_MATERIAL,
-    ISS_2016_ROTATION,
-    UP_AXIS_ROTATIONS,
-    guess_unit,
-    import_mesh,
-    import_mesh_report,
-)
-from allo_usd.errors import AssetError, DegenerateMeshError, ImportOptionError
-from allo_usd.mesh import MeshPart, validate_part
+from allo_usd.assets.importer import (DEFAULT_MATERIAL, ISS_2016_ROTATION, UP_AXIS_ROTATIONS, guess_unit,
+                                      import_mesh, import_mesh_report)
+from allo_usd.core.errors import AssetError, DegenerateMeshError, ImportOptionError
+from allo_usd.assets.mesh import MeshPart, validate_part
 
 ISS_GLB = Path(__file__).resolve().parents[1].parent / "shared/assets/ISS_2016.glb"
 needs_iss = pytest.mark.skipif(

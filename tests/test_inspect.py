@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from allo_usd.author.scene import write_scene_layer
+from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.cli import app
-from allo_usd.inspect import PRIM, STACK, describe, diff, format_description, format_diff
-from allo_usd.spec import CameraSpec
+from allo_usd.usd.inspect import PRIM, STACK, describe, diff, format_description, format_diff
+from allo_usd.scene.spec import CameraSpec
 
 from conftest import CAM_POS, EXPOSURE, make_spec
 
@@ -152,7 +152,7 @@ def test_cli_inspect_and_diff(anomalous, tiny_base, tmp_path):
 def test_describe_shows_the_sensor_only_when_noise_is_on(tiny_base, tmp_path):
     from dataclasses import replace
 
-    from allo_usd.spec import EffectsSpec
+    from allo_usd.plan.settings import EffectsSpec
 
     quiet = describe(write_scene_layer(make_spec(), tmp_path / "quiet.usda", tiny_base))
     assert quiet["sensor"] is None and "sensor " not in format_description(quiet)

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from allo_usd.effects.noise import SensorParams, apply_sensor_noise
-from allo_usd.errors import AlloError
+from allo_usd.core.sensor import SensorParams
+from allo_usd.output.sensor_noise import apply_sensor_noise
+from allo_usd.core.errors import AlloError
 
 EXPOSURE = 0.9 * np.pi / 1361.0
 
@@ -55,7 +56,7 @@ def _dn(out: np.ndarray, p: SensorParams) -> np.ndarray:
 @pytest.mark.parametrize("level", [0.05, 0.3, 0.7])
 def test_flat_field_mean_and_variance_follow_emva_1288(level, gain, bits):
     """mu_y = K (mu_e + mu_dark), sigma_y^2 = K^2 (sigma_read^2 + mu_e + mu_dark) + 1/12 (quantisation)."""
-    from allo_usd.effects.noise import mean_electrons
+    from allo_usd.output.sensor_noise import mean_electrons
 
     p = SensorParams(prnu=0.0, dsnu_e=0.0, gain_dn_per_e=gain, bits=bits)
     r = p.resolved(EXPOSURE)
@@ -90,7 +91,7 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def test_fixed_pattern_belongs_to_the_sensor_and_temporal_noise_to_the_scene():
-    from allo_usd.effects.noise import fixed_patterns
+    from allo_usd.output.sensor_noise import fixed_patterns
 
     p = SensorParams(prnu=0.1, dsnu_e=0.0, read_noise_e=0.0, dark_current_e_s=0.0)
     dark_and_bright = [np.full((200, 200), v, np.float32) for v in (0.3, 0.6)]  # two different scenes
@@ -114,7 +115,7 @@ def test_fixed_pattern_belongs_to_the_sensor_and_temporal_noise_to_the_scene():
 def test_sensor_seed_equal_to_the_render_seed_shares_no_stream():
     p = SensorParams(prnu=0.0, dsnu_e=50.0, read_noise_e=0.0, dark_current_e_s=0.0, seed=5)
     dark = apply_sensor_noise(np.zeros((200, 200), np.float32), EXPOSURE, seed=5, params=p)
-    from allo_usd.effects.noise import fixed_patterns
+    from allo_usd.output.sensor_noise import fixed_patterns
 
     _, dsnu = fixed_patterns(p, (200, 200))
     assert _corr(dark, np.clip(dsnu, 0, None)) > 0.9  # the dark frame shows the DSNU pattern ...
@@ -128,7 +129,7 @@ def test_sensor_seed_equal_to_the_render_seed_shares_no_stream():
 def _noisy_spec(render_seed: int, anomaly: bool, sensor: SensorParams = SensorParams()):
     from dataclasses import replace
 
-    from allo_usd.spec import EffectsSpec
+    from allo_usd.plan.settings import EffectsSpec
 
     from conftest import make_spec
 
@@ -140,9 +141,9 @@ def _noisy_spec(render_seed: int, anomaly: bool, sensor: SensorParams = SensorPa
 def test_layer_carries_every_sensor_parameter(tiny_base, tmp_path):
     from pxr import Sdf
 
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.effects.noise import SENSOR_ATTRIBUTES, exposure_time_for
-    from allo_usd.read import read_scene
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.core.sensor import SENSOR_ATTRIBUTES, exposure_time_for
+    from allo_usd.usd.read import read_scene
 
     sensor = SensorParams(quantum_efficiency=0.55, full_well_e=10_000.0, read_noise_e=4.5, bits=10, seed=99,
                           f_number=2.8)
@@ -163,7 +164,7 @@ def test_layer_carries_every_sensor_parameter(tiny_base, tmp_path):
 
     from dataclasses import replace
 
-    from allo_usd.spec import EffectsSpec
+    from allo_usd.plan.settings import EffectsSpec
 
     quiet = write_scene_layer(replace(_noisy_spec(3, False), effects=EffectsSpec()), tmp_path / "q.usda", tiny_base)
     sdf = Sdf.Layer.FindOrOpen(str(quiet))
@@ -175,8 +176,8 @@ def test_layer_carries_every_sensor_parameter(tiny_base, tmp_path):
 def test_layer_without_sensor_attributes_gets_the_default_sensor(tiny_base, tmp_path):
     from pxr import Sdf
 
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.read import read_scene
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.usd.read import read_scene
 
     layer = write_scene_layer(_noisy_spec(3, False), tmp_path / "old.usda", tiny_base)
     sdf = Sdf.Layer.FindOrOpen(str(layer))
@@ -192,9 +193,9 @@ def test_layer_without_sensor_attributes_gets_the_default_sensor(tiny_base, tmp_
 def test_bad_sensor_in_a_layer_is_named(tiny_base, tmp_path):
     from pxr import Sdf
 
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.errors import LayerError
-    from allo_usd.read import read_scene
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.core.errors import LayerError
+    from allo_usd.usd.read import read_scene
 
     with pytest.raises(LayerError, match="sensor parameters"):
         write_scene_layer(_noisy_spec(3, False, SensorParams(quantum_efficiency=1.5)), tmp_path / "x.usda", tiny_base)
@@ -210,9 +211,9 @@ def test_bad_sensor_in_a_layer_is_named(tiny_base, tmp_path):
 def test_two_scenes_of_one_sensor_share_the_pattern_through_their_layers(tiny_base, tmp_path):
     """From layer to noise: two different scenes (other render seed, one with an anomaly) read back
     the same sensor, so PRNU is identical while the temporal noise differs."""
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.job import apply_effects
-    from allo_usd.read import read_scene
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.run.job import apply_effects
+    from allo_usd.usd.read import read_scene
 
     sensor = SensorParams(prnu=0.1, read_noise_e=0.0, dsnu_e=0.0, dark_current_e_s=0.0)
     descs = [read_scene(write_scene_layer(_noisy_spec(s, a, sensor), tmp_path / f"{s}.usda", tiny_base))

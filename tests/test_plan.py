@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 from pxr import Sdf, Usd
 
-from allo_usd.errors import PlanError
-from allo_usd.paths import BASE_STAGE, SCHEMAS
-from allo_usd.plan import (AnomalyChoice, Anomalies, Counts, Dates, Plan, Poses, Quality, anomaly_quotas,
-                           enumerate_scenes, load_plan, make_plan, paper_plan, reserve_cap, reserve_group, save_plan,
-                           schema_text)
+from allo_usd.core.errors import PlanError
+from allo_usd.core.paths import BASE_STAGE, SCHEMAS
+from allo_usd.plan.model import AnomalyChoice, Anomalies, Counts, Dates, Plan, Poses, Quality, paper_plan
+from allo_usd.plan.enumeration import anomaly_quotas, enumerate_scenes, reserve_cap, reserve_group
+from allo_usd.plan.io import load_plan, make_plan, save_plan, schema_text
 
 from test_validation import validation_errors
 
@@ -80,7 +80,7 @@ def tiny_plan() -> Plan:
 
 @pytest.fixture(scope="module")
 def authored(tmp_path_factory):
-    from allo_usd.authoring import author_plan
+    from allo_usd.run.author import author_plan
 
     out = tmp_path_factory.mktemp("tiny")
     paths = author_plan(tiny_plan(), out, progress=False)
@@ -146,7 +146,7 @@ def test_every_layer_validates(authored):
 
 
 def test_reauthoring_is_byte_identical_and_resumes(authored, tmp_path_factory):
-    from allo_usd.authoring import author_plan
+    from allo_usd.run.author import author_plan
 
     out, paths = authored
     again = tmp_path_factory.mktemp("tiny") / "deeper" / "still" / "deeper"  # other place, other depth
@@ -161,14 +161,16 @@ def test_reauthoring_is_byte_identical_and_resumes(authored, tmp_path_factory):
 
 
 def test_composed_values_equal_resolve_scene(authored, tmp_path):
-    from allo_usd.author.scene import write_scene_layer
-    from allo_usd.scenes import EXPOSURE, World, resolve_scene
-    from allo_usd.presets import preset_spec
-    from allo_usd.sky import Orbit, compute_sky
+    from allo_usd.usd.scene_layer import write_scene_layer
+    from allo_usd.core.constants import EXPOSURE
+    from allo_usd.scene.resolve import resolve_scene
+    from allo_usd.usd.read import scene_inputs
+    from allo_usd.plan.settings import preset_spec
+    from allo_usd.sky.model import Orbit, compute_sky
 
     out, paths = authored
     plan = tiny_plan()
-    world = World(BASE_STAGE, compute_sky(plan.dates.epochs(), Orbit()), "2030-01-01T00:00:00Z")
+    world = scene_inputs(BASE_STAGE, compute_sky(plan.dates.epochs(), Orbit()), "2030-01-01T00:00:00Z")
     render = preset_spec("preview", (64, 36), EXPOSURE, samples=4)  # what tiny_plan's quality resolves to
     keys = {k.scene_id: k for k in enumerate_scenes(plan)}
     checked = 0
@@ -245,18 +247,18 @@ def test_a_moved_tree_opens_with_plain_usd(authored, tmp_path, monkeypatch):
         assert r["used"] >= 4 and r["validation_errors"] == [], (path, r)
         assert r["anomaly_loaded"] in (None, True), (path, r)  # the reference reached the copied asset
     assert any(r["anomaly_loaded"] for r in report["layers"].values())
-    from allo_usd.read import read_scene
-    from allo_usd.safety import ENV_ROOTS
+    from allo_usd.usd.read import read_scene
+    from allo_usd.usd.safety import ENV_ROOTS
 
-    monkeypatch.delenv(ENV_ROOTS, raising=False)  # allo_usd.safety allows the plan tree by itself
+    monkeypatch.delenv(ENV_ROOTS, raising=False)  # allo_usd.usd.safety allows the plan tree by itself
     assert read_scene(layers[-1]).meta["sceneId"] == paths[-1].stem
 
 
 def test_an_existing_tree_stage_that_differs_is_refused(authored, tmp_path):
     import shutil
 
-    from allo_usd.authoring import author_plan
-    from allo_usd.errors import LayerError
+    from allo_usd.run.author import author_plan
+    from allo_usd.core.errors import LayerError
 
     out, _ = authored
     other = tmp_path / "other"
@@ -268,10 +270,11 @@ def test_an_existing_tree_stage_that_differs_is_refused(authored, tmp_path):
 
 
 def test_plan_refuses_a_resolution_no_layer_could_render():
-    """Plans, authoring and the reader share one size bound (allo_usd.spec.MAX_SIDE_PX / MAX_PIXELS)."""
-    from allo_usd.author.scene import validate_spec
-    from allo_usd.errors import LayerError
-    from allo_usd.spec import MAX_SIDE_PX, RenderSpec
+    """Plans, authoring and the reader share one size bound (allo_usd.scene.spec.MAX_SIDE_PX / MAX_PIXELS)."""
+    from allo_usd.usd.scene_layer import validate_spec
+    from allo_usd.core.errors import LayerError
+    from allo_usd.core.limits import MAX_SIDE_PX
+    from allo_usd.plan.settings import RenderSpec
 
     from conftest import make_spec
 
@@ -299,7 +302,7 @@ def topup_plan(asset: str = "wrench", resolution=(64, 36), days: int = 3, **anom
 
 @pytest.fixture(scope="module")
 def topped_up(tmp_path_factory):
-    from allo_usd.authoring import author
+    from allo_usd.run.author import author
 
     out = tmp_path_factory.mktemp("topup")
     return out, author(topup_plan(), out, progress=False, workers=1)
@@ -387,7 +390,7 @@ def test_topup_meets_every_quota_exactly(topped_up):
 
 
 def test_limit_tops_up_the_scenes_within_it(tmp_path):
-    from allo_usd.authoring import author
+    from allo_usd.run.author import author
 
     plan = topup_plan()
     keys = enumerate_scenes(plan)[:4 + 12]   # 4 normal scenes, then 2 placements and 2 depths of a third
@@ -400,7 +403,7 @@ def test_limit_tops_up_the_scenes_within_it(tmp_path):
 def test_topup_cap_is_honoured_and_reported(topped_up, tmp_path):
     from typer.testing import CliRunner
 
-    from allo_usd.authoring import author, summary_lines
+    from allo_usd.run.author import author, summary_lines
     from allo_usd.cli import app
 
     # Off: the planned scenes are the same bytes as with the top-up, and every skipped depth is short.
@@ -442,7 +445,7 @@ def test_topup_cap_is_honoured_and_reported(topped_up, tmp_path):
 def _interrupt_at(monkeypatch, n: int, reserve: bool):
     """Ctrl-C in the parent at the n-th sample it writes (reserve groups, or planned ones), halfway
     through the sample: its first scene is written, the rest are not."""
-    import allo_usd.authoring as authoring
+    import allo_usd.run.author as authoring
 
     real, calls = authoring.write_sample, []
 
@@ -458,7 +461,7 @@ def _interrupt_at(monkeypatch, n: int, reserve: bool):
 
 
 def test_topup_is_the_same_for_any_workers_and_after_interruptions(topped_up, tmp_path, monkeypatch):
-    from allo_usd.authoring import AuthoringInterrupted, author
+    from allo_usd.run.author import AuthoringInterrupted, author
 
     out, _ = topped_up
     want = _files(out)
@@ -507,8 +510,8 @@ def test_a_tree_built_from_one_model_refuses_another(tmp_path):
     import trimesh
 
     from allo_usd.assets.station import build_station
-    from allo_usd.authoring import STATION_MARKER, with_tree_stage
-    from allo_usd.plan import Station
+    from allo_usd.run.author import STATION_MARKER, with_tree_stage
+    from allo_usd.plan.model import Station
 
     pts, tris = build_station().triangle_soup()
     a, b = tmp_path / "a.stl", tmp_path / "b.stl"

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from allo_usd.errors import AlloError
-from allo_usd.presets import PRESETS, preset_fields, preset_spec
-from allo_usd.spec import RenderSpec
+from allo_usd.core.errors import AlloError
+from allo_usd.plan.settings import PRESETS, preset_fields, preset_spec
+from allo_usd.plan.settings import RenderSpec
 
 EXTRA = {"denoise_prefilter", "denoise_quality"}
 
@@ -109,7 +109,7 @@ def test_preset_spec_carries_the_denoiser():
 
 
 def test_plan_quality_preset_fills_what_the_plan_leaves_out():
-    from allo_usd.plan import Quality
+    from allo_usd.plan.model import Quality
 
     final = Quality(preset="final")
     assert final.samples == PRESETS["final"]["samples"] and final.adaptive_threshold == PRESETS["final"]["adaptive_threshold"]

@@ -8,10 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.description import ANOMALY, STATION
-from allo_usd.errors import LayerError
-from allo_usd.read import read_scene
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.core.labels import ANOMALY, STATION
+from allo_usd.core.errors import LayerError
+from allo_usd.usd.read import read_scene
 
 from conftest import EXPOSURE, make_spec
 
@@ -44,7 +44,7 @@ def test_reader_describes_the_scene(tiny_base, tmp_path):
 def test_umbra_turns_the_station_sun_off_not_the_bodies_suns(tiny_base, tmp_path):
     from dataclasses import replace
 
-    from allo_usd.spec import SunSpec
+    from allo_usd.scene.spec import SunSpec
 
     spec = make_spec(sun=SunSpec((0.0, 0.0, 1.0), 0.0, 1361.0, 0.533, 1.5e11, 0.0, "umbra", "moon"))
     desc = read_scene(write_scene_layer(spec, tmp_path / "s.usda", tiny_base))
@@ -61,8 +61,8 @@ def test_umbra_turns_the_station_sun_off_not_the_bodies_suns(tiny_base, tmp_path
 def test_reader_resolves_light_linking_from_the_collections(tiny_base, tmp_path):
     from dataclasses import replace
 
-    from allo_usd.description import LightLink
-    from allo_usd.spec import SunSpec
+    from allo_usd.usd.description import LightLink
+    from allo_usd.scene.spec import SunSpec
 
     moon_sun = SunSpec((0.0, 0.6, 0.8), 1300.0, 1370.0, 0.53, 1.49e11, 0.95, "penumbra", "earth")
     spec = make_spec(anomaly=True)
@@ -97,7 +97,7 @@ def test_reader_resolves_light_linking_from_the_collections(tiny_base, tmp_path)
 
 def test_reader_never_imports_bpy(tiny_base, tmp_path):
     layer = write_scene_layer(make_spec(), tmp_path / "s.usda", tiny_base)
-    code = ("import sys; from allo_usd.read import read_scene; read_scene(sys.argv[1]); "
+    code = ("import sys; from allo_usd.usd.read import read_scene; read_scene(sys.argv[1]); "
             "assert 'bpy' not in sys.modules, 'read imported bpy'")
     subprocess.run([sys.executable, "-c", code, str(layer)], check=True)
 

@@ -9,8 +9,8 @@ import OpenEXR
 import pytest
 from PIL import Image
 
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.job import render_layer
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.run.job import render_layer
 
 from conftest import make_spec
 
@@ -76,7 +76,7 @@ def test_rerun_skips_finished_scene(rendered):
 def test_sensor_noise_only_when_declared(tiny_base, tmp_path):
     from dataclasses import replace
 
-    from allo_usd.spec import EffectsSpec
+    from allo_usd.plan.settings import EffectsSpec
 
     metas = {}
     for noisy in (False, True):
@@ -98,10 +98,10 @@ def test_glare_builds_a_compositor_only_when_declared(tiny_base, tmp_path):
     import bpy
 
     from allo_usd.blender.render import render_scene
-    from allo_usd.read import read_scene
-    from allo_usd.spec import EffectsSpec
+    from allo_usd.usd.read import read_scene
+    from allo_usd.plan.settings import EffectsSpec
 
-    from allo_usd.geometry import look_at
+    from allo_usd.core.geometry import look_at
 
     base = make_spec(resolution=(320, 180), samples=2)
     pos = np.array([0.0, 0.0, 30.0])
@@ -129,7 +129,7 @@ def test_denoiser_follows_the_layer(tiny_base, tmp_path):
     import bpy
 
     from allo_usd.blender.render import render_scene
-    from allo_usd.read import read_scene
+    from allo_usd.usd.read import read_scene
 
     base = make_spec(samples=2)
     for prefilter, quality in (("ACCURATE", "HIGH"), ("FAST", "BALANCED")):
@@ -144,7 +144,7 @@ def test_denoiser_follows_the_layer(tiny_base, tmp_path):
 def test_depth_and_mask_only_outputs(tiny_base, tmp_path, rendered):
     from dataclasses import replace
 
-    from allo_usd.job import layer_outputs
+    from allo_usd.usd.read import layer_outputs
 
     base = make_spec(anomaly=True)
     with_depth = replace(base, render=replace(base.render, depth=True))
@@ -178,11 +178,13 @@ def test_sunlit_white_plate_renders_near_but_below_white(tmp_path, ior):
     from dataclasses import replace
 
     from allo_usd.assets.primitives import grid, uv_sphere
-    from allo_usd.author.base import CameraPose, write_base_stage
-    from allo_usd.geometry import look_at, rotation_towards
-    from allo_usd.mesh import Asset, Material
-    from allo_usd.spec import BodySpec, CameraSpec, EffectsSpec
-    from allo_usd.write import linear_to_srgb8
+    from allo_usd.scene.spec import CameraPose
+    from allo_usd.usd.base_stage import write_base_stage
+    from allo_usd.core.geometry import look_at, rotation_towards
+    from allo_usd.assets.mesh import Asset, Material
+    from allo_usd.scene.spec import BodySpec, CameraSpec
+    from allo_usd.plan.settings import EffectsSpec
+    from allo_usd.output.writers import linear_to_srgb8
 
     from conftest import EXPOSURE, tiny_anomalies
 

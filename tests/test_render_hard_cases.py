@@ -8,11 +8,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from allo_usd.author.scene import write_scene_layer
+from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.blender.render import render_scene
-from allo_usd.geometry import look_at
-from allo_usd.read import read_scene
-from allo_usd.spec import EffectsSpec, SunSpec
+from allo_usd.core.geometry import look_at
+from allo_usd.usd.read import read_scene
+from allo_usd.plan.settings import EffectsSpec
+from allo_usd.scene.spec import SunSpec
 
 from conftest import CAM_POS, make_spec
 

@@ -8,20 +8,20 @@ import numpy as np
 import pytest
 
 from allo_usd.assets.primitives import box
-from allo_usd.author.base import CameraPose
-from allo_usd.description import ANOMALY, STATION
-from allo_usd.errors import DegenerateMeshError, PlacementError
-from allo_usd.geometry import look_at
-from allo_usd.mesh import MeshPart
-from allo_usd.placement import DEPTH_OFFSETS, check, place, visible_fraction
-from allo_usd.raycast import Scene, class_image
-from allo_usd.rig import ANGLE_SIGMA_RAD, POSITION_SIGMA_M, perturb
+from allo_usd.scene.spec import CameraPose
+from allo_usd.core.labels import ANOMALY, STATION
+from allo_usd.core.errors import DegenerateMeshError, PlacementError
+from allo_usd.core.geometry import look_at
+from allo_usd.assets.mesh import MeshPart
+from allo_usd.scene.placement import DEPTH_OFFSETS, check, place, visible_fraction
+from allo_usd.scene.raycast import RayScene, class_image
+from allo_usd.scene.rig import ANGLE_SIGMA_RAD, POSITION_SIGMA_M, perturb
 
 from conftest import tiny_station
 
 
 def _scene_of(*boxes):
-    return Scene([(b.points, b.triangles(), STATION) for b in boxes])
+    return RayScene([(b.points, b.triangles(), STATION) for b in boxes])
 
 
 CUBE = box("c", (0.4, 0.4, 0.4), "m")
@@ -83,12 +83,12 @@ def test_anomaly_grazing_the_frame_edge_counts_only_visible_pixels():
     x_edge = depth * np.tan(half_fov)
     centred = np.array([0.0, 0.0, -depth])
     grazing = np.array([x_edge, 0.0, -depth])  # centre on the right edge: about half is in frame
-    anomaly_at = lambda p: Scene([(CUBE.points + p, CUBE.triangles(), ANOMALY)])
+    anomaly_at = lambda p: RayScene([(CUBE.points + p, CUBE.triangles(), ANOMALY)])
     f_centre = visible_fraction(station, anomaly_at(centred), cam, rot, w, h)
     f_edge = visible_fraction(station, anomaly_at(grazing), cam, rot, w, h)
     assert 0.3 < f_edge / f_centre < 0.8  # about half the cube, plus the side face perspective shows
     # Same answer as a full owner image over station + anomaly.
-    both = Scene([(box("wall", (200, 200, 1), "m").transformed(_t(0, 0, -30)).points,
+    both = RayScene([(box("wall", (200, 200, 1), "m").transformed(_t(0, 0, -30)).points,
                    box("wall", (200, 200, 1), "m").triangles(), STATION), (CUBE.points + grazing, CUBE.triangles(), ANOMALY)])
     assert f_edge == pytest.approx((class_image(both, cam, rot, w, h) == ANOMALY).mean())
 
@@ -120,7 +120,7 @@ def test_impossible_placement_is_bounded_and_clear():
 def test_five_depths_along_the_view_ray_and_determinism():
     st = tiny_station()
     pts, tris = st.triangle_soup()
-    station = Scene([(pts, tris, STATION)])
+    station = RayScene([(pts, tris, STATION)])
     cam = np.array([15.0, 8.0, 5.0])
     rot = look_at(cam, [0, 0, 0])
     runs = [place(station, CUBE.points, CUBE.triangles(), cam, rot, np.random.default_rng(3), 160, 90)
@@ -142,15 +142,15 @@ def test_five_depths_along_the_view_ray_and_determinism():
 
 @pytest.mark.render
 def test_predicted_area_matches_the_rendered_mask(tiny_base, tmp_path):
-    from allo_usd.author.scene import write_scene_layer
+    from allo_usd.usd.scene_layer import write_scene_layer
     from allo_usd.blender.render import render_scene
-    from allo_usd.read import read_scene, read_triangles
-    from allo_usd.spec import AnomalySpec, CameraSpec
+    from allo_usd.usd.read import read_scene, read_triangles
+    from allo_usd.scene.spec import AnomalySpec, CameraSpec
 
     from conftest import make_spec
 
     st_pts, st_tris = read_triangles(tiny_base, "/World/Station")
-    station = Scene([(st_pts, st_tris, STATION)])
+    station = RayScene([(st_pts, st_tris, STATION)])
     a_pts, a_tris = read_triangles(tiny_base.parent / "anomalies" / "Crate.usda", "/Crate", "blue")
     cam = np.array([15.0, 8.0, 5.0])
     rot = look_at(cam, [0, 0, 0])
@@ -168,20 +168,20 @@ def test_predicted_area_matches_the_rendered_mask(tiny_base, tmp_path):
 def _random_rotation(rng):
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
-    from allo_usd.geometry import quat_to_matrix
+    from allo_usd.core.geometry import quat_to_matrix
     return quat_to_matrix(q)
 
 
 def test_object_frame_casting_equals_world_frame_casting():
     """The anomaly's BVH is built once in its own frame and the rays are moved into it; on random
     poses and cameras this gives the same visible fraction as a BVH of the posed object."""
-    from allo_usd.placement import anomaly_scene
-    from allo_usd.raycast import pixel_rays
+    from allo_usd.scene.placement import anomaly_scene
+    from allo_usd.scene.raycast import pixel_rays
 
     rng = np.random.default_rng(7)
     st = tiny_station()
     pts, tris = st.triangle_soup()
-    station = Scene([(pts, tris, STATION)])
+    station = RayScene([(pts, tris, STATION)])
     obj = box("o", (0.6, 0.3, 0.2), "m")
     local = anomaly_scene(obj.points, obj.triangles())
     w, h = 160, 90
@@ -192,7 +192,7 @@ def test_object_frame_casting_equals_world_frame_casting():
         o, d = pixel_rays(cam, rot, w, h)
         pos = cam + d[rng.integers(len(d))] * rng.uniform(1.5, 10.0)
         r = _random_rotation(rng)
-        world = Scene([(obj.points @ r.T + pos, obj.triangles(), ANOMALY)])
+        world = RayScene([(obj.points @ r.T + pos, obj.triangles(), ANOMALY)])
         sphere = (pos, np.linalg.norm(obj.points, axis=1).max())
         f_world = visible_fraction(station, world, cam, rot, w, h, (o, d))
         f_local = visible_fraction(station, local, cam, rot, w, h, None, sphere, (pos, r))
@@ -202,8 +202,8 @@ def test_object_frame_casting_equals_world_frame_casting():
 
 
 def test_pixel_ray_subsets_and_sphere_culling_are_exact():
-    from allo_usd.placement import sphere_pixels
-    from allo_usd.raycast import pixel_rays
+    from allo_usd.scene.placement import sphere_pixels
+    from allo_usd.scene.raycast import pixel_rays
 
     rng = np.random.default_rng(3)
     w, h = 96, 54
@@ -222,12 +222,12 @@ def test_pixel_ray_subsets_and_sphere_culling_are_exact():
 
 
 def test_raycaster_matches_trimesh():
-    """`Scene` calls embree directly; distances and owners equal trimesh's RayMeshIntersector."""
+    """`RayScene` calls embree directly; distances and owners equal trimesh's RayMeshIntersector."""
     import trimesh
 
     st = tiny_station()
     pts, tris = st.triangle_soup()
-    scene = Scene([(pts, tris, STATION)])
+    scene = RayScene([(pts, tris, STATION)])
     ref = trimesh.ray.ray_pyembree.RayMeshIntersector(trimesh.Trimesh(pts, tris, process=False))
     rng = np.random.default_rng(5)
     o = rng.uniform(-20, 20, (2000, 3))
@@ -244,7 +244,7 @@ def test_raycaster_matches_trimesh():
 # ---------------------------------------------------------------------------------- camera rig
 
 def test_view_quality_rejects_a_wall_and_an_empty_view_and_accepts_structure_in_range():
-    from allo_usd.rig import view_quality
+    from allo_usd.scene.rig import view_quality
 
     cam, rot = np.zeros(3), np.eye(3)                       # looks down -Z
     wall = view_quality(_scene_of(box("w", (40, 40, 0.2), "m").transformed(_t(0, 0, -1.5))), cam, rot)
@@ -257,7 +257,7 @@ def test_view_quality_rejects_a_wall_and_an_empty_view_and_accepts_structure_in_
 
 
 def test_base_poses_refuse_too_few_candidates_clearly():
-    from allo_usd.rig import base_poses
+    from allo_usd.scene.rig import base_poses
 
     st = tiny_station()
     pts, tris = st.triangle_soup()
@@ -268,7 +268,7 @@ def test_base_poses_refuse_too_few_candidates_clearly():
 
 def _iss_model():
     """NASA's ISS model beside the repository (../shared/assets), or beside a worktree's parent."""
-    from allo_usd.paths import ROOT
+    from allo_usd.core.paths import ROOT
 
     found = [d / "shared" / "assets" / "ISS_2016.glb" for d in (ROOT.parent, ROOT.parent.parent)]
     return next((p for p in found if p.is_file()), found[0])
@@ -280,9 +280,9 @@ ISS = _iss_model()
 @pytest.mark.skipif(not ISS.is_file(), reason=f"NASA ISS_2016.glb not found at {ISS} (not in the repo)")
 def test_rig_around_the_imported_iss():
     """The same rule picks 50 poses around NASA's model (inches, imported through trimesh)."""
-    from allo_usd.author.build_stage import station_and_fixtures
-    from allo_usd.rig import MIN_SPACING_M, TEST_NEIGHBOUR_M, TEST_SEPARATION_M, TEST_TURN_DEG, base_poses, \
-        view_quality
+    from allo_usd.usd.build_stage import station_and_fixtures
+    from allo_usd.scene.rig import (MIN_SPACING_M, TEST_NEIGHBOUR_M, TEST_SEPARATION_M, TEST_TURN_DEG, base_poses,
+                                    view_quality)
 
     station, candidates, _ = station_and_fixtures(str(ISS))
     pts, tris = station.triangle_soup()
@@ -294,7 +294,7 @@ def test_rig_around_the_imported_iss():
     ahead = np.array([-p.rotation[:, 2] for p in poses])
     turn = np.degrees(np.arccos(np.clip(ahead[:40] @ ahead[40:].T, -1, 1)))
     assert turn[gap[:40, 40:] < TEST_NEIGHBOUR_M].min() >= TEST_TURN_DEG
-    scene = Scene([(pts, tris, STATION)])
+    scene = RayScene([(pts, tris, STATION)])
     assert all(view_quality(scene, p.position, p.rotation).ok for p in poses)
 
 
@@ -311,7 +311,7 @@ def test_placed_objects_stay_near_station_structure():
     most of the frame shows empty space."""
     import trimesh
 
-    from allo_usd.placement import NEAR_STRUCTURE_M
+    from allo_usd.scene.placement import NEAR_STRUCTURE_M
 
     assert NEAR_STRUCTURE_M == 5.0
     block = _far_station()
@@ -338,7 +338,7 @@ def test_a_group_is_redrawn_until_all_five_depths_pass():
     checked again here at the full resolution."""
     st = tiny_station()
     pts, tris = st.triangle_soup()
-    station = Scene([(pts, tris, STATION)])
+    station = RayScene([(pts, tris, STATION)])
     cam = np.array([15.0, 8.0, 5.0])
     rot = look_at(cam, [0, 0, 0])
     redrawn = 0
@@ -357,7 +357,7 @@ def test_an_object_too_small_for_five_depths_falls_back_with_reasons():
     """A 4 cm cube covers 0.1% of the image only within ~1.5 m of the camera, so no draw fits five
     depths 4 m apart: the search stops after PARTIAL_ATTEMPTS draws and keeps the best group, whose
     failing depths carry their reason."""
-    from allo_usd.placement import PARTIAL_ATTEMPTS
+    from allo_usd.scene.placement import PARTIAL_ATTEMPTS
 
     tiny = box("t", (0.04, 0.04, 0.04), "m")
     station = _scene_of(box("wall", (30, 30, 1), "m").transformed(_t(0, 0, -4)))
@@ -375,7 +375,7 @@ def test_screened_placements_hold_at_the_render_resolution():
     accepted depth covers at least 0.1% of the 1080p image."""
     st = tiny_station()
     pts, tris = st.triangle_soup()
-    station = Scene([(pts, tris, STATION)])
+    station = RayScene([(pts, tris, STATION)])
     cam = np.array([15.0, 8.0, 5.0])
     rot = look_at(cam, [0, 0, 0])
     w, h = 1920, 1080
@@ -395,8 +395,8 @@ def test_screened_placements_hold_at_the_render_resolution():
 def test_footprint_and_subgrid_cast_every_pixel_the_object_can_cover():
     """The triangle footprint that limits the pixels cast never leaves out a pixel whose centre ray
     meets the object, on the full grid or on a sub-grid."""
-    from allo_usd.placement import _box_indices, _footprint, _sphere_box, anomaly_scene, random_rotation
-    from allo_usd.raycast import pixel_rays
+    from allo_usd.scene.placement import _box_indices, _footprint, _sphere_box, anomaly_scene, random_rotation
+    from allo_usd.scene.raycast import pixel_rays
 
     rng = np.random.default_rng(4)
     obj = box("thin", (1.2, 0.05, 0.03), "m")     # long and thin: its box is mostly empty
@@ -423,7 +423,7 @@ def test_footprint_and_subgrid_cast_every_pixel_the_object_can_cover():
 def test_occlusion_query_agrees_with_first_hit():
     st = tiny_station()
     pts, tris = st.triangle_soup()
-    scene = Scene([(pts, tris, STATION)])
+    scene = RayScene([(pts, tris, STATION)])
     rng = np.random.default_rng(8)
     o = rng.uniform(-20, 20, (3000, 3))
     d = rng.normal(size=(3000, 3))
@@ -440,9 +440,9 @@ def test_occlusion_query_agrees_with_first_hit():
 def test_pixel_rays_equal_the_matrix_form_bit_for_bit():
     """pixel_rays computes each direction component as its own array; the bits equal R @ (x, y, -1)
     normalised per ray, as written out here."""
-    from allo_usd.geometry import camera_intrinsics
-    from allo_usd.placement import random_rotation
-    from allo_usd.raycast import pixel_rays
+    from allo_usd.core.geometry import camera_intrinsics
+    from allo_usd.scene.placement import random_rotation
+    from allo_usd.scene.raycast import pixel_rays
 
     rng = np.random.default_rng(11)
     for w, h in ((1920, 1080), (480, 270), (64, 36)):
@@ -461,14 +461,14 @@ def test_part_footprint_and_rectangle_union_keep_every_pixel_and_the_count(monke
     """The part boxes' footprint holds the triangles' footprint (and so every pixel the object covers);
     marking a few rectangles one by one equals the running count; and visible_fraction gives the
     same value with either footprint, or with none."""
-    import allo_usd.placement as P
+    import allo_usd.scene.placement as P
     from allo_usd.assets.anomalies import build_anomaly
-    from allo_usd.raycast import pixel_rays
+    from allo_usd.scene.raycast import pixel_rays
 
     rng = np.random.default_rng(12)
     st = tiny_station()
     pts_s, tris_s = st.triangle_soup()
-    station = Scene([(pts_s, tris_s, STATION)])
+    station = RayScene([(pts_s, tris_s, STATION)])
     part = build_anomaly("data_cable", "white").parts[0]            # a tube along a spline: a loose box
     pts = part.points - 0.5 * (part.points.min(axis=0) + part.points.max(axis=0))
     tris = part.triangles()
@@ -510,7 +510,7 @@ def test_part_footprint_and_rectangle_union_keep_every_pixel_and_the_count(monke
 def test_fallback_ranking_screens_less_and_ranks_as_screening_everything():
     """`_ranked` orders the fallback draws exactly as screening every depth of every draw would
     (most depths passing, then earliest attempt; initial depth required), on random tables."""
-    from allo_usd.placement import _ranked
+    from allo_usd.scene.placement import _ranked
 
     rng = np.random.default_rng(13)
     saved = 0

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.errors import LayerError
-from allo_usd.read import read_scene
-from allo_usd.safety import ENV_ROOTS, allowed_roots
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.core.errors import LayerError
+from allo_usd.usd.read import read_scene
+from allo_usd.usd.safety import ENV_ROOTS, allowed_roots
 
 from conftest import make_spec
 

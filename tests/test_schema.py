@@ -1,6 +1,6 @@
 from pxr import Usd
 
-from allo_usd import schema
+from allo_usd.usd import schema
 
 
 def test_register_is_explicit_and_idempotent():

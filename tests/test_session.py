@@ -7,9 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.geometry import look_at
-from allo_usd.spec import AnomalySpec, EffectsSpec, SunSpec
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.core.geometry import look_at
+from allo_usd.scene.spec import AnomalySpec, SunSpec
+from allo_usd.plan.settings import EffectsSpec
 
 from conftest import make_spec
 
@@ -44,7 +45,7 @@ def _sequence() -> list[tuple[str, object]]:
 
 @pytest.fixture(scope="module")
 def descs(tiny_base, tmp_path_factory):
-    from allo_usd.read import read_scene
+    from allo_usd.usd.read import read_scene
 
     root = tmp_path_factory.mktemp("session")
     return [(name, read_scene(write_scene_layer(spec, root / f"{name}.usda", tiny_base)))
@@ -134,7 +135,7 @@ def test_anomaly_in_and_out_leaves_no_orphans(descs):
 
 def test_render_layer_uses_a_session(tiny_base, tmp_path):
     from allo_usd.blender.session import Session
-    from allo_usd.job import render_layer
+    from allo_usd.run.job import render_layer
 
     session = Session()
     layers = [write_scene_layer(spec, tmp_path / f"{name}.usda", tiny_base) for name, spec in _sequence()[:3]]

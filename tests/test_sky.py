@@ -12,23 +12,12 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from allo_usd import sky as S
-from allo_usd.errors import AlloError, EphemerisRangeError, EpochError, SkyInputError
-from allo_usd.sky import (
-    BODIES,
-    BODY_RADIUS_M,
-    Orbit,
-    angle_between,
-    body_placement,
-    classify_eclipse,
-    compute_sky,
-    default_epochs,
-    disc_overlap_area,
-    eclipse_from_vectors,
-    solve_kepler,
-    sun_light,
-)
-from allo_usd.sky_report import CSV_COLUMNS, write_sky_report
+from allo_usd.sky import model as S
+from allo_usd.core.errors import AlloError, EphemerisRangeError, EpochError, SkyInputError
+from allo_usd.sky.model import (BODIES, BODY_RADIUS_M, Orbit, angle_between, body_placement, classify_eclipse,
+                                compute_sky, default_epochs, disc_overlap_area, eclipse_from_vectors,
+                                solve_kepler, sun_light)
+from allo_usd.sky.report import CSV_COLUMNS, write_sky_report
 
 UTC = timezone.utc
 PERIOD_D = 2 * 29.530589 / 9

@@ -9,14 +9,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from allo_usd.author.scene import write_scene_layer
+from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.blender.build import build_scene
 from allo_usd.blender.render import render_scene
-from allo_usd.geometry import camera_intrinsics, look_at, matrix_to_quat
-from allo_usd.read import read_scene
-from allo_usd.scenes import sun_and_bodies
-from allo_usd.sky import compute_sky, default_epochs
-from allo_usd.spec import CameraSpec, EffectsSpec, SunSpec
+from allo_usd.core.geometry import camera_intrinsics, look_at, matrix_to_quat
+from allo_usd.usd.read import read_scene
+from allo_usd.scene.resolve import sun_and_bodies
+from allo_usd.sky.model import compute_sky, default_epochs
+from allo_usd.scene.spec import CameraSpec
+from allo_usd.plan.settings import EffectsSpec
 
 from conftest import make_spec
 
@@ -232,7 +233,7 @@ def test_lunar_eclipse_day_darkens_the_moon_lamp(sky, tiny_base, tmp_path):
     assert means["eclipse"] / means["uneclipsed"] == pytest.approx(moon_sun.lit_fraction, rel=0.01)
 
 def _random_rotation(rng) -> np.ndarray:
-    from allo_usd.geometry import quat_to_matrix
+    from allo_usd.core.geometry import quat_to_matrix
 
     return quat_to_matrix(rng.standard_normal(4))  # uniform on SO(3)
 
@@ -254,8 +255,9 @@ def test_every_authored_transform_survives_float32_in_blender(tiny_base, tmp_pat
     (budget 1e-5 rad; measured at most 4e-8 rad, and positions within half a float32 ulp)."""
     from pxr import Usd, UsdGeom
 
-    from allo_usd.read import open_stage
-    from allo_usd.spec import AnomalySpec, BodySpec, EffectsSpec
+    from allo_usd.usd.read import open_stage
+    from allo_usd.scene.spec import AnomalySpec, BodySpec
+    from allo_usd.plan.settings import EffectsSpec
 
     rng = np.random.default_rng(seed)
     cam_pos = rng.uniform(-100.0, 100.0, 3)

@@ -6,13 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from allo_usd.assets.station import (
-    ARM_BASE,
-    TRUSS_HALF_LENGTH,
-    build_station,
-    station_fixture_points,
-    station_triangles,
-)
+from allo_usd.assets.station import (ARM_BASE, TRUSS_HALF_LENGTH, build_station, station_fixture_points,
+                                     station_triangles)
 
 
 @pytest.fixture(scope="module")

@@ -5,12 +5,11 @@ UsdValidation validators, so this is the compliance check."""
 
 from __future__ import annotations
 
-import pytest
 from pxr import Usd, UsdValidation
 
-from allo_usd import schema
-from allo_usd.author.scene import write_scene_layer
-from allo_usd.paths import BASE_STAGE
+from allo_usd.usd import schema
+from allo_usd.usd.scene_layer import write_scene_layer
+from allo_usd.core.paths import BASE_STAGE
 
 from conftest import make_spec
 

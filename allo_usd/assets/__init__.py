@@ -1,1 +1,1 @@
-"""Procedural and imported assets, as plain numpy meshes (see allo_usd.mesh)."""
+"""Procedural and imported assets, as plain numpy meshes (see allo_usd.assets.mesh)."""

@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import Asset, Material
-from .primitives import uv_sphere
+from allo_usd.assets.mesh import Asset, Material
+from allo_usd.assets.primitives import uv_sphere
 
 SOLAR_CONSTANT_W_M2 = 1361.0
 AU_M = 1.495978707e11

@@ -86,8 +86,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import AssetError, DegenerateMeshError, ImportOptionError
-from ..mesh import Asset, Material, MeshPart
+from allo_usd.core.errors import AssetError, DegenerateMeshError, ImportOptionError
+from allo_usd.assets.mesh import Asset, Material, MeshPart
 
 __all__ = [
     "DEFAULT_MATERIAL",

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import MeshPart
+from allo_usd.assets.mesh import MeshPart
 
 
 def transform(translate=(0.0, 0.0, 0.0), rotate: np.ndarray | None = None, scale=1.0) -> np.ndarray:

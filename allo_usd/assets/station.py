@@ -34,9 +34,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..mesh import Asset, Material, MeshPart
-from .primitives import (box, box_between, cylinder, cylinder_between, dish, frame_from_z, grid, merge,
-                         rot_x, rot_y, rot_z, scale_uv, transform, uv_sphere)
+from allo_usd.assets.mesh import Asset, Material, MeshPart
+from allo_usd.assets.primitives import (box, box_between, cylinder, cylinder_between, dish, frame_from_z, grid,
+                                        merge, rot_x, rot_y, rot_z, scale_uv, transform, uv_sphere)
 
 # ----------------------------------------------------------------------------- layout constants
 TRUSS_Z = 2.0             # height of the truss axis

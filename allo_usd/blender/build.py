@@ -18,7 +18,8 @@ import math
 
 import numpy as np
 
-from ..description import CameraDesc, MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc, SunDesc
+from allo_usd.usd.description import (CameraDesc, MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc,
+                                      SunDesc)
 
 
 def _bpy():
@@ -123,7 +124,7 @@ def build_camera(desc: CameraDesc):
 
 def set_sun(obj, desc: SunDesc) -> None:
     """A sun lamp's values and direction (everything but its light linking)."""
-    from ..geometry import rotation_towards
+    from allo_usd.core.geometry import rotation_towards
 
     light = obj.data
     light.energy = desc.irradiance          # Cycles sun strength is irradiance, W/m^2
@@ -238,7 +239,7 @@ def build_scene(desc: SceneDescription) -> None:
     if desc.spot is not None:
         build_spot(desc.spot)
     configure_render(desc.render)
-    from .compositor import build_glare, no_compositor
+    from allo_usd.blender.compositor import build_glare, no_compositor
 
     if desc.effects.glare:
         build_glare()

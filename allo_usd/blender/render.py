@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..description import SceneDescription
-from ..errors import DiskFullError, RenderFailedError
-from .build import build_scene
+from allo_usd.usd.description import SceneDescription
+from allo_usd.core.errors import DiskFullError, RenderFailedError
+from allo_usd.blender.build import build_scene
 
 MIN_FREE_BYTES = 1 << 20  # after a failed render, less free than this on the temp device means "disk full"
 
@@ -115,7 +115,7 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
             ch = _read_multilayer_exr(out)
         except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain exceptions for cut-short files
             raise _unreadable(out, desc.layer, f"cannot be read ({type(exc).__name__}: {exc})") from exc
-        from .compositor import has_compositor
+        from allo_usd.blender.compositor import has_compositor
 
         layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
         r, g, b = (ch.get(f"{layer}.{c}") for c in "RGB")

@@ -54,9 +54,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..description import MaterialDesc, MeshDesc, SceneDescription
-from . import build
-from .render import RenderResult, render_current
+from allo_usd.usd.description import MaterialDesc, MeshDesc, SceneDescription
+from allo_usd.blender import build
+from allo_usd.blender.render import RenderResult, render_current
 
 _TOKEN = "allo_session"
 CAMERA, SPOT = "/World/Camera", "/World/Camera/InspectionLight"
@@ -273,7 +273,7 @@ class Session:
             build.configure_render(desc.render)
             stats.changed.append("render")
         if prev.effects.glare != desc.effects.glare:
-            from .compositor import build_glare, no_compositor
+            from allo_usd.blender.compositor import build_glare, no_compositor
 
             if desc.effects.glare:
                 build_glare()

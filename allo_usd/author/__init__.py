@@ -1,1 +1,0 @@
-"""USD authoring (pxr only): assets, the base stage and per-scene layers."""

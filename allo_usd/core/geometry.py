@@ -1,0 +1,110 @@
+"""Rotations and camera frames in float64: matrices, unit quaternions (w, x, y, z), look-at.
+
+Quaternions are the interchange form (USD `quatd`, Blender QUATERNION mode), never Euler
+angles: at pitch +-pi/2 an Euler round trip changes the triple (PHYSICS.md section 3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from allo_usd.core.errors import AlloError
+from allo_usd.core.constants import FOCAL_LENGTH_MM, SENSOR_WIDTH_MM
+
+
+def check_finite(name: str, value) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float64)
+    if not np.isfinite(a).all():
+        raise AlloError(f"{name} contains NaN or infinity ({a.tolist()}); fix the pose or plan that produced it")
+    return a
+
+
+def _unit(name: str, value) -> np.ndarray:
+    """`value` scaled to unit length; a zero vector has no direction and is an error."""
+    a = check_finite(name, value)
+    big = np.abs(a).max()
+    if big == 0:
+        raise AlloError(f"{name} has zero length; give a non-zero vector")
+    a = a / big  # pre-scaled, so tiny and huge vectors neither underflow nor overflow
+    return a / np.linalg.norm(a)
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z), w >= 0, from a proper rotation matrix (Shepperd's method)."""
+    r = check_finite("rotation matrix", r)
+    if abs(np.linalg.det(r) - 1.0) > 1e-6 or not np.allclose(r @ r.T, np.eye(3), atol=1e-6):
+        raise AlloError("rotation matrix is not orthonormal with det +1; build it from unit axes")
+    t = np.trace(r)
+    cands = np.array([t, r[0, 0], r[1, 1], r[2, 2]])
+    k = int(np.argmax(cands))
+    if k == 0:
+        s = np.sqrt(1.0 + t) * 2
+        q = np.array([0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s])
+    elif k == 1:
+        s = np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        q = np.array([(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s])
+    elif k == 2:
+        s = np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        q = np.array([(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s])
+    else:
+        s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        q = np.array([(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s])
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    w, x, y, z = _unit("quaternion", q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def look_at(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera rotation (columns = camera x, y, z in world) looking down -Z at target, +Y up."""
+    p = check_finite("camera position", position)
+    fwd = check_finite("look target", target) - p
+    n = np.linalg.norm(fwd)
+    if n == 0:
+        raise AlloError("camera position equals its look target; give a target at a distance")
+    fwd /= n
+    up = _unit("up vector", up)
+    if abs(np.dot(fwd, up)) > 0.999:  # looking straight up/down: pick another up
+        up = np.array([1.0, 0.0, 0.0]) if abs(fwd[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(fwd, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(x, fwd)
+    return np.stack([x, y, -fwd], axis=1)
+
+
+def rotation_towards(direction) -> np.ndarray:
+    """A rotation whose local +Z is unit(direction) (used to aim a DistantLight's -Z away from the Sun)."""
+    z = _unit("direction", direction)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def camera_intrinsics(width: int, height: int) -> np.ndarray:
+    """3x3 pinhole matrix (pixels) for the 25 mm / 36 mm-wide camera, sensor fit horizontal."""
+    f = FOCAL_LENGTH_MM / SENSOR_WIDTH_MM * width
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (Fibonacci lattice), deterministic."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
+def box_corners(points) -> np.ndarray:
+    """(8, 3) corners of the axis-aligned box around `points` (an object in its own frame)."""
+    p = np.asarray(points, dtype=np.float64)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    return np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])

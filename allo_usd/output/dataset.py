@@ -1,0 +1,439 @@
+"""Assemble rendered scenes into an MVTec-AD-style tree that anomaly-detection libraries load as is.
+
+Input: render directories as `allo_usd.run.job` writes them (NAME.json last, so a JSON marks a
+finished scene; its "scene" holds split/variant/pose/day/anomaly/seed read from the layer).
+Output, under OUT:
+
+    OUT/<category>/train/good/NNNNNN_NAME.png          normal training images
+    OUT/<category>/test/good/NNNNNN_NAME.png           normal test images
+    OUT/<category>/test/anomaly/NNNNNN_NAME.png        anomalous test images
+    OUT/<category>/ground_truth/anomaly/NNNNNN_NAME_mask.png   binary 0/255, anomaly class only
+    OUT/allo_masks/<category>/<split>/<kind>/NNNNNN_NAME_mask.png   ALLO 3-class masks (0, 1, 2)
+    OUT/manifest.csv (and manifest.parquet if pandas and pyarrow are installed)
+    OUT/contact_sheets/<category>_<split>.png
+
+Why these choices:
+- anomalib's MVTec and Folder loaders glob EVERY image under the category directory and pair
+  sorted anomalous images with sorted masks by position. So the category directory holds
+  nothing but train/, test/ and ground_truth/ (the 3-class masks, sheets and manifest live
+  beside it), and every file name starts with a unique fixed-width index: sorting images and
+  masks then gives the same order whatever the scene names are (a bare `a.png`/`a_b.png` pair
+  would sort differently from `a_mask.png`/`a_b_mask.png`). The scene name follows the index
+  so that a person can read the tree.
+- Indices, and rows, are keyed by scene name (NAME), kept in the manifest: re-running adds new
+  scenes, refreshes re-rendered ones in place and never duplicates a row.
+- Images and 3-class masks are hard links (no copy, no space) when possible; job.py replaces
+  outputs by rename, so re-rendering never alters a linked dataset file. Every write is atomic.
+- The paper's training set is normal only, and an anomalous scene whose anomaly has no visible
+  pixel would be a wrong label: both are left out of the tree with a warning. So are mask-only
+  renders (RenderSpec.mask_only): they have no image to train or test on.
+- The manifest is written ahead: before a batch of scenes gets its files, manifest.csv is
+  atomically rewritten with their rows, so however a run ends (Ctrl-C, kill -9, a crash) no
+  file in the tree is missing from the manifest. A row whose files did not arrive is completed
+  (same index) by the next run, or dropped at its end if its render is gone. Each run starts by
+  removing stale hidden temporaries (a killed writer's `.NAME.png.XXXXXXXX.png`, which
+  anomalib's recursive glob would otherwise load as an image) and indexed images that no row
+  lists. Ctrl-C stops after the scene in hand (a second Ctrl-C stops at once, still safely)
+  and raises AssemblyInterrupted; manifest.parquet is rewritten when a run ends.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import os
+import re
+import shutil
+import signal
+import threading
+import uuid
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from allo_usd.core.errors import AlloError
+from allo_usd.core.files import RunLock, atomic_path, sha256_file
+from allo_usd.output.writers import mask_overlay, write_png
+
+LAYOUTS = ("mvtec",)
+COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "kind", "scene_id", "pose", "day",
+           "epoch", "anomaly_asset", "anomaly_variant", "depth_index", "depth_offset", "anomaly_fraction",
+           "seed", "plan_seed", "seed_path", "layer", "layer_sha256", "sha256", "source")
+MANIFEST = "manifest.csv"
+FILE_KEYS = ("allo_mask", "mask", "image")  # placement order: the image, which loaders glob, comes last
+# Temporaries of place() (.NAME.<32 hex>.tmp) and of write.atomic_path (mkstemp: .NAME.<8 chars>.SUFFIX).
+TEMPORARY = re.compile(r"^\..+\.(?:[0-9a-f]{32}\.tmp|[a-z0-9_]{8}\.(?:png|csv|parquet|json))$")
+INDEXED = re.compile(r"^\d{6}_.+\.png$")
+
+
+class AssemblyInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped assembly; the manifest lists every file in the tree, and a re-run goes on."""
+
+
+def plan_seed(seed_path: str) -> int | str:
+    """The plan seed (the pipeline run) of a scene: the first part of its seed path
+    ("2031/45/42/..." -> 2031; allo_usd.scene.resolve.scene_seed), or "" if the path has none."""
+    head = str(seed_path or "").split("/", 1)[0]
+    return int(head) if head.isdigit() else ""
+
+
+def place(src: Path, dst: Path, link: bool = True) -> str:
+    """Put src at dst atomically: a hard link if allowed and possible, else a copy. Returns how."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        same = os.path.samefile(src, dst)
+        if (link and same) or (not link and not same and sha256_file(src) == sha256_file(dst)):
+            return "kept"  # a copy run replaces earlier links by copies, and keeps equal copies
+    if link:
+        tmp = dst.parent / f".{dst.name}.{uuid.uuid4().hex}.tmp"
+        try:
+            os.link(src, tmp)
+            os.replace(tmp, dst)
+            return "link"
+        except OSError:  # other file system, or links not allowed: copy instead
+            tmp.unlink(missing_ok=True)
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+    return "copy"
+
+
+def scan(render_dirs, progress: bool = False) -> list[tuple[Path, dict]]:
+    """(json path, metadata) of every finished scene in the render directories, by name."""
+    from tqdm import tqdm
+
+    found: dict[str, tuple[Path, dict]] = {}
+    for d in map(Path, render_dirs):
+        if not d.is_dir():
+            raise AlloError(f"render directory {d} does not exist; pass directories that `allo-usd render` wrote")
+        for meta_path in tqdm(sorted(d.glob("*.json")), desc=f"reading {d.name}", unit="file", disable=not progress,
+                              leave=False):
+            try:
+                meta = json.loads(meta_path.read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                continue  # not ours: job.py writes its JSON atomically, so it is never partial
+            if not isinstance(meta, dict) or "scene" not in meta or "files" not in meta:
+                continue  # not a render record (e.g. a plan or report beside the renders)
+            name = meta_path.stem
+            if name in found and found[name][1].get("layer_sha256") != meta.get("layer_sha256"):
+                raise AlloError(f"two different scenes are named {name!r}: {found[name][0]} and {meta_path}; "
+                                "rename one layer (names must be unique within a dataset)")
+            found[name] = (meta_path, meta)
+    return [found[k] for k in sorted(found)]
+
+
+def read_manifest(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:  # manifests written before the plan_seed column
+        if not r.get("plan_seed"):
+            r["plan_seed"] = plan_seed(r.get("seed_path", ""))
+    return rows
+
+
+def _write_csv(path: Path, rows) -> Path:
+    rows = sorted(rows, key=lambda r: (r["category"], int(r["index"])))
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(rows)
+    return path
+
+
+def write_manifest(path: Path, rows: list[dict]) -> Path:
+    """manifest.csv (atomically), and manifest.parquet beside it if pandas and pyarrow are installed."""
+    _write_csv(path, rows)
+    if importlib.util.find_spec("pandas") and importlib.util.find_spec("pyarrow"):
+        import pandas as pd
+
+        with atomic_path(path.with_suffix(".parquet")) as tmp:
+            pd.read_csv(path).to_parquet(tmp, index=False)
+    return path
+
+
+def remove_temporaries(out: Path) -> int:
+    """Remove hidden temporaries that killed writers left anywhere under `out`; returns how many."""
+    n = 0
+    for d, _, files in os.walk(out):
+        for name in files:
+            if TEMPORARY.match(name):
+                Path(d, name).unlink(missing_ok=True)
+                n += 1
+    return n
+
+
+def remove_unlisted(out: Path, category: str, rows) -> list[str]:
+    """Remove indexed images and masks of `category` that no manifest row lists (an older run
+    killed between placing a refreshed scene's new files and removing its old ones); returns them."""
+    listed = {r[k] for r in rows if r["category"] == category for k in FILE_KEYS if r.get(k)}
+    gone = []
+    for top in (out / category, out / "allo_masks" / category):
+        for d, _, files in os.walk(top):
+            for name in files:
+                rel = Path(d, name).relative_to(out).as_posix()
+                if INDEXED.match(name) and rel not in listed:
+                    Path(d, name).unlink(missing_ok=True)
+                    gone.append(rel)
+    return gone
+
+
+def _pixels(path: Path, mode: str | None = None) -> np.ndarray:
+    """An image file's pixels (the file closed again)."""
+    with Image.open(path) as im:
+        return np.asarray(im.convert(mode) if mode else im)
+
+
+def _kind(scene: dict, meta: dict) -> str | None:
+    kind = "anomaly" if scene.get("variant") == "anomaly" else "good"
+    if kind == "anomaly" and scene.get("split") != "test":
+        return None
+    if kind == "anomaly" and meta.get("class_pixels", {}).get("anomaly", 0) == 0:
+        return None
+    return kind
+
+
+def _row(category, index, name, meta_path: Path, meta: dict, kind: str) -> dict:
+    """The manifest row of one scene (its files are placed by _place_row)."""
+    scene, src = meta["scene"], meta_path.parent
+    split = scene["split"]
+    stem = f"{index:06d}_{name}"
+    image = Path(category, split, kind, f"{stem}.png")
+    allo_mask = Path("allo_masks", category, split, kind, f"{stem}_mask.png")
+    mask = Path(category, "ground_truth", kind, f"{stem}_mask.png").as_posix() if kind == "anomaly" else ""
+    anomaly = scene.get("anomaly") or {}
+    seed_path = scene.get("seedPath", "")
+    return {"category": category, "index": index, "name": name, "image": image.as_posix(),
+            "mask": mask, "allo_mask": allo_mask.as_posix(), "split": split, "kind": kind,
+            "scene_id": scene.get("sceneId", name), "pose": scene.get("pose"), "day": scene.get("day"),
+            "epoch": scene.get("epoch"), "anomaly_asset": anomaly.get("asset", ""),
+            "anomaly_variant": anomaly.get("assetVariant", ""), "depth_index": anomaly.get("depthIndex", ""),
+            "depth_offset": anomaly.get("depthOffset", ""), "anomaly_fraction": meta.get("anomaly_fraction", 0.0),
+            "seed": scene.get("seed"), "plan_seed": plan_seed(seed_path), "seed_path": seed_path,
+            "layer": meta.get("layer", ""), "layer_sha256": meta.get("layer_sha256", ""),
+            "sha256": sha256_file(src / meta["files"]["rgb"]), "source": str(meta_path.resolve())}
+
+
+def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> None:
+    """Put one scene's files in the tree: 3-class mask, binary ground truth, then the image."""
+    src = meta_path.parent
+    mask_src = src / meta["files"]["mask"]
+    place(mask_src, out / row["allo_mask"], link)
+    if row["mask"]:
+        write_png(out / row["mask"], np.where(_pixels(mask_src) == 2, 255, 0).astype(np.uint8))
+    place(src / meta["files"]["rgb"], out / row["image"], link)
+
+
+def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, out: Path) -> bool:
+    """A row whose source, layer and kind are the same and whose files are links to the render: skip
+    hashing again (job.py replaces outputs by rename, so a linked file never changes content)."""
+    if (old["source"], old["layer_sha256"], old["kind"], old["split"]) != (
+            str(meta_path.resolve()), meta.get("layer_sha256", ""), kind, meta["scene"]["split"]):
+        return False
+    src = meta_path.parent
+    try:
+        return (os.path.samefile(out / old["image"], src / meta["files"]["rgb"])
+                and os.path.samefile(out / old["allo_mask"], src / meta["files"]["mask"])
+                and (not old["mask"] or (out / old["mask"]).is_file()))
+    except OSError:
+        return False
+
+
+def _remove_files(out: Path, row: dict) -> None:
+    for key in FILE_KEYS:
+        if row.get(key):
+            (out / row[key]).unlink(missing_ok=True)
+
+
+def _complete(out: Path, row: dict) -> bool:
+    return all((out / row[k]).is_file() for k in FILE_KEYS if row.get(k))
+
+
+@contextmanager
+def _stop_at_scene_boundary():
+    """While active, a first Ctrl-C sets the returned event (the loop stops after the scene in
+    hand); a second raises KeyboardInterrupt at once. Only the main thread can own SIGINT."""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handler(signum, frame):
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+        from tqdm import tqdm
+
+        tqdm.write("Ctrl-C: stopping after this scene (Ctrl-C again stops at once; nothing is lost either way)")
+
+    old = signal.signal(signal.SIGINT, handler)
+    try:
+        yield stop
+    finally:
+        signal.signal(signal.SIGINT, old if old is not None else signal.SIG_DFL)
+
+
+LOCK = ".allo-dataset.lock"
+
+
+def assemble(render_dirs, out_dir, layout: str = "mvtec", link: bool = True, category: str = "allo",
+             sheet_limit: int = 48, progress: bool = False, on_scene=None) -> Path:
+    """Build (or update) the dataset tree under out_dir from render directories; returns the manifest.
+
+    `progress` shows bars (counts, ETA) for reading the renders and placing the scenes;
+    `on_scene(name)` is called after each scene's files are in place. Ctrl-C raises
+    AssemblyInterrupted once the manifest is final for what was placed. One run at a time per
+    out_dir (`LOCK`): a second would remove the first one's temporaries and unlisted images."""
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    with RunLock(out_dir, LOCK, "dataset"):
+        return _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene)
+
+
+def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene) -> Path:
+    from tqdm import tqdm
+
+    if layout not in LAYOUTS:
+        raise AlloError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
+    if not category or "/" in category or category in ("allo_masks", "contact_sheets"):
+        raise AlloError(f"category {category!r} must be a plain directory name")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = out / MANIFEST
+    removed = remove_temporaries(out)
+    rows = {(r["category"], r["name"]): r for r in read_manifest(manifest)}
+    unlisted = remove_unlisted(out, category, rows.values())
+    if removed or unlisted:
+        warnings.warn(f"removed {removed} stale temporary file(s) and {len(unlisted)} image(s) no manifest row "
+                      f"lists, left by an interrupted run", stacklevel=2)
+    next_index = 1 + max((int(r["index"]) for r in rows.values() if r["category"] == category), default=-1)
+    left_out, mask_only, todo = [], [], []
+    for meta_path, meta in scan(render_dirs, progress):
+        name = meta_path.stem
+        if "rgb" not in meta["files"]:
+            mask_only.append(name)
+            continue
+        kind = _kind(meta["scene"], meta)
+        if kind is None:
+            left_out.append(name)
+            continue
+        old = rows.get((category, name))
+        if old and link and _unchanged(old, meta_path, meta, kind, out):
+            continue
+        index = int(old["index"]) if old else next_index
+        next_index += old is None
+        todo.append((name, meta_path, meta, kind, index))
+    if left_out:
+        warnings.warn(f"{len(left_out)} scene(s) left out (anomalous in the train split, or anomaly not visible): "
+                      f"{', '.join(left_out[:10])}", stacklevel=2)
+    if mask_only:
+        warnings.warn(f"{len(mask_only)} mask-only render(s) left out: they have no color image to train or test "
+                      f"on (render their layers with color to include them): {', '.join(mask_only[:10])}",
+                      stacklevel=2)
+
+    ahead: dict[tuple, dict | None] = {}  # rows written ahead whose scene is not placed yet: key -> old row
+    in_hand = None
+    placed = 0
+    try:
+        with _stop_at_scene_boundary() as stop, tqdm(total=len(todo), unit="scene", desc=f"assembling {category}",
+                                                     disable=not progress) as bar:
+            i = 0
+            while i < len(todo) and not stop.is_set():
+                batch = todo[i:i + max(64, min(4096, len(rows) // 8))]  # amortised: O(log n) rewrites
+                i += len(batch)
+                new = [(t, _row(category, t[4], t[0], t[1], t[2], t[3])) for t in batch]
+                for (name, *_), row in new:
+                    key = (category, name)
+                    ahead[key] = rows.get(key)
+                    rows[key] = row
+                _write_csv(manifest, rows.values())  # before any of the batch's files exists
+                for (name, meta_path, meta, _, _), row in new:
+                    if stop.is_set():
+                        break
+                    key = in_hand = (category, name)
+                    old = ahead[key]
+                    _place_row(row, meta_path, meta, out, link)
+                    if old:
+                        _remove_files(out, {k: old[k] for k in FILE_KEYS if old.get(k) and old[k] != str(row[k])})
+                    del ahead[key]
+                    in_hand = None
+                    placed += 1
+                    bar.update(1)
+                    if on_scene is not None:
+                        on_scene(name)
+    except KeyboardInterrupt:
+        stop_now = True
+    else:
+        stop_now = stop.is_set()
+    finally:
+        for key, old in ahead.items():  # not placed: back to what the manifest said before
+            if key == in_hand:
+                continue  # stopped at once mid-scene: its row lists the files that may exist
+            if old is None:
+                rows.pop(key, None)
+            else:
+                rows[key] = old
+    if stop_now:
+        write_manifest(manifest, list(rows.values()))
+        raise AssemblyInterrupted(f"interrupted after {placed} of {len(todo)} scenes; {manifest} lists every file "
+                                  "in the tree; re-run the same command to add the rest")
+    gone = [key for key, r in rows.items() if not _complete(out, r)]
+    if gone:
+        warnings.warn(f"{len(gone)} manifest row(s) dropped: their files are missing and their renders were not "
+                      f"given: {', '.join(name for _, name in gone[:10])}", stacklevel=2)
+        for key in gone:
+            _remove_files(out, rows.pop(key))
+    all_rows = list(rows.values())
+    write_manifest(manifest, all_rows)
+    for split in ("train", "test"):
+        picked = [r for r in all_rows if r["category"] == category and r["split"] == split]
+        if picked:
+            grid_sheet(out, picked, out / "contact_sheets" / f"{category}_{split}.png", sheet_limit)
+    return manifest
+
+
+def label_lines(text: str, width: float, draw) -> list[str]:
+    """`text` in lines no wider than `width` pixels, broken after '_' or '-' where possible (a
+    part wider than a line is broken anywhere); joined, the lines give back the whole text."""
+    parts = [c for part in re.findall(r"[^_-]+[_-]?|[_-]", text)
+             for c in ([part] if draw.textlength(part) <= width else list(part))]
+    lines = [""]
+    for part in parts:
+        if lines[-1] and draw.textlength(lines[-1] + part) > width:
+            lines.append(part)
+        else:
+            lines[-1] += part
+    return lines
+
+
+def grid_sheet(out: Path, rows: list[dict], path: Path, limit: int = 48, thumb_w: int = 160, cols: int = 6) -> Path:
+    """A grid of thumbnails with mask overlays (blue station/bodies, red anomaly), anomalies first,
+    each under its whole scene name (wrapped)."""
+    from PIL import ImageDraw
+
+    rows = sorted(rows, key=lambda r: (r["kind"] != "anomaly", int(r["index"])))
+    if len(rows) > limit:  # an even sample keeps the sheet small for big datasets
+        rows = [rows[i] for i in np.linspace(0, len(rows) - 1, limit).round().astype(int)]
+    height, width = _pixels(out / rows[0]["image"]).shape[:2]
+    thumb_h = max(1, round(thumb_w * height / width))
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    labels = [label_lines(r["name"], thumb_w, measure) for r in rows]
+    line_h = measure.textbbox((0, 0), "Ag_")[3] + 2
+    label_h, pad = line_h * max(map(len, labels)) + 2, 4
+    cols = min(cols, len(rows))
+    nrows = -(-len(rows) // cols)
+    sheet = Image.new("RGB", (cols * (thumb_w + pad) + pad, nrows * (thumb_h + label_h + pad) + pad), (24, 24, 24))
+    draw = ImageDraw.Draw(sheet)
+    for i, (r, lines) in enumerate(zip(rows, labels)):
+        x, y = pad + (i % cols) * (thumb_w + pad), pad + (i // cols) * (thumb_h + label_h + pad)
+        rgb, mask = _pixels(out / r["image"], "RGB"), _pixels(out / r["allo_mask"])
+        tile = Image.fromarray(mask_overlay(rgb, mask)).resize((thumb_w, thumb_h), Image.Resampling.NEAREST)
+        sheet.paste(tile, (x, y + label_h))
+        colour = (255, 120, 120) if r["kind"] == "anomaly" else (220, 220, 220)
+        for k, line in enumerate(lines):
+            draw.text((x, y + k * line_h), line, fill=colour)
+    return write_png(path, np.asarray(sheet))

@@ -1,0 +1,308 @@
+"""A dataset plan: what to make (days, poses, anomalies, counts, effects, quality, seeds), as a file.
+
+A plan is a pydantic model stored as TOML or YAML (chosen by the file extension), so a dataset
+is reproduced from one small, reviewable file. Validation happens when a plan is built or
+loaded: every error names the field and the fix (`PlanError`). `enumerate_scenes` turns a plan
+into the exact, deterministic list of scenes to author; nothing random is left to chance
+outside the seeds the plan records. `paper_plan()` is the ALLO paper's Table II.
+"""
+
+from __future__ import annotations
+
+from datetime import date, datetime, timedelta, timezone
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from allo_usd.core.errors import PlanError
+from allo_usd.core.limits import resolution_problem
+
+DEPTH_COUNT = 5  # allo_usd.scene.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
+N_POSES = 50
+STATION_UNITS = ("m", "cm", "mm", "in", "ft", "auto")
+STATION_SUFFIXES = (".glb", ".gltf", ".obj", ".stl", ".usd", ".usda", ".usdc")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Dates(_Model):
+    """Epochs at 00:00 UTC: `start`, `start + step_days`, ... (`days` of them)."""
+
+    start: date = Field(date(2030, 1, 1), description="First epoch's date (00:00 UTC).")
+    days: int = Field(365, ge=1, description="Number of epochs.")
+    step_days: int = Field(1, ge=1, description="Days between consecutive epochs.")
+
+    def epochs(self) -> list[datetime]:
+        t0 = datetime(self.start.year, self.start.month, self.start.day, tzinfo=timezone.utc)
+        return [t0 + timedelta(days=k * self.step_days) for k in range(self.days)]
+
+    @model_validator(mode="after")
+    def _inside_de421(self):
+        from allo_usd.sky.model import de421_range
+
+        lo, hi = (datetime.fromisoformat(s) for s in de421_range())
+        first, last = self.epochs()[0], self.epochs()[-1]
+        if first < lo or last > hi:
+            raise ValueError(f"epochs {first:%Y-%m-%d} .. {last:%Y-%m-%d} leave the DE421 ephemeris "
+                             f"({lo:%Y-%m-%d} .. {hi:%Y-%m-%d} UTC); fix: choose a start date and days inside it")
+        return self
+
+
+class Poses(_Model):
+    """Base camera pose numbers (1..50) for training and for testing; the sets must not overlap."""
+
+    train: list[int] = Field(default_factory=lambda: list(range(1, 41)), description="Training poses.")
+    test: list[int] = Field(default_factory=lambda: list(range(41, 51)), description="Test poses.")
+
+    @field_validator("train", "test")
+    @classmethod
+    def _range(cls, v: list[int]) -> list[int]:
+        bad = [p for p in v if not 1 <= p <= N_POSES]
+        if bad:
+            raise ValueError(f"pose numbers {bad} are outside 1..{N_POSES}; fix: use base poses 1..{N_POSES}")
+        if len(set(v)) != len(v):
+            raise ValueError("a pose is listed twice; fix: list each pose once")
+        return sorted(v)
+
+    @model_validator(mode="after")
+    def _disjoint(self):
+        both = sorted(set(self.train) & set(self.test))
+        if both:
+            raise ValueError(f"poses {both} are in both train and test; fix: make the sets disjoint "
+                             "(the paper uses 1-40 for train and 41-50 for test)")
+        if not self.train and not self.test:
+            raise ValueError("no poses; fix: list at least one train or test pose")
+        return self
+
+
+class AnomalyChoice(_Model):
+    """One anomaly asset and the variants to draw from (None: all its variants)."""
+
+    id: str = Field(description="Asset id from allo_usd.assets.anomalies.ANOMALY_VARIANTS.")
+    variants: list[str] | None = Field(None, description="Variants to cycle through; default all.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _from_string(cls, v):
+        if isinstance(v, str):  # "wrench" or "wrench:chrome"
+            name, _, variant = v.partition(":")
+            return {"id": name, "variants": [variant] if variant else None}
+        return v
+
+    @model_validator(mode="after")
+    def _known(self):
+        from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+
+        if self.id not in ANOMALY_VARIANTS:
+            raise ValueError(f"unknown anomaly id {self.id!r}; fix: use one of {', '.join(ANOMALY_VARIANTS)}")
+        bad = [v for v in self.variants or () if v not in ANOMALY_VARIANTS[self.id]]
+        if bad:
+            raise ValueError(f"anomaly {self.id!r} has no variant {bad}; fix: use one of "
+                             f"{', '.join(ANOMALY_VARIANTS[self.id])}")
+        return self
+
+    def choices(self) -> list[tuple[str, str]]:
+        from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+
+        return [(self.id, v) for v in (self.variants or ANOMALY_VARIANTS[self.id])]
+
+
+def _all_anomalies() -> list[AnomalyChoice]:
+    from allo_usd.assets.anomalies import ANOMALY_IDS
+
+    return [AnomalyChoice(id=a) for a in ANOMALY_IDS]
+
+
+class Anomalies(_Model):
+    """Which anomalies to insert and at which depths (indices into placement.DEPTH_OFFSETS)."""
+
+    assets: list[AnomalyChoice] = Field(default_factory=_all_anomalies, description="Default: all 16.")
+    depths: list[int] = Field(default_factory=lambda: list(range(DEPTH_COUNT)),
+                              description="Depth indices 0..4 = offsets 0, -1, +1, -2, +2 m.")
+    reserve_groups_per_slot: int = Field(
+        3, ge=0, le=100,
+        description="Top-up bound: a (seed, asset, variant) whose planned depths were skipped may draw at "
+                    "most this many reserve placement groups per skipped depth to fill them; 0 turns the "
+                    "top-up off (see allo_usd.plan.enumeration.reserve_group).")
+
+    @field_validator("depths")
+    @classmethod
+    def _depths(cls, v: list[int]) -> list[int]:
+        if not v or any(not 0 <= d < DEPTH_COUNT for d in v) or len(set(v)) != len(v):
+            raise ValueError(f"depths {v} must be distinct indices in 0..{DEPTH_COUNT - 1}; fix: e.g. [0, 1, 2, 3, 4]")
+        return sorted(v)
+
+    @field_validator("assets")
+    @classmethod
+    def _assets(cls, v: list[AnomalyChoice]) -> list[AnomalyChoice]:
+        if len({a.id for a in v}) != len(v):
+            raise ValueError("an anomaly id is listed twice; fix: list each id once, with its variants")
+        return v
+
+
+class Counts(_Model):
+    """How many images of each kind; None means the full grid (every day x pose x seed).
+
+    A count below the grid takes a seeded subset (see `enumerate_scenes`). Anomalous images come
+    in placements of `len(depths)` images; a count that is not a multiple drops the last depths.
+    """
+
+    normal_train: int | None = Field(None, ge=0)
+    normal_test: int | None = Field(None, ge=0)
+    anomalous_test: int | None = Field(None, ge=0)
+
+
+class Effects(_Model):
+    """Mirrors allo_usd.scene.spec.EffectsSpec: what each scene asks the renderer to simulate."""
+
+    sensor_noise: bool = False
+    glare: bool = False
+    inspection_light: bool = True
+    body_shine: bool = True
+
+
+class Quality(_Model):
+    """Render quality. A `preset` named in allo_usd.plan.settings (draft, preview, final, paper) fills every
+    field the plan leaves out; any other name is a label and the fields keep their defaults."""
+
+    preset: str = Field("preview", min_length=1, description="draft, preview, final, paper, or a label of your own.")
+    resolution: tuple[int, int] = Field((1920, 1080), description="Width, height in pixels.")
+    samples: int = Field(64, description="Path-tracing samples per pixel, 1..65536.")
+    denoise: bool = True
+    denoise_prefilter: Literal["NONE", "FAST", "ACCURATE"] = "FAST"
+    denoise_quality: Literal["FAST", "BALANCED", "HIGH"] = "BALANCED"
+    max_bounces: int = Field(8, ge=0, le=1024)
+    adaptive_threshold: float = Field(0.0, ge=0.0, le=1.0)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_from_preset(cls, data):
+        from allo_usd.plan.settings import PRESETS
+
+        if isinstance(data, dict):
+            preset = PRESETS.get(data.get("preset", "preview"), {})
+            data = {**preset, **data}
+        return data
+
+    @field_validator("resolution")
+    @classmethod
+    def _resolution(cls, v):
+        problem = resolution_problem(*v)
+        if problem:
+            raise ValueError(f"{problem}; fix: e.g. [1920, 1080]")
+        return v
+
+    @field_validator("samples")
+    @classmethod
+    def _samples(cls, v):
+        if not 1 <= v <= 65536:
+            raise ValueError(f"samples={v} is outside 1..65536; fix: e.g. 64")
+        return v
+
+
+class Station(_Model):
+    """'procedural' (the built-in station) or the path of a model the base stage was built from."""
+
+    source: str = "procedural"
+    units: Literal["m", "cm", "mm", "in", "ft", "auto"] = "auto"
+
+    @field_validator("source")
+    @classmethod
+    def _source(cls, v):
+        if v != "procedural" and not v.lower().endswith(STATION_SUFFIXES):
+            raise ValueError(f"station source {v!r} is neither 'procedural' nor a model file; fix: use "
+                             f"'procedural' or a path ending in {', '.join(STATION_SUFFIXES)}")
+        return v
+
+
+class Plan(_Model):
+    """A whole dataset: every field has a default, so `Plan(name="x")` is a valid (full-grid) plan."""
+
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    dates: Dates = Field(default_factory=Dates)
+    perilune_epoch: datetime = Field(datetime(2030, 1, 1, tzinfo=timezone.utc),
+                                     description="UTC instant of the orbit's perilune passage.")
+    poses: Poses = Field(default_factory=Poses)
+    anomalies: Anomalies = Field(default_factory=Anomalies)
+    counts: Counts = Field(default_factory=Counts)
+    effects: Effects = Field(default_factory=Effects)
+    quality: Quality = Field(default_factory=Quality)
+    seeds: list[int] = Field(default_factory=lambda: [2030], description="One pipeline run per seed.")
+    station: Station = Field(default_factory=Station)
+    base_stage: str = Field("stages/base.usda", description="Relative to the working directory or the repo.")
+
+    @field_validator("perilune_epoch")
+    @classmethod
+    def _aware(cls, v: datetime):
+        if v.tzinfo is None:
+            raise ValueError("perilune_epoch has no timezone; fix: write it in UTC, e.g. 2030-01-01T00:00:00Z")
+        return v.astimezone(timezone.utc)
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, v: list[int]):
+        if not v or len(set(v)) != len(v) or any(s < 0 for s in v):
+            raise ValueError(f"seeds {v} must be a non-empty list of distinct non-negative integers; "
+                             "fix: e.g. [2030, 2031]")
+        return v
+
+    @model_validator(mode="after")
+    def _counts_fit(self):
+        grid = grid_sizes(self)
+        for name, n in (("normal_train", self.counts.normal_train), ("normal_test", self.counts.normal_test),
+                        ("anomalous_test", self.counts.anomalous_test)):
+            if n is not None and n > grid[name]:
+                raise ValueError(f"counts.{name}={n} exceeds the {grid[name]} scenes the days, poses, seeds "
+                                 f"(and depths) allow; fix: lower it or add days/poses/seeds")
+        return self
+
+    def resolve_base_stage(self) -> Path:
+        from allo_usd.core.paths import ROOT
+
+        p = Path(self.base_stage)
+        for cand in (p, ROOT / p):
+            if cand.is_file():
+                return cand.resolve()
+        raise PlanError(f"base_stage: {self.base_stage} does not exist; fix: run scripts/make_base_stage.py "
+                        "or point base_stage at a base.usda")
+
+
+def grid_sizes(plan: Plan) -> dict[str, int]:
+    n = plan.dates.days * len(plan.seeds)
+    return {"normal_train": n * len(plan.poses.train), "normal_test": n * len(plan.poses.test),
+            "anomalous_test": n * len(plan.poses.test) * len(plan.anomalies.depths) if plan.anomalies.assets else 0}
+
+
+# ---------------------------------------------------------------------------------------------
+# The paper's plan and scene enumeration
+
+
+def paper_plan() -> Plan:
+    """ALLO paper Table II: 29,085 normal train, 7,300 normal test, 15,024 anomalous test images.
+
+    365 days of 2030 (00:00 UTC), poses 1-40 train and 41-50 test, two seeds (the paper runs
+    the pipeline twice). How `enumerate_scenes` reaches the counts exactly:
+    - normal train: the grid is 365 x 40 x 2 = 29,200; a seeded subset of 29,085 is kept
+      (115 (seed, day, pose) triples dropped);
+    - normal test: 365 x 10 x 2 = 7,300, the full grid;
+    - anomalous test: 15,024 = 5 x 3,005 - 1. The paper's count is not a multiple of its five
+      depths, which we read as one depth skipped; so 3,005 placements are drawn (1,503 for the
+      first seed, 1,502 for the second; each a seeded (day, test pose) with an anomaly assigned
+      round-robin over the 16 assets and their variants), and the last placement keeps only
+      depths 0-3. Depths that the ray-cast check skips when authoring are recorded in
+      skipped.csv and topped up from reserve groups of the same (seed, asset, variant)
+      (`reserve_group`; allo_usd.run.author), so each asset keeps its planned share of the 15,024.
+    """
+    return Plan(name="allo-paper", dates=Dates(start=date(2030, 1, 1), days=365, step_days=1),
+                counts=Counts(normal_train=29_085, normal_test=7_300, anomalous_test=15_024),
+                seeds=[2030, 2031], quality=Quality(preset="final", resolution=(1920, 1080)))
+
+
+def demo_plan() -> Plan:
+    """A tiny plan for trying the pipeline: 2 days, 2 train poses, 1 test pose, 1 anomaly, 5 depths."""
+    return Plan(name="demo", dates=Dates(days=2), poses=Poses(train=[1, 2], test=[41]),
+                anomalies=Anomalies(assets=[AnomalyChoice(id="power_drill")]),
+                quality=Quality(preset="demo", resolution=(480, 270), samples=32))

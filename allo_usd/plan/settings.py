@@ -1,0 +1,97 @@
+"""Render presets, chosen from the measured accuracy/time Pareto front (scripts/bench_accuracy.py).
+
+Measured by scripts/bench_accuracy.py (docs/bench_accuracy.md): all four in one process, 3
+interleaved rounds, 2 CPU cores, 480x270 demo view d045_p42_power_drill_z0 against a 4096 spp
+reference; time = CPU seconds of the render call (stable to ~1.5% under load, where wall time
+is not):
+
+| preset  | setting                                              | CPU s | x paper | PSNR sRGB8 | SSIM   |
+|---------|------------------------------------------------------|-------|---------|------------|--------|
+| draft   | 4 spp, OIDN fast/balanced                            | 1.52  | 0.02    | 33.05 dB   | 0.9692 |
+| preview | 64 spp, adaptive 0.05, OIDN fast/balanced            | 12.3  | 0.20    | 40.56 dB   | 0.9899 |
+| final   | 192 spp, adaptive 0.01, OIDN no prefilter/high       | 39.3  | 0.64    | 44.33 dB   | 0.9937 |
+| paper   | 256 spp, OIDN accurate/high, max bounces 12          | 61.9  | 1.00    | 45.17 dB   | 0.9943 |
+
+Targets: preview >= 40 dB in <= 0.25x paper time: met. final within 1 dB of paper in <= 0.6x
+paper time: within 1 dB (-0.84) at 0.61-0.64x; `final` is the cheapest measured point within
+1 dB, and the next cheaper one (176 spp, 0.60x) is -1.07 dB. All presets sit on the front.
+
+`denoise_prefilter` / `denoise_quality` are Cycles' OIDN `denoising_prefilter` ('NONE', 'FAST',
+'ACCURATE') and `denoising_quality` ('FAST', 'BALANCED', 'HIGH'), recorded in each layer as
+`allo:render:denoisePrefilter` / `allo:render:denoiseQuality`. A plan's `quality.preset` fills
+the fields the plan leaves out (allo_usd.plan.model.Quality).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+from allo_usd.core.errors import AlloError
+from allo_usd.core.sensor import SensorParams
+
+DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_prefilter
+DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_quality
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    resolution: tuple[int, int] = (1920, 1080)
+    preset: str = "preview"
+    samples: int = 64
+    adaptive_threshold: float = 0.0
+    denoise: bool = True
+    max_bounces: int = 8
+    seed: int = 0
+    exposure: float = 1.0
+    threads: int = 0
+    depth: bool = False          # also write camera depth (metres, float32 EXR)
+    mask_only: bool = False      # only the class mask: one sample, no lights, no path tracing
+    denoise_prefilter: str = "FAST"      # OIDN prefilter: NONE, FAST, ACCURATE
+    denoise_quality: str = "BALANCED"    # OIDN quality: FAST, BALANCED, HIGH
+
+
+@dataclass(frozen=True)
+class EffectsSpec:
+    sensor_noise: bool = False
+    glare: bool = False
+    inspection_light: bool = True
+    body_shine: bool = True
+    # The camera's EMVA 1288 parameters and its own seed (fixed patterns); authored, resolved
+    # against the render exposure, when sensor_noise is on.
+    sensor: SensorParams = field(default_factory=SensorParams)
+
+
+PRESETS: dict[str, dict] = {
+    "draft": dict(samples=4, adaptive_threshold=0.0, denoise=True, max_bounces=8,
+                  denoise_prefilter="FAST", denoise_quality="BALANCED"),
+    "preview": dict(samples=64, adaptive_threshold=0.05, denoise=True, max_bounces=8,
+                    denoise_prefilter="FAST", denoise_quality="BALANCED"),
+    "final": dict(samples=192, adaptive_threshold=0.01, denoise=True, max_bounces=8,
+                  denoise_prefilter="NONE", denoise_quality="HIGH"),
+    # The paper's setting: 256 spp, OIDN with Blender's defaults, Blender's default bounces.
+    "paper": dict(samples=256, adaptive_threshold=0.0, denoise=True, max_bounces=12,
+                  denoise_prefilter="ACCURATE", denoise_quality="HIGH"),
+}
+
+_SPEC_FIELDS = {f.name for f in fields(RenderSpec)}
+
+
+def preset_fields(name: str) -> dict:
+    """A copy of preset `name`'s settings (RenderSpec field names)."""
+    try:
+        return dict(PRESETS[name])
+    except KeyError:
+        raise AlloError(f"unknown render preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+
+
+def preset_spec(name: str, resolution: tuple[int, int] = (1920, 1080), exposure: float = 1.0, **overrides) -> RenderSpec:
+    """RenderSpec for preset `name` at `resolution` and `exposure`; `overrides` replace fields."""
+    values = preset_fields(name)
+    values.update(overrides)
+    unknown = set(values) - _SPEC_FIELDS
+    if unknown:
+        raise AlloError(f"RenderSpec has no field(s) {', '.join(sorted(unknown))}")
+    w, h = resolution
+    if int(w) <= 0 or int(h) <= 0:
+        raise AlloError(f"resolution must be positive, got {resolution!r}")
+    return RenderSpec(resolution=(int(w), int(h)), preset=name, exposure=float(exposure), **values)

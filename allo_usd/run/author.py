@@ -1,0 +1,756 @@
+"""Author a whole plan: resolve every scene, write shared layers once and scene layers atomically.
+
+The unit of work is one camera sample (a normal scene, or the depths of one anomaly placement):
+its perturbation and its ray-cast placement are resolved once and shared by its scenes. The sky
+is computed once for all plan days (one vectorised `compute_sky`). Samples go to a local process
+pool (2 workers by default for large plans) in chunks. Authoring resumes: a scene whose layer
+exists, or that skipped.csv already lists, is not redone. Ctrl-C stops at the next file boundary;
+every file is written under a temporary name and renamed, so no partial file is left.
+
+Top-up. Each (plan seed, asset, variant) must reach its planned number of anomalous images (its
+quota), so every hazard class keeps its share when the placement check skips depths. Once the
+planned placements are authored, each shortfall is filled from reserve groups of the same asset
+and variant (`allo_usd.plan.enumeration.reserve_group`), taken strictly in order k = 1, 2, ...: a reserve
+group's depths are used in depth order while images are still missing, a depth that fails is
+listed in skipped.csv (with its reserve number), and depths not needed are neither authored nor
+listed. Reserve placements are computed on the pool in batches, ahead of need (some are computed
+and thrown away), but decided in order in the parent, so the tree is a function of the plan
+alone: not of the worker count, the chunking, or interruptions. A (seed, asset, variant) draws
+at most `plan.reserve_cap` groups; what is still missing then is reported (counts.csv, the CLI
+summary). reserves.csv records each used reserve group's decided depths, so a resumed run reuses
+them instead of recomputing.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import signal
+import time
+from collections import Counter, deque
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from itertools import groupby
+from pathlib import Path
+
+from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_path, write_composed_scene,
+                                  write_pose_layer, write_sky_layer)
+from allo_usd.core.files import write_text_atomic
+from allo_usd.core.errors import PlacementError, PlanError
+from allo_usd.plan.model import Plan
+from allo_usd.plan.enumeration import SceneKey, anomaly_quotas, enumerate_scenes, reserve_cap, reserve_group
+from allo_usd.plan.io import save_plan
+from allo_usd.plan.settings import EffectsSpec, RenderSpec
+
+SKIPPED_FIELDS = ("scene_id", "seed", "day", "pose", "asset", "variant", "depth_index", "reserve", "reason")
+RESERVE_FIELDS = ("seed", "asset", "variant", "reserve", "day", "pose", "authored", "skipped")
+COUNT_FIELDS = ("split", "kind", "asset", "planned", "authored", "skipped", "reserve_groups", "from_reserve",
+                "short")
+CHUNK_SAMPLES = 48         # planned anomaly placements per pool task
+CHUNK_NORMAL = 256         # normal camera samples per pool task
+CHUNK_RESERVE = 1          # reserve groups per pool task (each walk decides as soon as one is back)
+
+_ctx = None  # the per-process authoring context (set by _init)
+
+
+class _Context:
+    """What every worker needs, built once per process: the world (base stage, station BVH) and sky."""
+
+    def __init__(self, plan: Plan, out_dir: Path, sky, stop=None):
+        from allo_usd.core.constants import EXPOSURE
+        from allo_usd.scene.resolve import sun_and_bodies
+        from allo_usd.usd.read import scene_inputs
+
+        self.plan, self.out_dir, self.stop = plan, Path(out_dir), stop
+        self.base_stage = plan.resolve_base_stage()
+        self.world = scene_inputs(self.base_stage, sky, plan.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+        q = plan.quality
+        self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, samples=q.samples,
+                                 adaptive_threshold=q.adaptive_threshold, denoise=q.denoise,
+                                 denoise_prefilter=q.denoise_prefilter, denoise_quality=q.denoise_quality,
+                                 max_bounces=q.max_bounces, exposure=EXPOSURE)
+        self.effects = EffectsSpec(**plan.effects.model_dump())
+        self._sky_cache: dict[int, tuple] = {}
+        self._sun_and_bodies = sun_and_bodies
+
+    def sky(self, day: int):
+        if day not in self._sky_cache:
+            self._sky_cache[day] = self._sun_and_bodies(self.world.sky, day)
+        return self._sky_cache[day]
+
+    def stopped(self) -> bool:
+        return self.stop is not None and self.stop.is_set()
+
+
+def _init(plan_json: str, out_dir: str, sky, stop) -> None:
+    global _ctx
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and tells us through `stop`
+    _ctx = _Context(Plan.model_validate_json(plan_json), Path(out_dir), sky, stop)
+
+
+def ensure_sky_layer(ctx: _Context, day: int) -> Path:
+    """The shared sky layer of `day`, written if missing."""
+    path = sky_layer_path(ctx.out_dir, day)
+    if not path.exists():
+        sun, bodies = ctx.sky(day)
+        write_sky_layer(path, day=day, epoch=ctx.world.sky.epochs[day], perilune_epoch=ctx.world.perilune_epoch,
+                        sun=sun, bodies=bodies)
+    return path
+
+
+def _skip_row(key: SceneKey, reason: str) -> dict:
+    return {"scene_id": key.scene_id, "seed": key.seed, "day": key.day, "pose": key.pose, "asset": key.asset,
+            "variant": key.variant, "depth_index": key.depth_index, "reserve": key.reserve or None,
+            "reason": reason}
+
+
+# ---------------------------------------------------------------------------------------------
+# One camera sample: resolve (all randomness, ray casting), then write
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """One camera sample, resolved: its camera and seeds, and per depth index an AnomalySpec, the
+    reason that depth is skipped (str), or None (a normal scene). Small enough to send between
+    processes, so a reserve group is resolved in a worker and written by the parent."""
+
+    camera: object
+    seed: int
+    seed_path: str
+    results: dict
+
+
+def resolve_sample(ctx: _Context, keys: list[SceneKey]) -> Resolved:
+    """Perturb the sample's camera and, for an anomaly, place the object at every depth."""
+    from allo_usd.scene.resolve import resolve_camera, resolve_placements
+
+    k0 = keys[0]
+    anomaly = None if k0.asset is None else (k0.asset, k0.variant)
+    camera, rng, seed, seed_path = resolve_camera(ctx.world, day=k0.day, pose=k0.pose, plan_seed=k0.seed,
+                                                  anomaly=anomaly, reserve=k0.reserve)
+    results: dict = {k.depth_index: None for k in keys}
+    if anomaly is not None:
+        try:
+            results = dict(enumerate(resolve_placements(ctx.world, camera, rng, anomaly, ctx.render.resolution)))
+        except PlacementError as exc:
+            results = {k.depth_index: f"no initial placement: {exc}" for k in keys}
+    return Resolved(camera, seed, seed_path, results)
+
+
+def write_sample(ctx: _Context, keys: list[SceneKey], resolved: Resolved) -> list[dict]:
+    """Write the pose layer (once, if any of `keys` is authored) and the layers of `keys` that pass;
+    returns the skipped rows of those that do not. Existing layers are kept (resume)."""
+    from allo_usd.scene.resolve import build_spec
+
+    rows, todo = [], []
+    for key in keys:
+        a = resolved.results[key.depth_index]
+        if isinstance(a, str):
+            rows.append(_skip_row(key, a))
+        else:
+            todo.append((key, a))
+    if not todo:
+        return rows
+    k0 = keys[0]
+    pose_path = pose_layer_path(ctx.out_dir, k0.seed, k0.sample_id)
+    if not pose_path.exists():
+        write_pose_layer(pose_path, pose=k0.pose, camera=resolved.camera, seed=resolved.seed,
+                         seed_path=resolved.seed_path, sample_id=k0.sample_id)
+    for key, a in todo:
+        path = scene_layer_path(ctx.out_dir, key.split, key.kind, key.scene_id)
+        if path.exists():
+            continue
+        spec = build_spec(ctx.world, scene_id=key.scene_id, day=key.day, pose=key.pose, seed=resolved.seed,
+                          seed_path=resolved.seed_path, camera=resolved.camera, render=ctx.render,
+                          effects=ctx.effects, anomaly=a, sky=ctx.sky(key.day))
+        write_composed_scene(spec, path, pose_layer=pose_path, sky_layer=sky_layer_path(ctx.out_dir, key.day),
+                             base_stage=ctx.base_stage, root=ctx.out_dir)
+    return rows
+
+
+def author_sample(ctx: _Context, keys: list[SceneKey]) -> tuple[int, list[dict]]:
+    """Resolve one camera sample and write its pose layer and its scenes' layers.
+    Returns (scenes handled, skipped rows)."""
+    return len(keys), write_sample(ctx, keys, resolve_sample(ctx, keys))
+
+
+def _author_samples(ctx: _Context, samples: list[list[SceneKey]]) -> tuple[int, list[dict]]:
+    """A pool task: author planned samples (stops early when the parent asks)."""
+    done, skipped = 0, []
+    for keys in samples:
+        if ctx.stopped():
+            break
+        n, s = author_sample(ctx, keys)
+        done, skipped = done + n, skipped + s
+    return done, skipped
+
+
+def _resolve_groups(ctx: _Context, groups: list[tuple[tuple, int, list[SceneKey]]]) -> list[tuple]:
+    """A pool task: resolve reserve groups without writing; [(sav, k, Resolved)] (a prefix when stopped)."""
+    out = []
+    for sav, k, keys in groups:
+        if ctx.stopped():
+            break
+        out.append((sav, k, resolve_sample(ctx, keys)))
+    return out
+
+
+def _in_worker(fn, *args):
+    return fn(_ctx, *args)
+
+
+# ---------------------------------------------------------------------------------------------
+# Records: skipped.csv, reserves.csv, counts.csv
+
+
+def _write_csv(path: Path, fields: tuple, rows: list[dict]) -> Path:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if row.get(k) is None else row[k]) for k in fields})
+    return write_text_atomic(path, buf.getvalue())
+
+
+def read_skipped(path: Path) -> dict[str, dict]:
+    if not path.is_file():
+        return {}
+    with open(path, newline="") as fh:
+        return {row["scene_id"]: row for row in csv.DictReader(fh)}
+
+
+def write_skipped(path: Path, rows: dict[str, dict]) -> Path:
+    return _write_csv(path, SKIPPED_FIELDS, [rows[sid] for sid in sorted(rows)])
+
+
+def _depth_list(text: str) -> tuple[int, ...]:
+    return tuple(int(z) for z in str(text or "").split())
+
+
+def read_reserves(path: Path) -> dict[tuple, dict]:
+    """reserves.csv by (seed, asset, variant, k): the group's (day, pose) and its decided depths."""
+    if not path.is_file():
+        return {}
+    out = {}
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            out[(int(row["seed"]), row["asset"], row["variant"], int(row["reserve"]))] = {
+                "day": int(row["day"]), "pose": int(row["pose"]),
+                "authored": _depth_list(row["authored"]), "skipped": _depth_list(row["skipped"])}
+    return out
+
+
+def write_reserves(path: Path, entries: dict[tuple, dict]) -> Path:
+    rows = [{"seed": s, "asset": a, "variant": v, "reserve": k, "day": e["day"], "pose": e["pose"],
+             "authored": " ".join(map(str, e["authored"])), "skipped": " ".join(map(str, e["skipped"]))}
+            for (s, a, v, k), e in entries.items()]
+    return _write_csv(path, RESERVE_FIELDS, rows)
+
+
+def read_counts(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+# ---------------------------------------------------------------------------------------------
+# The top-up
+
+
+@dataclass
+class _Walk:
+    """The reserve groups of one (seed, asset, variant), decided strictly in order."""
+
+    sav: tuple
+    need: int                 # images still missing
+    cap: int                  # reserve groups it may use
+    next_k: int = 1           # the next group to decide
+    ahead: int = 0            # the highest group asked of the pool (or found in reserves.csv)
+    inflight: set = field(default_factory=set)      # groups asked of the pool, not back yet
+    results: dict = field(default_factory=dict)     # k -> Resolved, computed and not yet decided
+    entries: dict = field(default_factory=dict)     # k -> {"day", "pose", "authored", "skipped"}: decided
+    authored: list = field(default_factory=list)    # SceneKeys authored from reserves
+
+    @property
+    def open(self) -> bool:
+        return self.need > 0 and self.next_k <= self.cap
+
+
+class _TopUp:
+    """Every (seed, asset, variant)'s walk. `advance` decides every group it can (computed, or
+    recorded in reserves.csv and present on disk) and writes its layers; `next_task` names the
+    groups the pool should resolve next. Decisions depend only on each walk's groups in order, so
+    how far ahead the pool computes, or which task finishes first, changes nothing written."""
+
+    def __init__(self, ctx: _Context, keys: list[SceneKey], skipped: dict, ledger: dict, bar):
+        self.ctx, self.plan, self.skipped, self.ledger, self.bar = ctx, ctx.plan, skipped, ledger, bar
+        self.depths = list(self.plan.anomalies.depths)
+        self.quotas = anomaly_quotas(keys)
+        anomalous = [k for k in keys if k.kind == "anomaly"]
+        lost = Counter((k.seed, k.asset, k.variant) for k in anomalous if k.scene_id in skipped)
+        self.walks = {sav: _Walk(sav, lost[sav], reserve_cap(self.plan, lost[sav])) for sav in self.quotas}
+        # The expected images per reserve group, from the planned groups' yield of the same asset:
+        # how many groups to compute ahead (a guess; it changes only how much work is thrown away).
+        planned, passed = Counter(), Counter()
+        for k in anomalous:
+            planned[k.asset] += 1
+            passed[k.asset] += k.scene_id not in skipped
+        self.per_group = {a: max(1.0, len(self.depths) * passed[a] / planned[a]) for a in planned}
+        self._turn = 0
+        self.resolved = 0     # reserve groups resolved by the pool in this run (used or not)
+
+    def _keys(self, walk: _Walk, k: int) -> list[SceneKey]:
+        return reserve_group(self.plan, *walk.sav, k)
+
+    def _from_ledger(self, walk: _Walk, keys: list[SceneKey]):
+        """The decided depths of group k from reserves.csv, if they settle it with everything they
+        authored on disk and everything they skipped in skipped.csv; else None (compute it)."""
+        entry = self.ledger.get((*walk.sav, keys[0].reserve))
+        if entry is None or (entry["day"], entry["pose"]) != (keys[0].day, keys[0].pose):
+            return None
+        outcome = {**{z: True for z in entry["authored"]}, **{z: False for z in entry["skipped"]}}
+        need, used = walk.need, []
+        for key in keys:
+            if need == 0:
+                break
+            if key.depth_index not in outcome:
+                return None
+            ok = outcome[key.depth_index]
+            if ok and not scene_layer_path(self.ctx.out_dir, key.split, key.kind, key.scene_id).exists():
+                return None
+            if not ok and key.scene_id not in self.skipped:
+                return None
+            used.append((key, ok))
+            need -= ok
+        return used
+
+    def _decide(self, walk: _Walk, keys: list[SceneKey], used: list[tuple[SceneKey, bool]]) -> None:
+        authored = [key for key, ok in used if ok]
+        walk.need -= len(authored)
+        walk.authored += authored
+        walk.entries[keys[0].reserve] = {"day": keys[0].day, "pose": keys[0].pose,
+                                        "authored": tuple(k.depth_index for k in authored),
+                                        "skipped": tuple(k.depth_index for k, ok in used if not ok)}
+        self.bar.update(len(authored))
+
+    def advance(self) -> None:
+        for walk in self.walks.values():
+            while walk.open:
+                keys = self._keys(walk, walk.next_k)
+                resolved = walk.results.pop(walk.next_k, None)
+                if resolved is not None:
+                    used, need = [], walk.need
+                    for key in keys:
+                        if need == 0:
+                            break
+                        ok = not isinstance(resolved.results[key.depth_index], str)
+                        used.append((key, ok))
+                        need -= ok
+                    ensure_sky_layer(self.ctx, keys[0].day)   # a reserve may fall on a day the plan's
+                    rows = write_sample(self.ctx, [key for key, _ in used], resolved)  # scenes do not use
+                    self.skipped.update({r["scene_id"]: r for r in rows})
+                else:
+                    used = self._from_ledger(walk, keys)
+                    if used is None:
+                        break
+                self._decide(walk, keys, used)
+                walk.next_k += 1
+            if not walk.open:
+                walk.results.clear()
+
+    def next_task(self, chunk: int) -> list[tuple] | None:
+        """Up to `chunk` groups for the pool to resolve, or None: the walks take turns, and each asks
+        for the group it waits on and for more only while the groups it has in hand are not expected,
+        at its asset's planned yield, to cover what it still misses (so few are thrown away)."""
+        walks = [w for w in self.walks.values() if w.open]
+        for i in range(len(walks)):
+            walk = walks[(self._turn + i) % len(walks)]
+            ks = self._more(walk, chunk)
+            if ks:
+                self._turn = (self._turn + i + 1) % len(walks)
+                walk.inflight.update(ks)
+                return [(walk.sav, k, self._keys(walk, k)) for k in ks]
+        return None
+
+    def _more(self, walk: _Walk, chunk: int) -> list[int]:
+        ks = []
+        walk.ahead = max(walk.ahead, walk.next_k - 1)
+        if walk.next_k not in walk.results and walk.next_k not in walk.inflight:
+            ks.append(walk.next_k)                   # the group it waits on (not settled by reserves.csv)
+            walk.ahead = max(walk.ahead, walk.next_k)
+        per_group = self.per_group[walk.sav[1]]
+        while len(ks) < chunk and walk.ahead < walk.cap and \
+                (len(walk.inflight) + len(walk.results) + len(ks)) * per_group < walk.need:
+            walk.ahead += 1
+            if (*walk.sav, walk.ahead) not in self.ledger:   # recorded groups are most likely settled
+                ks.append(walk.ahead)
+        return ks
+
+    def receive(self, results: list[tuple]) -> None:
+        self.resolved += len(results)
+        for sav, k, resolved in results:
+            walk = self.walks[sav]
+            walk.inflight.discard(k)
+            if walk.open and k >= walk.next_k:
+                walk.results[k] = resolved
+
+    @property
+    def need(self) -> int:
+        return sum(w.need for w in self.walks.values())
+
+    def entries(self) -> dict[tuple, dict]:
+        return {(*sav, k): e for sav, w in self.walks.items() for k, e in sorted(w.entries.items())}
+
+    def authored(self) -> list[SceneKey]:
+        return [key for w in self.walks.values() for key in w.authored]
+
+
+def count_rows(plan: Plan, keys: list[SceneKey], skipped: dict, topup: _TopUp | None) -> list[dict]:
+    """counts.csv: planned vs authored scenes per (split, kind), and per anomaly asset."""
+    walks = topup.walks if topup is not None else {}
+    rows = []
+    for split, kind in (("train", "normal"), ("test", "normal"), ("test", "anomaly")):
+        mine = [k for k in keys if (k.split, k.kind) == (split, kind)]
+        lost = sum(k.scene_id in skipped for k in mine)
+        groups = sum(len(w.entries) for w in walks.values()) if kind == "anomaly" else 0
+        extra = sum(len(w.authored) for w in walks.values()) if kind == "anomaly" else 0
+        rows.append({"split": split, "kind": kind, "asset": "", "planned": len(mine),
+                     "authored": len(mine) - lost + extra, "skipped": lost, "reserve_groups": groups,
+                     "from_reserve": extra, "short": len(mine) - (len(mine) - lost + extra)})
+    per_asset: dict[str, Counter] = {}
+    for k in keys:
+        if k.kind == "anomaly":
+            c = per_asset.setdefault(k.asset, Counter())
+            c["planned"] += 1
+            c["skipped"] += k.scene_id in skipped
+    for (_, asset, _), w in walks.items():
+        per_asset[asset]["reserve_groups"] += len(w.entries)
+        per_asset[asset]["from_reserve"] += len(w.authored)
+    for asset, c in per_asset.items():
+        authored = c["planned"] - c["skipped"] + c["from_reserve"]
+        rows.append({"split": "test", "kind": "anomaly", "asset": asset, "planned": c["planned"],
+                     "authored": authored, "skipped": c["skipped"], "reserve_groups": c["reserve_groups"],
+                     "from_reserve": c["from_reserve"], "short": c["planned"] - authored})
+    return rows
+
+
+def summary_lines(counts: list[dict], topup: bool = True) -> list[str]:
+    """Planned vs authored, one line per (split, kind), and a line per asset left short (SHORT when
+    the top-up ran out of reserve groups; a plain note when the plan turned the top-up off)."""
+    lines = []
+    for r in counts:
+        if r["asset"]:
+            continue
+        line = f"{r['split']}/{r['kind']}: {int(r['authored']):,} of {int(r['planned']):,} planned authored"
+        if r["kind"] == "anomaly":
+            line += (f" ({int(r['skipped']):,} planned depths skipped, {int(r['from_reserve']):,} topped up from "
+                     f"{int(r['reserve_groups']):,} reserve groups)")
+        lines.append(line)
+    short = [r for r in counts if r["asset"] and int(r["short"]) > 0]
+    for r in short:
+        if not topup:
+            lines.append(f"{r['asset']}: {int(r['authored']):,} of {int(r['planned']):,} ({int(r['short']):,} skipped "
+                         "depths not replaced: the plan turns the top-up off, anomalies.reserve_groups_per_slot = 0)")
+            continue
+        lines.append(f"SHORT: {r['asset']}: {int(r['authored']):,} of {int(r['planned']):,} "
+                     f"({int(r['short']):,} missing: it used every reserve group the top-up bound allows, "
+                     f"{int(r['reserve_groups']):,}, see reserves.csv; fix: raise anomalies.reserve_groups_per_slot, "
+                     f"or leave this asset out of the plan)")
+    return lines
+
+
+# ---------------------------------------------------------------------------------------------
+# Authoring a plan
+
+
+def _existing(out_dir: Path) -> set[str]:
+    root = out_dir / "scenes"
+    found = set()
+    for split in ("train", "test"):
+        for kind in ("normal", "anomaly"):
+            d = root / split / kind
+            if d.is_dir():
+                found.update(e.name[:-5] for e in os.scandir(d) if e.name.endswith(".usda"))
+    return found
+
+
+STATION_MARKER = "station_source.json"  # in a model-built stages/: which file (and sha256) it was built from
+
+
+def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
+    """The plan, pointed at the output tree's own base stage `out_dir/stages/base.usda`, made before
+    any worker starts. A procedural station's tree gets a byte copy of the plan's base stage and its
+    assets; a station that is a model file gets a base stage built from it (into a temporary
+    directory, then renamed, with `stages/station_source.json` naming the file and its sha256; a tree
+    built from another station is refused). Scene layers then refer only to files inside the tree,
+    so the tree can be moved or copied as a whole and re-authoring elsewhere gives the same bytes
+    (for a model-built stage, on machines whose OpenBLAS rounds alike: scripts/make_base_stage.py
+    pins that kernel for the committed stage)."""
+    from allo_usd.usd.compose import copy_base_stage, tree_base_stage
+
+    base = tree_base_stage(out_dir)
+    if plan.station.source == "procedural":
+        copy_base_stage(plan.resolve_base_stage(), out_dir)
+        return plan.model_copy(update={"base_stage": str(base.resolve())})
+    source = Path(plan.station.source)
+    if not source.is_file():
+        raise PlanError(f"station.source: {source} does not exist; fix: give the path of a glTF/OBJ/STL "
+                        "model, or 'procedural'")
+    from allo_usd.core.files import sha256_file
+
+    made_from = {"source": source.name, "sha256": sha256_file(source), "units": plan.station.units}
+    marker = base.parent / STATION_MARKER
+    if base.is_file():
+        recorded = json.loads(marker.read_text()) if marker.is_file() else None
+        if recorded != made_from:
+            raise PlanError(f"{base.parent} was built from {recorded or 'another station'}, not from {made_from}; "
+                            "fix: author this plan into a new output directory (or delete that stages/ folder)")
+    else:
+        import shutil
+        import uuid
+
+        from allo_usd.usd.build_stage import build_base_stage
+
+        tmp = base.parent.with_name(f".{base.parent.name}.{uuid.uuid4().hex}.tmp")
+        try:
+            build_base_stage(tmp, str(source), plan.station.units)
+            (tmp / STATION_MARKER).write_text(json.dumps(made_from, indent=1, sort_keys=True) + "\n")
+            if base.parent.exists():  # an incomplete build of an older version: replace it
+                shutil.rmtree(base.parent)
+            os.replace(tmp, base.parent)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+    return plan.model_copy(update={"base_stage": str(base.resolve())})
+
+
+class AuthoringInterrupted(PlanError):
+    """Ctrl-C stopped authoring; finished layers are kept (the CLI exits 130)."""
+
+
+@dataclass(frozen=True)
+class Authored:
+    """What `author` made: the scene layers (planned ones first, then the reserves in order) and the
+    planned vs authored counts written to counts.csv."""
+
+    paths: list[Path]
+    counts: list[dict]
+    reserve_resolved: int = 0   # reserve groups resolved in this run, including any not needed in the end
+
+    @property
+    def short(self) -> dict[str, int]:
+        """Images still missing per anomaly asset (empty when every quota was met)."""
+        return {r["asset"]: int(r["short"]) for r in self.counts if r["asset"] and int(r["short"]) > 0}
+
+
+def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
+           workers: int | None = None) -> Authored:
+    """Author the plan's scenes (the first `limit` of them) under `out_dir`, then top up the anomalous
+    depths the placement check skipped (see the module doc). With `limit`, the quotas are those of
+    the anomalous scenes among the first `limit`, and their shortfalls are topped up too (so the
+    tree may hold scenes beyond the first `limit`: their reserves).
+
+    The tree is self-contained (allo_usd.usd.compose): its own base stage in `out_dir/stages`,
+    shared `sky/` and `poses/` layers, `scenes/`, `plan.toml` (the plan as given), `skipped.csv`
+    (every skipped depth and why; a reserve depth carries its group number in `reserve`),
+    `reserves.csv` (per reserve group used: its (day, pose) and the depths authored and skipped)
+    and, once finished, `counts.csv`: per split/kind and per anomaly asset, `planned`, `authored`,
+    `skipped` (planned depths skipped), `reserve_groups` and `from_reserve` (the top-up) and
+    `short` (planned - authored; above 0 only where the top-up bound was reached)."""
+    from tqdm import tqdm
+
+    from allo_usd.sky.model import Orbit, compute_sky
+
+    out_dir = Path(out_dir)
+    keys = enumerate_scenes(plan)[: limit if limit is not None else None]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    given, plan = plan, with_tree_stage(plan, out_dir)
+    save_plan(given, out_dir / "plan.toml")  # as given: the tree's record, and its root for allo_usd.usd.safety
+    sky = compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch))
+    ctx = _Context(plan, out_dir, sky)
+    for day in sorted({k.day for k in keys}):
+        ensure_sky_layer(ctx, day)
+
+    skipped_path, reserves_path = out_dir / "skipped.csv", out_dir / "reserves.csv"
+    skipped = read_skipped(skipped_path)
+    ledger = read_reserves(reserves_path)
+    done = _existing(out_dir) | set(skipped)
+    samples = [list(g) for _, g in groupby(keys, key=lambda k: (k.sample_id, k.split))]
+    todo = [s for s in samples if any(k.scene_id not in done for k in s)]
+    n_todo = sum(len(s) for s in todo)
+    if workers is None:
+        workers = 2 if n_todo > 2000 else 1
+    bar = tqdm(total=n_todo, unit="scene", disable=not progress, desc=f"authoring {plan.name}",
+               initial=0, smoothing=0.05)
+    t0 = time.perf_counter()
+    topup = None
+    interrupted = False
+    finished = False
+    try:
+        with _runner(ctx, plan, out_dir, sky, workers) as runner:
+            topup, interrupted = _drive(runner, ctx, keys, todo, skipped, ledger, bar)
+        finished = not interrupted
+    finally:
+        bar.close()
+        write_skipped(skipped_path, skipped)
+        if topup is not None:
+            entries = topup.entries()
+            # A finished run's entries are exactly the groups it used (ledger entries it reused
+            # included); a run cut short by Ctrl-C or an error keeps what earlier runs recorded too.
+            write_reserves(reserves_path, entries if finished else {**ledger, **entries})
+    if interrupted:
+        raise AuthoringInterrupted(f"interrupted after {bar.n} scenes ({time.perf_counter() - t0:.0f} s); "
+                                   f"finished layers are kept and no partial file is left; fix: re-run the "
+                                   f"same command to resume")
+    counts = count_rows(plan, keys, skipped, topup)
+    _write_csv(out_dir / "counts.csv", COUNT_FIELDS, counts)
+    reserves = topup.authored() if topup is not None else []
+    paths = [scene_layer_path(out_dir, k.split, k.kind, k.scene_id) for k in [*keys, *reserves]
+             if k.scene_id not in skipped]
+    return Authored(paths, counts, topup.resolved if topup is not None else 0)
+
+
+def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
+                workers: int | None = None) -> list[Path]:
+    """Author the plan (see `author`); returns the scene layer paths: the planned scenes that were
+    not skipped, then the reserve scenes that top up the skipped ones. Skipped depths are listed
+    in `out_dir/skipped.csv` with the reason, and planned vs authored counts in `out_dir/counts.csv`."""
+    return author(plan, out_dir, limit=limit, progress=progress, workers=workers).paths
+
+
+def _drive(runner, ctx: _Context, keys: list[SceneKey], todo: list[list[SceneKey]], skipped: dict,
+           ledger: dict, bar) -> tuple[_TopUp | None, bool]:
+    """Run the planned samples (anomaly placements first, then normal scenes) and the top-up on
+    `runner`, keeping a few tasks in flight: reserve groups go before normal scenes, and normal
+    scenes fill the pool while the walks wait for their groups. Returns (top-up, interrupted)."""
+    n_anomalous, n_normal, n_reserve = runner.chunks
+    anomalous = [s for s in todo if s[0].kind == "anomaly"]
+    normal = [s for s in todo if s[0].kind != "anomaly"]
+    main = deque(anomalous[i:i + n_anomalous] for i in range(0, len(anomalous), n_anomalous))
+    fillers = deque(normal[i:i + n_normal] for i in range(0, len(normal), n_normal))
+    anomalous_left = len(main)
+    pending: dict[Future, str] = {}
+    topup, interrupted = None, False
+
+    def next_task():
+        if main:
+            return "anomalous", main.popleft()
+        groups = topup.next_task(n_reserve) if topup is not None else None
+        if groups:
+            return "reserve", groups
+        if fillers:
+            return "normal", fillers.popleft()
+        return None
+
+    while True:
+        try:
+            if not interrupted:
+                if topup is None and anomalous_left == 0:
+                    topup = _TopUp(ctx, keys, skipped, ledger, bar)
+                    bar.total += topup.need
+                    bar.refresh()
+                if topup is not None:
+                    topup.advance()
+                while len(pending) < runner.in_flight and (task := next_task()) is not None:
+                    kind, payload = task
+                    fn = _resolve_groups if kind == "reserve" else _author_samples
+                    pending[runner.submit(fn, payload)] = kind
+            if not pending:
+                break
+            finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+            for f in finished:
+                kind = pending.pop(f)
+                if f.cancelled():
+                    continue
+                if kind == "reserve":
+                    if not interrupted:
+                        topup.receive(f.result())
+                    continue
+                n, rows = f.result()
+                skipped.update({r["scene_id"]: r for r in rows})
+                bar.update(n)
+                bar.set_postfix(skipped=len(skipped), refresh=False)
+                anomalous_left -= kind == "anomalous"
+        except KeyboardInterrupt:
+            interrupted = True
+            runner.stop()
+            for f in pending:
+                f.cancel()
+    return topup, interrupted
+
+
+class _Inline:
+    """Runs each task at once in this process (one worker)."""
+
+    in_flight = 1
+    chunks = (1, 1, 1)  # (planned placements, normal samples, reserve groups) per task
+
+    def __init__(self, ctx: _Context):
+        self.ctx = ctx
+
+    def submit(self, fn, *args) -> Future:
+        f = Future()
+        f.set_result(fn(self.ctx, *args))
+        return f
+
+    def stop(self) -> None:
+        pass
+
+
+class _Pool:
+    """A spawn-based process pool; each worker builds its own `_Context` once."""
+
+    chunks = (CHUNK_SAMPLES, CHUNK_NORMAL, CHUNK_RESERVE)
+
+    def __init__(self, pool: ProcessPoolExecutor, stop, workers: int):
+        self.pool, self._stop, self.in_flight = pool, stop, 2 * workers
+
+    def submit(self, fn, *args) -> Future:
+        return self.pool.submit(_in_worker, fn, *args)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
+@contextmanager
+def _runner(ctx: _Context, plan: Plan, out_dir: Path, sky, workers: int):
+    if workers <= 1:
+        yield _Inline(ctx)
+        return
+    import multiprocessing as mp
+
+    mpctx = mp.get_context("spawn")
+    stop = mpctx.Event()
+    with _single_threaded_numerics(), \
+            ProcessPoolExecutor(workers, mp_context=mpctx, initializer=_init,
+                                initargs=(plan.model_dump_json(), str(out_dir), sky, stop)) as pool:
+        try:
+            yield _Pool(pool, stop, workers)
+        except BaseException:  # a failed task or Ctrl-C: stop the workers now, not after their queued chunks
+            stop.set()
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+
+
+_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextmanager
+def _single_threaded_numerics():
+    """One BLAS thread per worker process. Each worker multiplies large ray arrays; with BLAS's
+    default of one thread per core, 2 workers on 2 cores oversubscribe and the paper plan takes
+    146 s instead of 73 s (measured). Spawned workers inherit the environment when they start,
+    which happens inside this block; a value the user set is kept."""
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    for k in _THREAD_VARS:
+        os.environ.setdefault(k, "1")
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v

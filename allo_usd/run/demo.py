@@ -1,0 +1,151 @@
+"""The small real dataset `make run` renders: 2 normal and 2 anomalous scenes, plus a contact sheet.
+
+The demo authors exactly as a plan does (allo_usd.usd.compose), into a self-contained tree:
+
+    OUT/layers/NAME.usda            scene layers (only their own opinions, under 4 KB)
+    OUT/layers/sky/, poses/         the shared day and camera-sample layers they stack
+    OUT/layers/stages/              the tree's own byte copy of the base stage and its assets
+    OUT/renders/                    PNG, EXR, mask and JSON per scene
+    OUT/contact_sheet.png
+    OUT/logs/demo.log               what Blender printed while rendering
+
+Every path in a layer is relative and stays inside OUT/layers, the directory a scene layer lies
+in (an allowed root of allo_usd.usd.safety), so OUT/layers can be moved, copied or opened in any USD
+tool on its own.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from allo_usd.usd.compose import (copy_base_stage, pose_layer_path, sky_layer_path, write_composed_scene,
+                                  write_pose_layer, write_sky_layer)
+from allo_usd.core.errors import PlacementError
+from allo_usd.core.paths import BASE_STAGE
+from allo_usd.core.constants import EXPOSURE
+from allo_usd.scene.resolve import SceneInputs, resolve_scene
+from allo_usd.usd.read import scene_inputs
+from allo_usd.plan.settings import RenderSpec
+from allo_usd.scene.spec import SceneSpec
+from allo_usd.output.writers import linear_to_srgb8, mask_overlay, write_png
+
+DEMO_SCENES = (  # (day, pose, anomaly or None)
+    (0, 3, None),
+    (120, 17, None),
+    (45, 42, ("power_drill", None)),
+    (200, 47, ("mli_blanket", None)),
+)
+DEMO_SEED = 2030
+
+
+def demo_spec(world: SceneInputs, index: int, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> SceneSpec:
+    """Demo scene `index` of DEMO_SCENES, fully resolved."""
+    from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+
+    render = RenderSpec(resolution=tuple(resolution), preset="demo", samples=samples, exposure=EXPOSURE)
+    day, pose, anomaly = DEMO_SCENES[index]
+    if anomaly is not None:
+        name = anomaly[0] if anomaly[0] in ANOMALY_VARIANTS else sorted(ANOMALY_VARIANTS)[index]
+        anomaly = (name, anomaly[1] or ANOMALY_VARIANTS[name][0])
+    scene_id = f"d{day:03d}_p{pose:02d}" + ("" if anomaly is None else f"_{anomaly[0]}_z0")
+    for shift in range(12):  # a pose whose view shows no nearby structure gets the next day's draw
+        try:
+            return resolve_scene(world, scene_id=scene_id, day=day + shift, pose=pose, plan_seed=seed,
+                                 render=render, anomaly=anomaly)
+        except PlacementError:
+            continue
+    raise PlacementError(f"demo scene {scene_id}: no valid anomaly placement in 12 days")
+
+
+def demo_specs(world: SceneInputs, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> list:
+    return [demo_spec(world, i, resolution, samples, seed) for i in range(len(DEMO_SCENES))]
+
+
+def write_demo_layer(spec: SceneSpec, tree: Path, base_stage: Path, seed: int = DEMO_SEED) -> Path:
+    """Author one demo scene by composition into `tree`: its day's sky layer, its camera-sample
+    layer (each written once) and the scene layer `tree/SCENE_ID.usda` over them."""
+    sky = sky_layer_path(tree, spec.day)
+    if not sky.is_file():
+        write_sky_layer(sky, day=spec.day, epoch=spec.epoch, perilune_epoch=spec.perilune_epoch,
+                        sun=spec.sun, bodies=spec.bodies)
+    sample_id = f"s{seed}_d{spec.day:03d}_p{spec.pose:02d}" + (
+        "" if spec.anomaly is None else f"_{spec.anomaly.asset}-{spec.anomaly.variant}")
+    pose = pose_layer_path(tree, seed, sample_id)
+    if not pose.is_file():
+        write_pose_layer(pose, pose=spec.pose, camera=spec.camera, seed=spec.seed, seed_path=spec.seed_path,
+                         sample_id=sample_id)
+    return write_composed_scene(spec, Path(tree) / f"{spec.scene_id}.usda", pose_layer=pose, sky_layer=sky,
+                                base_stage=base_stage, root=tree)
+
+
+def contact_sheet(rows: list[tuple[str, np.ndarray, np.ndarray]], path: Path) -> Path:
+    """Each row: the image beside its mask overlay, with the scene name."""
+    h, w = rows[0][1].shape[:2]
+    label_h = 18
+    sheet = Image.new("RGB", (2 * w + 12, len(rows) * (h + label_h + 6) + 6), (24, 24, 24))
+    draw = ImageDraw.Draw(sheet)
+    for i, (name, rgb, mask) in enumerate(rows):
+        y = 6 + i * (h + label_h + 6)
+        img8 = linear_to_srgb8(rgb) if rgb.dtype != np.uint8 else rgb
+        draw.text((4, y), f"{name}   (right: mask overlay, blue = station/bodies, red = anomaly)",
+                  fill=(230, 230, 230))
+        sheet.paste(Image.fromarray(img8), (4, y + label_h))
+        sheet.paste(Image.fromarray(mask_overlay(img8, mask)), (8 + w, y + label_h))
+    write_png(path, np.asarray(sheet))
+    return path
+
+
+def _render(layer: Path, renders: Path) -> dict:
+    """Render a layer unless its outputs exist for these very layer bytes (a changed layer, e.g.
+    another resolution, is rendered again)."""
+    import json
+
+    from allo_usd.run.job import output_paths, render_layer
+    from allo_usd.core.files import sha256_file
+
+    meta_path = output_paths(layer, renders)["meta"]
+    force = False
+    if meta_path.is_file():
+        try:
+            old = json.loads(meta_path.read_text()).get("layer_sha256")
+        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+            old = None
+        force = old != sha256_file(layer)
+    return render_layer(layer, renders, force=force)
+
+
+def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage: Path = BASE_STAGE,
+             progress: bool = True) -> Path:
+    """Author, render and contact-sheet the demo scenes under `out_dir`; returns the sheet's path.
+    A progress bar (counts and ETA) runs over the scenes; Ctrl-C raises KeyboardInterrupt between
+    atomic file writes, so finished scenes are kept and a re-run renders only what is missing."""
+    from tqdm import tqdm
+
+    from allo_usd.output.dataset import _pixels
+    from allo_usd.run.dispatch import output_to
+    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+
+    out_dir = Path(out_dir)
+    tree = out_dir / "layers"
+    tree.mkdir(parents=True, exist_ok=True)
+    stage = copy_base_stage(base_stage, tree)
+    orbit = Orbit()
+    sky = compute_sky(default_epochs(), orbit)
+    world = scene_inputs(stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    rows = []
+    with tqdm(total=len(DEMO_SCENES), unit="scene", desc="demo", disable=not progress) as bar:
+        for i in range(len(DEMO_SCENES)):
+            spec = demo_spec(world, i, resolution, samples)
+            layer = write_demo_layer(spec, tree, stage)
+            with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
+                meta = _render(layer, out_dir / "renders")
+            bar.write(f"{spec.scene_id}: {meta['render_seconds']:.1f} s, anomaly {meta['anomaly_fraction']:.3%}, "
+                      f"sun {spec.sun.eclipse_state}")
+            rgb = _pixels(out_dir / "renders" / meta["files"]["rgb"])
+            mask = _pixels(out_dir / "renders" / meta["files"]["mask"])
+            rows.append((spec.scene_id, rgb, mask))
+            bar.update(1)
+    return contact_sheet(rows, out_dir / "contact_sheet.png")

@@ -1,0 +1,553 @@
+"""Run render tasks (one scene layer each) on a local pool of worker processes or a Dask cluster.
+
+Which layers: a directory is searched recursively for scene layers (a .usda whose
+customLayerData holds allo.sceneId); in an authored plan's tree (a directory with plan.toml and
+scenes/) only scenes/SPLIT/KIND/ is searched, since sky/, poses/ and stages/ hold shared
+sublayers, not scenes. Finding no scene layer is an error, not an empty success. Paths are made
+absolute before any task is sent, so Dask workers (another working directory, another host with
+the same mounts) find the same files.
+
+Local pool (the default): N warm worker processes, started with the *spawn* method (bpy is not
+fork-safe), each importing bpy once and rendering one layer at a time with `cores // N` Cycles
+threads (the layer is not edited; Cycles gives the same image for any thread count). Each
+worker's stdout and stderr (the file descriptors: Blender prints from C) go to
+`OUT/logs/worker-N.log`, so the terminal shows only the progress bar and our messages. The
+parent hands one task at a time to each idle worker over a pipe and watches the worker's process
+sentinel, so when a worker dies (segfault, out-of-memory kill) the parent knows exactly which
+task it held: that task alone is retried, up to `retries` times, on a freshly started worker;
+then it is recorded in `failed.jsonl` and the run goes on. (`concurrent.futures` cannot do this:
+a dead worker breaks the whole ProcessPoolExecutor and fails every pending future with it.)
+Workers die with their parent (PR_SET_PDEATHSIG on Linux, plus a parent-watch thread), so a
+killed run leaves no orphan renderers writing behind it.
+
+When the workers' threads fit the cores this process may use, each worker is pinned to its own
+cores before it imports bpy (`core_sets`). Blender sizes its TBB pool from the process's CPU
+affinity, and an unpinned 1-thread worker keeps a second TBB thread spinning in sched_yield for
+the whole render (measured: 2 workers x 1 thread took 42.8 s unpinned vs 40.0 s pinned on 24
+scenes; docs/bench_workers.md). Pinning never changes an image.
+
+Dask (`scheduler=ADDRESS` or a `distributed.Client`): the same task function runs on the
+cluster's workers. bpy is one global, non-thread-safe state, so `render_task` holds a
+per-process lock (a worker started with `--nthreads 2` renders one scene at a time; start
+workers with `--nthreads 1` and as many processes as you like) and keeps one warm Session per
+worker process, created on its first task. A task whose worker dies comes back as KilledWorker
+and is resubmitted up to `retries` times. Dask's own retry of tasks whose worker died
+(`distributed.scheduler.allowed-failures`, 3 by default) would multiply that bound (4 worker
+deaths per attempt), so while a run is going it sets the scheduler's allowed-failures to 0 (and
+puts the old value back at the end; concurrent runs count holds) and submits with retries=0:
+each of our attempts costs at most one worker death. Outputs must go to a file system every
+worker can reach.
+
+Crash safety, for both backends:
+- every output is written under a temporary name and renamed (allo_usd.output.writers.atomic_path);
+- `OUT/manifest.jsonl` gets one line per finished scene (sha256 of the layer and of each output
+  file), appended with a single write and fsync; a torn last line (power cut) is ignored;
+- a re-run skips a scene only if the manifest lists it, its layer is unchanged and every output
+  exists with a matching checksum; anything else is rendered again;
+- stale temporaries (`.NAME.PID.XXXXXXXX.ext` from atomic_path, Blender's render files under
+  `OUT/.allo-tmp/PID/`) are removed at the start and end of a run; when a local worker dies, only
+  the temporaries named for its pid go, never those its live neighbours are writing; a lock file
+  keeps two runs from sharing one output directory;
+- a bad layer (AlloError) is recorded as failed at once, without retries; a render that failed
+  for reasons outside the layer (RenderFailedError, any other exception) is retried like a crash;
+- a full disk (DiskFullError: ENOSPC/EDQUOT from our writes, or a device found full after
+  Blender's own EXR write, which Blender does not report; allo_usd.blender.render) stops the run:
+  pending tasks are dropped, workers stopped, and DiskFullError is raised (exit 2 from the CLI);
+  finished outputs stay valid and are skipped next time; a manifest line is never left torn;
+- Ctrl-C stops the run the same way and returns a summary with `interrupted=True`.
+
+Test hooks (environment variables read by the worker, test-only): ALLO_TEST_CRASH_SCENE and
+ALLO_TEST_ENOSPC_SCENE (comma-separated scene names: die with SIGSEGV / hit ENOSPC while writing
+that scene's EXR), ALLO_TEST_DELAY (seconds to sleep before each render).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import re
+import shutil
+import signal
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from allo_usd.core.errors import AlloError, DiskFullError, LayerError
+from allo_usd.run.job import output_paths
+from allo_usd.usd.safety import ENV_ROOTS
+from allo_usd.core.files import DISK_FULL_ERRNOS, RunLock, sha256_file, temp_name_re
+from allo_usd.run.worker import WORKDIR, _worker_main, output_to, render_task
+
+MANIFEST = "manifest.jsonl"
+FAILED = "failed.jsonl"
+LOCK = ".allo-dispatch.lock"
+LOGS = "logs"
+
+
+@dataclass
+class Summary:
+    rendered: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    failed: list[dict] = field(default_factory=list)
+    interrupted: bool = False
+    seconds: float = 0.0
+
+    def __str__(self) -> str:
+        s = (f"{len(self.rendered)} rendered, {len(self.skipped)} skipped (already done), "
+             f"{len(self.failed)} failed in {self.seconds:.1f} s")
+        return s + (" (interrupted)" if self.interrupted else "")
+
+
+# ---------------------------------------------------------------- which layers
+
+def _is_scene_layer(path: Path) -> bool:
+    """Scene layers carry customLayerData.allo.sceneId; shared sublayers do not and are skipped.
+    A file that is not even USD text is kept, so the reader reports it instead of hiding it."""
+    head = path.read_bytes()[:16384]
+    if not head.startswith(b"#usda"):
+        return True
+    return re.search(rb"\bsceneId\s*=", head) is not None
+
+
+def _scene_layers_under(root: Path) -> list[Path]:
+    """Every scene layer below `root`, recursively, skipping hidden directories; in an authored
+    plan's tree (plan.toml beside scenes/) only scenes/ is searched: sky/, poses/ and stages/
+    hold shared sublayers, and a paper plan has ~39,000 pose layers not worth opening."""
+    from allo_usd.usd.compose import SCENE_DIR
+
+    found = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        here = Path(dirpath)
+        if SCENE_DIR in dirnames and (here / "plan.toml").is_file():
+            dirnames[:] = [SCENE_DIR]
+        else:
+            dirnames[:] = [d for d in dirnames if not d.startswith(".")]
+        found += [here / f for f in filenames if f.endswith(".usda") and not f.startswith(".")]
+    return sorted(p for p in found if _is_scene_layer(p))
+
+
+def find_layers(source: str | Path | list) -> list[Path]:
+    """A directory (its scene layers, recursively), a single layer, or a list of layers.
+    Raises AlloError when there is nothing to render."""
+    if isinstance(source, (list, tuple)):
+        layers = [Path(p) for p in source]
+        if not layers:
+            raise AlloError("no layers to render (an empty list); pass scene layers, their directory or a plan")
+    else:
+        source = Path(source)
+        if source.is_dir():
+            layers = _scene_layers_under(source)
+            if not layers:
+                raise AlloError(f"no scene layers under {source} (a scene layer is a .usda whose customLayerData "
+                                "holds allo.sceneId; sky/, poses/ and stages/ layers are shared sublayers, not "
+                                f"scenes); author a plan there with `allo-usd author PLAN --out {source}`, or "
+                                "pass the directory that holds the scene layers")
+        elif source.is_file():
+            layers = [source]
+        else:
+            raise AlloError(f"{source} is neither a layer nor a directory of layers; check the path")
+    stems: dict[str, Path] = {}
+    for p in layers:
+        if p.stem in stems:
+            raise AlloError(f"two layers share the name {p.stem!r} ({stems[p.stem]}, {p}); outputs are named "
+                            "after the layer, so rename one")
+        stems[p.stem] = p
+    return layers
+
+
+# ---------------------------------------------------------------- manifest
+
+def _read_jsonl(path: Path) -> list[dict]:
+    rows = []
+    if path.is_file():
+        for line in path.read_text(errors="replace").splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line torn by a crash mid-append
+            if isinstance(row, dict) and "scene" in row:
+                rows.append(row)
+    return rows
+
+
+def load_manifest(out_dir: Path) -> dict[str, dict]:
+    """Finished scenes by name (the last row of a scene wins)."""
+    return {row["scene"]: row for row in _read_jsonl(Path(out_dir) / MANIFEST)}
+
+
+def _append_jsonl(path: Path, row: dict) -> None:
+    """One os.write of one line on an O_APPEND descriptor, then fsync: a crash loses at most the line.
+    A line torn by an earlier crash is ended first, so it cannot swallow this one; a write cut
+    short by a full disk is truncated away, so the file never ends in half a line."""
+    data = (json.dumps(row, sort_keys=True) + "\n").encode()
+    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            if size and os.pread(fd, 1, size - 1) != b"\n":
+                data = b"\n" + data
+            if os.write(fd, data) != len(data):
+                raise OSError(errno.ENOSPC, "short write", str(path))
+            os.fsync(fd)
+        except OSError as exc:
+            if exc.errno in DISK_FULL_ERRNOS:
+                try:
+                    os.ftruncate(fd, size)
+                except OSError:
+                    pass
+                raise DiskFullError(f"no space left on the device while appending to {path}; free space and "
+                                    "re-run") from exc
+            raise
+    finally:
+        os.close(fd)
+
+
+def _compact_manifest(out_dir: Path) -> None:
+    """Rewrite the manifest with one row per scene (atomically), dropping torn lines and repeats."""
+    from allo_usd.core.files import atomic_path
+
+    path = Path(out_dir) / MANIFEST
+    if not path.is_file():
+        return
+    rows = load_manifest(out_dir)
+    text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows.values())
+    if text != path.read_text(errors="replace"):
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
+
+
+def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
+    """The manifest row matches the current layer and every output exists with its checksum."""
+    if not row or row.get("layer_sha256") != sha256_file(layer):
+        return False
+    files = row.get("files") or {}
+    expected = {p.name for p in output_paths(layer, out_dir).values()}
+    if set(files) != expected:
+        return False
+    return all((Path(out_dir) / name).is_file() and sha256_file(Path(out_dir) / name) == digest
+               for name, digest in files.items())
+
+
+def clean_stale(out_dir: Path, pid: int | None = None) -> int:
+    """Remove temporaries left by killed writers (only those of writer `pid` when given: the
+    others may belong to live workers); returns how many files beside the outputs went."""
+    out_dir = Path(out_dir)
+    pattern = temp_name_re(pid)
+    n = 0
+    if out_dir.is_dir():
+        for p in out_dir.iterdir():
+            if pattern.match(p.name) and p.is_file():
+                p.unlink(missing_ok=True)
+                n += 1
+    shutil.rmtree(out_dir / WORKDIR if pid is None else out_dir / WORKDIR / str(int(pid)), ignore_errors=True)
+    return n
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity, as Blender's TBB sees it), not the machine's."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def core_sets(workers: int, threads: int, cores: list[int] | None = None) -> list[tuple[int, ...] | None]:
+    """Disjoint cores for each worker, or None for all when `workers * threads` exceeds them."""
+    if cores is None:
+        cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    if workers * threads > len(cores) or workers < 1 or threads < 1:
+        return [None] * max(workers, 0)
+    return [tuple(cores[i * threads:(i + 1) * threads]) for i in range(workers)]
+
+
+class _Worker:
+    def __init__(self, ctx, env: dict, cores: tuple[int, ...] | None = None, index: int = 0,
+                 log_dir: Path | None = None):
+        self.cores, self.index = cores, index
+        self.log = None if log_dir is None else Path(log_dir) / f"worker-{index}.log"
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_main, daemon=True, name=f"allo-render-worker-{index}",
+                                args=(child, env, os.getpid(), cores, None if self.log is None else str(self.log),
+                                      index))
+        self.proc.start()
+        child.close()
+        self.task: _Task | None = None
+
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(5)
+        self.conn.close()
+
+
+@dataclass
+class _Task:
+    layer: Path
+    attempts: int = 0
+    reasons: list[str] = field(default_factory=list)
+
+    @property
+    def scene(self) -> str:
+        return self.layer.stem
+
+
+def _death_reason(code: int | None) -> str:
+    if code is not None and code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        hint = " (out of memory?)" if -code == signal.SIGKILL else ""
+        return f"worker died with {name}{hint}"
+    return f"worker exited with status {code}"
+
+
+class _Run:
+    """Book-keeping shared by both backends: manifest, failures, progress, retries."""
+
+    def __init__(self, out_dir: Path, total: int, retries: int, progress: bool | None, summary: Summary):
+        from tqdm.auto import tqdm
+
+        self.out_dir, self.retries, self.summary = out_dir, retries, summary
+        disable = (not sys.stderr.isatty()) if progress is None else not progress
+        self.bar = tqdm(total=total, unit="scene", desc="render", disable=disable, dynamic_ncols=True,
+                        file=sys.stderr)
+
+    def ok(self, task: _Task, result: dict) -> None:
+        row = {k: v for k, v in result.items() if k != "status"}
+        row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        _append_jsonl(self.out_dir / MANIFEST, row)
+        self.summary.rendered.append(task.scene)
+        self._tick()
+
+    def fail(self, task: _Task, kind: str, reason: str) -> None:
+        row = {"scene": task.scene, "layer": str(task.layer), "kind": kind, "reason": reason,
+               "attempts": task.attempts, "reasons": task.reasons,
+               "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        self.summary.failed.append(row)
+        try:
+            _append_jsonl(self.out_dir / FAILED, row)
+        finally:
+            self._tick()
+
+    def retry_or_fail(self, task: _Task, kind: str, reason: str) -> bool:
+        """True if the task should run again."""
+        task.reasons.append(reason)
+        if task.attempts <= self.retries:
+            return True
+        self.fail(task, kind, f"{reason} (after {task.attempts} attempts)")
+        return False
+
+    def settle(self, task: _Task, result: dict) -> bool:
+        """Record a worker's result; True if the task should run again. A bad layer is never
+        retried; a full disk stops the run (DiskFullError); other errors retry up to the limit."""
+        if result["status"] == "ok":
+            self.ok(task, result)
+            return False
+        if result["kind"] == "layer":
+            self.fail(task, "layer", result["message"])
+            return False
+        if result["kind"] == "disk_full":
+            try:
+                self.fail(task, "disk_full", result["message"])
+            except DiskFullError:
+                pass  # failed.jsonl cannot grow on a full disk; the exception below says it all
+            raise DiskFullError(result["message"])
+        return self.retry_or_fail(task, "error", result["message"])
+
+    def _tick(self) -> None:
+        self.bar.set_postfix(ok=len(self.summary.rendered), failed=len(self.summary.failed), refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict) -> None:
+    import multiprocessing
+    from multiprocessing.connection import wait
+
+    ctx = multiprocessing.get_context("spawn")
+    pending = deque(tasks)
+    n = min(workers, len(tasks))
+    log_dir = out_dir / LOGS
+    pool = [_Worker(ctx, env, cores, i, log_dir) for i, cores in enumerate(core_sets(n, threads))]
+    disk_full: DiskFullError | None = None
+    try:
+        while pending or any(w.task for w in pool):
+            for w in pool:
+                if w.task is None and pending:
+                    w.task = pending.popleft()
+                    w.task.attempts += 1
+                    w.conn.send({"layer": str(w.task.layer), "out_dir": str(out_dir), "threads": threads,
+                                 "roots": env.get(ENV_ROOTS, "")})
+            busy = [w for w in pool if w.task]
+            wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=1.0)
+            for i, w in enumerate(pool):
+                if w.task is None:
+                    continue
+                result = None
+                if w.conn.poll():
+                    try:
+                        result = w.conn.recv()
+                    except (EOFError, OSError):
+                        result = None
+                    dead = result is None
+                else:
+                    dead = not w.proc.is_alive()
+                if not result and not dead:
+                    continue
+                task, w.task = w.task, None
+                if dead:
+                    w.proc.join(5)
+                    reason = f"{_death_reason(w.proc.exitcode)}; its output is in {w.log}"
+                    w.kill()
+                    clean_stale(out_dir, pid=w.proc.pid)  # its half-written temporaries, not its neighbours'
+                    pool[i] = _Worker(ctx, env, w.cores, w.index, log_dir)  # after: a reused pid keeps its files
+                    if run.retry_or_fail(task, "crash", reason):
+                        pending.appendleft(task)
+                elif run.settle(task, result):
+                    pending.appendleft(task)
+    finally:
+        for w in pool:
+            w.kill()
+
+
+# ---------------------------------------------------------------- Dask
+
+def _hold_one_death_per_attempt(client, hold: bool) -> bool:
+    """Set the scheduler's allowed-failures to 0 while a run holds it (restore it when the last
+    hold is released): a task whose worker dies then errs with KilledWorker at once, and our
+    retry bound counts worker deaths. The function is pickled by value, so the scheduler needs
+    no allo_usd. Returns False (with a warning) where the scheduler refuses to run it."""
+
+    def swap(hold, dask_scheduler=None):
+        holds = getattr(dask_scheduler, "_allo_dispatch_holds", 0)
+        if hold:
+            if holds == 0:
+                dask_scheduler._allo_saved_allowed_failures = dask_scheduler.allowed_failures
+            dask_scheduler.allowed_failures = 0
+            dask_scheduler._allo_dispatch_holds = holds + 1
+        else:
+            dask_scheduler._allo_dispatch_holds = holds = max(holds - 1, 0)
+            if holds == 0:
+                dask_scheduler.allowed_failures = getattr(dask_scheduler, "_allo_saved_allowed_failures",
+                                                          dask_scheduler.allowed_failures)
+        return dask_scheduler.allowed_failures
+
+    try:
+        client.run_on_scheduler(swap, hold)
+        return True
+    except Exception as exc:  # noqa: BLE001 - a scheduler that forbids run_on_scheduler
+        if hold:
+            print(f"warning: could not set the Dask scheduler's allowed-failures to 0 ({type(exc).__name__}: {exc}); "
+                  "each attempt may cost several worker deaths; start the scheduler with "
+                  "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES=0", file=sys.stderr)
+        return False
+
+
+def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict) -> None:
+    from distributed import Client, as_completed
+
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    roots = env.get(ENV_ROOTS, "")
+    held = False
+    try:
+        held = _hold_one_death_per_attempt(client, True)
+
+        def submit(task: _Task):
+            task.attempts += 1
+            return client.submit(render_task, str(task.layer), str(out_dir), threads, roots, pure=False, retries=0,
+                                 key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
+
+        futures = {submit(t): t for t in tasks}
+        completed = as_completed(list(futures))
+        try:
+            for fut in completed:
+                task = futures.pop(fut)
+                try:
+                    result = fut.result()
+                except Exception as exc:  # noqa: BLE001 - KilledWorker, a lost connection, ...
+                    if run.retry_or_fail(task, "crash", f"{type(exc).__name__}: {exc}"):
+                        new = submit(task)
+                        futures[new] = task
+                        completed.add(new)
+                    continue
+                if run.settle(task, result):
+                    new = submit(task)
+                    futures[new] = task
+                    completed.add(new)
+        finally:
+            if futures:
+                client.cancel(list(futures), force=True)
+    finally:
+        if held:
+            _hold_one_death_per_attempt(client, False)
+        if client is not scheduler:
+            client.close()
+
+
+# ---------------------------------------------------------------- entry point
+
+def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
+             retries: int = 2, progress: bool | None = None, extra_roots: tuple = ()) -> Summary:
+    """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
+
+    `workers` local processes (default: the cores this process may use) with `threads` Cycles
+    threads each (default: cores // workers), or the Dask cluster at `scheduler` (an address or
+    a Client). Returns a Summary; raises DiskFullError when the disk fills (after stopping
+    cleanly) and AlloError when `source` holds no scene layer.
+    """
+    t0 = time.perf_counter()
+    out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
+    layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    roots = sorted({str(p.resolve().parent) for p in layers} | {str(Path(r).resolve()) for r in extra_roots})
+    prior = os.environ.get(ENV_ROOTS, "")
+    env = {ENV_ROOTS: os.pathsep.join([*roots, *([prior] if prior else [])])}
+    summary = Summary()
+    with RunLock(out_dir, LOCK, "render"):
+        clean_stale(out_dir)
+        (out_dir / FAILED).unlink(missing_ok=True)  # failures of this run only; earlier ones are retried
+        _compact_manifest(out_dir)
+        done = load_manifest(out_dir)
+        tasks = []
+        for layer in layers:
+            if is_verified(done.get(layer.stem), layer, out_dir):
+                summary.skipped.append(layer.stem)
+            else:
+                tasks.append(_Task(layer))
+        run = _Run(out_dir, len(tasks), retries, progress, summary)
+        try:
+            if tasks and scheduler is not None:
+                _run_dask(tasks, out_dir, scheduler, threads, run, env)
+            elif tasks:
+                cores = usable_cores()
+                n = max(1, workers or cores)
+                _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env)
+        except KeyboardInterrupt:
+            summary.interrupted = True
+        finally:
+            run.close()
+            clean_stale(out_dir)
+            try:
+                _compact_manifest(out_dir)
+            except DiskFullError:
+                pass  # the appended manifest is valid as it is; compaction waits for the next run
+    summary.seconds = time.perf_counter() - t0
+    return summary
+
+
+def author_and_dispatch(plan_path: Path, out_dir: Path, **kwargs) -> Summary:
+    """A plan file: author its layers into OUT/layers, then render them into OUT/renders."""
+    from allo_usd.plan.io import load_plan
+    from allo_usd.run.author import author_plan
+
+    layers_dir = Path(out_dir) / "layers"
+    layers = author_plan(load_plan(Path(plan_path)), layers_dir)
+    return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", extra_roots=(Path(out_dir),),
+                    **kwargs)
+
+
+__all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "load_manifest", "is_verified",
+           "clean_stale", "render_task", "output_to", "usable_cores", "LayerError"]

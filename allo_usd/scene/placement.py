@@ -1,0 +1,506 @@
+"""Anomaly placement in the view frustum, checked by ray casting (never by rendering).
+
+A (day, pose, asset) group places one object at five depths along one pixel ray: an initial depth
+and +-1 m, +-2 m (`DEPTH_OFFSETS`). An attempt draws a point in the central part of the frame
+whose ray meets the station, a uniformly random orientation, and an initial depth on that ray so
+that all five depths fit between the camera and the station surface the ray meets and the
+farthest (+2 m) one still looks big enough (from the object's measured silhouette on that ray);
+the +2 m depth is drawn within `DEPTH_SPREAD_M` of the farthest such point, so objects sit near the
+structure behind them whenever their size allows. A depth passes when the object stays clear of
+the camera, does not touch the station, has station structure within `NEAR_STRUCTURE_M`, and
+covers at least `min_fraction` of the image at pixel centres. Attempts are redrawn until all five
+depths pass (at most `max_attempts`); only then does the group fall back to its best attempt, and
+each depth that fails is reported as skipped with its reason, never silently dropped.
+
+Checks run first at `SCREEN_WIDTH` (cheap); an attempt that passes there is confirmed at the render
+resolution, and the fractions recorded are those at the render resolution: every pixel centre in
+the object's image box for objects up to `EXACT_PIXELS` pixels, a regular sub-grid with at least
+that many samples on the object for larger ones (sub-percent error, far from the threshold).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from allo_usd.core.labels import ANOMALY
+from allo_usd.core.errors import PlacementError
+from allo_usd.core.geometry import box_corners, camera_intrinsics, fibonacci_sphere, quat_to_matrix
+from allo_usd.scene.raycast import RayScene, pixel_rays
+
+DEPTH_OFFSETS = (0.0, -1.0, 1.0, -2.0, 2.0)
+MIN_FRACTION = 0.001
+NEAR_STRUCTURE_M = 5.0     # every placed object has station structure within this distance of its centre
+CAMERA_CLEARANCE_M = 0.25  # and its bounding sphere stays this far in front of the camera
+DEPTH_SPREAD_M = 3.0       # the +2 m depth is drawn within this of the farthest point that can pass
+MAX_ATTEMPTS = 100         # candidate placements per (day, pose, asset) group
+PARTIAL_ATTEMPTS = 12      # if the first this many draws all lack room for five depths, stop drawing
+FALLBACK_CHECKS = 4        # then (or after max_attempts) this many draws are checked for the best partial group
+SCREEN_WIDTH = 480         # candidates are screened at this width, then confirmed at the render's
+EXACT_PIXELS = 2000        # objects up to 4x this many render pixels are counted at every pixel
+FRAME_REGION = (0.15, 0.85)  # the part of the frame (both axes) an object's centre is drawn in
+_TARGET_GRID = (24, 14)    # rays over FRAME_REGION that find the station structure to place near
+_SCREEN_ORDER = (4, 3, 0, 2, 1)  # depths screened first: +2 m (small, touching), -2 m (at the camera)
+
+
+@dataclass(frozen=True)
+class Placement:
+    depth_index: int
+    depth_offset: float
+    position: np.ndarray | None   # None when skipped
+    rotation: np.ndarray
+    area_fraction: float
+    attempts: int
+    skipped_reason: str = ""
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    return quat_to_matrix(q / np.linalg.norm(q))
+
+
+def _bounds_to_pixels(width: int, height: int, u0: float, u1: float, v0: float, v1: float):
+    """(i0, i1, j0, j1): the pixels whose centre lies in image box [u0, u1] x [v0, v1], widened by
+    one pixel and clipped to the image (empty when i0 > i1 or j0 > j1)."""
+    i0, i1 = max(0, int(np.floor(u0 - 0.5)) - 1), min(width - 1, int(np.ceil(u1 - 0.5)) + 1)
+    j0, j1 = max(0, int(np.floor(v0 - 0.5)) - 1), min(height - 1, int(np.ceil(v1 - 0.5)) + 1)
+    return i0, i1, j0, j1
+
+
+def _sphere_box(cam_pos, cam_rot, width: int, height: int, centre, radius: float):
+    """The sphere's exact image-space bounding box (tangent planes through the camera) as pixel
+    bounds, or None when the sphere reaches the camera plane (then every pixel is a candidate)."""
+    k = camera_intrinsics(width, height)
+    c = (np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
+    depth = -c[2]
+    if depth <= radius * 1.01:
+        return None
+    bounds = []
+    for lateral in (c[0], c[1]):
+        h = np.hypot(lateral, depth)
+        theta, beta = np.arctan2(lateral, depth), np.arcsin(min(1.0, radius / h))
+        bounds.append((np.tan(theta - beta), np.tan(theta + beta)))
+    (sx0, sx1), (sy0, sy1) = bounds
+    return _bounds_to_pixels(width, height, sx0 * k[0, 0] + k[0, 2], sx1 * k[0, 0] + k[0, 2],
+                             k[1, 2] - sy1 * k[1, 1], k[1, 2] - sy0 * k[1, 1])
+
+
+def _corner_box(cam_pos, cam_rot, width: int, height: int, corners):
+    """Pixel bounds of points' projections (a convex object's box corners), or None when any lies
+    on or behind the camera plane. Perspective maps a convex set in front of the camera to the
+    convex hull of its corners' images, so every pixel whose ray meets the object is inside."""
+    k = camera_intrinsics(width, height)
+    c = (np.asarray(corners, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
+    depth = -c[:, 2]
+    if depth.min() <= 1e-6:
+        return None
+    u = k[0, 0] * c[:, 0] / depth + k[0, 2]
+    v = k[1, 2] - k[1, 1] * c[:, 1] / depth
+    return _bounds_to_pixels(width, height, u.min(), u.max(), v.min(), v.max())
+
+
+_FOOTPRINT_FROM = 32000  # pixels in an object's box above which its triangles' footprint pays off
+_PART_LEVELS = 5         # below it, the footprint of 2^5 part boxes (raycast.RayScene.part_boxes)
+_FEW_RECTS = 64          # image boxes marked one by one (more: by a running count over the box)
+
+
+def _box_indices(box, width: int, stride: int = 1) -> np.ndarray:
+    """Row-major indices of the pixels in `box`; with `stride` s > 1, only those whose column and
+    row are both s // 2 modulo s (a fixed sub-grid of the whole image, one pixel per s x s)."""
+    i0, i1, j0, j1 = box
+    phase = stride // 2
+    i0, j0 = i0 + (phase - i0) % stride, j0 + (phase - j0) % stride
+    if i0 > i1 or j0 > j1:
+        return np.zeros(0, dtype=np.int64)
+    return (np.arange(j0, j1 + 1, stride)[:, None] * width + np.arange(i0, i1 + 1, stride)[None, :]).ravel()
+
+
+def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box, stride: int = 1):
+    """Row-major indices of the pixels in `box` (and on the stride sub-grid) whose centre lies in the
+    widened image box of at least one triangle: the object's footprint, much tighter than its
+    overall box for thin or hollow objects, and exact (a ray meets a triangle only through its
+    image). None when a vertex lies on or behind the camera plane."""
+    k = camera_intrinsics(width, height)
+    c = (np.asarray(points, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
+    depth = -c[:, 2]
+    if depth.min() <= 1e-6:
+        return None
+    u = (k[0, 0] * c[:, 0] / depth + k[0, 2])[triangles]
+    v = (k[1, 2] - k[1, 1] * c[:, 1] / depth)[triangles]
+    uu = np.stack([u[:, 0], u[:, 1], u[:, 2]])
+    vv = np.stack([v[:, 0], v[:, 1], v[:, 2]])
+    return _rects_union(width, box, stride, uu.min(axis=0), uu.max(axis=0), vv.min(axis=0), vv.max(axis=0))
+
+
+def _parts_footprint(cam_pos, cam_rot, width: int, height: int, corners, box, stride: int = 1):
+    """Like `_footprint`, for the boxes of the object's parts (`raycast.RayScene.part_boxes`, posed: (P, 8, 3)
+    corners): the pixels whose centre lies in the widened image box of some part. A part's image
+    lies in the convex hull of its box corners' images, and each triangle's in its part's, so this
+    holds every pixel `_footprint` holds (exact too), at a cost that does not grow with the mesh."""
+    k = camera_intrinsics(width, height)
+    c = (np.asarray(corners, dtype=np.float64).reshape(-1, 3) - np.asarray(cam_pos, dtype=np.float64)) \
+        @ np.asarray(cam_rot)
+    depth = -c[:, 2]
+    if depth.min() <= 1e-6:
+        return None
+    u = (k[0, 0] * c[:, 0] / depth + k[0, 2]).reshape(-1, 8)
+    v = (k[1, 2] - k[1, 1] * c[:, 1] / depth).reshape(-1, 8)
+    return _rects_union(width, box, stride, u.min(axis=1), u.max(axis=1), v.min(axis=1), v.max(axis=1))
+
+
+def _rects_union(width: int, box, stride: int, u0, u1, v0, v1) -> np.ndarray:
+    """Row-major indices of the pixels in `box` (on the stride sub-grid) whose centre lies in at least
+    one image box [u0, u1] x [v0, v1], each widened by one pixel."""
+    bi0, bi1, bj0, bj1 = box
+    phase = stride // 2
+    ci0, rj0 = bi0 + (phase - bi0) % stride, bj0 + (phase - bj0) % stride   # first sub-grid column, row
+    if ci0 > bi1 or rj0 > bj1:
+        return np.zeros(0, dtype=np.int64)
+    bw, bh = (bi1 - ci0) // stride + 1, (bj1 - rj0) // stride + 1           # sub-grid size in the box
+    # Pixels (sub-grid cells) whose centre may fall in each image box, widened by one pixel.
+    i0 = np.clip(-((ci0 - np.floor(u0 - 0.5).astype(np.int64) + 1) // stride), 0, bw)
+    i1 = np.clip((np.ceil(u1 - 0.5).astype(np.int64) + 1 - ci0) // stride + 1, 0, bw)
+    j0 = np.clip(-((rj0 - np.floor(v0 - 0.5).astype(np.int64) + 1) // stride), 0, bh)
+    j1 = np.clip((np.ceil(v1 - 0.5).astype(np.int64) + 1 - rj0) // stride + 1, 0, bh)
+    ok = (i0 < i1) & (j0 < j1)
+    i0, i1, j0, j1 = i0[ok], i1[ok], j0[ok], j1[ok]
+    if len(i0) <= _FEW_RECTS:                    # a few: mark each
+        covered = np.zeros((bh, bw), dtype=bool)
+        for a, b, c, d in zip(j0.tolist(), j1.tolist(), i0.tolist(), i1.tolist()):
+            covered[a:b, c:d] = True
+    else:                                        # many: +1/-1 at every corner, then a 2-D running count
+        w1, n = bw + 1, (bh + 1) * (bw + 1)
+        diff = np.bincount(np.concatenate([j0 * w1 + i0, j1 * w1 + i1]), minlength=n) - \
+            np.bincount(np.concatenate([j0 * w1 + i1, j1 * w1 + i0]), minlength=n)
+        counts = diff.astype(np.int32).reshape(bh + 1, w1).cumsum(axis=0, dtype=np.int32)
+        covered = counts.cumsum(axis=1, dtype=np.int32)[:bh, :bw] > 0
+    jj, ii = np.nonzero(covered)
+    return ((rj0 + jj * stride) * width + (ci0 + ii * stride)).astype(np.int64, copy=False)
+
+
+def sphere_pixels(cam_pos, cam_rot, width: int, height: int, centre, radius: float) -> np.ndarray | None:
+    """Row-major indices of the pixels whose centre ray may pass within `radius` of `centre`: the
+    sphere's exact image-space bounding box (tangent planes through the camera), widened by one
+    pixel. None when the sphere reaches the camera plane (then every pixel is a candidate)."""
+    box = _sphere_box(cam_pos, cam_rot, width, height, centre, radius)
+    return None if box is None else _box_indices(box, width)
+
+
+def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_rot, width: int, height: int,
+                     rays=None, sphere=None, pose=None, corners=None, stride: int = 1, mesh=None) -> float:
+    """Fraction of pixel centres whose first hit is the anomaly (station and anomaly BVHs kept apart,
+    so the station's is built once per world and the anomaly's once per asset; `station` None:
+    the object's silhouette alone).
+
+    `rays`: the camera's pixel rays (`pixel_rays(cam_pos, cam_rot, width, height)`), if already
+    computed. `sphere`: (centre, radius) bounding the anomaly; only rays that pass within it are
+    cast (exact: a ray that misses the sphere cannot hit the anomaly). `pose`: (position,
+    rotation) when `anomaly` holds the object in its own frame; the rays are then moved into that
+    frame (p_obj = R^T (p - position)) instead of building a BVH for the posed object. `corners`:
+    the object's box corners in its own frame (`box_corners`), with `pose`: their projection
+    narrows the pixels cast to (also exact), which matters for long thin objects. `mesh`: the
+    object's (points, triangles) in its own frame, with `pose`: only pixels inside the image box
+    of some triangle (`_footprint`, for large boxes) or of some part of the object (`_parts_footprint`,
+    cheaper, for the rest) are cast; both are exact, and then the sphere test is skipped (it would
+    drop almost nothing more). `stride` s > 1 (with `sphere`): cast one pixel in s x s
+    (`_box_indices`) and count each for s^2 pixels. Every cull only leaves out rays that cannot
+    meet the object, so the count is the same whichever applies."""
+    if sphere is not None:
+        c, r = np.asarray(sphere[0], dtype=np.float64), float(sphere[1]) * 1.001 + 1e-9
+        box = _sphere_box(cam_pos, cam_rot, width, height, c, r)
+        if corners is not None and pose is not None:
+            world = np.asarray(pose[0], dtype=np.float64) + np.asarray(corners) @ np.asarray(pose[1]).T
+            tight = _corner_box(cam_pos, cam_rot, width, height, world)
+            if tight is not None:
+                box = tight if box is None else (max(box[0], tight[0]), min(box[1], tight[1]),
+                                                 max(box[2], tight[2]), min(box[3], tight[3]))
+        if box is None and stride > 1:
+            box = (0, width - 1, 0, height - 1)
+        idx, fitted = None, False
+        if box is not None and mesh is not None and pose is not None:
+            if (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > _FOOTPRINT_FROM * stride * stride:
+                world = np.asarray(pose[0], dtype=np.float64) + np.asarray(mesh[0]) @ np.asarray(pose[1]).T
+                idx = _footprint(cam_pos, cam_rot, width, height, world, mesh[1], box, stride)
+            elif _PART_LEVELS:
+                parts = np.asarray(pose[0], dtype=np.float64) + \
+                    anomaly.part_boxes(_PART_LEVELS) @ np.asarray(pose[1], dtype=np.float64).T
+                idx = _parts_footprint(cam_pos, cam_rot, width, height, parts, box, stride)
+            fitted = idx is not None
+        if idx is None and box is not None:
+            idx = _box_indices(box, width, stride)
+        if rays is None:
+            o, d = pixel_rays(cam_pos, cam_rot, width, height, idx)
+        else:
+            o, d = rays if idx is None else (rays[0][idx], rays[1][idx])
+        if not len(o):
+            return 0.0
+        if not fitted:                                 # a footprint already keeps (nearly) only these
+            v = c - o[0]                               # every ray starts at the camera
+            t = d @ v
+            miss = (np.dot(v, v) - t * t > r * r) | (t < -r)
+            keep = np.flatnonzero(~miss)
+            if keep.size == 0:
+                return 0.0
+            o, d = o[keep], d[keep]
+    else:
+        if stride != 1:
+            raise ValueError("stride needs sphere=(centre, radius)")
+        o, d = pixel_rays(cam_pos, cam_rot, width, height) if rays is None else rays
+    if pose is None:
+        a_owner, a_dist = anomaly.first_hit(o, d)
+    else:
+        position, rotation = np.asarray(pose[0], dtype=np.float64), np.asarray(pose[1], dtype=np.float64)
+        a_owner, a_dist = anomaly.first_hit((o - position) @ rotation, d @ rotation)
+    hit = a_owner > 0
+    if not hit.any():
+        return 0.0
+    if station is None:
+        return float(hit.sum() * stride * stride / (width * height))
+    # Visible where no station surface lies between the camera and the object's surface.
+    hidden = station.occluded(o[hit], d[hit], a_dist[hit])
+    return float((~hidden).sum() * stride * stride / (width * height))
+
+
+def anomaly_scene(anomaly_points, anomaly_tris) -> RayScene:
+    """The object's BVH in its own frame, built once per asset and reused for every pose."""
+    return RayScene([(anomaly_points, anomaly_tris, ANOMALY)])
+
+
+def _clear_of(station: RayScene, position, radius: float, cam_pos, cam_rot) -> str:
+    """Why a placement fails whatever the resolution ("" if it does not): its bounding sphere within
+    CAMERA_CLEARANCE_M of the camera plane or behind it; a station surface closer to its centre
+    than the bounding radius (touching), or none within NEAR_STRUCTURE_M (not near the station);
+    both probed along 128 directions from the centre."""
+    if np.dot(position - cam_pos, -cam_rot[:, 2]) <= radius + CAMERA_CLEARANCE_M:
+        return "behind or against the camera"
+    _, dist = station.first_hit(np.repeat(position[None], len(_SPHERE_DIRS), 0), _SPHERE_DIRS)
+    if (dist < radius * 1.05).any():
+        return "intersects the station"
+    if dist.min() > NEAR_STRUCTURE_M:
+        return f"farther than {NEAR_STRUCTURE_M:.0f} m from the station"
+    return ""
+
+
+def _visibility(station: RayScene, anomaly: RayScene, radius: float, corners, position, rotation, cam_pos, cam_rot,
+                width: int, height: int, min_fraction: float, stride: int = 1, mesh=None) -> tuple[bool, float, str]:
+    frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height, None, (position, radius),
+                            (position, rotation), corners, stride, mesh)
+    if frac == 0.0:
+        return False, 0.0, "fully occluded or outside the frame"
+    if frac < min_fraction:
+        return False, frac, f"covers {frac:.4%} of the image, under {min_fraction:.1%}"
+    return True, frac, ""
+
+
+def check(station: RayScene, anomaly_points, anomaly_tris, position, rotation, cam_pos, cam_rot,
+          width, height, min_fraction=MIN_FRACTION, rays=None, anomaly: RayScene | None = None
+          ) -> tuple[bool, float, str]:
+    """(accepted, visible fraction at width x height, reason) for one candidate placement.
+    `anomaly`: the object's BVH in its own frame (`anomaly_scene`), if already built."""
+    cam_pos = np.asarray(cam_pos, dtype=np.float64)
+    cam_rot = np.asarray(cam_rot, dtype=np.float64)
+    position = np.asarray(position, dtype=np.float64)
+    radius = float(np.linalg.norm(anomaly_points, axis=1).max())
+    why = _clear_of(station, position, radius, cam_pos, cam_rot)
+    if why:
+        return False, 0.0, why
+    if anomaly is None:
+        anomaly = anomaly_scene(anomaly_points, anomaly_tris)
+    if rays is not None:
+        frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height, rays, (position, radius),
+                                (position, rotation))
+        if frac == 0.0:
+            return False, 0.0, "fully occluded or outside the frame"
+        if frac < min_fraction:
+            return False, frac, f"covers {frac:.4%} of the image, under {min_fraction:.1%}"
+        return True, frac, ""
+    return _visibility(station, anomaly, radius, box_corners(anomaly_points), position, rotation, cam_pos,
+                       cam_rot, width, height, min_fraction, 1, (anomaly_points, np.asarray(anomaly_tris)))
+
+
+_SPHERE_DIRS = fibonacci_sphere(128)
+
+
+def _image_rays(cam_rot, k: np.ndarray, px, py) -> np.ndarray:
+    """Unit world directions through image points (px, py) in pixels (continuous, from the top left)."""
+    r = np.asarray(cam_rot, dtype=np.float64)
+    x = (np.asarray(px, dtype=np.float64) - k[0, 2]) / k[0, 0]
+    y = -(np.asarray(py, dtype=np.float64) - k[1, 2]) / k[1, 1]
+    d = x[..., None] * r[:, 0] + y[..., None] * r[:, 1] - r[:, 2]
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _stride(fraction: float, n_pixels: int) -> int:
+    """Sub-grid step for counting an object expected to cover `fraction` of `n_pixels`: 1 under
+    4 x EXACT_PIXELS pixels (so every decision near the 0.1% threshold, 2,074 px at 1920x1080, is
+    exact), else the largest step that keeps EXACT_PIXELS samples on it."""
+    return max(1, int(np.sqrt(fraction * n_pixels / EXACT_PIXELS)))
+
+
+def place(station_parts: "RayScene | list", anomaly_points, anomaly_tris, cam_pos, cam_rot, rng: np.random.Generator,
+          width: int, height: int, max_attempts: int = MAX_ATTEMPTS, check_width: int | None = SCREEN_WIDTH,
+          min_fraction: float = MIN_FRACTION, anomaly: RayScene | None = None) -> list[Placement]:
+    """Place one object at all five depths (see the module doc); raises PlacementError when no
+    attempt gives even a valid initial depth. `check_width`: the width candidates are screened at
+    (None or >= width: every check at width x height); accepted depths are always confirmed, and
+    their fractions computed, at width x height. `anomaly`: the object's BVH in its own frame
+    (`anomaly_scene`), if cached by the caller."""
+    cam_pos = np.asarray(cam_pos, dtype=np.float64)
+    cam_rot = np.asarray(cam_rot, dtype=np.float64)
+    station = station_parts if isinstance(station_parts, RayScene) else RayScene(station_parts)
+    radius = float(np.linalg.norm(anomaly_points, axis=1).max())
+    corners = box_corners(anomaly_points)
+    mesh = (np.asarray(anomaly_points, dtype=np.float64), np.asarray(anomaly_tris, dtype=np.int64))
+    if anomaly is None:
+        anomaly = anomaly_scene(anomaly_points, anomaly_tris)
+    full = (int(width), int(height))
+    screen = full if not check_width or check_width >= width else \
+        (int(check_width), max(1, round(height * check_width / width)))
+    k = camera_intrinsics(width, height)
+
+    # Where the station is: rays through a grid over the central part of the frame.
+    lo, hi = FRAME_REGION
+    gx, gy = _TARGET_GRID
+    px, py = np.meshgrid((lo + (hi - lo) * (np.arange(gx) + 0.5) / gx) * width,
+                         (lo + (hi - lo) * (np.arange(gy) + 0.5) / gy) * height)
+    px, py = px.ravel(), py.ravel()
+    _, grid_hit = station.first_hit(np.broadcast_to(cam_pos, (px.size, 3)), _image_rays(cam_rot, k, px, py))
+    cells = np.flatnonzero(np.isfinite(grid_hit))
+    if cells.size == 0:
+        raise PlacementError(f"the camera sees no station structure in the central {hi - lo:.0%} of its frame, "
+                             "so an object cannot be placed near it; use a pose that looks at the station")
+    cell_w, cell_h = (hi - lo) * width / gx, (hi - lo) * height / gy
+    nearest = radius + CAMERA_CLEARANCE_M + 1e-6    # the closest an object's centre may come (depth)
+    reach = max(DEPTH_OFFSETS)
+    ref = max(nearest, 8.0 * radius)                # where an attempt measures the object's silhouette
+
+    # A draw's checks are pure functions of (attempt, depth), so each is computed once: the
+    # fallback below reuses the screening of the main loop, and the render-resolution pass
+    # reuses the resolution-free clearance test (speed only; every decision is the same).
+    clear: dict[tuple[int, int], str] = {}
+    screened: dict[tuple[int, int], tuple[bool, float, str]] = {}
+
+    def one(attempt, depth_index, ray, depth, rot, size, stride=1):
+        pos = cam_pos + (depth + DEPTH_OFFSETS[depth_index]) * ray
+        if (attempt, depth_index) not in clear:
+            clear[attempt, depth_index] = _clear_of(station, pos, radius, cam_pos, cam_rot)
+        why = clear[attempt, depth_index]
+        if why:
+            return False, 0.0, why
+        return _visibility(station, anomaly, radius, corners, pos, rot, cam_pos, cam_rot, *size, min_fraction, stride,
+                           mesh)
+
+    def at_screen(attempt, depth_index, ray, depth, rot):
+        if (attempt, depth_index) not in screened:
+            screened[attempt, depth_index] = one(attempt, depth_index, ray, depth, rot, screen)
+        return screened[attempt, depth_index]
+
+    def at_full(attempt, ray, depth, rot, coarse, all_or_nothing=False):
+        """Each depth re-checked at the render resolution (`coarse`: the screen results). With
+        `all_or_nothing`, stop at the first depth that fails (the caller needs them all to pass)."""
+        if screen == full:
+            return coarse
+        out = []
+        for i, c in enumerate(coarse):
+            out.append(one(attempt, i, ray, depth, rot, full, _stride(c[1], width * height)) if c[0] else c)
+            if all_or_nothing and not out[-1][0]:
+                break
+        return out
+
+    drawn = []                                      # (-depths that fit, attempt, ray, depth, rot)
+    budget, short = max_attempts, 0
+    for attempt in range(1, max_attempts + 1):
+        c = cells[rng.integers(cells.size)]
+        ray = _image_rays(cam_rot, k, px[c] + (rng.random() - 0.5) * cell_w, py[c] + (rng.random() - 0.5) * cell_h)
+        u = rng.random()
+        rot = random_rotation(rng)
+        _, hit = station.first_hit(cam_pos[None], ray[None])
+        surface = float(hit[0]) - 1.05 * radius      # the farthest the centre may sit on this ray
+        if not surface > nearest:
+            continue
+        # The object's silhouette at depth `ref` on this ray gives the farthest depth at which it
+        # still covers min_fraction (coverage falls as 1/depth^2); 0.95 keeps a margin.
+        silhouette = visible_fraction(None, anomaly, cam_pos, cam_rot, *screen, None,
+                                      (cam_pos + ref * ray, radius), (cam_pos + ref * ray, rot), corners, 1, mesh)
+        top = min(surface, 0.95 * ref * np.sqrt(silhouette / min_fraction))
+        if not top > nearest:
+            continue
+        fits = min(len(DEPTH_OFFSETS), int(np.floor(top - nearest)) + 1)   # depths that fit in [nearest, top]
+        if fits < len(DEPTH_OFFSETS):                # too little room for five: as many as fit
+            drawn.append((-fits, attempt, ray, _partial_depth(nearest, top, u), rot))
+            short += 1
+            if short == len(drawn) == PARTIAL_ATTEMPTS:  # the first draws all too short: the object is
+                budget = attempt                     # too small (or the view too cramped) for five
+                break
+            continue
+        deepest = top - reach                        # the +2 m depth, drawn near the farthest point
+        depth = deepest - u * min(DEPTH_SPREAD_M, deepest - nearest - reach)
+        drawn.append((-fits, attempt, ray, depth, rot))
+        coarse = []
+        for i in _SCREEN_ORDER:                      # the likeliest failures first; stop at one
+            coarse.append((i, at_screen(attempt, i, ray, depth, rot)))
+            if not coarse[-1][1][0]:
+                break
+        else:
+            results = at_full(attempt, ray, depth, rot, [r for _, r in sorted(coarse)], all_or_nothing=True)
+            if all(r[0] for r in results):
+                return _placements(cam_pos, ray, depth, rot, results, attempt)
+    # No attempt passed at every depth: of the draws with room for the most depths, the first few
+    # are checked in full and the one with the most passing depths kept.
+    # Of the first few draws (most depths fitting first), the best ranked whose initial depth holds
+    # at the render resolution is kept (`_ranked`).
+    kept = {attempt: (ray, depth, rot) for _, attempt, ray, depth, rot
+            in sorted(drawn, key=lambda t: t[:2])[:FALLBACK_CHECKS]}
+    for attempt in _ranked(list(kept), lambda a, i: at_screen(a, i, *kept[a])[0]):
+        ray, depth, rot = kept[attempt]
+        coarse = [at_screen(attempt, i, ray, depth, rot) for i in range(len(DEPTH_OFFSETS))]
+        results = at_full(attempt, ray, depth, rot, coarse)
+        if results[0][0]:
+            return _placements(cam_pos, ray, depth, rot, results, budget)
+    raise PlacementError(f"no visible placement in {budget} attempts (object radius {radius:.2f} m); "
+                         "the view may show no station nearby — use another pose or a smaller object")
+
+
+def _ranked(attempts: list[int], passes):
+    """The attempts whose initial depth passes at the screen width, in order of (most depths passing,
+    earliest attempt), as screening each in full would rank them; `passes(attempt, depth)` screens
+    one depth. A draw is screened only as far as its rank needs: the one with the most depths that
+    could still pass is screened further (likeliest failures first), and comes next once complete."""
+    known: dict[tuple[int, int], bool] = {}
+
+    def ok(a: int, i: int) -> bool:
+        if (a, i) not in known:
+            known[a, i] = bool(passes(a, i))
+        return known[a, i]
+
+    left = [a for a in attempts if ok(a, 0)]
+    while left:
+        best = min(left, key=lambda a: (-sum(known.get((a, i), True) for i in range(len(DEPTH_OFFSETS))), a))
+        todo = [i for i in _SCREEN_ORDER if (best, i) not in known]
+        if todo:
+            ok(best, todo[0])
+            continue
+        yield best
+        left.remove(best)
+
+
+def _partial_depth(nearest: float, top: float, u: float) -> float:
+    """An initial depth for a ray with room for fewer than five depths in [nearest, top]: one that
+    keeps as many of them as fit (n = floor(top - nearest) + 1), drawn with `u` in [0, 1) among
+    those positions (a = how many of the n lie before the initial one)."""
+    room = top - nearest
+    n = min(len(DEPTH_OFFSETS), int(np.floor(room)) + 1)
+    below = [a for a in range(n) if a <= 2 and n - 1 - a <= 2]
+    x = u * len(below)
+    a = below[min(int(x), len(below) - 1)]
+    return nearest + a + (x - int(x)) * (room - (n - 1))
+
+
+
+def _placements(cam_pos, ray, depth, rot, results, attempts: int) -> list[Placement]:
+    out = []
+    for k, (off, (ok, frac, why)) in enumerate(zip(DEPTH_OFFSETS, results)):
+        pos = cam_pos + (depth + off) * ray
+        out.append(Placement(k, off, pos if ok else None, rot, frac, attempts, "" if ok else why))
+    return out

@@ -1,0 +1,159 @@
+"""Resolve scenes: sky for a day + perturbed pose + (optional) placed anomaly -> SceneSpec.
+
+Everything random happens here, from an explicit numpy Generator seeded per scene, before
+anything is authored. Station and anomaly geometry for the checks is read from the base
+stage, so the checks see exactly what the renderer will see.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Protocol
+
+import numpy as np
+
+from allo_usd.core.labels import STATION
+from allo_usd.core.errors import PlacementError
+from allo_usd.scene.placement import anomaly_scene, place
+from allo_usd.scene.raycast import RayScene
+from allo_usd.scene.rig import PERTURBATION, perturb
+from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
+from allo_usd.plan.settings import EffectsSpec, RenderSpec
+from allo_usd.core.seeds import scene_seed
+
+
+class StationGeometry(Protocol):
+    """Where the base stage's geometry comes from: allo_usd.usd.read.StageGeometry reads it from a
+    base stage; anything else that answers these three calls will do (the scene layer reads no USD)."""
+
+    def poses(self) -> list: ...                                        # CameraPose, pose numbers 1..50
+
+    def station_triangles(self) -> tuple[np.ndarray, np.ndarray]: ...   # (points, triangles), world frame
+
+    def anomaly_triangles(self, asset: str, variant: str) -> tuple[np.ndarray, np.ndarray]: ...  # asset frame
+
+
+@dataclass
+class SceneInputs:
+    """What resolving a scene needs, loaded once and shared by every scene of a run: the base
+    poses, the station's ray-casting BVH, each anomaly's mesh and BVH, and the sky."""
+
+    geometry: StationGeometry
+    sky: object                 # allo_usd.sky.model.Sky
+    perilune_epoch: str
+    _anomaly_cache: dict = field(default_factory=dict)
+
+    @cached_property
+    def poses(self):
+        return {p.index: p for p in self.geometry.poses()}
+
+    @cached_property
+    def station_parts(self):
+        pts, tris = self.geometry.station_triangles()
+        return [(pts, tris, STATION)]
+
+    @cached_property
+    def station_scene(self) -> RayScene:
+        return RayScene(self.station_parts)
+
+    def anomaly_geometry(self, asset: str, variant: str):
+        key = (asset, variant)
+        if key not in self._anomaly_cache:
+            self._anomaly_cache[key] = self.geometry.anomaly_triangles(asset, variant)
+        return self._anomaly_cache[key]
+
+    def anomaly_scene(self, asset: str, variant: str):
+        """(centred points, triangles, centre, BVH in the object's own frame), built once per asset variant."""
+        key = ("scene", asset, variant)
+        if key not in self._anomaly_cache:
+            pts, tris = self.anomaly_geometry(asset, variant)
+            centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+            self._anomaly_cache[key] = (pts - centre, tris, centre, anomaly_scene(pts - centre, tris))
+        return self._anomaly_cache[key]
+
+
+def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
+    """The station's sun lamp, and each body with its place and (Earth, Moon) its own sun lamp."""
+    from allo_usd.sky.model import body_placement, body_sun_light, sun_light
+
+    at = sky.at(day)
+    light = sun_light(at)
+    sun = SunSpec(tuple(map(float, light["direction_to_sun"])), float(light["irradiance_w_m2"]),
+                  float(at.sun_irradiance_w_m2), math.degrees(float(light["angular_diameter_rad"])),
+                  float(at.distance_m["sun"]), float(light["lit_fraction"]), str(light["state"]),
+                  str(at.eclipse_body or "none"))
+    lamps = {name: SunSpec(tuple(map(float, b["direction_to_sun"])), float(b["irradiance_w_m2"]),
+                           float(b["irradiance_unoccluded_w_m2"]), math.degrees(b["angular_diameter_rad"]),
+                           float(b["distance_m"]), float(b["lit_fraction"]), str(b["state"]),
+                           str(b["eclipse_body"] or "none"))
+             for name, b in body_sun_light(at).items()}
+    bodies = {name.capitalize(): BodySpec(tuple(map(float, pos)), float(radius), lamps.get(name))
+              for name, (pos, radius) in body_placement(at).items()}
+    return sun, bodies
+
+
+def resolve_camera(inputs: SceneInputs, *, day: int, pose: int, plan_seed: int,
+                   anomaly: tuple[str, str] | None = None, reserve: int = 0):
+    """The perturbed camera of one pose sample: (CameraSpec, the Generator after the draw, seed,
+    seed path). Every scene of the sample (the five depths of a placement) shares it. `reserve`
+    k >= 1: the k-th reserve group of the plan's top-up (allo_usd.plan.enumeration.reserve_group), a draw of its own."""
+    base = inputs.poses[pose]
+    key = (day, pose) if anomaly is None else (day, pose, *anomaly)
+    if reserve:
+        key = (*key, f"r{reserve}")
+    seed, seed_path = scene_seed(plan_seed, *key)
+    rng = np.random.default_rng(seed)
+    pos, rot, dpos, dang, attempts = perturb(base, rng, inputs.station_scene)
+    camera = CameraSpec(tuple(map(float, pos)), rot, tuple(map(float, dpos)), tuple(map(float, dang)),
+                        PERTURBATION, attempts)
+    return camera, rng, seed, seed_path
+
+
+def resolve_placements(inputs: SceneInputs, camera: CameraSpec, rng: np.random.Generator, anomaly: tuple[str, str],
+                       resolution: tuple[int, int]) -> list[AnomalySpec | str]:
+    """All five depths of one placement from one ray-cast search (`placement.place`: candidates are
+    redrawn until all five depths pass, screened at 480 px wide and confirmed at `resolution`): an
+    AnomalySpec per depth, with the fraction of the image it covers at `resolution`, or the reason
+    that depth was skipped. Raises PlacementError when no initial placement is found."""
+    pts, tris, centre, scene = inputs.anomaly_scene(*anomaly)
+    pos = np.asarray(camera.position, dtype=np.float64)
+    placements = place(inputs.station_scene, pts, tris, pos, camera.rotation, rng, resolution[0], resolution[1],
+                       anomaly=scene)
+    out = []
+    for p in placements:
+        if p.position is None:
+            out.append(f"depth {p.depth_index} ({p.depth_offset:+.0f} m) was skipped: {p.skipped_reason}")
+            continue
+        # The asset's own origin is its bounding-box centre, so the placed centre is the prim position.
+        out.append(AnomalySpec(anomaly[0], anomaly[1], tuple(map(float, p.position - p.rotation @ centre)),
+                               p.rotation, p.depth_index, p.depth_offset, p.attempts, p.area_fraction))
+    return out
+
+
+def build_spec(inputs: SceneInputs, *, scene_id: str, day: int, pose: int, seed: int, seed_path: str,
+               camera: CameraSpec, render: RenderSpec, effects: EffectsSpec,
+               anomaly: AnomalySpec | None = None, sky: tuple | None = None) -> SceneSpec:
+    """Assemble a SceneSpec from resolved parts (`sky`: a precomputed sun_and_bodies result)."""
+    sun, bodies = sky if sky is not None else sun_and_bodies(inputs.sky, day)
+    render = RenderSpec(**{**render.__dict__, "seed": seed % (2 ** 31)})
+    return SceneSpec(scene_id, inputs.sky.epochs[day], inputs.perilune_epoch, day, pose, inputs.poses[pose].split,
+                     seed, seed_path, camera, sun, bodies, render, effects, anomaly)
+
+
+def resolve_scene(inputs: SceneInputs, *, scene_id: str, day: int, pose: int, plan_seed: int,
+                  render: RenderSpec, effects: EffectsSpec = EffectsSpec(),
+                  anomaly: tuple[str, str] | None = None, depth_index: int = 0, reserve: int = 0) -> SceneSpec:
+    """One fully resolved scene. With an anomaly, its five depths share the same draw, so depth k of
+    the same (day, pose, anomaly) differs only by the offset along the view ray."""
+    camera, rng, seed, seed_path = resolve_camera(inputs, day=day, pose=pose, plan_seed=plan_seed, anomaly=anomaly,
+                                                  reserve=reserve)
+    anomaly_spec = None
+    if anomaly is not None:
+        chosen = resolve_placements(inputs, camera, rng, anomaly, render.resolution)[depth_index]
+        if isinstance(chosen, str):
+            raise PlacementError(f"scene {scene_id}: {chosen}")
+        anomaly_spec = chosen
+    return build_spec(inputs, scene_id=scene_id, day=day, pose=pose, seed=seed, seed_path=seed_path,
+                      camera=camera, render=render, effects=effects, anomaly=anomaly_spec)

@@ -1,0 +1,143 @@
+"""A year's sky at a glance: CSV table and a multi-panel PNG, both written atomically.
+
+``write_sky_report(sky, csv_path, png_path)`` is what ``allo-usd sky`` calls. Matplotlib is
+driven through its object API on an Agg canvas, so the global backend is left alone.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from allo_usd.core.errors import SkyInputError
+from allo_usd.sky.model import BODIES, Sky
+
+CSV_COLUMNS = (
+    "date",
+    "station_moon_distance_km",
+    "sun_irradiance_w_m2",
+    "lit_fraction",
+    "effective_irradiance_w_m2",
+    "eclipse_state",
+    "eclipse_body",
+    "sun_angular_diameter_deg",
+    "earth_angular_diameter_deg",
+    "moon_angular_diameter_deg",
+)
+
+
+def _atomic_target(path: Path):
+    """A temporary file in the destination directory (so os.replace is atomic)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.chmod(tmp, 0o644)  # mkstemp makes 0600; reports are meant to be shared
+    return fd, Path(tmp)
+
+
+def _rows(sky: Sky) -> list[list[str]]:
+    rows = []
+    for i, epoch in enumerate(sky.epochs):
+        diam = {b: math.degrees(2.0 * float(sky.angular_radius_rad[b][i])) for b in BODIES}
+        irr = float(sky.sun_irradiance_w_m2[i])
+        lit = float(sky.lit_fraction[i])
+        rows.append([
+            epoch,
+            f"{float(sky.station_moon_distance_m[i]) / 1e3:.3f}",
+            f"{irr:.3f}",
+            f"{lit:.6f}",
+            f"{irr * lit:.3f}",
+            str(sky.eclipse_state[i]),
+            str(sky.eclipse_body[i]),
+            f"{diam['sun']:.6f}",
+            f"{diam['earth']:.6f}",
+            f"{diam['moon']:.6f}",
+        ])
+    return rows
+
+
+def write_sky_csv(sky: Sky, csv_path: str | os.PathLike) -> Path:
+    path = Path(csv_path)
+    fd, tmp = _atomic_target(path)
+    try:
+        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh, lineterminator="\n")
+            writer.writerow(CSV_COLUMNS)
+            writer.writerows(_rows(sky))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    dates = [datetime.strptime(e, "%Y-%m-%dT%H:%M:%SZ") for e in sky.epochs]
+    eclipsed = np.asarray(sky.eclipse_state) != "lit"
+
+    fig = Figure(figsize=(11, 10), constrained_layout=True)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(4, 1, sharex=True)
+    o = sky.orbit
+    fig.suptitle(
+        f"Sky at the station, {sky.epochs[0][:10]} .. {sky.epochs[-1][:10]} ({len(sky)} epochs; "
+        f"NRHO approx, perilune {o.perilune_epoch:%Y-%m-%dT%H:%MZ}; DE421 {sky.positions})"
+    )
+
+    ax = axes[0]
+    ax.plot(dates, np.asarray(sky.station_moon_distance_m) / 1e3, ".-", ms=3, lw=0.6)
+    ax.axhline(o.perilune_radius_m / 1e3, color="0.6", lw=0.8, ls="--")
+    ax.axhline(o.apolune_radius_m / 1e3, color="0.6", lw=0.8, ls="--")
+    ax.set_ylabel("station-Moon\ndistance (km)")
+
+    ax = axes[1]
+    irr = np.asarray(sky.sun_irradiance_w_m2)
+    ax.plot(dates, irr, lw=1.0, label="unocculted 1361 (1 AU/d)^2")
+    if eclipsed.any():
+        idx = np.flatnonzero(eclipsed)
+        ax.plot([dates[i] for i in idx], irr[idx], "rx", ms=6,
+                label="in shadow (effective = unocculted x lit fraction)")
+    ax.set_ylabel("Sun irradiance\n(W/m^2)")
+    ax.legend(loc="lower right", fontsize=8)
+
+    ax = axes[2]
+    ax.plot(dates, sky.lit_fraction, ".", ms=3)
+    for i in np.flatnonzero(eclipsed):
+        ax.annotate(f"{sky.eclipse_state[i]} ({sky.eclipse_body[i]})", (dates[i], float(sky.lit_fraction[i])),
+                    fontsize=7, rotation=90, va="bottom", ha="center", xytext=(0, 4), textcoords="offset points")
+    ax.set_ylim(-0.05, 1.35)
+    ax.set_ylabel("lit fraction")
+    ax.set_title(f"{int(eclipsed.sum())} of {len(sky)} epochs in shadow", fontsize=9)
+
+    ax = axes[3]
+    for b in BODIES:
+        ax.semilogy(dates, np.degrees(2.0 * np.asarray(sky.angular_radius_rad[b])), lw=1.0, label=b)
+    ax.set_ylabel("angular diameter\n(deg)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_xlabel("date (UTC)")
+
+    path = Path(png_path)
+    fd, tmp = _atomic_target(path)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, format="png", dpi=dpi)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_sky_report(sky: Sky, csv_path: str | os.PathLike, png_path: str | os.PathLike) -> tuple[Path, Path]:
+    """Write the CSV table and the PNG overview of ``sky``; returns both paths."""
+    if not isinstance(sky, Sky):
+        raise SkyInputError(f"write_sky_report needs a Sky from compute_sky, got {type(sky).__name__}")
+    return write_sky_csv(sky, csv_path), write_sky_png(sky, png_path)

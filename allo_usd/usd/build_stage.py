@@ -1,0 +1,55 @@
+"""Build a complete base stage (station, bodies, anomalies, rig) from the procedural station or a
+real model file. Deterministic: the same source gives byte-identical files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from allo_usd.usd.base_stage import write_base_stage
+
+
+# Candidate camera positions sampled off the surface, from which `rig.base_poses` picks 50.
+SURFACE_CANDIDATES = 200
+# Procedural parts an arm camera is not mounted beside: the solar wings and radiators (large,
+# thin panels that would otherwise take most area-weighted samples). Their geometry still counts
+# for clearance and for what each view sees.
+_NOT_FIXTURES = ("solar", "radiator")
+
+
+def station_and_fixtures(source: str | None, units: str = "auto"):
+    """(station Asset, candidate camera positions, provenance note) for 'procedural'/None or a
+    model path. Candidates: the procedural station's exterior fixture points plus samples 1-2.5 m
+    off its modules and truss; for an imported model, samples 1-2.5 m off its whole surface."""
+    from allo_usd.assets.mesh import Asset
+    from allo_usd.scene.rig import fixtures_from_mesh
+
+    if source in (None, "procedural"):
+        from allo_usd.assets.station import build_station, station_fixture_points
+
+        station = build_station()
+        core = Asset("core", tuple(p for p in station.parts if not p.name.startswith(_NOT_FIXTURES)),
+                     station.materials, station.textures)
+        samples = fixtures_from_mesh(*core.triangle_soup(), count=SURFACE_CANDIDATES)
+        return (station, np.concatenate([station_fixture_points(), samples]),
+                "Procedural ISS-like station (allo_usd.assets.station).")
+    from allo_usd.assets.importer import ISS_2016_ROTATION, import_mesh_report
+
+    rotation = ISS_2016_ROTATION if Path(source).name == "ISS_2016.glb" else None
+    report = import_mesh_report(source, units=units, name="Station", rotation=rotation)
+    pts, tris = report.asset.triangle_soup()
+    return report.asset, fixtures_from_mesh(pts, tris, count=SURFACE_CANDIDATES, weight="triangle"), (
+        f"Imported from {Path(source).name} (unit {report.unit}, {report.triangles} triangles).")
+
+
+def build_base_stage(out: Path, station_source: str | None = None, units: str = "auto") -> Path:
+    """Write `out/base.usda` and every asset it references; returns the base stage path."""
+    from allo_usd.assets.anomalies import ANOMALY_VARIANTS, build_anomaly
+    from allo_usd.assets.bodies import build_bodies
+    from allo_usd.scene.rig import base_poses
+
+    station, fixtures, doc = station_and_fixtures(station_source, units)
+    poses = base_poses(fixtures, *station.triangle_soup())
+    anomalies = {name: {v: build_anomaly(name, v) for v in variants} for name, variants in ANOMALY_VARIANTS.items()}
+    return write_base_stage(out, station, build_bodies(), anomalies, poses, station_doc=doc)

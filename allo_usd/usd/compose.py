@@ -1,0 +1,150 @@
+"""Authoring by composition: shared sky and camera-sample layers, and small scene layers over them.
+
+A plan of 51,409 scenes has only 365 skies and ~39,000 camera samples, so what a day or a
+camera sample decides is written once and reused:
+
+    OUT/stages/base.usda (+ station/, bodies/, anomalies/)  the tree's own copy of the base stage
+    OUT/sky/dDDD.usda                          sun light, bodies, eclipse state, epoch (per day)
+    OUT/poses/sSEED/dDDD_pPP[_ASSET-VARIANT].usda  camera transform, offsets, attempts (per sample)
+    OUT/scenes/SPLIT/KIND/SCENE_ID.usda        subLayers = [its pose layer, its sky layer, base]
+
+A scene layer adds only its own opinions (identity and seed, anomaly, effects, render settings),
+so it stays under 4 KB, and the five depths of one anomaly placement share one pose layer. Every
+layer carries defaultPrim, upAxis and metersPerUnit. The tree is self-contained: it holds its
+own byte copy of the base stage and its assets (`copy_base_stage`), and every sublayer and
+reference is a relative path that stays inside the tree. So the same plan gives the same bytes
+wherever it is authored, and a copied or moved tree opens in any USD tool as it is.
+"""
+
+from __future__ import annotations
+
+import filecmp
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+from allo_usd.scene.spec import CameraSpec, SceneSpec, SunSpec
+from allo_usd.usd.scene_layer import (anomaly_asset_path, check_base_stage, pose_prims, scene_custom, scene_prims,
+                                      sky_prims, validate_spec, write_layer)
+
+SKY_DIR, POSE_DIR, SCENE_DIR, STAGE_DIR = "sky", "poses", "scenes", "stages"
+
+
+def tree_base_stage(out_dir: Path) -> Path:
+    """Where a tree's own copy of the base stage lives."""
+    return Path(out_dir) / STAGE_DIR / "base.usda"
+
+
+def base_stage_files(base_stage: Path) -> list[str]:
+    """Every file the base stage and its anomaly assets use, relative to the base stage's directory
+    (usd-core's dependency walk). A file outside that directory cannot be copied along with it."""
+    from pxr import Sdf, UsdUtils
+
+    from allo_usd.core.errors import LayerError
+
+    base_stage = check_base_stage(base_stage).resolve()
+    root = base_stage.parent
+    files: set[str] = set()
+    for src in (base_stage, *sorted((root / "anomalies").glob("*.usda"))):
+        layers, assets, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(src)))
+        if unresolved:
+            raise LayerError(f"{src} refers to files that do not exist: {', '.join(unresolved[:3])}; "
+                             "regenerate the base stage (scripts/make_base_stage.py)")
+        for f in [layer.realPath for layer in layers] + list(assets):
+            rel = os.path.relpath(os.path.realpath(f), root)
+            if rel.startswith(".."):
+                raise LayerError(f"{src} uses {f}, outside its directory {root}; a base stage must hold "
+                                 "every file it uses below its own directory so that it can be copied")
+            files.add(Path(rel).as_posix())
+    return sorted(files)
+
+
+def copy_base_stage(base_stage: Path, out_dir: Path) -> Path:
+    """Give the tree under `out_dir` its own byte copy of `base_stage` and the files it uses, at
+    `out_dir/stages` (copied to a temporary directory, then renamed: a killed copy leaves nothing
+    under the final name). An existing copy is kept if it matches the source byte for byte; one
+    that differs is an error, since the tree's layers were authored over it."""
+    from allo_usd.core.errors import LayerError
+
+    base_stage = check_base_stage(base_stage).resolve()
+    dest = tree_base_stage(out_dir)
+    if dest.is_file() and os.path.samefile(dest, base_stage):
+        return dest  # the plan already names the tree's own copy
+    files = base_stage_files(base_stage)
+    if dest.parent.exists():
+        differ = [f for f in files if not (dest.parent / f).is_file()
+                  or not filecmp.cmp(base_stage.parent / f, dest.parent / f, shallow=False)]
+        if differ:
+            raise LayerError(f"{dest.parent} is not a copy of {base_stage.parent} ({len(differ)} files differ, "
+                             f"e.g. {differ[0]}); the layers under {out_dir} were authored over that copy. "
+                             "Fix: author into a new directory, or delete the old tree")
+        return dest
+    for stale in Path(out_dir).glob(f".{STAGE_DIR}.*.tmp"):
+        shutil.rmtree(stale, ignore_errors=True)  # a copy that a killed run left behind
+    tmp = Path(out_dir) / f".{STAGE_DIR}.{uuid.uuid4().hex}.tmp"
+    try:
+        for f in files:
+            (tmp / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(base_stage.parent / f, tmp / f)
+        os.replace(tmp, dest.parent)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return dest
+
+
+def sky_layer_path(out_dir: Path, day: int) -> Path:
+    return Path(out_dir) / SKY_DIR / f"d{day:03d}.usda"
+
+
+def pose_layer_path(out_dir: Path, seed: int, sample_id: str) -> Path:
+    return Path(out_dir) / POSE_DIR / f"s{seed}" / f"{sample_id.split('_', 1)[1]}.usda"
+
+
+def scene_layer_path(out_dir: Path, split: str, kind: str, scene_id: str) -> Path:
+    return Path(out_dir) / SCENE_DIR / split / kind / f"{scene_id}.usda"
+
+
+def _rel(target: Path, start: Path) -> str:
+    rel = os.path.relpath(os.path.abspath(target), os.path.abspath(start))
+    rel = rel.replace(os.sep, "/")
+    return rel if rel.startswith(".") else f"./{rel}"  # anchored: never a search path
+
+
+def write_sky_layer(path: Path, *, day: int, epoch: str, perilune_epoch: str, sun: SunSpec, bodies: dict) -> Path:
+    """The shared layer of one day: everything the sky decides."""
+    return write_layer(path, sky_prims(epoch, perilune_epoch, day, sun, bodies), [],
+                       {"day": int(day), "epoch": epoch}, f"allo-usd sky of day {day} ({epoch})")
+
+
+def write_pose_layer(path: Path, *, pose: int, camera: CameraSpec, seed: int, seed_path: str, sample_id: str) -> Path:
+    """The shared layer of one perturbed camera sample (all depths of a placement use it)."""
+    return write_layer(path, pose_prims(pose, camera), [],
+                       {"seed": int(seed), "seedPath": seed_path, "sampleId": sample_id},
+                       f"allo-usd camera sample {sample_id}")
+
+
+def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_layer: Path,
+                         base_stage: Path, root: Path | None = None) -> Path:
+    """A scene layer holding only its own opinions, stacked on its pose, sky and base layers.
+    With `root` (the top of the output tree), every file the layer names must lie inside it."""
+    validate_spec(spec)
+    path = Path(path)
+    base_stage = check_base_stage(base_stage)
+    here = path.parent
+    targets = [pose_layer, sky_layer, base_stage]
+    if spec.anomaly is not None:
+        targets.append(anomaly_asset_path(base_stage, spec.anomaly.asset))
+    if root is not None:
+        from allo_usd.core.errors import LayerError
+
+        top = os.path.abspath(root)
+        for t in (path, *targets):
+            if os.path.commonpath([top, os.path.abspath(t)]) != top:
+                raise LayerError(f"{path} would refer to {t}, outside its tree {root}; fix: copy the base stage "
+                                 f"into the tree first (allo_usd.usd.compose.copy_base_stage)")
+    ref = "" if spec.anomaly is None else _rel(targets[3], here)
+    sublayers = [_rel(pose_layer, here), _rel(sky_layer, here), _rel(base_stage, here)]
+    return write_layer(path, scene_prims(spec, ref), sublayers, scene_custom(spec),
+                       f"allo-usd scene {spec.scene_id}")

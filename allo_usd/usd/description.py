@@ -1,0 +1,120 @@
+"""The plain scene description that crosses from `read` (pxr) to `blender` (bpy).
+
+Frozen dataclasses of numbers, strings and numpy arrays: nothing here imports pxr or bpy, so
+it can cross a process boundary (pickle) and be compared for incremental scene updates.
+Matrices are 4x4 float64, column-vector convention (p' = M @ [p, 1]).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from allo_usd.core.sensor import SensorParams
+from allo_usd.usd.layout import STATION_SUN
+
+
+@dataclass(frozen=True, eq=False)
+class MeshDesc:
+    path: str
+    points: np.ndarray          # (N, 3) float32, local
+    face_counts: np.ndarray     # (F,) int32
+    face_indices: np.ndarray    # (sum,) int32
+    uv: np.ndarray | None       # (len(face_indices), 2) float32, face-varying
+    smooth: bool
+    material: str               # key into SceneDescription.materials
+    matrix: np.ndarray          # local-to-world
+    class_id: int
+    ray_visibility: str = "all"  # all | cameraOnly (the Sun's disc) | noShadow (Moon, Earth)
+
+
+@dataclass(frozen=True)
+class MaterialDesc:
+    path: str
+    base_color: tuple[float, float, float]
+    metallic: float
+    roughness: float
+    base_color_texture: str | None = None      # absolute, resolved file path
+    emissive_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ior: float = 1.5                           # UsdPreviewSurface ior; 1.0 = no specular layer
+
+
+@dataclass(frozen=True, eq=False)
+class CameraDesc:
+    matrix: np.ndarray
+    focal_length_mm: float
+    sensor_width_mm: float
+    sensor_height_mm: float
+    clip: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class LightLink:
+    """Which meshes a light lights, resolved by the reader from the light's USD `lightLink`
+    collection: every mesh except `paths` (exclude=True), or only `paths` (exclude=False)."""
+    exclude: bool
+    paths: tuple[str, ...]                 # MeshDesc paths
+
+
+@dataclass(frozen=True)
+class SunDesc:
+    direction: tuple[float, float, float]  # unit, towards the Sun
+    irradiance: float                      # W/m^2 (> 0: a lamp at 0 is left out of the description)
+    angle_deg: float
+    color: tuple[float, float, float]
+    path: str = STATION_SUN                # the UsdLux.DistantLight prim
+    link: LightLink | None = None          # None: lights every mesh
+
+
+@dataclass(frozen=True, eq=False)
+class SpotDesc:
+    matrix: np.ndarray
+    radius: float
+    intensity: float                       # surface radiance, UsdLux units
+    color: tuple[float, float, float]
+    cone_angle_deg: float                  # half angle
+    softness: float
+
+
+@dataclass(frozen=True)
+class RenderDesc:
+    resolution: tuple[int, int]
+    preset: str
+    samples: int
+    adaptive_threshold: float
+    denoise: bool
+    max_bounces: int
+    seed: int
+    exposure: float
+    threads: int
+    outputs: tuple[str, ...]               # RenderVar source names ordered by the product
+    denoise_prefilter: str = "FAST"
+    denoise_quality: str = "BALANCED"
+
+
+@dataclass(frozen=True)
+class EffectsDesc:
+    sensor_noise: bool
+    glare: bool
+    inspection_light: bool
+    body_shine: bool
+    sensor: SensorParams | None = None     # the layer's allo:effects:sensor:* (when sensor_noise)
+
+
+@dataclass(frozen=True, eq=False)
+class SceneDescription:
+    layer: str
+    meshes: tuple[MeshDesc, ...]
+    materials: dict[str, MaterialDesc]
+    camera: CameraDesc
+    suns: tuple[SunDesc, ...]              # sun lamps that are on, in stage order (station's, bodies')
+    spot: SpotDesc | None
+    render: RenderDesc
+    effects: EffectsDesc
+    meta: dict = field(default_factory=dict)  # scene identity and provenance (epoch, pose, seed, ...)
+
+    @property
+    def sun(self) -> SunDesc | None:
+        """The station's sun lamp (/World/Sky/SunLight), None when it is off (umbra)."""
+        return next((s for s in self.suns if s.path == STATION_SUN), None)

@@ -1,0 +1,368 @@
+"""Inspect and compare scene layers from the USD alone (pxr only; no plan, no bpy, no renders).
+
+A layer is the record of a scene, so these tools answer "what is this image?" and "what
+differs between these two images?" without any other file: `describe` reads a composed stage
+into plain, JSON-able values; `diff` lists the composed values that differ between two stages.
+
+Why `diff` is fast but still correct: two scene layers usually share most of their layer stack
+(the base stage, maybe a day layer). A layer present in BOTH stacks (same real path) carries the
+same opinions in both, so it cannot create a difference on its own: every differing composed
+value must have an opinion in a layer that is in only one stack, or be reached through a
+composition arc (reference, payload, variant selection, inherit, specialize, activation)
+authored in such a layer. `diff` therefore compares
+  - every property that has a spec in a non-shared layer of either stack,
+  - prim-level state (type, active, applied schemas, variant selections) of every prim with a
+    spec in such a layer, and the whole composed subtree of a prim whose spec there authors a
+    composition arc or `active`,
+  - the layer stacks themselves (sublayers below the root; two entries match if they are the
+    same file or have the same path relative to their root layer) and the root layers'
+    customLayerData.
+A day layer that differs between two scenes is a non-shared layer, so its opinions are compared.
+`full=True` compares every prim under /World and /Render instead (slow; the tests use it to
+check the fast path). Attribute values are compared at the default time code.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from allo_usd.usd.layout import STATION_SUN
+from allo_usd.usd.read import _matrix, open_stage
+
+ROOTS = ("/World", "/Render")
+ABSENT = "<absent>"
+PRIM = "(prim)"
+STACK = "(layer stack)"
+
+
+# ----------------------------------------------------------------------------- plain values
+
+def _plain(v):
+    """A USD value as plain Python (tuples for vectors, nested lists for matrices)."""
+    if v is None or isinstance(v, (bool, int, str)):
+        return v
+    if isinstance(v, float):
+        return float(v)
+    if hasattr(v, "GetReal") and hasattr(v, "GetImaginary"):  # Gf.Quat*
+        return (float(v.GetReal()), *map(float, v.GetImaginary()))
+    if hasattr(v, "path") and hasattr(v, "resolvedPath"):  # Sdf.AssetPath
+        return v.path
+    if type(v).__name__.startswith("Matrix"):
+        return [list(map(float, row)) for row in v]
+    if hasattr(v, "__len__") and not isinstance(v, dict):
+        return tuple(_plain(x) for x in v)
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if hasattr(v, "pathString"):
+        return v.pathString
+    return v.item() if isinstance(v, np.generic) else v
+
+
+def _comparable(v):
+    """A raw USD value in a form `_same` compares quickly: numeric arrays stay numpy (no tuples)."""
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return v
+    if hasattr(v, "GetReal") and hasattr(v, "GetImaginary"):
+        return np.array([v.GetReal(), *v.GetImaginary()], dtype=np.float64)
+    try:
+        arr = np.asarray(v)
+        if arr.dtype.kind in "biuf":
+            return arr.astype(np.float64)
+    except (TypeError, ValueError):
+        pass
+    return _plain(v)
+
+
+def _same(a, b, rtol: float = 1e-9, atol: float = 1e-12) -> bool:
+    """Equality with a tolerance for floats: |a-b|max <= atol + rtol*|b|max, per value/array."""
+    a, b = _comparable(a), _comparable(b)
+    if isinstance(a, (str, type(None))) or isinstance(b, (str, type(None))):
+        return a == b
+    if isinstance(a, dict) or isinstance(b, dict):
+        return isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys() and \
+            all(_same(a[k], b[k], rtol, atol) for k in a)
+    try:
+        x, y = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    except (TypeError, ValueError):
+        return a == b
+    if x.shape != y.shape:
+        return False
+    if x.size == 0:
+        return True
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        return bool(np.array_equal(x, y, equal_nan=True))
+    return float(np.abs(x - y).max()) <= atol + rtol * float(np.abs(y).max())
+
+
+def _rel(path: str, start: Path) -> str:
+    if not path:
+        return path
+    rel = os.path.relpath(path, start)
+    return rel if rel.startswith(".") else f"./{rel}"
+
+
+def _stack(stage) -> list:
+    return [l for l in stage.GetLayerStack(includeSessionLayers=False)]
+
+
+# ----------------------------------------------------------------------------- describe
+
+def _attr(prim, name, default=None):
+    if not prim:
+        return default
+    attr = prim.GetAttribute(name)
+    value = attr.Get() if attr else None
+    return default if value is None else _plain(value)
+
+
+def describe(layer: str | Path) -> dict:
+    """What the scene is, read from the USD alone: identity, anomaly, sky, camera, render, stack."""
+    from pxr import Usd, UsdGeom, UsdLux, UsdRender
+
+    from allo_usd.core.geometry import matrix_to_quat
+
+    layer = Path(layer)
+    stage = open_stage(layer)
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    world = stage.GetDefaultPrim() or stage.GetPrimAtPath("/World")
+    provenance = dict(stage.GetRootLayer().customLayerData.get("allo", {}))
+    a = lambda name, default=None: _attr(world, f"allo:{name}", default)  # noqa: E731
+
+    anomaly = None
+    aprim = stage.GetPrimAtPath("/World/Anomaly")
+    if aprim and aprim.IsActive():
+        m = _matrix(cache, aprim)
+        anomaly = {"asset": _attr(aprim, "allo:anomaly:asset"), "variant": _attr(aprim, "allo:anomaly:assetVariant"),
+                   "variant_selection": aprim.GetVariantSets().GetAllVariantSelections().get("variant"),
+                   "depth_index": _attr(aprim, "allo:anomaly:depthIndex"),
+                   "depth_offset": _attr(aprim, "allo:anomaly:depthOffset"),
+                   "predicted_area_fraction": _attr(aprim, "allo:anomaly:predictedAreaFraction"),
+                   "attempts": _attr(aprim, "allo:anomaly:attempts"), "position": tuple(map(float, m[:3, 3]))}
+
+    settings_path = stage.GetMetadata("renderSettingsPrimPath") or "/Render/Settings"
+    sp = stage.GetPrimAtPath(settings_path)
+    r = lambda name, default=None: _attr(sp, f"allo:{name}", default)  # noqa: E731
+    render = {"settings": settings_path, "resolution": _attr(sp, "resolution"), "preset": r("render:preset"),
+              "samples": r("render:samples"), "seed": r("render:seed"), "exposure": r("render:exposure"),
+              "denoise": r("render:denoise"), "max_bounces": r("render:maxBounces"),
+              "adaptive_threshold": r("render:adaptiveThreshold"),
+              "denoise_prefilter": r("render:denoisePrefilter"), "denoise_quality": r("render:denoiseQuality")}
+    effects = {k: r(f"effects:{k}") for k in ("sensorNoise", "glare", "inspectionLight", "bodyShine")}
+    sensor = ({a.GetName().rsplit(":", 1)[1]: _attr(sp, a.GetName()) for a in sp.GetAttributes()
+               if a.GetName().startswith("allo:effects:sensor:")} if effects["sensorNoise"] else None)
+
+    def lamp(prim) -> dict:
+        m = _matrix(cache, prim)
+        d = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z: +Z points at the Sun
+        link = UsdLux.LightAPI(prim).GetLightLinkCollectionAPI()
+        return {"path": str(prim.GetPath()), "irradiance": _attr(prim, "inputs:intensity"),
+                "irradiance_unoccluded": _attr(prim, "allo:irradianceUnoccluded"),
+                "lit_fraction": _attr(prim, "allo:litFraction"),
+                "eclipse_state": _attr(prim, "allo:eclipseState"), "eclipse_body": _attr(prim, "allo:eclipseBody"),
+                "angular_diameter_deg": _attr(prim, "inputs:angle"), "distance_m": _attr(prim, "allo:sunDistance"),
+                "direction": tuple(map(float, d)),
+                "light_link": {"include_root": bool(link.GetIncludeRootAttr().Get()),
+                               "includes": [str(t) for t in link.GetIncludesRel().GetTargets()],
+                               "excludes": [str(t) for t in link.GetExcludesRel().GetTargets()]}}
+
+    sky = stage.GetPrimAtPath("/World/Sky")
+    lamps = [lamp(p) for p in sky.GetChildren() if p.IsA(UsdLux.DistantLight)] if sky else []
+    sun = next((s for s in lamps if s["path"] == STATION_SUN), lamps[0] if lamps else None)
+    body_suns = [s for s in lamps if s is not sun]
+
+    camera = None
+    targets = UsdRender.Settings(sp).GetCameraRel().GetForwardedTargets() if sp else []
+    cam_prim = stage.GetPrimAtPath(targets[0]) if targets else stage.GetPrimAtPath("/World/Camera")
+    if cam_prim:
+        m = _matrix(cache, cam_prim)
+        camera = {"path": str(cam_prim.GetPath()), "position": tuple(map(float, m[:3, 3])),
+                  "orientation_wxyz": tuple(map(float, matrix_to_quat(m[:3, :3]))),
+                  "forward": tuple(map(float, -m[:3, 2])), "up": tuple(map(float, m[:3, 1]))}
+
+    root = stage.GetRootLayer()
+    start = Path(root.realPath).parent if root.realPath else Path.cwd()
+    return {
+        "layer": str(layer),
+        "scene_id": a("sceneId", provenance.get("sceneId")), "epoch": a("epoch"), "perilune_epoch": a("periluneEpoch"),
+        "day": a("day"), "pose": a("pose"), "split": a("split"), "variant": a("variant"),
+        "seed": a("seed", provenance.get("seed")), "seed_path": a("seedPath", provenance.get("seedPath")),
+        "package_version": provenance.get("packageVersion"),
+        "camera_perturbation": {"convention": a("perturbation"), "offset_position": a("cameraOffsetPosition"),
+                                "offset_rotation": a("cameraOffsetRotation"), "attempts": a("cameraAttempts")},
+        "anomaly": anomaly, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
+        "camera": camera,
+        "layer_stack": {"sublayers": list(root.subLayerPaths),
+                        "layers": [_rel(l.realPath, start) or l.identifier for l in _stack(stage)]},
+    }
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, tuple):
+        return "(" + ", ".join(_fmt(x) for x in v) + ")"
+    return str(v)
+
+
+def _lights(link: dict) -> str:
+    """A lamp's lightLink collection in words."""
+    if link["include_root"]:
+        return "all but " + ", ".join(link["excludes"]) if link["excludes"] else "all"
+    return "only " + ", ".join(link["includes"]) if link["includes"] else "nothing"
+
+
+def format_description(d: dict) -> str:
+    """The description for humans: one topic per line."""
+    lines = [f"scene    {d['scene_id']}  ({d['split']}, {d['variant']})  layer {d['layer']}",
+             f"time     epoch {d['epoch']}  day {d['day']}  perilune {d['perilune_epoch']}",
+             f"seed     {d['seed']}  path {d['seed_path']}  package {d['package_version']}"]
+    cam, cp = d["camera"] or {}, d["camera_perturbation"]
+    lines.append(f"camera   pose {d['pose']}  position {_fmt(cam.get('position'))} m  "
+                 f"orientation(wxyz) {_fmt(cam.get('orientation_wxyz'))}  forward {_fmt(cam.get('forward'))}")
+    lines.append(f"         perturbation {cp['convention']}  offset {_fmt(cp['offset_position'])} m  "
+                 f"rot {_fmt(cp['offset_rotation'])}  attempts {cp['attempts']}")
+    for s in ([d["sun"]] if d["sun"] else []) + d.get("body_suns", []):
+        name = "sun" if s is d["sun"] else s["path"].rsplit("/", 1)[-1]
+        lines.append(f"{name:<8} {_fmt(s['irradiance'])} W/m2 (unoccluded {_fmt(s['irradiance_unoccluded'])}, lit "
+                     f"{_fmt(s['lit_fraction'])})  eclipse {s['eclipse_state']}/{s['eclipse_body']}  "
+                     f"direction {_fmt(s['direction'])}  lights {_lights(s['light_link'])}")
+    an = d["anomaly"]
+    lines.append("anomaly  none" if an is None else
+                 f"anomaly  {an['asset']}/{an['variant']}  depth {an['depth_index']} ({_fmt(an['depth_offset'])} m)  "
+                 f"predicted area {_fmt(an['predicted_area_fraction'])}  at {_fmt(an['position'])}")
+    r = d["render"]
+    res = r["resolution"] or ("?", "?")
+    lines.append(f"render   {res[0]}x{res[1]}  {r['samples']} spp  preset {r['preset']}  seed {r['seed']}  "
+                 f"exposure {_fmt(r['exposure'])}  denoise {r['denoise']}")
+    lines.append("effects  " + "  ".join(f"{k}={v}" for k, v in d["effects"].items()))
+    if d.get("sensor"):
+        lines.append("sensor   " + "  ".join(f"{k}={_fmt(v)}" for k, v in sorted(d["sensor"].items())))
+    lines.append("stack    " + " -> ".join(d["layer_stack"]["layers"]))
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- diff
+
+def _prim_state(prim) -> dict:
+    return {"typeName": str(prim.GetTypeName()), "active": prim.IsActive(),
+            "apiSchemas": tuple(prim.GetAppliedSchemas()),
+            **{f"variant:{k}": v for k, v in prim.GetVariantSets().GetAllVariantSelections().items()}}
+
+
+def _prop_value(prop):
+    from pxr import Usd
+
+    if isinstance(prop, Usd.Relationship):
+        return tuple(str(t) for t in prop.GetTargets())
+    return prop.Get()
+
+
+def _props(prim, names=None) -> dict:
+    if not prim:
+        return {}
+    if names is None:
+        return {p.GetName(): _prop_value(p) for p in prim.GetProperties()}
+    out = {}
+    for n in names:
+        p = prim.GetProperty(n)
+        if p:
+            out[n] = _prop_value(p)
+    return out
+
+
+def _in_roots(path) -> bool:
+    return any(path.HasPrefix(r) for r in ROOTS)
+
+
+def _opinions(layers) -> tuple[set, dict, set]:
+    """Prim paths with specs, {prim path: property names with specs}, and arc-carrying prims."""
+    from pxr import Sdf
+
+    prims, props, arcs = set(), {}, set()
+    for layer in layers:
+        def visit(path, layer=layer):
+            if path.IsTargetPath() or path.IsMapperPath() or path.IsExpressionPath():
+                return
+            plain = path.StripAllVariantSelections()
+            if path.IsPropertyPath():
+                props.setdefault(plain.GetPrimPath(), set()).add(plain.name)
+                return
+            if not (path.IsPrimPath() or path.IsPrimVariantSelectionPath()) or path == Sdf.Path.absoluteRootPath:
+                return
+            prims.add(plain)
+            spec = layer.GetPrimAtPath(path)
+            if spec and (spec.hasReferences or spec.hasPayloads or spec.hasInheritPaths or spec.hasSpecializes
+                         or len(spec.variantSelections) or len(spec.variantSets) or spec.HasInfo("active")
+                         or spec.HasInfo("instanceable")):
+                arcs.add(plain)
+        layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return prims, props, arcs
+
+
+def _subtree(stage, path) -> set:
+    from pxr import Usd
+
+    prim = stage.GetPrimAtPath(path)
+    return {p.GetPath() for p in Usd.PrimRange(prim, Usd.PrimAllPrimsPredicate)} if prim else set()
+
+
+def diff(a: str | Path, b: str | Path, full: bool = False, rtol: float = 1e-9, atol: float = 1e-12) -> list:
+    """[(prim path, property, value_a, value_b)] of composed values that differ; see module doc."""
+    sa, sb = open_stage(a), open_stage(b)
+    out = []
+    la, lb = _stack(sa), _stack(sb)
+    key = lambda l: l.realPath or l.identifier  # noqa: E731
+    start_a, start_b = Path(key(la[0])).parent, Path(key(lb[0])).parent
+    rel_a = [_rel(key(l), start_a) for l in la[1:]]
+    rel_b = [_rel(key(l), start_b) for l in lb[1:]]
+    same_stack = len(la) == len(lb) and all(key(x) == key(y) or rx == ry
+                                              for x, y, rx, ry in zip(la[1:], lb[1:], rel_a, rel_b))
+    if not same_stack:  # a layer is the same if it is the same file, or at the same relative path
+        out.append(("/", STACK, tuple(rel_a), tuple(rel_b)))
+    ca, cb = dict(la[0].customLayerData), dict(lb[0].customLayerData)
+    if not _same(_plain(ca), _plain(cb), rtol, atol):
+        out.append(("/", "customLayerData", _plain(ca), _plain(cb)))
+
+    if full:
+        paths = set().union(*(_subtree(s, r) for s in (sa, sb) for r in ROOTS))
+        names, full_props = {}, set()
+    else:
+        shared = {key(l) for l in la} & {key(l) for l in lb}
+        prims, names, arcs = _opinions([l for l in la + lb if key(l) not in shared])
+        paths = set(prims)
+        for p in arcs:
+            paths |= _subtree(sa, p) | _subtree(sb, p)
+        paths |= {p for p in names}
+        full_props = {q for p in arcs for q in paths if q.HasPrefix(p)}
+    for path in sorted(p for p in paths if _in_roots(p)):
+        pa, pb = sa.GetPrimAtPath(path), sb.GetPrimAtPath(path)
+        if not pa and not pb:
+            continue
+        if not pa or not pb:
+            out.append((str(path), PRIM, str(pa.GetTypeName()) if pa else ABSENT,
+                        str(pb.GetTypeName()) if pb else ABSENT))
+            continue
+        sta, stb = _prim_state(pa), _prim_state(pb)
+        for k in sorted(set(sta) | set(stb)):
+            if not _same(sta.get(k, ABSENT), stb.get(k, ABSENT), rtol, atol):
+                out.append((str(path), k, sta.get(k, ABSENT), stb.get(k, ABSENT)))
+        want = None if full or path in full_props else names.get(path, set())
+        va, vb = _props(pa, want), _props(pb, want)
+        for k in sorted(set(va) | set(vb)):
+            x, y = va.get(k, ABSENT), vb.get(k, ABSENT)
+            if not _same(x, y, rtol, atol):
+                out.append((str(path), k, _plain(x), _plain(y)))
+    return out
+
+
+def format_diff(rows: list, width: int = 100) -> str:
+    """One line per difference; long values are shortened."""
+    def short(v):
+        s = _fmt(v) if not isinstance(v, (list, tuple)) or len(v) <= 8 else f"<{len(v)} values>"
+        return s if len(s) <= width else s[: width - 3] + "..."
+    if not rows:
+        return "no differences"
+    return "\n".join(f"{path} {prop}: {short(x)} -> {short(y)}" for path, prop, x, y in rows)

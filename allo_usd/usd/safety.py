@@ -1,0 +1,86 @@
+"""Where a scene layer may reach: every file a composed stage uses must lie under an allowed root.
+
+A layer is data handed around (a dataset, a bug report), so opening one must not read files
+elsewhere on the machine: no sublayer, reference, payload or texture may resolve outside
+
+- the project's `stages/` directory (the shipped base stage and assets);
+- the directory of the layer being opened (a scene layer and its neighbours);
+- the nearest enclosing directory holding a `plan.toml` (the top of an authored plan's tree,
+  whose shared day and pose layers sit beside the scene folders);
+- the directories named in the environment variable `ALLO_ASSET_ROOTS` (os.pathsep-separated).
+  The dispatcher sets it to the directories of the layers it renders and the plan's output
+  directory, so worker processes inherit the same rule.
+
+Paths are compared after resolving symbolic links, so a link inside a root that points outside
+it is rejected too. Blender never auto-runs scripts (`blender.build.reset`), so a layer can
+only ever bring data, never code.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from allo_usd.core.errors import LayerError
+from allo_usd.core.paths import STAGES
+
+ENV_ROOTS = "ALLO_ASSET_ROOTS"
+
+
+def _plan_root(start: Path) -> Path | None:
+    for d in (Path(os.path.realpath(start)), *Path(os.path.realpath(start)).parents):
+        if (d / "plan.toml").is_file():
+            return d
+    return None
+
+
+def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> tuple[Path, ...]:
+    roots = [STAGES, Path(layer_path).parent, *extra]
+    plan_root = _plan_root(Path(layer_path).parent)
+    if plan_root is not None:  # a plan's output tree (author_plan writes plan.toml at its top)
+        roots.append(plan_root)
+    roots += [Path(p) for p in os.environ.get(ENV_ROOTS, "").split(os.pathsep) if p]
+    out = []
+    for r in roots:
+        real = Path(os.path.realpath(r))
+        if real not in out:
+            out.append(real)
+    return tuple(out)
+
+
+def _inside(path: str, roots: tuple[Path, ...]) -> bool:
+    real = Path(os.path.realpath(path))
+    return any(real == r or r in real.parents for r in roots)
+
+
+def _reject(what: str, path: str, layer_path, roots) -> None:
+    raise LayerError(f"{layer_path}: {what} {path} resolves outside the allowed roots "
+                     f"({', '.join(map(str, roots))}); move the file under one of them or add its directory "
+                     f"to {ENV_ROOTS}")
+
+
+def check_stage(stage, layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> None:
+    """Raise LayerError if any layer in the stack or any asset-valued attribute leaves the roots."""
+    from pxr import Sdf, Usd
+
+    roots = allowed_roots(layer_path, extra)
+    for layer in stage.GetUsedLayers():
+        if layer.anonymous:
+            continue
+        real = layer.realPath
+        if real and not _inside(real, roots):
+            _reject("layer", real, layer_path, roots)
+    asset_types = (Sdf.ValueTypeNames.Asset, Sdf.ValueTypeNames.AssetArray)
+    for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
+        for attr in prim.GetAttributes():
+            if attr.GetTypeName() not in asset_types or not attr.HasAuthoredValue():
+                continue
+            value = attr.Get()
+            for asset in (value if attr.GetTypeName() == Sdf.ValueTypeNames.AssetArray else [value]):
+                if asset is None:
+                    continue
+                resolved = asset.resolvedPath
+                if resolved and not _inside(resolved, roots):
+                    _reject(f"asset {attr.GetPath()} =", resolved, layer_path, roots)
+                elif not resolved and asset.path and os.path.isabs(asset.path) and not _inside(asset.path, roots):
+                    _reject(f"asset {attr.GetPath()} =", asset.path, layer_path, roots)
