@@ -754,3 +754,29 @@ def _single_threaded_numerics():
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def author_scene(plan: Plan, scene_id: str, out_dir: Path) -> Path:
+    """One scene of `plan`, by id, into the tree at `out_dir` with the sky and pose layers it stacks:
+    the same bytes that authoring the whole plan gives it (its camera sample is resolved whole, so
+    the random draws match; only this scene's layer is written). Raises PlacementError if the
+    placement check skips it (authoring the plan would top it up from a reserve group)."""
+    from allo_usd.sky.model import Orbit, compute_sky
+
+    keys = enumerate_scenes(plan)
+    key = next((k for k in keys if k.scene_id == scene_id), None)
+    if key is None:
+        raise PlanError(f"plan {plan.name!r} has no scene {scene_id!r}; fix: pick an id from "
+                        "allo_usd.enumerate_scenes(plan) (e.g. " + keys[0].scene_id + ")")
+    sample = [k for k in keys if k.sample_id == key.sample_id and k.split == key.split]
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    given, plan = plan, with_tree_stage(plan, out_dir)
+    save_plan(given, out_dir / "plan.toml")
+    ctx = _Context(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
+    ensure_sky_layer(ctx, key.day)
+    skipped = write_sample(ctx, [key], resolve_sample(ctx, sample))
+    if skipped:
+        raise PlacementError(f"scene {scene_id} was skipped: {skipped[0]['reason']}; fix: author the whole plan, "
+                             "which tops skipped depths up from reserve groups")
+    return scene_layer_path(out_dir, key.split, key.kind, key.scene_id)
