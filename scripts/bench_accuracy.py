@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+if __name__ == "__main__":  # run from a checkout; importing this file (tests) changes nothing
+    sys.path.insert(0, str(ROOT))
 
 from allo_usd.plan.settings import PRESETS
 from allo_usd.output.writers import linear_to_srgb8

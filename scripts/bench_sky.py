@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if __name__ == "__main__":  # run from a checkout; importing this file changes nothing
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from allo_usd.sky import model as S
 from allo_usd.sky.model import Orbit, compute_sky, default_epochs, eclipse_events

@@ -202,16 +202,24 @@ class Session:
     # ---------------------------------------------------------------- incremental
 
     def _patch(self, desc: SceneDescription) -> ApplyStats:
-        import bpy
-
         stats = ApplyStats()
         prev = self.desc
-        scene = bpy.context.scene
-        new_paths = {m.path for m in desc.meshes}
         removed = [m.path for m in prev.meshes if m.path not in self._kept]
         added = [m for m in desc.meshes if m.path not in self._kept]
+        patch_mats = self._remove_gone(prev, desc, removed, stats)
+        self._build_materials(prev, desc, patch_mats, stats)
+        self._build_meshes(prev, desc, added, stats)
+        self._patch_view(prev, desc, added, stats)
+        self._patch_output(prev, desc, stats)
+        stats.reordered = self._reorder(desc)
+        return stats
 
-        # 1. Remove what goes (meshes, then materials that are gone or must be rebuilt), purge.
+    def _remove_gone(self, prev: SceneDescription, desc: SceneDescription, removed: list[str],
+                     stats: ApplyStats) -> list[str]:
+        """Step 1: remove meshes that go and materials that are gone or must be rebuilt, then purge,
+        so nothing stale stays behind; returns the materials to patch in place."""
+        import bpy
+
         for path in removed:
             obj = self._objects.pop(path)
             data = obj.data
@@ -239,7 +247,12 @@ class Session:
                     mat.name
                 except ReferenceError:
                     del self._materials[key]
-        # 2. Materials: build the new and the rebuilt ones (in description order), patch the rest.
+        return patch_mats
+
+    def _build_materials(self, prev: SceneDescription, desc: SceneDescription, patch_mats: list[str],
+                         stats: ApplyStats) -> None:
+        """Step 2: build the new and rebuilt materials in description order (as a fresh build does),
+        patch the rest."""
         for key, m in desc.materials.items():
             if key not in self._materials:
                 self._materials[key] = build.build_material(m)
@@ -248,7 +261,10 @@ class Session:
         for key in patch_mats:
             self._patch_material(self._materials[key], desc.materials[key])
             stats.materials_patched.append(key)
-        # 3. Meshes: build the new ones; patch the kept ones.
+
+    def _build_meshes(self, prev: SceneDescription, desc: SceneDescription, added: list[MeshDesc],
+                      stats: ApplyStats) -> None:
+        """Step 3: build the new meshes and patch the kept ones, in description order."""
         prev_by_path = {m.path: m for m in prev.meshes}
         for m in desc.meshes:
             if m.path in self._kept:
@@ -257,7 +273,10 @@ class Session:
                 self._objects[m.path] = build.build_mesh(m, self._materials[m.material])
         stats.meshes_added = [m.path for m in added]
         stats.meshes_kept = len(self._kept)
-        # 4. Camera, lights.
+
+    def _patch_view(self, prev: SceneDescription, desc: SceneDescription, added: list[MeshDesc],
+                    stats: ApplyStats) -> None:
+        """Step 4: camera and lights, touched only where they differ (suns linked to rebuilt meshes too)."""
         pc, nc = prev.camera, desc.camera
         if not _eq(pc.matrix, nc.matrix) or (pc.focal_length_mm, pc.sensor_width_mm, pc.sensor_height_mm, pc.clip) \
                 != (nc.focal_length_mm, nc.sensor_width_mm, nc.sensor_height_mm, nc.clip):
@@ -268,7 +287,9 @@ class Session:
         if not self._spot_equal(prev.spot, desc.spot):
             self._patch_spot(desc)
             stats.changed.append("spot")
-        # 5. Render settings and compositor.
+
+    def _patch_output(self, prev: SceneDescription, desc: SceneDescription, stats: ApplyStats) -> None:
+        """Step 5: render settings and compositor, reconfigured only when they differ."""
         if prev.render != desc.render or prev.effects.body_shine != desc.effects.body_shine:
             build.configure_render(desc.render)
             stats.changed.append("render")
@@ -281,9 +302,6 @@ class Session:
                 no_compositor()
                 stats.purged += self._purge()
             stats.changed.append("compositor")
-        # 6. Object order exactly as a fresh build links them.
-        stats.reordered = self._reorder(desc)
-        return stats
 
     def _drop_material(self, key: str) -> None:
         import bpy
@@ -401,7 +419,7 @@ class Session:
             build.build_spot(desc.spot)
 
     def _reorder(self, desc: SceneDescription) -> bool:
-        """Link objects in the order a fresh build does: meshes, camera, suns, spot."""
+        """Step 6: link objects in the order a fresh build does (meshes, camera, suns, spot)."""
         import bpy
 
         coll = bpy.context.scene.collection

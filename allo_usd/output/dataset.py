@@ -295,8 +295,6 @@ def assemble(render_dirs, out_dir, layout: str = "mvtec", link: bool = True, cat
 
 
 def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene) -> Path:
-    from tqdm import tqdm
-
     if layout not in LAYOUTS:
         raise AlloError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
     if not category or "/" in category or category in ("allo_masks", "contact_sheets"):
@@ -304,12 +302,32 @@ def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progres
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     manifest = out / MANIFEST
+    rows = _clean_tree(out, manifest, category)
+    todo = _plan_rows(render_dirs, progress, rows, category, link, out)
+    placed, stop_now = _place_all(todo, rows, manifest, out, category, link, progress, on_scene)
+    if stop_now:
+        write_manifest(manifest, list(rows.values()))
+        raise AssemblyInterrupted(f"interrupted after {placed} of {len(todo)} scenes; {manifest} lists every file "
+                                  "in the tree; re-run the same command to add the rest")
+    _finish(out, manifest, rows, category, sheet_limit)
+    return manifest
+
+
+def _clean_tree(out: Path, manifest: Path, category: str) -> dict[tuple, dict]:
+    """The manifest's rows by (category, name), after removing what an interrupted run left that no
+    row lists, so the tree and its manifest agree before anything is added."""
     removed = remove_temporaries(out)
     rows = {(r["category"], r["name"]): r for r in read_manifest(manifest)}
     unlisted = remove_unlisted(out, category, rows.values())
     if removed or unlisted:
         warnings.warn(f"removed {removed} stale temporary file(s) and {len(unlisted)} image(s) no manifest row "
-                      f"lists, left by an interrupted run", stacklevel=2)
+                      f"lists, left by an interrupted run", stacklevel=3)
+    return rows
+
+
+def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, link, out: Path) -> list[tuple]:
+    """(name, meta path, meta, kind, index) of each render to place: new scenes get the next free
+    indices, changed ones keep theirs, unchanged linked ones are skipped; the rest are reported."""
     next_index = 1 + max((int(r["index"]) for r in rows.values() if r["category"] == category), default=-1)
     left_out, mask_only, todo = [], [], []
     for meta_path, meta in scan(render_dirs, progress):
@@ -329,11 +347,20 @@ def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progres
         todo.append((name, meta_path, meta, kind, index))
     if left_out:
         warnings.warn(f"{len(left_out)} scene(s) left out (anomalous in the train split, or anomaly not visible): "
-                      f"{', '.join(left_out[:10])}", stacklevel=2)
+                      f"{', '.join(left_out[:10])}", stacklevel=3)
     if mask_only:
         warnings.warn(f"{len(mask_only)} mask-only render(s) left out: they have no color image to train or test "
                       f"on (render their layers with color to include them): {', '.join(mask_only[:10])}",
-                      stacklevel=2)
+                      stacklevel=3)
+    return todo
+
+
+def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: Path, category: str, link,
+               progress, on_scene) -> tuple[int, bool]:
+    """(scenes placed, stopped early) after placing `todo` in batches, each batch's rows written to the
+    manifest before any of its files exists, so an interrupted run leaves a manifest listing every
+    file; on a stop, rows not placed go back to what the manifest said before."""
+    from tqdm import tqdm
 
     ahead: dict[tuple, dict | None] = {}  # rows written ahead whose scene is not placed yet: key -> old row
     in_hand = None
@@ -377,14 +404,16 @@ def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progres
                 rows.pop(key, None)
             else:
                 rows[key] = old
-    if stop_now:
-        write_manifest(manifest, list(rows.values()))
-        raise AssemblyInterrupted(f"interrupted after {placed} of {len(todo)} scenes; {manifest} lists every file "
-                                  "in the tree; re-run the same command to add the rest")
+    return placed, stop_now
+
+
+def _finish(out: Path, manifest: Path, rows: dict[tuple, dict], category: str, sheet_limit) -> None:
+    """Drop rows whose files are gone (and not re-rendered), write the final manifest and redraw
+    the category's contact sheets, so the tree ends complete and consistent."""
     gone = [key for key, r in rows.items() if not _complete(out, r)]
     if gone:
         warnings.warn(f"{len(gone)} manifest row(s) dropped: their files are missing and their renders were not "
-                      f"given: {', '.join(name for _, name in gone[:10])}", stacklevel=2)
+                      f"given: {', '.join(name for _, name in gone[:10])}", stacklevel=3)
         for key in gone:
             _remove_files(out, rows.pop(key))
     all_rows = list(rows.values())
@@ -393,7 +422,6 @@ def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progres
         picked = [r for r in all_rows if r["category"] == category and r["split"] == split]
         if picked:
             grid_sheet(out, picked, out / "contact_sheets" / f"{category}_{split}.png", sheet_limit)
-    return manifest
 
 
 def label_lines(text: str, width: float, draw) -> list[str]:

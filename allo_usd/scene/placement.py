@@ -338,6 +338,139 @@ def _stride(fraction: float, n_pixels: int) -> int:
     return max(1, int(np.sqrt(fraction * n_pixels / EXACT_PIXELS)))
 
 
+class _Group:
+    """One (day, pose, asset) group's fixed inputs and per-(attempt, depth) caches, so that placing
+    it reads as steps (draw, room, screen, confirm, fall back) with nothing recomputed."""
+
+    def __init__(self, station_parts, anomaly_points, anomaly_tris, cam_pos, cam_rot, width: int, height: int,
+                 check_width: int | None, min_fraction: float, anomaly: RayScene | None):
+        self.cam_pos = np.asarray(cam_pos, dtype=np.float64)
+        self.cam_rot = np.asarray(cam_rot, dtype=np.float64)
+        self.station = station_parts if isinstance(station_parts, RayScene) else RayScene(station_parts)
+        self.radius = float(np.linalg.norm(anomaly_points, axis=1).max())
+        self.corners = box_corners(anomaly_points)
+        self.mesh = (np.asarray(anomaly_points, dtype=np.float64), np.asarray(anomaly_tris, dtype=np.int64))
+        self.anomaly = anomaly_scene(anomaly_points, anomaly_tris) if anomaly is None else anomaly
+        self.min_fraction = min_fraction
+        self.width, self.height = width, height
+        self.full = (int(width), int(height))
+        self.screen = self.full if not check_width or check_width >= width else \
+            (int(check_width), max(1, round(height * check_width / width)))
+        self.k = camera_intrinsics(width, height)
+        self.nearest = self.radius + CAMERA_CLEARANCE_M + 1e-6  # the closest an object's centre may come (depth)
+        self.ref = max(self.nearest, 8.0 * self.radius)         # where an attempt measures the object's silhouette
+        # A draw's checks are pure functions of (attempt, depth), so each is computed once: the
+        # fallback reuses the screening of the main loop, and the render-resolution pass reuses
+        # the resolution-free clearance test (speed only; every decision is the same).
+        self.clear: dict[tuple[int, int], str] = {}
+        self.screened: dict[tuple[int, int], tuple[bool, float, str]] = {}
+        self._find_station()
+
+    def _find_station(self) -> None:
+        """Cast rays through a grid over the central part of the frame: candidates are drawn only in
+        cells whose ray meets the station, so objects land in front of structure."""
+        lo, hi = FRAME_REGION
+        gx, gy = _TARGET_GRID
+        px, py = np.meshgrid((lo + (hi - lo) * (np.arange(gx) + 0.5) / gx) * self.width,
+                             (lo + (hi - lo) * (np.arange(gy) + 0.5) / gy) * self.height)
+        self.px, self.py = px.ravel(), py.ravel()
+        _, grid_hit = self.station.first_hit(np.broadcast_to(self.cam_pos, (self.px.size, 3)),
+                                             _image_rays(self.cam_rot, self.k, self.px, self.py))
+        self.cells = np.flatnonzero(np.isfinite(grid_hit))
+        if self.cells.size == 0:
+            raise PlacementError(f"the camera sees no station structure in the central {hi - lo:.0%} of its frame, "
+                                 "so an object cannot be placed near it; use a pose that looks at the station")
+        self.cell_w, self.cell_h = (hi - lo) * self.width / gx, (hi - lo) * self.height / gy
+
+    def draw(self, rng: np.random.Generator):
+        """(ray, u, rotation) of one candidate: a ray jittered within a grid cell that meets the station,
+        the initial-depth draw and an orientation; the generator calls' order fixes authored layers."""
+        c = self.cells[rng.integers(self.cells.size)]
+        ray = _image_rays(self.cam_rot, self.k, self.px[c] + (rng.random() - 0.5) * self.cell_w,
+                          self.py[c] + (rng.random() - 0.5) * self.cell_h)
+        u = rng.random()
+        rot = random_rotation(rng)
+        return ray, u, rot
+
+    def room(self, ray, rot) -> float | None:
+        """The farthest centre depth on `ray` that clears the station and still looks big enough, or
+        None when that is not beyond `nearest` (no depth can pass on this ray)."""
+        _, hit = self.station.first_hit(self.cam_pos[None], ray[None])
+        surface = float(hit[0]) - 1.05 * self.radius      # the farthest the centre may sit on this ray
+        if not surface > self.nearest:
+            return None
+        # The object's silhouette at depth `ref` on this ray gives the farthest depth at which it
+        # still covers min_fraction (coverage falls as 1/depth^2); 0.95 keeps a margin.
+        at = self.cam_pos + self.ref * ray
+        silhouette = visible_fraction(None, self.anomaly, self.cam_pos, self.cam_rot, *self.screen, None,
+                                      (at, self.radius), (at, rot), self.corners, 1, self.mesh)
+        top = min(surface, 0.95 * self.ref * np.sqrt(silhouette / self.min_fraction))
+        return top if top > self.nearest else None
+
+    def initial_depth(self, top: float, u: float) -> float:
+        """The initial depth for a ray with room for all five: the +2 m depth drawn within
+        DEPTH_SPREAD_M of `top`, so objects sit near the structure behind them."""
+        reach = max(DEPTH_OFFSETS)
+        deepest = top - reach
+        return deepest - u * min(DEPTH_SPREAD_M, deepest - self.nearest - reach)
+
+    def one(self, attempt, depth_index, ray, depth, rot, size, stride=1):
+        """(passes, fraction, reason) of one depth at `size`; the clearance test is cached because it
+        does not depend on the resolution."""
+        pos = self.cam_pos + (depth + DEPTH_OFFSETS[depth_index]) * ray
+        if (attempt, depth_index) not in self.clear:
+            self.clear[attempt, depth_index] = _clear_of(self.station, pos, self.radius, self.cam_pos, self.cam_rot)
+        why = self.clear[attempt, depth_index]
+        if why:
+            return False, 0.0, why
+        return _visibility(self.station, self.anomaly, self.radius, self.corners, pos, rot, self.cam_pos,
+                           self.cam_rot, *size, self.min_fraction, stride, self.mesh)
+
+    def at_screen(self, attempt, depth_index, ray, depth, rot):
+        """One depth at the cheap screening size, cached so the fallback reuses the main loop's work."""
+        if (attempt, depth_index) not in self.screened:
+            self.screened[attempt, depth_index] = self.one(attempt, depth_index, ray, depth, rot, self.screen)
+        return self.screened[attempt, depth_index]
+
+    def at_full(self, attempt, ray, depth, rot, coarse, all_or_nothing=False):
+        """Each depth re-checked at the render resolution (`coarse`: the screen results). With
+        `all_or_nothing`, stop at the first depth that fails (the caller needs them all to pass)."""
+        if self.screen == self.full:
+            return coarse
+        out = []
+        for i, c in enumerate(coarse):
+            out.append(self.one(attempt, i, ray, depth, rot, self.full, _stride(c[1], self.width * self.height))
+                       if c[0] else c)
+            if all_or_nothing and not out[-1][0]:
+                break
+        return out
+
+    def all_five(self, attempt, ray, depth, rot):
+        """The five depths' results when every one passes at the screen and the render resolution, else
+        None; screening runs likeliest failures first and stops at the first, as most draws fail."""
+        coarse = []
+        for i in _SCREEN_ORDER:
+            coarse.append((i, self.at_screen(attempt, i, ray, depth, rot)))
+            if not coarse[-1][1][0]:
+                return None
+        results = self.at_full(attempt, ray, depth, rot, [r for _, r in sorted(coarse)], all_or_nothing=True)
+        return results if all(r[0] for r in results) else None
+
+    def fallback(self, drawn, budget: int) -> list[Placement] | None:
+        """No draw passed at every depth: of the first few draws (most depths fitting first), the best
+        ranked (`_ranked`) whose initial depth holds at the render resolution, so a group still gets
+        as many depths as it can, each failing one reported; None when none holds."""
+        kept = {attempt: (ray, depth, rot) for _, attempt, ray, depth, rot
+                in sorted(drawn, key=lambda t: t[:2])[:FALLBACK_CHECKS]}
+        for attempt in _ranked(list(kept), lambda a, i: self.at_screen(a, i, *kept[a])[0]):
+            ray, depth, rot = kept[attempt]
+            coarse = [self.at_screen(attempt, i, ray, depth, rot) for i in range(len(DEPTH_OFFSETS))]
+            results = self.at_full(attempt, ray, depth, rot, coarse)
+            if results[0][0]:
+                return _placements(self.cam_pos, ray, depth, rot, results, budget)
+        return None
+
+
 def place(station_parts: "RayScene | list", anomaly_points, anomaly_tris, cam_pos, cam_rot, rng: np.random.Generator,
           width: int, height: int, max_attempts: int = MAX_ATTEMPTS, check_width: int | None = SCREEN_WIDTH,
           min_fraction: float = MIN_FRACTION, anomaly: RayScene | None = None) -> list[Placement]:
@@ -346,120 +479,33 @@ def place(station_parts: "RayScene | list", anomaly_points, anomaly_tris, cam_po
     (None or >= width: every check at width x height); accepted depths are always confirmed, and
     their fractions computed, at width x height. `anomaly`: the object's BVH in its own frame
     (`anomaly_scene`), if cached by the caller."""
-    cam_pos = np.asarray(cam_pos, dtype=np.float64)
-    cam_rot = np.asarray(cam_rot, dtype=np.float64)
-    station = station_parts if isinstance(station_parts, RayScene) else RayScene(station_parts)
-    radius = float(np.linalg.norm(anomaly_points, axis=1).max())
-    corners = box_corners(anomaly_points)
-    mesh = (np.asarray(anomaly_points, dtype=np.float64), np.asarray(anomaly_tris, dtype=np.int64))
-    if anomaly is None:
-        anomaly = anomaly_scene(anomaly_points, anomaly_tris)
-    full = (int(width), int(height))
-    screen = full if not check_width or check_width >= width else \
-        (int(check_width), max(1, round(height * check_width / width)))
-    k = camera_intrinsics(width, height)
-
-    # Where the station is: rays through a grid over the central part of the frame.
-    lo, hi = FRAME_REGION
-    gx, gy = _TARGET_GRID
-    px, py = np.meshgrid((lo + (hi - lo) * (np.arange(gx) + 0.5) / gx) * width,
-                         (lo + (hi - lo) * (np.arange(gy) + 0.5) / gy) * height)
-    px, py = px.ravel(), py.ravel()
-    _, grid_hit = station.first_hit(np.broadcast_to(cam_pos, (px.size, 3)), _image_rays(cam_rot, k, px, py))
-    cells = np.flatnonzero(np.isfinite(grid_hit))
-    if cells.size == 0:
-        raise PlacementError(f"the camera sees no station structure in the central {hi - lo:.0%} of its frame, "
-                             "so an object cannot be placed near it; use a pose that looks at the station")
-    cell_w, cell_h = (hi - lo) * width / gx, (hi - lo) * height / gy
-    nearest = radius + CAMERA_CLEARANCE_M + 1e-6    # the closest an object's centre may come (depth)
-    reach = max(DEPTH_OFFSETS)
-    ref = max(nearest, 8.0 * radius)                # where an attempt measures the object's silhouette
-
-    # A draw's checks are pure functions of (attempt, depth), so each is computed once: the
-    # fallback below reuses the screening of the main loop, and the render-resolution pass
-    # reuses the resolution-free clearance test (speed only; every decision is the same).
-    clear: dict[tuple[int, int], str] = {}
-    screened: dict[tuple[int, int], tuple[bool, float, str]] = {}
-
-    def one(attempt, depth_index, ray, depth, rot, size, stride=1):
-        pos = cam_pos + (depth + DEPTH_OFFSETS[depth_index]) * ray
-        if (attempt, depth_index) not in clear:
-            clear[attempt, depth_index] = _clear_of(station, pos, radius, cam_pos, cam_rot)
-        why = clear[attempt, depth_index]
-        if why:
-            return False, 0.0, why
-        return _visibility(station, anomaly, radius, corners, pos, rot, cam_pos, cam_rot, *size, min_fraction, stride,
-                           mesh)
-
-    def at_screen(attempt, depth_index, ray, depth, rot):
-        if (attempt, depth_index) not in screened:
-            screened[attempt, depth_index] = one(attempt, depth_index, ray, depth, rot, screen)
-        return screened[attempt, depth_index]
-
-    def at_full(attempt, ray, depth, rot, coarse, all_or_nothing=False):
-        """Each depth re-checked at the render resolution (`coarse`: the screen results). With
-        `all_or_nothing`, stop at the first depth that fails (the caller needs them all to pass)."""
-        if screen == full:
-            return coarse
-        out = []
-        for i, c in enumerate(coarse):
-            out.append(one(attempt, i, ray, depth, rot, full, _stride(c[1], width * height)) if c[0] else c)
-            if all_or_nothing and not out[-1][0]:
-                break
-        return out
-
+    group = _Group(station_parts, anomaly_points, anomaly_tris, cam_pos, cam_rot, width, height, check_width,
+                   min_fraction, anomaly)
     drawn = []                                      # (-depths that fit, attempt, ray, depth, rot)
     budget, short = max_attempts, 0
     for attempt in range(1, max_attempts + 1):
-        c = cells[rng.integers(cells.size)]
-        ray = _image_rays(cam_rot, k, px[c] + (rng.random() - 0.5) * cell_w, py[c] + (rng.random() - 0.5) * cell_h)
-        u = rng.random()
-        rot = random_rotation(rng)
-        _, hit = station.first_hit(cam_pos[None], ray[None])
-        surface = float(hit[0]) - 1.05 * radius      # the farthest the centre may sit on this ray
-        if not surface > nearest:
+        ray, u, rot = group.draw(rng)
+        top = group.room(ray, rot)
+        if top is None:
             continue
-        # The object's silhouette at depth `ref` on this ray gives the farthest depth at which it
-        # still covers min_fraction (coverage falls as 1/depth^2); 0.95 keeps a margin.
-        silhouette = visible_fraction(None, anomaly, cam_pos, cam_rot, *screen, None,
-                                      (cam_pos + ref * ray, radius), (cam_pos + ref * ray, rot), corners, 1, mesh)
-        top = min(surface, 0.95 * ref * np.sqrt(silhouette / min_fraction))
-        if not top > nearest:
-            continue
-        fits = min(len(DEPTH_OFFSETS), int(np.floor(top - nearest)) + 1)   # depths that fit in [nearest, top]
+        fits = min(len(DEPTH_OFFSETS), int(np.floor(top - group.nearest)) + 1)   # depths that fit in [nearest, top]
         if fits < len(DEPTH_OFFSETS):                # too little room for five: as many as fit
-            drawn.append((-fits, attempt, ray, _partial_depth(nearest, top, u), rot))
+            drawn.append((-fits, attempt, ray, _partial_depth(group.nearest, top, u), rot))
             short += 1
             if short == len(drawn) == PARTIAL_ATTEMPTS:  # the first draws all too short: the object is
                 budget = attempt                     # too small (or the view too cramped) for five
                 break
             continue
-        deepest = top - reach                        # the +2 m depth, drawn near the farthest point
-        depth = deepest - u * min(DEPTH_SPREAD_M, deepest - nearest - reach)
+        depth = group.initial_depth(top, u)
         drawn.append((-fits, attempt, ray, depth, rot))
-        coarse = []
-        for i in _SCREEN_ORDER:                      # the likeliest failures first; stop at one
-            coarse.append((i, at_screen(attempt, i, ray, depth, rot)))
-            if not coarse[-1][1][0]:
-                break
-        else:
-            results = at_full(attempt, ray, depth, rot, [r for _, r in sorted(coarse)], all_or_nothing=True)
-            if all(r[0] for r in results):
-                return _placements(cam_pos, ray, depth, rot, results, attempt)
-    # No attempt passed at every depth: of the draws with room for the most depths, the first few
-    # are checked in full and the one with the most passing depths kept.
-    # Of the first few draws (most depths fitting first), the best ranked whose initial depth holds
-    # at the render resolution is kept (`_ranked`).
-    kept = {attempt: (ray, depth, rot) for _, attempt, ray, depth, rot
-            in sorted(drawn, key=lambda t: t[:2])[:FALLBACK_CHECKS]}
-    for attempt in _ranked(list(kept), lambda a, i: at_screen(a, i, *kept[a])[0]):
-        ray, depth, rot = kept[attempt]
-        coarse = [at_screen(attempt, i, ray, depth, rot) for i in range(len(DEPTH_OFFSETS))]
-        results = at_full(attempt, ray, depth, rot, coarse)
-        if results[0][0]:
-            return _placements(cam_pos, ray, depth, rot, results, budget)
-    raise PlacementError(f"no visible placement in {budget} attempts (object radius {radius:.2f} m); "
-                         "the view may show no station nearby — use another pose or a smaller object")
+        results = group.all_five(attempt, ray, depth, rot)
+        if results is not None:
+            return _placements(group.cam_pos, ray, depth, rot, results, attempt)
+    placements = group.fallback(drawn, budget)
+    if placements is None:
+        raise PlacementError(f"no visible placement in {budget} attempts (object radius {group.radius:.2f} m); "
+                             "the view may show no station nearby — use another pose or a smaller object")
+    return placements
 
 
 def _ranked(attempts: list[int], passes):
