@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from allo_usd.core.sensor import SensorParams
-from allo_usd.usd.layout import STATION_SUN
+from allo_usd.usd.layout import CAMERA, INSPECTION_LIGHT, STATION_SUN
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +47,7 @@ class CameraDesc:
     sensor_width_mm: float
     sensor_height_mm: float
     clip: tuple[float, float]
+    path: str = CAMERA                     # the UsdGeom.Camera prim (the Blender object's name)
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,7 @@ class SpotDesc:
     color: tuple[float, float, float]
     cone_angle_deg: float                  # half angle
     softness: float
+    path: str = INSPECTION_LIGHT           # the UsdLux.SphereLight prim (the Blender object's name)
 
 
 @dataclass(frozen=True)
