@@ -382,18 +382,20 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
     exposure = num(A.RENDER_EXPOSURE.name, 1.0)
     if not exposure > 0:
         raise LayerError(f"{A.RENDER_EXPOSURE.name} must be a positive number, got {exposure}; fix the layer")
-    render = RenderDesc((w, h), str(_get(settings_prim, A.RENDER_PRESET.name, "preview")), samples,
-                        num(A.RENDER_ADAPTIVE_THRESHOLD.name, 0.0, lo=0.0, hi=1.0),
-                        flag(A.RENDER_DENOISE.name, True),
-                        num(A.RENDER_MAX_BOUNCES.name, 8, True, 0, 1024),
-                        num(A.RENDER_SEED.name, 0, True, -2 ** 31, 2 ** 32 - 1), exposure,
-                        num(A.RENDER_THREADS.name, 0, True, 0, 4096), tuple(outputs),
-                        choice(A.RENDER_DENOISE_PREFILTER.name, "FAST", DENOISE_PREFILTERS),
-                        choice(A.RENDER_DENOISE_QUALITY.name, "BALANCED", DENOISE_QUALITIES))
+    render = RenderDesc(resolution=(w, h), preset=str(_get(settings_prim, A.RENDER_PRESET.name, "preview")),
+                        samples=samples,
+                        adaptive_threshold=num(A.RENDER_ADAPTIVE_THRESHOLD.name, 0.0, lo=0.0, hi=1.0),
+                        denoise=flag(A.RENDER_DENOISE.name, True),
+                        max_bounces=num(A.RENDER_MAX_BOUNCES.name, 8, True, 0, 1024),
+                        seed=num(A.RENDER_SEED.name, 0, True, -2 ** 31, 2 ** 32 - 1), exposure=exposure,
+                        threads=num(A.RENDER_THREADS.name, 0, True, 0, 4096), outputs=tuple(outputs),
+                        denoise_prefilter=choice(A.RENDER_DENOISE_PREFILTER.name, "FAST", DENOISE_PREFILTERS),
+                        denoise_quality=choice(A.RENDER_DENOISE_QUALITY.name, "BALANCED", DENOISE_QUALITIES))
     noise = flag(A.EFFECTS_SENSOR_NOISE.name, False)
-    effects = EffectsDesc(noise, flag(A.EFFECTS_GLARE.name, False),
-                          flag(A.EFFECTS_INSPECTION_LIGHT.name, True), flag(A.EFFECTS_BODY_SHINE.name, True),
-                          read_sensor(settings_prim) if noise else None)
+    effects = EffectsDesc(sensor_noise=noise, glare=flag(A.EFFECTS_GLARE.name, False),
+                          inspection_light=flag(A.EFFECTS_INSPECTION_LIGHT.name, True),
+                          body_shine=flag(A.EFFECTS_BODY_SHINE.name, True),
+                          sensor=read_sensor(settings_prim) if noise else None)
     return render, effects
 
 
