@@ -95,7 +95,7 @@ def write_base_stage(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
 def write_assets(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
                  anomalies: dict[str, dict[str, Asset]], station_doc: str) -> None:
     """The station, body and anomaly asset files the base stage references."""
-    write_asset(station, stages_dir / "station", "station", root="Station", doc=station_doc)
+    write_asset(station, stages_dir / "station", "station", root=layout.STATION_ROOT, doc=station_doc)
     for name, body in bodies.items():
         write_asset(body, stages_dir / "bodies", "celestial_body", root=name)
     for name, variants in anomalies.items():

@@ -39,3 +39,20 @@ def rig_pose_path(index: int) -> str:
 def render_var(name: str) -> str:
     """A render var's prim (Color, ClassMask, Depth)."""
     return f"{VARS}/{name}"
+
+
+# Inside an asset file (stages/station, bodies, anomalies): /<root>, its materials under
+# /<root>/Looks and its meshes under /<root>/Geom. The station asset's root is STATION_ROOT.
+STATION_ROOT = "Station"
+
+
+def asset_root(root: str) -> str:
+    return f"/{root}"
+
+
+def asset_looks(root: str) -> str:
+    return f"/{root}/Looks"
+
+
+def asset_geom(root: str) -> str:
+    return f"/{root}/Geom"

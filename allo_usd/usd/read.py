@@ -567,7 +567,7 @@ class StageGeometry:
         return read_triangles(self.base_stage, layout.STATION)
 
     def anomaly_triangles(self, asset: str, variant: str) -> tuple[np.ndarray, np.ndarray]:
-        return read_triangles(self.base_stage.parent / "anomalies" / f"{asset}.usda", f"/{asset}", variant)
+        return read_triangles(self.base_stage.parent / "anomalies" / f"{asset}.usda", layout.asset_root(asset), variant)
 
 
 def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str):
