@@ -142,7 +142,8 @@ def test_layer_carries_every_sensor_parameter(tiny_base, tmp_path):
     from pxr import Sdf
 
     from allo_usd.usd.scene_layer import write_scene_layer
-    from allo_usd.core.sensor import SENSOR_ATTRIBUTES, exposure_time_for
+    from allo_usd.core.sensor import exposure_time_for
+    from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
     from allo_usd.usd.read import read_scene
 
     sensor = SensorParams(quantum_efficiency=0.55, full_well_e=10_000.0, read_noise_e=4.5, bits=10, seed=99,

@@ -118,3 +118,29 @@ def test_plan_quality_preset_fills_what_the_plan_leaves_out():
     assert Quality(preset="final", samples=100).samples == 100  # what the plan says wins
     assert Quality(preset="my-label").samples == 64               # a label fills nothing
     assert Quality().samples == PRESETS["preview"]["samples"]      # the default preset is preview
+
+
+def test_quality_and_effects_are_declared_once():
+    """QualitySettings / EffectFlags are the one declaration: a field added there (or anywhere else)
+    and missed in the plan model, the presets, the scene spec, the description or the attribute
+    table fails here."""
+    from allo_usd.plan.model import Effects, Quality
+    from allo_usd.plan.settings import (EFFECT_FLAGS, QUALITY_FIELDS, EffectFlags, EffectsSpec, QualitySettings,
+                                        quality_of)
+    from allo_usd.usd import attributes as A
+    from allo_usd.usd.description import EffectsDesc, RenderDesc
+
+    quality, flags = set(QUALITY_FIELDS), set(EFFECT_FLAGS)
+    assert set(Quality.model_fields) == quality | {"preset", "resolution"}
+    assert set(Effects.model_fields) == flags
+    assert issubclass(RenderSpec, QualitySettings) and issubclass(RenderDesc, QualitySettings)
+    assert issubclass(EffectsSpec, EffectFlags) and issubclass(EffectsDesc, EffectFlags)
+    for name in PRESETS:
+        assert set(PRESETS[name]) == quality, name
+    # defaults agree: a plan's default quality and effects are the dataclasses' defaults
+    assert quality_of(Quality(preset="label")) == quality_of(QualitySettings())
+    assert Effects().model_dump() == {f.name: getattr(EffectFlags(), f.name) for f in fields(EffectFlags)}
+    # every field has its allo: attribute, and the render/effects attributes record nothing else
+    render_fields = {a.field for a in A.RENDER_QUALITY}
+    assert quality <= render_fields and render_fields - quality == {"preset", "seed", "exposure", "threads"}
+    assert {a.field for a in A.EFFECT_FLAGS} == flags

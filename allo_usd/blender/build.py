@@ -108,14 +108,14 @@ def build_mesh(desc: MeshDesc, material):
 
 def build_camera(desc: CameraDesc):
     bpy = _bpy()
-    cam = bpy.data.cameras.new("/World/Camera")
+    cam = bpy.data.cameras.new(desc.path)
     cam.lens_unit = "MILLIMETERS"
     cam.lens = desc.focal_length_mm
     cam.sensor_fit = "HORIZONTAL"
     cam.sensor_width = desc.sensor_width_mm
     cam.sensor_height = desc.sensor_height_mm
     cam.clip_start, cam.clip_end = desc.clip
-    obj = bpy.data.objects.new("/World/Camera", cam)
+    obj = bpy.data.objects.new(desc.path, cam)
     place(obj, desc.matrix)
     bpy.context.scene.collection.objects.link(obj)
     bpy.context.scene.camera = obj
@@ -165,13 +165,13 @@ def spot_power_w(desc: SpotDesc) -> float:
 
 def build_spot(desc: SpotDesc):
     bpy = _bpy()
-    light = bpy.data.lights.new("/World/Camera/InspectionLight", type="SPOT")
+    light = bpy.data.lights.new(desc.path, type="SPOT")
     light.energy = spot_power_w(desc)
     light.shadow_soft_size = desc.radius
     light.spot_size = min(max(math.radians(2.0 * desc.cone_angle_deg), 0.01745), math.pi)
     light.spot_blend = min(max(desc.softness, 0.0), 1.0)
     light.color = desc.color
-    obj = bpy.data.objects.new("/World/Camera/InspectionLight", light)
+    obj = bpy.data.objects.new(desc.path, light)
     place(obj, desc.matrix)
     bpy.context.scene.collection.objects.link(obj)
     return obj

@@ -59,7 +59,6 @@ from allo_usd.blender import build
 from allo_usd.blender.render import RenderResult, render_current
 
 _TOKEN = "allo_session"
-CAMERA, SPOT = "/World/Camera", "/World/Camera/InspectionLight"
 
 
 def geometry_digest(mesh: MeshDesc) -> bytes:
@@ -359,7 +358,7 @@ class Session:
         return None
 
     def _patch_camera(self, desc: SceneDescription) -> None:
-        obj = self._find(CAMERA)
+        obj = self._find(self.desc.camera.path)  # the camera the scene shows now
         cam, c = obj.data, desc.camera
         cam.lens = c.focal_length_mm
         cam.sensor_width = c.sensor_width_mm
@@ -409,12 +408,14 @@ class Session:
     def _spot_equal(a, b) -> bool:
         if a is None or b is None:
             return a is b
-        return (_eq(a.matrix, b.matrix) and (a.radius, a.intensity, a.color, a.cone_angle_deg, a.softness)
-                == (b.radius, b.intensity, b.color, b.cone_angle_deg, b.softness))
+        return (_eq(a.matrix, b.matrix) and (a.path, a.radius, a.intensity, a.color, a.cone_angle_deg, a.softness)
+                == (b.path, b.radius, b.intensity, b.color, b.cone_angle_deg, b.softness))
 
     def _patch_spot(self, desc: SceneDescription) -> None:
         # A spot is cheap to build: remove and build it again, so every value is set as a fresh build sets it.
-        self._remove_light(SPOT)
+        for spot in (self.desc.spot, desc.spot):  # the one the scene shows now (and its name for the new one)
+            if spot is not None:
+                self._remove_light(spot.path)
         if desc.spot is not None:
             build.build_spot(desc.spot)
 
@@ -423,8 +424,8 @@ class Session:
         import bpy
 
         coll = bpy.context.scene.collection
-        want = [self._objects[m.path] for m in desc.meshes] + [self._find(CAMERA)]
-        for name in tuple(s.path for s in desc.suns) + ((SPOT,) if desc.spot is not None else ()):
+        want = [self._objects[m.path] for m in desc.meshes] + [self._find(desc.camera.path)]
+        for name in tuple(s.path for s in desc.suns) + ((desc.spot.path,) if desc.spot is not None else ()):
             want.append(self._find(name))
         have = list(coll.objects)
         if have == want:

@@ -15,24 +15,6 @@ PHOTON_ENERGY_J = 3.6e-19  # h c / lambda at 550 nm
 DEFAULT_SENSOR_SEED = 1288  # EMVA 1288
 
 
-# SensorParams field -> (attribute on the render settings prim, Sdf value type); author and reader share it.
-SENSOR_ATTRIBUTES = {
-    "quantum_efficiency": ("allo:effects:sensor:quantumEfficiency", "double"),
-    "full_well_e": ("allo:effects:sensor:fullWell", "double"),
-    "read_noise_e": ("allo:effects:sensor:readNoise", "double"),
-    "dark_current_e_s": ("allo:effects:sensor:darkCurrent", "double"),
-    "bits": ("allo:effects:sensor:bitDepth", "int"),
-    "gain_dn_per_e": ("allo:effects:sensor:gain", "double"),
-    "prnu": ("allo:effects:sensor:prnu", "double"),
-    "dsnu_e": ("allo:effects:sensor:dsnu", "double"),
-    "seed": ("allo:effects:sensor:seed", "int64"),
-    "exposure_time_s": ("allo:effects:sensor:exposureTime", "double"),
-    "f_number": ("allo:effects:sensor:fNumber", "double"),
-    "pixel_pitch_m": ("allo:effects:sensor:pixelPitch", "double"),
-    "transmission": ("allo:effects:sensor:transmission", "double"),
-}
-
-
 DERIVED_WHEN_ZERO = ("gain_dn_per_e", "exposure_time_s")  # a 0 in a layer means "derive it"
 
 

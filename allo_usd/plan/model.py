@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from allo_usd.core.errors import PlanError
 from allo_usd.core.limits import resolution_problem
+from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES, PRESETS, EffectFlags, QualitySettings
 
 DEPTH_COUNT = 5  # allo_usd.scene.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
 N_POSES = 50
@@ -155,13 +156,15 @@ class Counts(_Model):
     anomalous_test: int | None = Field(None, ge=0)
 
 
+# Effects and Quality take their fields' defaults from allo_usd.plan.settings.EffectFlags and
+# QualitySettings, the one declaration; tests/test_presets.py checks the field names agree.
 class Effects(_Model):
     """Mirrors allo_usd.scene.spec.EffectsSpec: what each scene asks the renderer to simulate."""
 
-    sensor_noise: bool = False
-    glare: bool = False
-    inspection_light: bool = True
-    body_shine: bool = True
+    sensor_noise: bool = EffectFlags.sensor_noise
+    glare: bool = EffectFlags.glare
+    inspection_light: bool = EffectFlags.inspection_light
+    body_shine: bool = EffectFlags.body_shine
 
 
 class Quality(_Model):
@@ -170,18 +173,16 @@ class Quality(_Model):
 
     preset: str = Field("preview", min_length=1, description="draft, preview, final, paper, or a label of your own.")
     resolution: tuple[int, int] = Field((1920, 1080), description="Width, height in pixels.")
-    samples: int = Field(64, description="Path-tracing samples per pixel, 1..65536.")
-    denoise: bool = True
-    denoise_prefilter: Literal["NONE", "FAST", "ACCURATE"] = "FAST"
-    denoise_quality: Literal["FAST", "BALANCED", "HIGH"] = "BALANCED"
-    max_bounces: int = Field(8, ge=0, le=1024)
-    adaptive_threshold: float = Field(0.0, ge=0.0, le=1.0)
+    samples: int = Field(QualitySettings.samples, description="Path-tracing samples per pixel, 1..65536.")
+    denoise: bool = QualitySettings.denoise
+    denoise_prefilter: Literal[DENOISE_PREFILTERS] = QualitySettings.denoise_prefilter
+    denoise_quality: Literal[DENOISE_QUALITIES] = QualitySettings.denoise_quality
+    max_bounces: int = Field(QualitySettings.max_bounces, ge=0, le=1024)
+    adaptive_threshold: float = Field(QualitySettings.adaptive_threshold, ge=0.0, le=1.0)
 
     @model_validator(mode="before")
     @classmethod
     def _fill_from_preset(cls, data):
-        from allo_usd.plan.settings import PRESETS
-
         if isinstance(data, dict):
             preset = PRESETS.get(data.get("preset", "preview"), {})
             data = {**preset, **data}

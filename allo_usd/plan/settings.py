@@ -33,29 +33,56 @@ DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_pre
 DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_quality
 
 
-@dataclass(frozen=True)
-class RenderSpec:
-    resolution: tuple[int, int] = (1920, 1080)
-    preset: str = "preview"
+# The one declaration of the quality settings and the effect switches. RenderSpec / EffectsSpec (a
+# scene's request), allo_usd.usd.description.RenderDesc / EffectsDesc (what a layer holds) inherit
+# them; the plan's pydantic Quality / Effects and the presets are checked against them
+# (tests/test_presets.py), and each has an allo:render:* / allo:effects:* attribute
+# (allo_usd.usd.attributes, `field`). Keyword-only, so subclasses keep their positional fields.
+@dataclass(frozen=True, kw_only=True)
+class QualitySettings:
     samples: int = 64
     adaptive_threshold: float = 0.0
     denoise: bool = True
     max_bounces: int = 8
+    denoise_prefilter: str = "FAST"      # OIDN prefilter: NONE, FAST, ACCURATE
+    denoise_quality: str = "BALANCED"    # OIDN quality: FAST, BALANCED, HIGH
+
+
+@dataclass(frozen=True, kw_only=True)
+class EffectFlags:
+    sensor_noise: bool = False
+    glare: bool = False
+    inspection_light: bool = True
+    body_shine: bool = True
+
+
+QUALITY_FIELDS = tuple(f.name for f in fields(QualitySettings))
+EFFECT_FLAGS = tuple(f.name for f in fields(EffectFlags))
+
+
+def quality_of(obj) -> dict:
+    """The quality settings of anything that carries them (a plan's Quality, a RenderSpec)."""
+    return {name: getattr(obj, name) for name in QUALITY_FIELDS}
+
+
+def effect_flags_of(obj) -> dict:
+    """The effect switches of anything that carries them (a plan's Effects, an EffectsSpec)."""
+    return {name: getattr(obj, name) for name in EFFECT_FLAGS}
+
+
+@dataclass(frozen=True)
+class RenderSpec(QualitySettings):
+    resolution: tuple[int, int] = (1920, 1080)
+    preset: str = "preview"
     seed: int = 0
     exposure: float = 1.0
     threads: int = 0
     depth: bool = False          # also write camera depth (metres, float32 EXR)
     mask_only: bool = False      # only the class mask: one sample, no lights, no path tracing
-    denoise_prefilter: str = "FAST"      # OIDN prefilter: NONE, FAST, ACCURATE
-    denoise_quality: str = "BALANCED"    # OIDN quality: FAST, BALANCED, HIGH
 
 
 @dataclass(frozen=True)
-class EffectsSpec:
-    sensor_noise: bool = False
-    glare: bool = False
-    inspection_light: bool = True
-    body_shine: bool = True
+class EffectsSpec(EffectFlags):
     # The camera's EMVA 1288 parameters and its own seed (fixed patterns); authored, resolved
     # against the render exposure, when sensor_noise is on.
     sensor: SensorParams = field(default_factory=SensorParams)

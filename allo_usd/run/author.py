@@ -43,7 +43,7 @@ from allo_usd.core.errors import PlacementError, PlanError
 from allo_usd.plan.model import Plan
 from allo_usd.plan.enumeration import SceneKey, anomaly_quotas, enumerate_scenes, reserve_cap, reserve_group
 from allo_usd.plan.io import save_plan
-from allo_usd.plan.settings import EffectsSpec, RenderSpec
+from allo_usd.plan.settings import EffectsSpec, RenderSpec, quality_of
 
 SKIPPED_FIELDS = ("scene_id", "seed", "day", "pose", "asset", "variant", "depth_index", "reserve", "reason")
 RESERVE_FIELDS = ("seed", "asset", "variant", "reserve", "day", "pose", "authored", "skipped")
@@ -68,10 +68,7 @@ class _Context:
         self.base_stage = plan.resolve_base_stage()
         self.world = scene_inputs(self.base_stage, sky, plan.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
         q = plan.quality
-        self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, samples=q.samples,
-                                 adaptive_threshold=q.adaptive_threshold, denoise=q.denoise,
-                                 denoise_prefilter=q.denoise_prefilter, denoise_quality=q.denoise_quality,
-                                 max_bounces=q.max_bounces, exposure=EXPOSURE)
+        self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE, **quality_of(q))
         self.effects = EffectsSpec(**plan.effects.model_dump())
         self._sky_cache: dict[int, tuple] = {}
         self._sun_and_bodies = sun_and_bodies

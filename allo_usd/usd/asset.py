@@ -16,6 +16,7 @@ from PIL import Image
 
 from allo_usd.core.errors import AlloError
 from allo_usd.assets.mesh import Asset, MeshPart
+from allo_usd.usd import layout
 
 LABEL_TAXONOMY = "class"
 CLASS_LABELS = ("station", "celestial_body", "anomaly")
@@ -47,7 +48,7 @@ def stage_metadata(stage, default_prim: str) -> None:
 
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    stage.SetDefaultPrim(stage.GetPrimAtPath(f"/{default_prim}"))
+    stage.SetDefaultPrim(stage.GetPrimAtPath(layout.asset_root(default_prim)))
 
 
 def write_geometry(asset: Asset, usdc_path: Path, root: str, texture_dir: str = "textures") -> None:
@@ -61,15 +62,15 @@ def write_geometry(asset: Asset, usdc_path: Path, root: str, texture_dir: str = 
 
     layer, tmp = new_layer(usdc_path)
     stage = Usd.Stage.Open(layer)
-    root_prim = UsdGeom.Xform.Define(stage, f"/{root}").GetPrim()
+    root_prim = UsdGeom.Xform.Define(stage, layout.asset_root(root)).GetPrim()
     Usd.ModelAPI(root_prim).SetKind(Kind.Tokens.component)
     stage_metadata(stage, root)
-    UsdGeom.Scope.Define(stage, f"/{root}/Looks")
-    UsdGeom.Scope.Define(stage, f"/{root}/Geom")
+    UsdGeom.Scope.Define(stage, layout.asset_looks(root))
+    UsdGeom.Scope.Define(stage, layout.asset_geom(root))
 
     materials = {}
     for mat in asset.materials:
-        mpath = f"/{root}/Looks/{mat.name}"
+        mpath = f"{layout.asset_looks(root)}/{mat.name}"
         material = UsdShade.Material.Define(stage, mpath)
         shader = UsdShade.Shader.Define(stage, f"{mpath}/PreviewSurface")
         shader.CreateIdAttr("UsdPreviewSurface")
@@ -102,7 +103,7 @@ def write_geometry(asset: Asset, usdc_path: Path, root: str, texture_dir: str = 
         materials[mat.name] = material
 
     for part in asset.parts:
-        mesh = UsdGeom.Mesh.Define(stage, f"/{root}/Geom/{part.name}")
+        mesh = UsdGeom.Mesh.Define(stage, f"{layout.asset_geom(root)}/{part.name}")
         pts = part.points.astype(np.float32)
         mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(part.face_counts))
@@ -170,7 +171,7 @@ def write_interface(usda_path: Path, root: str, label: str, geometry: dict[str, 
         raise AlloError(f"class label {label!r} is not one of {CLASS_LABELS}")
     layer, tmp = new_layer(usda_path)
     stage = Usd.Stage.Open(layer)
-    prim = UsdGeom.Xform.Define(stage, f"/{root}").GetPrim()
+    prim = UsdGeom.Xform.Define(stage, layout.asset_root(root)).GetPrim()
     Usd.ModelAPI(prim).SetKind(kind)
     stage_metadata(stage, root)
     if doc:
@@ -178,14 +179,14 @@ def write_interface(usda_path: Path, root: str, label: str, geometry: dict[str, 
     labels = UsdSemantics.LabelsAPI.Apply(prim, LABEL_TAXONOMY)
     labels.CreateLabelsAttr([label])
     if isinstance(geometry, str):
-        prim.GetPayloads().AddPayload(geometry, Sdf.Path(f"/{root}"))
+        prim.GetPayloads().AddPayload(geometry, Sdf.Path(layout.asset_root(root)))
     else:
         vset = prim.GetVariantSets().AddVariantSet(variant_set)
         for name, path in geometry.items():
             vset.AddVariant(name)
             vset.SetVariantSelection(name)
             with vset.GetVariantEditContext():
-                prim.GetPayloads().AddPayload(path, Sdf.Path(f"/{root}"))
+                prim.GetPayloads().AddPayload(path, Sdf.Path(layout.asset_root(root)))
         vset.SetVariantSelection(next(iter(geometry)))
     commit_layer(layer, tmp, Path(usda_path))
 

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from allo_usd.core.sensor import SensorParams
-from allo_usd.usd.layout import STATION_SUN
+from allo_usd.plan.settings import EffectFlags, QualitySettings
+from allo_usd.usd.layout import CAMERA, INSPECTION_LIGHT, STATION_SUN
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +48,7 @@ class CameraDesc:
     sensor_width_mm: float
     sensor_height_mm: float
     clip: tuple[float, float]
+    path: str = CAMERA                     # the UsdGeom.Camera prim (the Blender object's name)
 
 
 @dataclass(frozen=True)
@@ -75,30 +77,24 @@ class SpotDesc:
     color: tuple[float, float, float]
     cone_angle_deg: float                  # half angle
     softness: float
+    path: str = INSPECTION_LIGHT           # the UsdLux.SphereLight prim (the Blender object's name)
 
 
 @dataclass(frozen=True)
-class RenderDesc:
+class RenderDesc(QualitySettings):
+    """The quality settings (allo:render:*, declared once in QualitySettings) and the rest of the
+    render settings prim."""
     resolution: tuple[int, int]
     preset: str
-    samples: int
-    adaptive_threshold: float
-    denoise: bool
-    max_bounces: int
     seed: int
     exposure: float
     threads: int
     outputs: tuple[str, ...]               # RenderVar source names ordered by the product
-    denoise_prefilter: str = "FAST"
-    denoise_quality: str = "BALANCED"
 
 
 @dataclass(frozen=True)
-class EffectsDesc:
-    sensor_noise: bool
-    glare: bool
-    inspection_light: bool
-    body_shine: bool
+class EffectsDesc(EffectFlags):
+    """The effect switches (allo:effects:*, declared once in EffectFlags) and the sensor."""
     sensor: SensorParams | None = None     # the layer's allo:effects:sensor:* (when sensor_noise)
 
 

@@ -29,10 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
+from allo_usd.usd import attributes as A
+from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
 from allo_usd.usd.read import _matrix, open_stage
 
-ROOTS = ("/World", "/Render")
+ROOTS = (layout.WORLD, layout.RENDER)
 ABSENT = "<absent>"
 PRIM = "(prim)"
 STACK = "(layer stack)"
@@ -127,55 +129,55 @@ def describe(layer: str | Path) -> dict:
     layer = Path(layer)
     stage = open_stage(layer)
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
-    world = stage.GetDefaultPrim() or stage.GetPrimAtPath("/World")
+    world = stage.GetDefaultPrim() or stage.GetPrimAtPath(layout.WORLD)
     provenance = dict(stage.GetRootLayer().customLayerData.get("allo", {}))
-    a = lambda name, default=None: _attr(world, f"allo:{name}", default)  # noqa: E731
+    a = lambda attr, default=None: _attr(world, attr.name, default)  # noqa: E731
 
     anomaly = None
-    aprim = stage.GetPrimAtPath("/World/Anomaly")
+    aprim = stage.GetPrimAtPath(layout.ANOMALY)
     if aprim and aprim.IsActive():
         m = _matrix(cache, aprim)
-        anomaly = {"asset": _attr(aprim, "allo:anomaly:asset"), "variant": _attr(aprim, "allo:anomaly:assetVariant"),
+        anomaly = {"asset": _attr(aprim, A.ANOMALY_ASSET.name), "variant": _attr(aprim, A.ANOMALY_ASSET_VARIANT.name),
                    "variant_selection": aprim.GetVariantSets().GetAllVariantSelections().get("variant"),
-                   "depth_index": _attr(aprim, "allo:anomaly:depthIndex"),
-                   "depth_offset": _attr(aprim, "allo:anomaly:depthOffset"),
-                   "predicted_area_fraction": _attr(aprim, "allo:anomaly:predictedAreaFraction"),
-                   "attempts": _attr(aprim, "allo:anomaly:attempts"), "position": tuple(map(float, m[:3, 3]))}
+                   "depth_index": _attr(aprim, A.ANOMALY_DEPTH_INDEX.name),
+                   "depth_offset": _attr(aprim, A.ANOMALY_DEPTH_OFFSET.name),
+                   "predicted_area_fraction": _attr(aprim, A.ANOMALY_PREDICTED_AREA_FRACTION.name),
+                   "attempts": _attr(aprim, A.ANOMALY_ATTEMPTS.name), "position": tuple(map(float, m[:3, 3]))}
 
-    settings_path = stage.GetMetadata("renderSettingsPrimPath") or "/Render/Settings"
+    settings_path = stage.GetMetadata("renderSettingsPrimPath") or layout.RENDER_SETTINGS
     sp = stage.GetPrimAtPath(settings_path)
-    r = lambda name, default=None: _attr(sp, f"allo:{name}", default)  # noqa: E731
-    render = {"settings": settings_path, "resolution": _attr(sp, "resolution"), "preset": r("render:preset"),
-              "samples": r("render:samples"), "seed": r("render:seed"), "exposure": r("render:exposure"),
-              "denoise": r("render:denoise"), "max_bounces": r("render:maxBounces"),
-              "adaptive_threshold": r("render:adaptiveThreshold"),
-              "denoise_prefilter": r("render:denoisePrefilter"), "denoise_quality": r("render:denoiseQuality")}
-    effects = {k: r(f"effects:{k}") for k in ("sensorNoise", "glare", "inspectionLight", "bodyShine")}
+    r = lambda attr, default=None: _attr(sp, attr.name, default)  # noqa: E731
+    render = {"settings": settings_path, "resolution": _attr(sp, "resolution"), "preset": r(A.RENDER_PRESET),
+              "samples": r(A.RENDER_SAMPLES), "seed": r(A.RENDER_SEED), "exposure": r(A.RENDER_EXPOSURE),
+              "denoise": r(A.RENDER_DENOISE), "max_bounces": r(A.RENDER_MAX_BOUNCES),
+              "adaptive_threshold": r(A.RENDER_ADAPTIVE_THRESHOLD),
+              "denoise_prefilter": r(A.RENDER_DENOISE_PREFILTER), "denoise_quality": r(A.RENDER_DENOISE_QUALITY)}
+    effects = {e.short: r(e) for e in A.EFFECT_FLAGS}
     sensor = ({a.GetName().rsplit(":", 1)[1]: _attr(sp, a.GetName()) for a in sp.GetAttributes()
-               if a.GetName().startswith("allo:effects:sensor:")} if effects["sensorNoise"] else None)
+               if a.GetName().startswith(A.SENSOR_PREFIX)} if effects[A.EFFECTS_SENSOR_NOISE.short] else None)
 
     def lamp(prim) -> dict:
         m = _matrix(cache, prim)
         d = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z: +Z points at the Sun
         link = UsdLux.LightAPI(prim).GetLightLinkCollectionAPI()
         return {"path": str(prim.GetPath()), "irradiance": _attr(prim, "inputs:intensity"),
-                "irradiance_unoccluded": _attr(prim, "allo:irradianceUnoccluded"),
-                "lit_fraction": _attr(prim, "allo:litFraction"),
-                "eclipse_state": _attr(prim, "allo:eclipseState"), "eclipse_body": _attr(prim, "allo:eclipseBody"),
-                "angular_diameter_deg": _attr(prim, "inputs:angle"), "distance_m": _attr(prim, "allo:sunDistance"),
+                "irradiance_unoccluded": _attr(prim, A.IRRADIANCE_UNOCCLUDED.name),
+                "lit_fraction": _attr(prim, A.LIT_FRACTION.name),
+                "eclipse_state": _attr(prim, A.ECLIPSE_STATE.name), "eclipse_body": _attr(prim, A.ECLIPSE_BODY.name),
+                "angular_diameter_deg": _attr(prim, "inputs:angle"), "distance_m": _attr(prim, A.SUN_DISTANCE.name),
                 "direction": tuple(map(float, d)),
                 "light_link": {"include_root": bool(link.GetIncludeRootAttr().Get()),
                                "includes": [str(t) for t in link.GetIncludesRel().GetTargets()],
                                "excludes": [str(t) for t in link.GetExcludesRel().GetTargets()]}}
 
-    sky = stage.GetPrimAtPath("/World/Sky")
+    sky = stage.GetPrimAtPath(layout.SKY)
     lamps = [lamp(p) for p in sky.GetChildren() if p.IsA(UsdLux.DistantLight)] if sky else []
     sun = next((s for s in lamps if s["path"] == STATION_SUN), lamps[0] if lamps else None)
     body_suns = [s for s in lamps if s is not sun]
 
     camera = None
     targets = UsdRender.Settings(sp).GetCameraRel().GetForwardedTargets() if sp else []
-    cam_prim = stage.GetPrimAtPath(targets[0]) if targets else stage.GetPrimAtPath("/World/Camera")
+    cam_prim = stage.GetPrimAtPath(targets[0]) if targets else stage.GetPrimAtPath(layout.CAMERA)
     if cam_prim:
         m = _matrix(cache, cam_prim)
         camera = {"path": str(cam_prim.GetPath()), "position": tuple(map(float, m[:3, 3])),
@@ -186,12 +188,13 @@ def describe(layer: str | Path) -> dict:
     start = Path(root.realPath).parent if root.realPath else Path.cwd()
     return {
         "layer": str(layer),
-        "scene_id": a("sceneId", provenance.get("sceneId")), "epoch": a("epoch"), "perilune_epoch": a("periluneEpoch"),
-        "day": a("day"), "pose": a("pose"), "split": a("split"), "variant": a("variant"),
-        "seed": a("seed", provenance.get("seed")), "seed_path": a("seedPath", provenance.get("seedPath")),
+        "scene_id": a(A.SCENE_ID, provenance.get("sceneId")), "epoch": a(A.EPOCH),
+        "perilune_epoch": a(A.PERILUNE_EPOCH), "day": a(A.DAY), "pose": a(A.POSE), "split": a(A.SPLIT),
+        "variant": a(A.VARIANT), "seed": a(A.SEED, provenance.get("seed")),
+        "seed_path": a(A.SEED_PATH, provenance.get("seedPath")),
         "package_version": provenance.get("packageVersion"),
-        "camera_perturbation": {"convention": a("perturbation"), "offset_position": a("cameraOffsetPosition"),
-                                "offset_rotation": a("cameraOffsetRotation"), "attempts": a("cameraAttempts")},
+        "camera_perturbation": {"convention": a(A.PERTURBATION), "offset_position": a(A.CAMERA_OFFSET_POSITION),
+                                "offset_rotation": a(A.CAMERA_OFFSET_ROTATION), "attempts": a(A.CAMERA_ATTEMPTS)},
         "anomaly": anomaly, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
         "camera": camera,
         "layer_stack": {"sublayers": list(root.subLayerPaths),

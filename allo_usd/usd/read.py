@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd.usd import schema
+from allo_usd.usd import attributes as A
+from allo_usd.usd import layout, schema
 from allo_usd.core.labels import BACKGROUND
 from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
 from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, MaterialDesc, MeshDesc, RenderDesc,
@@ -18,6 +19,7 @@ from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, Materi
 from allo_usd.core.errors import LayerError
 from allo_usd.core.limits import resolution_problem
 from allo_usd.core.labels import CLASS_IDS
+from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
 
 
 # Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
@@ -193,7 +195,7 @@ def _class_id(prim) -> int:
 def _ray_visibility(prim) -> str:
     p = prim
     while p and not p.IsPseudoRoot():
-        attr = p.GetAttribute("allo:rayVisibility")
+        attr = p.GetAttribute(A.RAY_VISIBILITY.name)
         if attr and attr.HasAuthoredValue():
             return str(attr.Get())
         p = p.GetParent()
@@ -283,7 +285,7 @@ def read_camera(prim, cache) -> CameraDesc:
         raise LayerError(f"camera {prim.GetPath()} needs positive focalLength and apertures, got {values}")
     m = _matrix(cache, prim, MAX_CAMERA_DISTANCE_M)
     return CameraDesc(m, values[0] * to_mm, values[1] * to_mm, values[2] * to_mm,
-                      (float(clip[0]), float(clip[1])))
+                      (float(clip[0]), float(clip[1])), str(prim.GetPath()))
 
 
 def read_light_link(prim, mesh_paths) -> LightLink | None:
@@ -334,7 +336,7 @@ def read_spot(prim, cache) -> SpotDesc:
     return SpotDesc(_matrix(cache, prim), _number(light.GetRadiusAttr().Get(), f"{where}.inputs:radius", lo=0.0),
                     intensity, _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3),
                     _number(cone, f"{where}.shaping:cone:angle", lo=0, hi=180),
-                    _number(softness or 0.0, f"{where}.shaping:cone:softness", lo=0))
+                    _number(softness or 0.0, f"{where}.shaping:cone:softness", lo=0), str(where))
 
 
 def _get(prim, name, default=None):
@@ -370,35 +372,38 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
             raise LayerError(f"{name} = {value!r} is not one of {', '.join(allowed)}; fix the layer")
         return value
 
-    samples = num("allo:render:samples", 64, True, 1, 65536)
+    samples = num(A.RENDER_SAMPLES.name, 64, True, 1, 65536)
     outputs = []
     for product_path in settings.GetProductsRel().GetForwardedTargets():
         product = UsdRender.Product(settings_prim.GetStage().GetPrimAtPath(product_path))
         for var_path in product.GetOrderedVarsRel().GetForwardedTargets():
             var = UsdRender.Var(settings_prim.GetStage().GetPrimAtPath(var_path))
             outputs.append(str(var.GetSourceNameAttr().Get()))
-    exposure = num("allo:render:exposure", 1.0)
+    exposure = num(A.RENDER_EXPOSURE.name, 1.0)
     if not exposure > 0:
-        raise LayerError(f"allo:render:exposure must be a positive number, got {exposure}; fix the layer")
-    render = RenderDesc((w, h), str(_get(settings_prim, "allo:render:preset", "preview")), samples,
-                        num("allo:render:adaptiveThreshold", 0.0, lo=0.0, hi=1.0),
-                        flag("allo:render:denoise", True),
-                        num("allo:render:maxBounces", 8, True, 0, 1024),
-                        num("allo:render:seed", 0, True, -2 ** 31, 2 ** 32 - 1), exposure,
-                        num("allo:render:threads", 0, True, 0, 4096), tuple(outputs),
-                        choice("allo:render:denoisePrefilter", "FAST", DENOISE_PREFILTERS),
-                        choice("allo:render:denoiseQuality", "BALANCED", DENOISE_QUALITIES))
-    noise = flag("allo:effects:sensorNoise", False)
-    effects = EffectsDesc(noise, flag("allo:effects:glare", False),
-                          flag("allo:effects:inspectionLight", True), flag("allo:effects:bodyShine", True),
-                          read_sensor(settings_prim) if noise else None)
+        raise LayerError(f"{A.RENDER_EXPOSURE.name} must be a positive number, got {exposure}; fix the layer")
+    render = RenderDesc(resolution=(w, h), preset=str(_get(settings_prim, A.RENDER_PRESET.name, "preview")),
+                        samples=samples,
+                        adaptive_threshold=num(A.RENDER_ADAPTIVE_THRESHOLD.name, 0.0, lo=0.0, hi=1.0),
+                        denoise=flag(A.RENDER_DENOISE.name, True),
+                        max_bounces=num(A.RENDER_MAX_BOUNCES.name, 8, True, 0, 1024),
+                        seed=num(A.RENDER_SEED.name, 0, True, -2 ** 31, 2 ** 32 - 1), exposure=exposure,
+                        threads=num(A.RENDER_THREADS.name, 0, True, 0, 4096), outputs=tuple(outputs),
+                        denoise_prefilter=choice(A.RENDER_DENOISE_PREFILTER.name, "FAST", DENOISE_PREFILTERS),
+                        denoise_quality=choice(A.RENDER_DENOISE_QUALITY.name, "BALANCED", DENOISE_QUALITIES))
+    noise = flag(A.EFFECTS_SENSOR_NOISE.name, False)
+    effects = EffectsDesc(sensor_noise=noise, glare=flag(A.EFFECTS_GLARE.name, False),
+                          inspection_light=flag(A.EFFECTS_INSPECTION_LIGHT.name, True),
+                          body_shine=flag(A.EFFECTS_BODY_SHINE.name, True),
+                          sensor=read_sensor(settings_prim) if noise else None)
     return render, effects
 
 
 def read_sensor(settings_prim):
     """The sensor's EMVA 1288 parameters (allo:effects:sensor:*); unauthored ones take the schema's
     fallbacks, and a gain or exposure time of 0 means "derive it" (allo_usd.output.sensor_noise)."""
-    from allo_usd.core.sensor import DERIVED_WHEN_ZERO, SENSOR_ATTRIBUTES, SensorParams
+    from allo_usd.core.sensor import DERIVED_WHEN_ZERO, SensorParams
+    from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
     from allo_usd.core.errors import AlloError
 
     defaults = SensorParams()
@@ -412,7 +417,7 @@ def read_sensor(settings_prim):
     try:
         params.validate()
     except AlloError as exc:
-        raise LayerError(f"{settings_prim.GetPath()}: {exc}; fix the allo:effects:sensor:* attributes") from None
+        raise LayerError(f"{settings_prim.GetPath()}: {exc}; fix the {A.SENSOR_PREFIX}* attributes") from None
     return params
 
 
@@ -434,15 +439,15 @@ def read_meta(stage) -> dict:
     meta = {}
     for attr in world.GetAttributes():
         name = attr.GetName()
-        if name.startswith("allo:"):
+        if name.startswith(A.NAMESPACE):
             value = attr.Get()
-            meta[name[5:]] = tuple(value) if hasattr(value, "__len__") and not isinstance(value, str) else value
+            meta[name[len(A.NAMESPACE):]] = tuple(value) if hasattr(value, "__len__") and not isinstance(value, str) else value
     provenance = dict(stage.GetRootLayer().customLayerData.get("allo", {}))
     meta["provenance"] = provenance
-    anomaly = stage.GetPrimAtPath("/World/Anomaly")
+    anomaly = stage.GetPrimAtPath(layout.ANOMALY)
     if anomaly and anomaly.IsActive():
         meta["anomaly"] = {a.GetName().split(":")[-1]: a.Get() for a in anomaly.GetAttributes()
-                           if a.GetName().startswith("allo:anomaly:")}
+                           if a.GetName().startswith(A.ANOMALY_PREFIX)}
     return meta
 
 
@@ -451,7 +456,7 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
     from pxr import Usd, UsdGeom, UsdLux
 
     stage = open_stage(layer_path)
-    settings_path = stage.GetMetadata("renderSettingsPrimPath") or "/Render/Settings"
+    settings_path = stage.GetMetadata("renderSettingsPrimPath") or layout.RENDER_SETTINGS
     settings_prim = stage.GetPrimAtPath(settings_path)
     if not settings_prim:
         raise LayerError(f"{layer_path}: no render settings at {settings_path}; the base stage sublayer is "
@@ -470,7 +475,7 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
         if prim.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
             it.PruneChildren()
             continue
-        if prim.GetPath().HasPrefix("/World/Rig") or prim.GetPath().HasPrefix("/Render"):
+        if prim.GetPath().HasPrefix(layout.RIG) or prim.GetPath().HasPrefix(layout.RENDER):
             it.PruneChildren()
             continue
         _check_variants(prim)
@@ -505,14 +510,14 @@ def read_rig(base_stage: str | Path) -> list:
     stage = open_stage(base_stage)
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     poses = []
-    for prim in stage.GetPrimAtPath("/World/Rig").GetChildren():
+    for prim in stage.GetPrimAtPath(layout.RIG).GetChildren():
         if not prim.HasAPI("AlloCameraPoseAPI"):
             continue
         m = _matrix(cache, prim)
-        poses.append(CameraPose(int(prim.GetAttribute("allo:pose:index").Get()),
-                                str(prim.GetAttribute("allo:pose:split").Get()), m[:3, 3].copy(), m[:3, :3].copy()))
+        poses.append(CameraPose(int(prim.GetAttribute(A.POSE_INDEX.name).Get()),
+                                str(prim.GetAttribute(A.POSE_SPLIT.name).Get()), m[:3, 3].copy(), m[:3, :3].copy()))
     if not poses:
-        raise LayerError(f"{base_stage} has no camera poses under /World/Rig; regenerate the base stage")
+        raise LayerError(f"{base_stage} has no camera poses under {layout.RIG}; regenerate the base stage")
     return sorted(poses, key=lambda p: p.index)
 
 
@@ -559,10 +564,10 @@ class StageGeometry:
         return read_rig(self.base_stage)
 
     def station_triangles(self) -> tuple[np.ndarray, np.ndarray]:
-        return read_triangles(self.base_stage, "/World/Station")
+        return read_triangles(self.base_stage, layout.STATION)
 
     def anomaly_triangles(self, asset: str, variant: str) -> tuple[np.ndarray, np.ndarray]:
-        return read_triangles(self.base_stage.parent / "anomalies" / f"{asset}.usda", f"/{asset}", variant)
+        return read_triangles(self.base_stage.parent / "anomalies" / f"{asset}.usda", layout.asset_root(asset), variant)
 
 
 def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str):
@@ -572,8 +577,8 @@ def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str):
     return SceneInputs(StageGeometry(base_stage), sky, perilune_epoch)
 
 
-DEFAULT_OUTPUTS = ("color", "allo:classMask")
-VAR_SOURCES = {"Color": "color", "ClassMask": "allo:classMask", "Depth": "depth"}
+VAR_SOURCES = {name: source for name, (source, _, _) in RENDER_VARS.items()}   # var prim name -> source
+DEFAULT_OUTPUTS = tuple(VAR_SOURCES[name] for name in BASE_PRODUCT_VARS)
 
 
 def layer_outputs(layer: Path) -> tuple[str, ...]:
@@ -585,7 +590,7 @@ def layer_outputs(layer: Path) -> tuple[str, ...]:
         sdf = Sdf.Layer.FindOrOpen(str(layer))
     except Tf.ErrorException:
         return DEFAULT_OUTPUTS  # unreadable: read_scene will say what is wrong with it
-    rel = sdf.GetRelationshipAtPath("/Render/Products/Image.orderedVars") if sdf else None
+    rel = sdf.GetRelationshipAtPath(f"{layout.IMAGE_PRODUCT}.orderedVars") if sdf else None
     if not rel or not rel.targetPathList.explicitItems:
         return DEFAULT_OUTPUTS
     return tuple(VAR_SOURCES.get(t.name, t.name) for t in rel.targetPathList.explicitItems)

@@ -22,12 +22,16 @@ import numpy as np
 from allo_usd import __version__
 from allo_usd.usd import schema
 from allo_usd.sky import model as sky
-from allo_usd.core.sensor import SENSOR_ATTRIBUTES, SensorParams
+from allo_usd.core.sensor import SensorParams
 from allo_usd.core.errors import AlloError, LayerError
 from allo_usd.core.geometry import check_finite, matrix_to_quat, rotation_towards
 from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
 from allo_usd.core.limits import resolution_problem
-from allo_usd.usd.base_stage import LIT_BODIES, STATION_SUN, body_sun_path
+from allo_usd.usd import attributes as A
+from allo_usd.usd import layout
+from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
+from allo_usd.usd.base_stage import LIT_BODIES
+from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.core.files import relpath, write_text_atomic
 
 
@@ -117,42 +121,41 @@ def sun_prim(path: str, sun: SunSpec) -> Prim:
         "xformOp:orient": ("quatd", _quatd(rotation_towards(sun.direction))),
         "inputs:intensity": ("float", float(sun.irradiance)),
         "inputs:angle": ("float", float(sun.angular_diameter_deg)),
-        "allo:litFraction": ("double", float(sun.lit_fraction)),
-        "allo:eclipseState": ("token", sun.eclipse_state), "allo:eclipseBody": ("token", sun.eclipse_body),
-        "allo:irradianceUnoccluded": ("double", float(sun.irradiance_unoccluded)),
-        "allo:sunDistance": ("double", float(sun.distance_m))})
+        **A.opinions((A.LIT_FRACTION, float(sun.lit_fraction)), (A.ECLIPSE_STATE, sun.eclipse_state),
+                     (A.ECLIPSE_BODY, sun.eclipse_body),
+                     (A.IRRADIANCE_UNOCCLUDED, float(sun.irradiance_unoccluded)),
+                     (A.SUN_DISTANCE, float(sun.distance_m)))})
 
 
 def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: dict) -> list[Prim]:
     """The day's opinions: epoch, the station's sun lamp, each body's position and (Earth, Moon) its
     own sun lamp."""
-    out = [Prim("/World", {"allo:epoch": ("string", epoch), "allo:periluneEpoch": ("string", perilune_epoch),
-                           "allo:day": ("int", int(day))}, api=("AlloSceneAPI",)),
+    out = [Prim(layout.WORLD, A.opinions((A.EPOCH, epoch), (A.PERILUNE_EPOCH, perilune_epoch), (A.DAY, int(day))),
+                api=("AlloSceneAPI",)),
            sun_prim(STATION_SUN, sun)]
     out += [sun_prim(body_sun_path(name), body_light(bodies[name], sun)) for name in LIT_BODIES if name in bodies]
     for name, body in bodies.items():
-        out.append(Prim(f"/World/Sky/{name}", {"xformOp:translate": ("double3", _vec3d(body.position)),
+        out.append(Prim(layout.body_path(name), {"xformOp:translate": ("double3", _vec3d(body.position)),
                                                "xformOp:scale": ("double3", _vec3d([body.radius] * 3))}))
     return out
 
 
 def pose_prims(pose: int, camera: CameraSpec) -> list[Prim]:
     """The camera sample's opinions: base pose number, perturbed transform and sampled offsets."""
-    return [Prim("/World", {"allo:pose": ("int", int(pose)), "allo:perturbation": ("string", camera.perturbation),
-                            "allo:cameraOffsetPosition": ("double3", _vec3d(camera.offset_position)),
-                            "allo:cameraOffsetRotation": ("double3", _vec3d(camera.offset_rotation)),
-                            "allo:cameraAttempts": ("int", int(camera.attempts))}, api=("AlloSceneAPI",)),
-            Prim("/World/Camera", {"xformOp:translate": ("double3", _vec3d(camera.position)),
+    return [Prim(layout.WORLD, A.opinions((A.POSE, int(pose)), (A.PERTURBATION, camera.perturbation),
+                                          (A.CAMERA_OFFSET_POSITION, _vec3d(camera.offset_position)),
+                                          (A.CAMERA_OFFSET_ROTATION, _vec3d(camera.offset_rotation)),
+                                          (A.CAMERA_ATTEMPTS, int(camera.attempts))), api=("AlloSceneAPI",)),
+            Prim(layout.CAMERA, {"xformOp:translate": ("double3", _vec3d(camera.position)),
                                    "xformOp:orient": ("quatd", _quatd(camera.rotation))})]
 
 
 def anomaly_prim(a: AnomalySpec, asset_ref: str) -> Prim:
-    return Prim("/World/Anomaly", {
-        "allo:anomaly:asset": ("string", a.asset), "allo:anomaly:assetVariant": ("string", a.variant),
-        "allo:anomaly:depthIndex": ("int", int(a.depth_index)),
-        "allo:anomaly:depthOffset": ("double", float(a.depth_offset)),
-        "allo:anomaly:attempts": ("int", int(a.attempts)),
-        "allo:anomaly:predictedAreaFraction": ("double", float(a.predicted_area_fraction)),
+    return Prim(layout.ANOMALY, {
+        **A.opinions((A.ANOMALY_ASSET, a.asset), (A.ANOMALY_ASSET_VARIANT, a.variant),
+                     (A.ANOMALY_DEPTH_INDEX, int(a.depth_index)), (A.ANOMALY_DEPTH_OFFSET, float(a.depth_offset)),
+                     (A.ANOMALY_ATTEMPTS, int(a.attempts)),
+                     (A.ANOMALY_PREDICTED_AREA_FRACTION, float(a.predicted_area_fraction))),
         "xformOp:translate": ("double3", _vec3d(a.position)), "xformOp:orient": ("quatd", _quatd(a.rotation)),
         "xformOpOrder": ("uniform token[]", ["xformOp:translate", "xformOp:orient"])},
         api=("AlloAnomalyAPI",), define="Xform", reference=asset_ref, variants={"variant": a.variant})
@@ -172,31 +175,28 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
     """Only this image's opinions: identity and seed, anomaly, effects and render settings."""
     from pxr import Gf
 
-    out = [Prim("/World", {"allo:sceneId": ("string", spec.scene_id), "allo:split": ("token", spec.split),
-                           "allo:variant": ("token", spec.variant), "allo:seed": ("int64", int(spec.seed)),
-                           "allo:seedPath": ("string", spec.seed_path)}, api=("AlloSceneAPI",))]
+    out = [Prim(layout.WORLD, A.opinions((A.SCENE_ID, spec.scene_id), (A.SPLIT, spec.split), (A.VARIANT, spec.variant),
+                                         (A.SEED, int(spec.seed)), (A.SEED_PATH, spec.seed_path)),
+                api=("AlloSceneAPI",))]
     if not spec.effects.inspection_light:
-        out.append(Prim("/World/Camera/InspectionLight", active=False))
+        out.append(Prim(layout.INSPECTION_LIGHT, active=False))
     if spec.anomaly is not None:
         out.append(anomaly_prim(spec.anomaly, anomaly_ref))
     r, e = spec.render, spec.effects
-    out.append(Prim("/Render/Settings", {
+    out.append(Prim(layout.RENDER_SETTINGS, {
         "resolution": ("uniform int2", Gf.Vec2i(*map(int, r.resolution))),
-        "allo:render:preset": ("token", r.preset), "allo:render:samples": ("int", int(r.samples)),
-        "allo:render:adaptiveThreshold": ("float", float(r.adaptive_threshold)),
-        "allo:render:denoise": ("bool", bool(r.denoise)), "allo:render:maxBounces": ("int", int(r.max_bounces)),
-        "allo:render:seed": ("int", int(r.seed)), "allo:render:exposure": ("float", float(r.exposure)),
-        "allo:render:threads": ("int", int(r.threads)),
-        "allo:render:denoisePrefilter": ("token", r.denoise_prefilter),
-        "allo:render:denoiseQuality": ("token", r.denoise_quality),
-        "allo:effects:sensorNoise": ("bool", bool(e.sensor_noise)), "allo:effects:glare": ("bool", bool(e.glare)),
-        "allo:effects:inspectionLight": ("bool", bool(e.inspection_light)),
-        "allo:effects:bodyShine": ("bool", bool(e.body_shine)),
+        **A.opinions((A.RENDER_PRESET, r.preset), (A.RENDER_SAMPLES, int(r.samples)),
+                     (A.RENDER_ADAPTIVE_THRESHOLD, float(r.adaptive_threshold)), (A.RENDER_DENOISE, bool(r.denoise)),
+                     (A.RENDER_MAX_BOUNCES, int(r.max_bounces)), (A.RENDER_SEED, int(r.seed)),
+                     (A.RENDER_EXPOSURE, float(r.exposure)), (A.RENDER_THREADS, int(r.threads)),
+                     (A.RENDER_DENOISE_PREFILTER, r.denoise_prefilter), (A.RENDER_DENOISE_QUALITY, r.denoise_quality),
+                     (A.EFFECTS_SENSOR_NOISE, bool(e.sensor_noise)), (A.EFFECTS_GLARE, bool(e.glare)),
+                     (A.EFFECTS_INSPECTION_LIGHT, bool(e.inspection_light)), (A.EFFECTS_BODY_SHINE, bool(e.body_shine))),
         **(sensor_attrs(e.sensor, r.exposure) if e.sensor_noise else {})}))
     if r.depth or r.mask_only:  # the base product orders color and class mask; change only if asked
-        ordered = ([] if r.mask_only else ["/Render/Vars/Color"]) + ["/Render/Vars/ClassMask"]
-        ordered += ["/Render/Vars/Depth"] if r.depth else []
-        out.append(Prim("/Render/Products/Image", rels={"orderedVars": ordered}))
+        ordered = ([] if r.mask_only else [layout.render_var("Color")]) + [layout.render_var("ClassMask")]
+        ordered += [layout.render_var("Depth")] if r.depth else []
+        out.append(Prim(layout.IMAGE_PRODUCT, rels={"orderedVars": ordered}))
     return out
 
 
@@ -222,7 +222,7 @@ def layer_text(prims: list[Prim], sublayers: list[str], custom: dict, doc: str) 
     layer = Sdf.Layer.CreateAnonymous(".usda")
     with Sdf.ChangeBlock():
         layer.subLayerPaths[:] = list(sublayers)
-        layer.defaultPrim = "World"
+        layer.defaultPrim = layout.WORLD_NAME
         layer.customLayerData = {"allo": {"packageVersion": __version__, **custom}}
         layer.documentation = doc
         layer.pseudoRoot.SetInfo("upAxis", "Z")

@@ -10,9 +10,9 @@ from functools import lru_cache
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.paths import SCHEMAS
+from allo_usd.usd.attributes import BY_SCHEMA
 
-API_SCHEMAS = ("AlloSceneAPI", "AlloEclipseAPI", "AlloRayVisibilityAPI", "AlloRenderQualityAPI",
-               "AlloEffectsAPI", "AlloAnomalyAPI", "AlloCameraPoseAPI")
+API_SCHEMAS = tuple(BY_SCHEMA)
 
 
 @lru_cache(maxsize=1)

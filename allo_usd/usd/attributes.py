@@ -1,0 +1,127 @@
+"""Every `allo:` attribute of the codeless schema (schemas/alloUsd/generatedSchema.usda), once.
+
+Authoring (scene_layer, base_stage), reading (read) and inspection (inspect) take the names and
+Sdf value types from here, so a renamed or retyped attribute is changed in one place;
+tests/test_attributes.py checks this table against the schema file. No pxr here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from allo_usd.usd import layout
+
+
+@dataclass(frozen=True)
+class AlloAttribute:
+    name: str            # full attribute name, allo: namespace included
+    sdf_type: str        # Sdf value type name as the schema declares it
+    api_schema: str      # the single-apply API schema that declares it
+    prim: str            # where it is authored (a layout path or pattern)
+    field: str = ""      # the description/spec field it records, where there is one
+
+    @property
+    def short(self) -> str:
+        """The last namespace part (e.g. quantumEfficiency)."""
+        return self.name.rsplit(":", 1)[1]
+
+    def typed(self, value) -> tuple[str, object]:
+        """(Sdf type, value): one entry of scene_layer.Prim.attrs."""
+        return self.sdf_type, value
+
+
+def opinions(*pairs: tuple[AlloAttribute, object]) -> dict:
+    """{name: (Sdf type, value)} for (attribute, value) pairs, in the order given."""
+    return {a.name: a.typed(v) for a, v in pairs}
+
+
+def _group(api: str, prim: str, *rows: tuple) -> tuple[AlloAttribute, ...]:
+    return tuple(AlloAttribute(name, sdf_type, api, prim, *rest) for name, sdf_type, *rest in rows)
+
+
+SUN_LAMPS = layout.body_sun_path("*")            # /World/Sky/*SunLight: the station's lamp and the bodies'
+BODIES = layout.body_path("*")
+RIG_POSES = f"{layout.RIG}/*"
+
+# ---------------------------------------------------------------- AlloSceneAPI (default prim)
+(SCENE_ID, EPOCH, PERILUNE_EPOCH, DAY, POSE, SPLIT, VARIANT, SEED, SEED_PATH, PERTURBATION,
+ CAMERA_OFFSET_POSITION, CAMERA_OFFSET_ROTATION, CAMERA_ATTEMPTS) = SCENE = _group(
+    "AlloSceneAPI", layout.WORLD,
+    ("allo:sceneId", "string"), ("allo:epoch", "string"), ("allo:periluneEpoch", "string"), ("allo:day", "int"),
+    ("allo:pose", "int"), ("allo:split", "token"), ("allo:variant", "token"), ("allo:seed", "int64"),
+    ("allo:seedPath", "string"), ("allo:perturbation", "string"), ("allo:cameraOffsetPosition", "double3"),
+    ("allo:cameraOffsetRotation", "double3"), ("allo:cameraAttempts", "int"))
+
+# ---------------------------------------------------------------- AlloEclipseAPI (sun lamps)
+LIT_FRACTION, ECLIPSE_STATE, ECLIPSE_BODY, IRRADIANCE_UNOCCLUDED, SUN_DISTANCE = ECLIPSE = _group(
+    "AlloEclipseAPI", SUN_LAMPS,
+    ("allo:litFraction", "double"), ("allo:eclipseState", "token"), ("allo:eclipseBody", "token"),
+    ("allo:irradianceUnoccluded", "double"), ("allo:sunDistance", "double"))
+
+# ---------------------------------------------------------------- AlloRayVisibilityAPI (bodies)
+(RAY_VISIBILITY,) = RAY = _group("AlloRayVisibilityAPI", BODIES, ("allo:rayVisibility", "token"))
+
+# ---------------------------------------------------------------- AlloRenderQualityAPI (render settings)
+# `field`: the RenderSpec / RenderDesc field each records.
+(RENDER_PRESET, RENDER_SAMPLES, RENDER_ADAPTIVE_THRESHOLD, RENDER_DENOISE, RENDER_DENOISE_PREFILTER,
+ RENDER_DENOISE_QUALITY, RENDER_MAX_BOUNCES, RENDER_SEED, RENDER_EXPOSURE, RENDER_THREADS) = RENDER_QUALITY = _group(
+    "AlloRenderQualityAPI", layout.RENDER_SETTINGS,
+    ("allo:render:preset", "token", "preset"), ("allo:render:samples", "int", "samples"),
+    ("allo:render:adaptiveThreshold", "float", "adaptive_threshold"), ("allo:render:denoise", "bool", "denoise"),
+    ("allo:render:denoisePrefilter", "token", "denoise_prefilter"),
+    ("allo:render:denoiseQuality", "token", "denoise_quality"), ("allo:render:maxBounces", "int", "max_bounces"),
+    ("allo:render:seed", "int", "seed"), ("allo:render:exposure", "float", "exposure"),
+    ("allo:render:threads", "int", "threads"))
+
+# ---------------------------------------------------------------- AlloEffectsAPI (render settings)
+# `field`: the EffectsSpec / EffectsDesc field, or for allo:effects:sensor:* the SensorParams field.
+SENSOR_PREFIX = "allo:effects:sensor:"
+SENSOR = _group(
+    "AlloEffectsAPI", layout.RENDER_SETTINGS,
+    (SENSOR_PREFIX + "quantumEfficiency", "double", "quantum_efficiency"),
+    (SENSOR_PREFIX + "fullWell", "double", "full_well_e"),
+    (SENSOR_PREFIX + "readNoise", "double", "read_noise_e"),
+    (SENSOR_PREFIX + "darkCurrent", "double", "dark_current_e_s"),
+    (SENSOR_PREFIX + "bitDepth", "int", "bits"),
+    (SENSOR_PREFIX + "gain", "double", "gain_dn_per_e"),
+    (SENSOR_PREFIX + "prnu", "double", "prnu"),
+    (SENSOR_PREFIX + "dsnu", "double", "dsnu_e"),
+    (SENSOR_PREFIX + "seed", "int64", "seed"),
+    (SENSOR_PREFIX + "exposureTime", "double", "exposure_time_s"),
+    (SENSOR_PREFIX + "fNumber", "double", "f_number"),
+    (SENSOR_PREFIX + "pixelPitch", "double", "pixel_pitch_m"),
+    (SENSOR_PREFIX + "transmission", "double", "transmission"))
+EFFECTS_SENSOR_NOISE, EFFECTS_GLARE, EFFECTS_INSPECTION_LIGHT, EFFECTS_BODY_SHINE = EFFECT_FLAGS = _group(
+    "AlloEffectsAPI", layout.RENDER_SETTINGS,
+    ("allo:effects:sensorNoise", "bool", "sensor_noise"), ("allo:effects:glare", "bool", "glare"),
+    ("allo:effects:inspectionLight", "bool", "inspection_light"), ("allo:effects:bodyShine", "bool", "body_shine"))
+EFFECTS = EFFECT_FLAGS + SENSOR
+
+# SensorParams field -> (attribute on the render settings prim, Sdf value type); author and reader share it.
+SENSOR_ATTRIBUTES = {a.field: (a.name, a.sdf_type) for a in SENSOR}
+
+# ---------------------------------------------------------------- AlloAnomalyAPI (anomaly prim)
+(ANOMALY_ASSET, ANOMALY_ASSET_VARIANT, ANOMALY_DEPTH_INDEX, ANOMALY_DEPTH_OFFSET, ANOMALY_ATTEMPTS,
+ ANOMALY_PREDICTED_AREA_FRACTION) = ANOMALY = _group(
+    "AlloAnomalyAPI", layout.ANOMALY,
+    ("allo:anomaly:asset", "string"), ("allo:anomaly:assetVariant", "string"), ("allo:anomaly:depthIndex", "int"),
+    ("allo:anomaly:depthOffset", "double"), ("allo:anomaly:attempts", "int"),
+    ("allo:anomaly:predictedAreaFraction", "double"))
+ANOMALY_PREFIX = "allo:anomaly:"
+
+# ---------------------------------------------------------------- AlloCameraPoseAPI (rig cameras)
+POSE_INDEX, POSE_SPLIT = CAMERA_POSE = _group(
+    "AlloCameraPoseAPI", RIG_POSES, ("allo:pose:index", "int"), ("allo:pose:split", "token"))
+
+# Every attribute, by API schema (schema order).
+BY_SCHEMA: dict[str, tuple[AlloAttribute, ...]] = {
+    "AlloSceneAPI": SCENE, "AlloEclipseAPI": ECLIPSE, "AlloRayVisibilityAPI": RAY,
+    "AlloRenderQualityAPI": RENDER_QUALITY, "AlloEffectsAPI": EFFECTS, "AlloAnomalyAPI": ANOMALY,
+    "AlloCameraPoseAPI": CAMERA_POSE,
+}
+ALL: tuple[AlloAttribute, ...] = tuple(a for group in BY_SCHEMA.values() for a in group)
+BY_NAME: dict[str, AlloAttribute] = {a.name: a for a in ALL}
+NAMESPACE = "allo:"
+
+# Not an attribute: the UsdRender.Var sourceName of the class mask output, in the same namespace.
+CLASS_MASK_SOURCE = NAMESPACE + "classMask"
