@@ -22,7 +22,7 @@ from allo_usd.usd.description import SceneDescription
 from allo_usd.core.errors import AlloError
 from allo_usd.usd.read import read_scene
 
-from conftest import make_spec
+from helpers import make_spec
 
 N_CASES = 500
 

@@ -276,7 +276,7 @@ def test_plan_refuses_a_resolution_no_layer_could_render():
     from allo_usd.core.limits import MAX_SIDE_PX
     from allo_usd.plan.settings import RenderSpec
 
-    from conftest import make_spec
+    from helpers import make_spec
 
     with pytest.raises(PlanError, match=r"quality.resolution.*per side"):
         make_plan({"name": "x", "quality": {"resolution": [MAX_SIDE_PX + 1, 36]}})

@@ -12,7 +12,7 @@ from allo_usd.core.geometry import look_at
 from allo_usd.scene.spec import AnomalySpec, SunSpec
 from allo_usd.plan.settings import EffectsSpec
 
-from conftest import make_spec
+from helpers import make_spec
 
 pytestmark = pytest.mark.render
 
