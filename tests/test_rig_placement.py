@@ -277,6 +277,7 @@ def _iss_model():
 ISS = _iss_model()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not ISS.is_file(), reason=f"NASA ISS_2016.glb not found at {ISS} (not in the repo)")
 def test_rig_around_the_imported_iss():
     """The same rule picks 50 poses around NASA's model (inches, imported through trimesh)."""

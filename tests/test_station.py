@@ -34,6 +34,7 @@ def test_name_and_basic_shape(station):
     assert 100.0 < hi[1] - lo[1] < 130.0
 
 
+@pytest.mark.slow
 def test_deterministic(station):
     again = build_station()
     assert [p.name for p in again.parts] == [p.name for p in station.parts]
