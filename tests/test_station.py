@@ -174,6 +174,7 @@ def test_solids_face_outward(station):
         assert vol > 0.0, p.name
 
 
+@pytest.mark.slow
 def test_station_triangles(station):
     pts, tris = station_triangles()
     assert pts.shape[1] == 3 and tris.shape[1] == 3
