@@ -187,6 +187,7 @@ def test_station_triangles(station):
     assert np.abs(station_triangles()[0]).max() > 1.0
 
 
+@pytest.mark.slow
 def test_fixture_points(station):
     fx = station_fixture_points()
     assert fx.ndim == 2 and fx.shape[1] == 3 and fx.shape[0] >= 20
