@@ -255,7 +255,7 @@ NOTES = """## Notes
   -0.12 dB; light sampling threshold 0: no change.
 - **The paper's setting.** Upstream ALLO sets only `cycles.samples = 256` and denoises in the
   compositor, on a GPU; its .blend files' other settings are not published. `paper` follows
-  PHYSICS.md: 256 spp without adaptive sampling, OIDN ACCURATE/HIGH (Blender's defaults), max
+  docs/physics.md section 9: 256 spp without adaptive sampling, OIDN ACCURATE/HIGH (Blender's defaults), max
   bounces 12. Blender's factory default would also turn adaptive sampling on at 0.01: that is
   the 256-spp adaptive row above (0.79x, -0.16 dB).
 """

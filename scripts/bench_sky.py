@@ -121,17 +121,17 @@ def main() -> int:
         "",
         "## Eclipses in 2030 (default orbit: perilune epoch 2030-01-01T00:00Z)",
         "",
-        "Every minute of 2030 classified with the PHYSICS.md section 6 two-cone test, each contact "
+        "Every minute of 2030 classified with the docs/physics.md section 7 two-cone test, each contact "
         "bisected to 0.5 s. A pass runs from first to last penumbral contact; umbra is the time with "
         "the Sun fully covered.",
         "",
         f"- Moon-shadow passes: **{len(moon)}**, longest {max((v.duration_s for v in moon), default=0) / 3600:.2f} h "
         f"(umbra {max((v.umbra_s for v in moon), default=0) / 3600:.2f} h); "
         f"{sum(v.duration_s for v in moon) / (365 * 864):.3f}% of the year. "
-        "PHYSICS.md: 10-13 passes of at most about 1.3 h (about 0.1% of the time).",
+        "docs/physics.md: 10-13 passes of at most about 1.3 h (about 0.1% of the time).",
         f"- Earth-shadow events: **{len(earth)}**"
         + (f", longest {max(v.duration_s for v in earth) / 3600:.2f} h" if earth else "")
-        + ". PHYSICS.md: 0-3 events of up to 4.4 h depending on the perilune phase.",
+        + ". docs/physics.md: 0-3 events of up to 4.4 h depending on the perilune phase.",
         f"- Samples with Moon and Earth over the Sun at once: {info['both_occulting_samples']}.",
         f"- The 365 renders at 00:00 UTC: {days['umbra']} in umbra, {days['penumbra']} in penumbra, "
         f"{days['annular']} annular, {days['lit']} lit"
@@ -164,7 +164,7 @@ def main() -> int:
         "",
         "Note: the x-z-plane ellipse crosses the Moon's shadow (near the Moon's orbit plane) about "
         "6,200 km from the Moon's centre, moving across it at about 1 km/s, so a pass through the "
-        "~3,500 km wide shadow lasts at most about 1.1 h in this model. PHYSICS.md's 'about 1.3 h' is "
+        "~3,500 km wide shadow lasts at most about 1.1 h in this model. docs/physics.md's 'about 1.3 h' is "
         "not reproduced; it presumably comes from the real NRHO (out-of-plane extent, apolune beyond "
         "the Moon) or another model -- unverified.",
         "",

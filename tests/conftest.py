@@ -1,37 +1,16 @@
-"""Shared fixtures: a tiny base stage built in a temp dir (fast), and scene specs over it."""
+"""Shared fixtures: a tiny base stage built in a temp dir (fast). Helper functions live in
+helpers.py."""
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import pytest
 
 from allo_usd.assets.bodies import build_bodies
-from allo_usd.assets.primitives import box, cylinder, rot_y, transform
 from allo_usd.scene.spec import CameraPose
 from allo_usd.usd.base_stage import write_base_stage
 from allo_usd.core.geometry import look_at
-from allo_usd.assets.mesh import Asset, Material
-from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
-from allo_usd.plan.settings import RenderSpec
 
-EXPOSURE = 0.9 * math.pi / 1361.0
-
-
-def tiny_station() -> Asset:
-    return Asset("Station", (box("Truss", (2, 60, 2), "metal"),
-                             cylinder("Module", 2.1, 20, "white", matrix=transform((-10, 0, 0), rot_y(np.pi / 2)))),
-                 (Material("metal", (0.6, 0.6, 0.62), 1.0, 0.35), Material("white", (0.8, 0.8, 0.8), 0.0, 0.6)))
-
-
-def tiny_anomalies() -> dict:
-    red = Asset("Crate", (box("Body", (0.6, 0.4, 0.3), "paint"),), (Material("paint", (0.8, 0.05, 0.05)),))
-    blue = Asset("Crate", (box("Body", (0.6, 0.4, 0.3), "paint"),), (Material("paint", (0.05, 0.05, 0.8)),))
-    return {"Crate": {"red": red, "blue": blue}}
-
-
-CAM_POS = np.array([15.0, 8.0, 5.0])
+from helpers import CAM_POS, tiny_anomalies, tiny_station
 
 
 @pytest.fixture(scope="session")
@@ -40,23 +19,6 @@ def tiny_base(tmp_path_factory):
     poses = [CameraPose(i, "train" if i <= 40 else "test", CAM_POS + [0, i * 0.1, 0],
                         look_at(CAM_POS + [0, i * 0.1, 0], [0, 0, 0])) for i in (1, 2, 41)]
     return write_base_stage(root, tiny_station(), build_bodies(), tiny_anomalies(), poses)
-
-
-def make_spec(anomaly: bool = False, resolution=(64, 36), samples=4, seed=7, **kw) -> SceneSpec:
-    sun_dir = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
-    bodies = {"Sun": BodySpec(tuple(sun_dir * 1.496e11), 6.9634e8),
-              "Moon": BodySpec((0.0, 0.0, -7.0e6), 1.7374e6),
-              "Earth": BodySpec((-3.0e8, 2.0e8, 0.0), 6.371e6)}
-    spec = SceneSpec(
-        scene_id="test_scene", epoch="2030-01-01T00:00:00Z", perilune_epoch="2030-01-01T00:00:00Z",
-        day=0, pose=1, split="train", seed=seed, seed_path=f"1/0/1/{seed}",
-        camera=CameraSpec(tuple(CAM_POS), look_at(CAM_POS, [0, 0, 0])),
-        sun=SunSpec(tuple(sun_dir), 1361.0, 1361.0, 0.533, 1.496e11),
-        bodies=bodies,
-        render=RenderSpec(resolution, samples=samples, exposure=EXPOSURE, seed=1, denoise=False),
-        anomaly=AnomalySpec("Crate", "blue", (8.0, 4.0, 2.5), np.eye(3)) if anomaly else None,
-    )
-    return spec if not kw else SceneSpec(**{**spec.__dict__, **kw})
 
 
 @pytest.fixture(scope="session", autouse=True)

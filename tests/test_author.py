@@ -11,7 +11,7 @@ from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.core.errors import AlloError, LayerError
 from allo_usd.scene.spec import CameraSpec, SunSpec
 
-from conftest import make_spec
+from helpers import make_spec
 
 
 def test_layer_holds_only_scene_opinions(tiny_base, tmp_path):

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdSemantics
 
 from allo_usd.usd import schema
@@ -36,6 +37,7 @@ def _same_values(a: Path, b: Path) -> bool:
     return na.shape == nb.shape and bool(np.allclose(na, nb, rtol=1e-6, atol=1e-9))
 
 
+@pytest.mark.slow
 def test_committed_stage_matches_generator(tmp_path):
     """The script, run as users run it, rebuilds the committed files: byte for byte where it can pin
     OpenBLAS's kernel (x86-64 with AVX2), otherwise value for value."""

@@ -126,7 +126,7 @@ def test_rendered_body_has_its_albedo_and_a_terminator(tiny_base, tmp_path, body
     from allo_usd.scene.spec import CameraSpec
     from allo_usd.plan.settings import EffectsSpec
 
-    from conftest import make_spec
+    from helpers import make_spec
 
     sun, bodies = sun_and_bodies(compute_sky(default_epochs()[day:day + 1]), 0)
     target = np.array(bodies[body].position)

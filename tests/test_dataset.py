@@ -31,7 +31,7 @@ from allo_usd.output.dataset import AssemblyInterrupted, assemble, label_lines, 
 from allo_usd.core.errors import AlloError
 from allo_usd.run.job import render_layer
 
-from conftest import make_spec
+from helpers import make_spec
 
 pytestmark = pytest.mark.render
 

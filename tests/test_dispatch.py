@@ -22,7 +22,7 @@ from allo_usd.run.dispatch import (MANIFEST, WORKDIR, _append_jsonl, clean_stale
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
 from allo_usd.core.files import temp_name_re
 
-from conftest import make_spec
+from helpers import make_spec
 
 pytestmark = pytest.mark.render
 

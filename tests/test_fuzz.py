@@ -22,7 +22,7 @@ from allo_usd.usd.description import SceneDescription
 from allo_usd.core.errors import AlloError
 from allo_usd.usd.read import read_scene
 
-from conftest import make_spec
+from helpers import make_spec
 
 N_CASES = 500
 
@@ -142,6 +142,7 @@ def test_valid_layer_reads(valid_layer):
     assert isinstance(read_scene(valid_layer), SceneDescription)
 
 
+@pytest.mark.slow
 def test_500_mutated_layers_give_clear_errors_fast(valid_layer):
     text = valid_layer.read_text()
     failures, t0 = [], time.perf_counter()

@@ -15,7 +15,7 @@ from allo_usd.cli import app
 from allo_usd.usd.inspect import PRIM, STACK, describe, diff, format_description, format_diff
 from allo_usd.scene.spec import CameraSpec
 
-from conftest import CAM_POS, EXPOSURE, make_spec
+from helpers import CAM_POS, EXPOSURE, make_spec
 
 
 @pytest.fixture

@@ -131,7 +131,7 @@ def _noisy_spec(render_seed: int, anomaly: bool, sensor: SensorParams = SensorPa
 
     from allo_usd.plan.settings import EffectsSpec
 
-    from conftest import make_spec
+    from helpers import make_spec
 
     spec = make_spec(anomaly=anomaly, seed=render_seed)
     return replace(spec, render=replace(spec.render, seed=render_seed),

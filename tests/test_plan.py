@@ -276,7 +276,7 @@ def test_plan_refuses_a_resolution_no_layer_could_render():
     from allo_usd.core.limits import MAX_SIDE_PX
     from allo_usd.plan.settings import RenderSpec
 
-    from conftest import make_spec
+    from helpers import make_spec
 
     with pytest.raises(PlanError, match=r"quality.resolution.*per side"):
         make_plan({"name": "x", "quality": {"resolution": [MAX_SIDE_PX + 1, 36]}})
@@ -400,6 +400,7 @@ def test_limit_tops_up_the_scenes_within_it(tmp_path):
         {"": "12", "wrench": "12"}
 
 
+@pytest.mark.slow
 def test_topup_cap_is_honoured_and_reported(topped_up, tmp_path):
     from typer.testing import CliRunner
 
@@ -460,6 +461,7 @@ def _interrupt_at(monkeypatch, n: int, reserve: bool):
     monkeypatch.setattr(authoring, "write_sample", write_sample)
 
 
+@pytest.mark.slow
 def test_topup_is_the_same_for_any_workers_and_after_interruptions(topped_up, tmp_path, monkeypatch):
     from allo_usd.run.author import AuthoringInterrupted, author
 
@@ -502,6 +504,7 @@ def test_topup_is_the_same_for_any_workers_and_after_interruptions(topped_up, tm
     assert _files(tree) == want
 
 
+@pytest.mark.slow
 def test_a_tree_built_from_one_model_refuses_another(tmp_path):
     """A model-built stages/ records its source; a plan naming another model is refused, not
     silently authored over the old station (the procedural station's mesh stands in for a model)."""

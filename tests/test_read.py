@@ -13,7 +13,7 @@ from allo_usd.core.labels import ANOMALY, STATION
 from allo_usd.core.errors import LayerError
 from allo_usd.usd.read import read_scene
 
-from conftest import EXPOSURE, make_spec
+from helpers import EXPOSURE, make_spec
 
 
 def test_reader_describes_the_scene(tiny_base, tmp_path):

@@ -12,7 +12,7 @@ from PIL import Image
 from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.run.job import render_layer
 
-from conftest import make_spec
+from helpers import make_spec
 
 pytestmark = pytest.mark.render
 
@@ -186,7 +186,7 @@ def test_sunlit_white_plate_renders_near_but_below_white(tmp_path, ior):
     from allo_usd.plan.settings import EffectsSpec
     from allo_usd.output.writers import linear_to_srgb8
 
-    from conftest import EXPOSURE, tiny_anomalies
+    from helpers import EXPOSURE, tiny_anomalies
 
     spec = make_spec(resolution=(64, 36), samples=16)
     n = np.array(spec.sun.direction)  # the plate's normal points at the Sun

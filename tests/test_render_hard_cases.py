@@ -15,7 +15,7 @@ from allo_usd.usd.read import read_scene
 from allo_usd.plan.settings import EffectsSpec
 from allo_usd.scene.spec import SunSpec
 
-from conftest import CAM_POS, make_spec
+from helpers import CAM_POS, make_spec
 
 pytestmark = pytest.mark.render
 

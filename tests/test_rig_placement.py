@@ -17,7 +17,7 @@ from allo_usd.scene.placement import DEPTH_OFFSETS, check, place, visible_fracti
 from allo_usd.scene.raycast import RayScene, class_image
 from allo_usd.scene.rig import ANGLE_SIGMA_RAD, POSITION_SIGMA_M, perturb
 
-from conftest import tiny_station
+from helpers import tiny_station
 
 
 def _scene_of(*boxes):
@@ -147,7 +147,7 @@ def test_predicted_area_matches_the_rendered_mask(tiny_base, tmp_path):
     from allo_usd.usd.read import read_scene, read_triangles
     from allo_usd.scene.spec import AnomalySpec, CameraSpec
 
-    from conftest import make_spec
+    from helpers import make_spec
 
     st_pts, st_tris = read_triangles(tiny_base, "/World/Station")
     station = RayScene([(st_pts, st_tris, STATION)])
@@ -277,6 +277,7 @@ def _iss_model():
 ISS = _iss_model()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not ISS.is_file(), reason=f"NASA ISS_2016.glb not found at {ISS} (not in the repo)")
 def test_rig_around_the_imported_iss():
     """The same rule picks 50 poses around NASA's model (inches, imported through trimesh)."""

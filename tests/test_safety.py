@@ -9,7 +9,7 @@ from allo_usd.core.errors import LayerError
 from allo_usd.usd.read import read_scene
 from allo_usd.usd.safety import ENV_ROOTS, allowed_roots
 
-from conftest import make_spec
+from helpers import make_spec
 
 
 @pytest.fixture

@@ -12,7 +12,7 @@ from allo_usd.core.geometry import look_at
 from allo_usd.scene.spec import AnomalySpec, SunSpec
 from allo_usd.plan.settings import EffectsSpec
 
-from conftest import make_spec
+from helpers import make_spec
 
 pytestmark = pytest.mark.render
 
@@ -75,7 +75,7 @@ def test_incremental_renders_are_byte_identical_to_fresh_builds(descs):
         assert got.rgb.dtype == fresh[name].rgb.dtype
         np.testing.assert_array_equal(got.rgb, fresh[name].rgb, err_msg=name)
         np.testing.assert_array_equal(got.mask, fresh[name].mask, err_msg=name)
-        # Every patched matrix went in as a quaternion, never as Euler angles (PHYSICS.md section 3).
+        # Every patched matrix went in as a quaternion, never as Euler angles (docs/physics.md section 4).
         assert {o.rotation_mode for o in bpy.context.scene.objects} == {"QUATERNION"}, name
         lamps = {o.name: o for o in bpy.context.scene.objects if o.type == "LIGHT" and o.data.type == "SUN"}
         assert sorted(lamps) == sorted(s.path for s in d.suns), name

@@ -19,7 +19,7 @@ from allo_usd.sky.model import compute_sky, default_epochs
 from allo_usd.scene.spec import CameraSpec
 from allo_usd.plan.settings import EffectsSpec
 
-from conftest import make_spec
+from helpers import make_spec
 
 pytestmark = pytest.mark.render
 

@@ -34,6 +34,7 @@ def test_name_and_basic_shape(station):
     assert 100.0 < hi[1] - lo[1] < 130.0
 
 
+@pytest.mark.slow
 def test_deterministic(station):
     again = build_station()
     assert [p.name for p in again.parts] == [p.name for p in station.parts]
@@ -173,6 +174,7 @@ def test_solids_face_outward(station):
         assert vol > 0.0, p.name
 
 
+@pytest.mark.slow
 def test_station_triangles(station):
     pts, tris = station_triangles()
     assert pts.shape[1] == 3 and tris.shape[1] == 3
@@ -185,6 +187,7 @@ def test_station_triangles(station):
     assert np.abs(station_triangles()[0]).max() > 1.0
 
 
+@pytest.mark.slow
 def test_fixture_points(station):
     fx = station_fixture_points()
     assert fx.ndim == 2 and fx.shape[1] == 3 and fx.shape[0] >= 20

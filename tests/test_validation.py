@@ -11,7 +11,7 @@ from allo_usd.usd import schema
 from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.core.paths import BASE_STAGE
 
-from conftest import make_spec
+from helpers import make_spec
 
 
 def validation_errors(path, warnings: bool = False) -> list[str]:

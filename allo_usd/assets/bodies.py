@@ -5,7 +5,7 @@ so one unit sphere per body serves every day. The Sun's disc is an emitter of co
 (radiance does not fall with distance; its solid angle does), so its value lives in the asset,
 not in each scene.
 
-Albedo convention: BOND albedo, area-weighted, for both bodies (PHYSICS.md section 5: Moon
+Albedo convention: BOND albedo, area-weighted, for both bodies (docs/physics.md section 5: Moon
 0.11, Earth 0.306). Both bodies are Lambertian (UsdPreviewSurface `ior = 1`: no specular layer),
 and for a Lambertian sphere the fraction of the incident sunlight it reflects back into space, its Bond albedo, equals
 the diffuse reflectance. So a texture whose *area-weighted* mean reflectance equals the Bond albedo

@@ -5,7 +5,7 @@ Blender scene can be traced back to the layer that made it. Transforms go in as 
 matrices (float32 in Blender) through `place`, which sets `rotation_mode = 'QUATERNION'`
 first: Blender stores an assigned `matrix_world` decomposed into location, rotation and scale
 in the object's rotation mode, so the default 'XYZ' would round-trip every rotation through
-Euler angles (PHYSICS.md section 3); a quaternion keeps it a rotation at any pitch.
+Euler angles (docs/physics.md section 4); a quaternion keeps it a rotation at any pitch.
 
 Sun lamps follow the light linking the reader resolved (`SunDesc.link`): Cycles light linking
 through a receiver collection per lamp, whose members are all EXCLUDE (the lamp lights every

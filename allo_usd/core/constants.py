@@ -1,4 +1,4 @@
-"""Physical constants and the paper's camera (docs/physics.md): one place for every number the
+"""Physical constants and the paper's camera (docs/physics.md sections 5-6): one place for every number the
 pipeline shares."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ SOLAR_CONSTANT = 1361.0
 EXPOSURE = 0.9 * math.pi / SOLAR_CONSTANT
 
 
-# 25 mm lens on a 36 x 20.25 mm back (16:9 crop of the paper's 36 x 24 mm), PHYSICS.md section 4.
+# 25 mm lens on a 36 x 20.25 mm back (16:9 crop of the paper's 36 x 24 mm), docs/physics.md section 6.
 FOCAL_LENGTH_MM = 25.0
 
 

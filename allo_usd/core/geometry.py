@@ -1,7 +1,7 @@
 """Rotations and camera frames in float64: matrices, unit quaternions (w, x, y, z), look-at.
 
 Quaternions are the interchange form (USD `quatd`, Blender QUATERNION mode), never Euler
-angles: at pitch +-pi/2 an Euler round trip changes the triple (PHYSICS.md section 3).
+angles: at pitch +-pi/2 an Euler round trip changes the triple (docs/physics.md section 4).
 """
 
 from __future__ import annotations

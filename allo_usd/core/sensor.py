@@ -1,5 +1,5 @@
 """The camera sensor's EMVA 1288 parameters, shared by plans, scene layers and the noise effect
-(docs/physics.md, sensor model). Applying the noise is allo_usd.output.sensor_noise."""
+(docs/physics.md section 8, sensor model). Applying the noise is allo_usd.output.sensor_noise."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ DERIVED_WHEN_ZERO = ("gain_dn_per_e", "exposure_time_s")  # a 0 in a layer means
 @dataclass(frozen=True)
 class SensorParams:
     """A camera's EMVA 1288 parameters; the defaults are a typical space CMOS (CMV4000 class,
-    unverified figures from PHYSICS.md). Each maps to one `allo:effects:sensor:*` attribute."""
+    unverified figures, docs/physics.md section 8). Each maps to one `allo:effects:sensor:*` attribute."""
 
     quantum_efficiency: float = 0.6
     full_well_e: float = 13_500.0

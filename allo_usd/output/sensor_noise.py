@@ -1,4 +1,4 @@
-"""EMVA 1288 sensor noise on linear radiance (PHYSICS.md section 7).
+"""EMVA 1288 sensor noise on linear radiance (docs/physics.md section 8).
 
 electrons = Poisson(eta * mu_p * PRNU + I_dark * t) + DSNU + N(0, sigma_read^2), clipped to
 [0, full well], times the gain K (DN per electron), rounded and clipped to the ADC range. PRNU is

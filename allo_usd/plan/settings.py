@@ -1,20 +1,5 @@
-"""Render presets, chosen from the measured accuracy/time Pareto front (scripts/bench_accuracy.py).
-
-Measured by scripts/bench_accuracy.py (docs/bench_accuracy.md): all four in one process, 3
-interleaved rounds, 2 CPU cores, 480x270 demo view d045_p42_power_drill_z0 against a 4096 spp
-reference; time = CPU seconds of the render call (stable to ~1.5% under load, where wall time
-is not):
-
-| preset  | setting                                              | CPU s | x paper | PSNR sRGB8 | SSIM   |
-|---------|------------------------------------------------------|-------|---------|------------|--------|
-| draft   | 4 spp, OIDN fast/balanced                            | 1.52  | 0.02    | 33.05 dB   | 0.9692 |
-| preview | 64 spp, adaptive 0.05, OIDN fast/balanced            | 12.3  | 0.20    | 40.56 dB   | 0.9899 |
-| final   | 192 spp, adaptive 0.01, OIDN no prefilter/high       | 39.3  | 0.64    | 44.33 dB   | 0.9937 |
-| paper   | 256 spp, OIDN accurate/high, max bounces 12          | 61.9  | 1.00    | 45.17 dB   | 0.9943 |
-
-Targets: preview >= 40 dB in <= 0.25x paper time: met. final within 1 dB of paper in <= 0.6x
-paper time: within 1 dB (-0.84) at 0.61-0.64x; `final` is the cheapest measured point within
-1 dB, and the next cheaper one (176 spp, 0.60x) is -1.07 dB. All presets sit on the front.
+"""Render presets, chosen from the measured accuracy/time Pareto front: figures and targets in
+docs/bench_accuracy.md (scripts/bench_accuracy.py).
 
 `denoise_prefilter` / `denoise_quality` are Cycles' OIDN `denoising_prefilter` ('NONE', 'FAST',
 'ACCURATE') and `denoising_quality` ('FAST', 'BALANCED', 'HIGH'), recorded in each layer as

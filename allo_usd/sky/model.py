@@ -1,7 +1,7 @@
 """Sky geometry for every scene: station orbit (NRHO approximation), Sun/Earth/Moon, eclipses.
 
 numpy + skyfield only (no pxr, no bpy), so it can be tested and benchmarked on its own.
-Numbers and conventions follow ``shared/design/PHYSICS.md`` sections 1-6.
+Numbers and conventions follow ``docs/physics.md`` sections 1-7.
 
 Ephemeris
     JPL DE421 from the ``skyfield-data`` package, opened offline
@@ -13,7 +13,7 @@ Ephemeris
     (TDB); epochs outside raise :class:`~allo_usd.core.errors.EphemerisRangeError` before skyfield is
     asked for a position.
 
-Station orbit (PHYSICS.md section 1)
+Station orbit (docs/physics.md section 2)
     Ellipse (perilune/apolune radii of :class:`Orbit`) fixed in the Earth-Moon *rotating* frame
     rebuilt at each epoch: x = unit(Moon - Earth), z = unit(r x v) of the Moon about the Earth,
     y = z x x. The ellipse lies in the x-z plane with perilune along +z (over the lunar north
@@ -33,13 +33,13 @@ Station frame (fixed convention; "LVLH-like", relative to the Moon)
     ``Sky.icrf_to_station[i] @ v_icrf`` gives a vector in the station frame; its rows are the
     station X, Y, Z axes in ICRF.
 
-Rendering placement (PHYSICS.md section 3, scheme C)
+Rendering placement (docs/physics.md section 4, scheme C)
     True scale, station at the origin of the station frame: body centre = direction * distance.
     Casting the centres to float32 (Blender) moves the direction seen from a camera within 100 m
     of the origin by at most ~4e-8 rad (Sun, Earth) and the angular radius by ~1e-7 relative;
     tests hold it to 1e-5 rad and 1e-4.
 
-Eclipses (PHYSICS.md section 6)
+Eclipses (docs/physics.md section 7)
     Two-cone test per shadowing body (Moon, Earth) with angles from ``atan2(|a x b|, a . b)``.
     The lit fraction is 1 - (exact area of overlap of the Sun's and the body's discs, taken as
     flat circles with the angular radii) / (area of the Sun's disc); umbra gives exactly 0, lit
@@ -49,7 +49,7 @@ Eclipses (PHYSICS.md section 6)
     is computed exactly (Green's theorem over the boundary arcs); ``eclipse_body`` and ``eclipse_state``
     then follow the body that alone would leave less light.
 
-Sunlight on the bodies (PHYSICS.md sections 5 and 6)
+Sunlight on the bodies (docs/physics.md sections 5 and 7)
     The station's sun lamp carries the STATION's eclipse, so it must not light the Earth and the
     Moon (a station in the Moon's shadow still sees a sunlit Earth). Each body in
     :data:`LIT_BODIES` gets the Sun as seen from its own centre: direction body -> Sun (station
@@ -111,7 +111,7 @@ __all__ = [
 ]
 
 # ---------------------------------------------------------------------------------------------
-# Constants (PHYSICS.md sections 2 and 5)
+# Constants (docs/physics.md sections 3 and 5)
 
 MOON_RADIUS_M = 1_737.4e3
 EARTH_RADIUS_M = 6_371e3
@@ -331,7 +331,7 @@ def solve_kepler(mean_anomaly, eccentricity: float, tol: float = 1e-12, max_iter
 
 @dataclass(frozen=True)
 class Orbit:
-    """NRHO approximation (PHYSICS.md section 1): ellipse in the Earth-Moon rotating x-z plane.
+    """NRHO approximation (docs/physics.md section 2): ellipse in the Earth-Moon rotating x-z plane.
 
     ``perilune_epoch`` is the UTC instant of perilune passage; record it in every layer.
     """
@@ -463,7 +463,7 @@ def disc_overlap_area(r1, r2, d) -> np.ndarray:
 
 
 def classify_eclipse(theta_sun, theta_body, separation, body_nearer=True) -> tuple[np.ndarray, np.ndarray]:
-    """PHYSICS.md section 6 cone test on angular radii and centre separation (radians).
+    """docs/physics.md section 7 cone test on angular radii and centre separation (radians).
 
     Returns (state code array: 0 lit, 1 penumbra, 2 annular, 3 umbra; lit fraction in [0, 1]).
     Only a body nearer than the Sun (``body_nearer``) can shadow. Umbra gives exactly 0 and lit

@@ -22,7 +22,7 @@ from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.usd.asset import commit_layer, new_layer, stage_metadata, write_asset, write_variant_asset
 from allo_usd.scene.spec import CameraPose
 
-# UsdGeom.Camera lens values are tenths of a scene unit (PHYSICS.md section 4).
+# UsdGeom.Camera lens values are tenths of a scene unit (docs/physics.md section 6).
 FOCAL_LENGTH = FOCAL_LENGTH_MM / 100.0
 H_APERTURE = SENSOR_WIDTH_MM / 100.0
 V_APERTURE = SENSOR_HEIGHT_MM / 100.0
@@ -38,7 +38,7 @@ SPOT_OFFSET_M = (0.25, -0.12, 0.0)  # beside the lens, in the camera frame
 
 DEFAULT_RESOLUTION = (1920, 1080)
 
-# Sun lamps (UsdLux light linking, PHYSICS.md sections 5-6): the station's lamp carries the station's
+# Sun lamps (UsdLux light linking, docs/physics.md sections 5, 7): the station's lamp carries the station's
 # eclipse and lights everything but the Earth and the Moon; each of those has a lamp of its own that
 # lights only it, with the Sun as seen from its centre and its own eclipse.
 LIT_BODIES = tuple(name.capitalize() for name in sky.LIT_BODIES)  # prim names of the bodies with a lamp
