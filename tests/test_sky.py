@@ -12,6 +12,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from allo_usd.core import constants as C
 from allo_usd.sky import model as S
 from allo_usd.core.errors import AlloError, EphemerisRangeError, EpochError, SkyInputError
 from allo_usd.sky.model import (BODIES, BODY_RADIUS_M, Orbit, angle_between, body_placement, classify_eclipse,
@@ -243,7 +244,7 @@ def test_each_body_sees_its_own_sun(year):
         d = np.linalg.norm(v, axis=1)
         np.testing.assert_allclose(year.body_sun_distance_m[b], d, rtol=1e-12)
         assert angle_between(year.body_sun_direction[b], v).max() < 1e-12
-        np.testing.assert_allclose(year.body_sun_irradiance_w_m2[b], 1361.0 * (S.AU_M / d) ** 2, rtol=1e-12)
+        np.testing.assert_allclose(year.body_sun_irradiance_w_m2[b], 1361.0 * (C.AU_M / d) ** 2, rtol=1e-12)
         # A different Sun from the station's: the parallax is the body's distance over 1 AU at most.
         parallax = angle_between(year.body_sun_direction[b], year.direction["sun"])
         assert 0 < parallax.max() <= np.arcsin(year.distance_m[b] / year.distance_m["sun"]).max() * 1.001
@@ -274,10 +275,10 @@ def test_total_lunar_eclipse_turns_the_moon_lamp_off_and_a_solar_eclipse_barely_
 @given(sep=st.floats(0.0, 0.02), dist=st.floats(3.6e8, 4.1e8), r=st.floats(1.0, 100.0))
 def test_body_lit_fraction_of_a_small_body_is_the_point_value(sep, dist, r):
     """A body much smaller than the shadow sees what its centre sees (the two-disc lit fraction)."""
-    sun = np.array([[S.AU_M, 0.0, 0.0]])
+    sun = np.array([[C.AU_M, 0.0, 0.0]])
     occ = dist * np.array([[math.cos(sep), math.sin(sep), 0.0]])
-    got = S.body_lit_fraction(sun, np.zeros((1, 3)), r, occ, S.EARTH_RADIUS_M)
-    _, point, *_ = eclipse_from_vectors(sun, occ, S.SUN_RADIUS_M, S.EARTH_RADIUS_M)
+    got = S.body_lit_fraction(sun, np.zeros((1, 3)), r, occ, C.EARTH_RADIUS_M)
+    _, point, *_ = eclipse_from_vectors(sun, occ, C.SUN_RADIUS_M, C.EARTH_RADIUS_M)
     assert 0.0 <= got[0] <= 1.0
     assert got[0] == pytest.approx(point[0], abs=1e-4)
 
@@ -291,8 +292,8 @@ def test_body_lit_fraction_quadrature_converges():
     dts = [start + timedelta(minutes=6 * k) for k in range(50)] + [datetime(2030, 11, 25, 6, 50, tzinfo=UTC)]
     t = S._time_from_utc(dts)
     p_sun, p_earth, p_moon = (body.at(t).position.m.T for body in (e.sun, e.earth, e.moon))
-    for body, occ, rb, ro in ((p_moon, p_earth, S.MOON_RADIUS_M, S.EARTH_RADIUS_M),
-                              (p_earth, p_moon, S.EARTH_RADIUS_M, S.MOON_RADIUS_M)):
+    for body, occ, rb, ro in ((p_moon, p_earth, C.MOON_RADIUS_M, C.EARTH_RADIUS_M),
+                              (p_earth, p_moon, C.EARTH_RADIUS_M, C.MOON_RADIUS_M)):
         coarse = S.body_lit_fraction(p_sun, body, rb, occ, ro)
         fine = S.body_lit_fraction(p_sun, body, rb, occ, ro, points=4096)
         assert np.abs(coarse - fine).max() < 0.005
@@ -408,18 +409,18 @@ def test_classification_stable_under_tiny_perturbation(seed, dist_b, frac, body)
     d /= np.linalg.norm(d)
     r_b = BODY_RADIUS_M[body]
     assume(dist_b > 1.5 * r_b)
-    ts = math.asin(S.SUN_RADIUS_M / 1.496e11)
+    ts = math.asin(C.SUN_RADIUS_M / 1.496e11)
     tb = math.asin(r_b / dist_b)
     sep = frac * (ts + tb)  # from exact alignment (frac 0) to far outside
     margins = [abs(sep - (ts + tb)), abs(sep - abs(tb - ts))]
     assume(min(margins) > 1e-6 * (ts + tb))
     u_sun = d * 1.496e11
     u_b = _rotated(d, sep, rng) * dist_b
-    code0, lit0, *_ = eclipse_from_vectors(u_sun, u_b, S.SUN_RADIUS_M, r_b)
+    code0, lit0, *_ = eclipse_from_vectors(u_sun, u_b, C.SUN_RADIUS_M, r_b)
     for _ in range(20):
         ps = u_sun * (1 + 1e-9 * rng.uniform(-1, 1, 3))
         pb = u_b * (1 + 1e-9 * rng.uniform(-1, 1, 3))
-        code, lit, *_ = eclipse_from_vectors(ps, pb, S.SUN_RADIUS_M, r_b)
+        code, lit, *_ = eclipse_from_vectors(ps, pb, C.SUN_RADIUS_M, r_b)
         assert code == code0
         assert abs(lit - lit0) < 1e-4
         if code0 == S.UMBRA:

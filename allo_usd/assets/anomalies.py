@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from allo_usd.core.errors import UnknownAnomalyError
+from allo_usd.assets.catalogue import ANOMALY_IDS, ANOMALY_VARIANTS
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.assets.primitives import (box, cylinder, cylinder_between, extrude_polygon, frame_from_z, grid,
                                         lathe, merge, path_frames, ring_prism, rot_x, rot_y, rot_z, smooth_path,
@@ -888,28 +889,24 @@ def _camera_unit(variant: str) -> tuple[Parts, Mats]:
 # Registry and public API
 # ---------------------------------------------------------------------------------------------
 
-_BUILDERS: dict[str, tuple[tuple[str, ...], Callable[[str], tuple[Parts, Mats]]]] = {
-    "mli_blanket": (("gold", "silver", "white"), _mli_sheet),
-    "mli_torn_sheet": (("silver", "gold"), _mli_torn),
-    "mli_strip": (("silver", "gold", "white"), _mli_strip),
-    "power_cable": (("black", "orange"), _power_cable),
-    "data_cable": (("white", "blue"), _data_cable),
-    "cable_harness": (("default", "grey"), _cable_harness),
-    "power_drill": (("yellow", "red"), _power_drill),
-    "eva_glove": (("default", "worn", "curled"), _eva_glove),
-    "wrench": (("chrome", "black_oxide"), _wrench),
-    "hammer": (("claw", "mallet"), _hammer),
-    "bolt_cluster": (("steel", "titanium"), _bolt_cluster),
-    "tether_hook": (("default", "yellow"), _tether_hook),
-    "handrail": (("bent", "straight"), _handrail),
-    "crew_bag": (("white", "blue"), _crew_bag),
-    "experiment_box": (("default", "black"), _experiment_box),
-    "camera_unit": (("camera", "light"), _camera_unit),
+_BUILDERS: dict[str, Callable[[str], tuple[Parts, Mats]]] = {
+    "mli_blanket": _mli_sheet,
+    "mli_torn_sheet": _mli_torn,
+    "mli_strip": _mli_strip,
+    "power_cable": _power_cable,
+    "data_cable": _data_cable,
+    "cable_harness": _cable_harness,
+    "power_drill": _power_drill,
+    "eva_glove": _eva_glove,
+    "wrench": _wrench,
+    "hammer": _hammer,
+    "bolt_cluster": _bolt_cluster,
+    "tether_hook": _tether_hook,
+    "handrail": _handrail,
+    "crew_bag": _crew_bag,
+    "experiment_box": _experiment_box,
+    "camera_unit": _camera_unit,
 }
-
-#: Every anomaly id mapped to its variants; the first variant is the default.
-ANOMALY_VARIANTS: dict[str, tuple[str, ...]] = {k: v[0] for k, v in _BUILDERS.items()}
-ANOMALY_IDS: tuple[str, ...] = tuple(ANOMALY_VARIANTS)
 
 
 def build_anomaly(name: str, variant: str | None = None) -> Asset:
@@ -921,7 +918,7 @@ def build_anomaly(name: str, variant: str | None = None) -> Asset:
     if name not in _BUILDERS:
         raise UnknownAnomalyError(
             f"unknown anomaly {name!r}; valid anomaly ids are: {', '.join(ANOMALY_IDS)}")
-    variants, builder = _BUILDERS[name]
+    variants, builder = ANOMALY_VARIANTS[name], _BUILDERS[name]
     variant = variants[0] if variant is None else variant
     if variant not in variants:
         raise UnknownAnomalyError(

@@ -79,20 +79,18 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from allo_usd.core.constants import (AU_M, EARTH_RADIUS_M, GM_SUN_M3_S2, MOON_RADIUS_M, SECONDS_PER_DAY, SOLAR_CONSTANT,
+                                     SUN_RADIUS_M)
 from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
+from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 
 __all__ = [
-    "AU_M",
     "BODIES",
     "BODY_RADIUS_M",
-    "EARTH_RADIUS_M",
     "ECLIPSE_STATES",
     "EclipseEvent",
     "LIT_BODIES",
-    "MOON_RADIUS_M",
     "Orbit",
-    "SOLAR_CONSTANT_W_M2",
-    "SUN_RADIUS_M",
     "Sky",
     "SkyAt",
     "angle_between",
@@ -113,23 +111,16 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 # Constants (PHYSICS.md sections 2 and 5)
 
-MOON_RADIUS_M = 1_737.4e3
-EARTH_RADIUS_M = 6_371e3
-SUN_RADIUS_M = 696_340e3
 BODIES: tuple[str, ...] = ("sun", "earth", "moon")
 BODY_RADIUS_M: dict[str, float] = {"sun": SUN_RADIUS_M, "earth": EARTH_RADIUS_M, "moon": MOON_RADIUS_M}
 SHADOW_BODIES: tuple[str, ...] = ("moon", "earth")
 LIT_BODIES: tuple[str, ...] = ("earth", "moon")  # bodies with a sun lamp of their own
 OCCLUDER: dict[str, str] = {"earth": "moon", "moon": "earth"}  # what can shadow each lit body
-AU_M = 149_597_870_700.0
-SOLAR_CONSTANT_W_M2 = 1361.0
-GM_SUN_M3_S2 = 1.32712440041e20  # for the Sun's tide on the Earth-Moon orbit normal (z_dot)
 ECLIPSE_STATES: tuple[str, ...] = ("lit", "penumbra", "annular", "umbra")  # index = state code
 _STATE_NAMES = np.array(ECLIPSE_STATES)
 _BODY_NAMES = np.array(("",) + SHADOW_BODIES)  # 0 -> '', 1 -> moon, 2 -> earth
 LIT, PENUMBRA, ANNULAR, UMBRA = 0, 1, 2, 3
 
-SECONDS_PER_DAY = 86_400.0
 _EXPIRED_WARNING = r".*finals2000A\.all has expired.*"
 _ISO_FMT = "%Y-%m-%dT%H:%M:%SZ"
 
@@ -186,11 +177,7 @@ def _ephemeris() -> _Ephemeris:
 
 def de421_range() -> tuple[str, str]:
     """The range DE421 covers, as ISO UTC strings (the file's limits are 00:00 TDB)."""
-    e = _ephemeris()
-    with _quiet_expiry():
-        lo = e.ts.tdb_jd(e.start_tdb_jd).utc_strftime(_ISO_FMT)
-        hi = e.ts.tdb_jd(e.end_tdb_jd).utc_strftime(_ISO_FMT)
-    return lo, hi
+    return DE421_START_UTC, DE421_END_UTC
 
 
 def _range_text() -> str:
@@ -628,7 +615,7 @@ def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]
         out[f"distance_m.{body}"] = d
         out[f"direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, u) / d[:, None]
         out[f"angular_radius_rad.{body}"] = np.arcsin(BODY_RADIUS_M[body] / d)
-    out["sun_irradiance_w_m2"] = SOLAR_CONSTANT_W_M2 * (AU_M / out["distance_m.sun"]) ** 2
+    out["sun_irradiance_w_m2"] = SOLAR_CONSTANT * (AU_M / out["distance_m.sun"]) ** 2
     if body_light:  # the Sun as each body sees it, for the lamp that lights only that body
         centres = {"earth": p_earth, "moon": p_moon}
         for body in LIT_BODIES:
@@ -637,7 +624,7 @@ def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]
             occ = OCCLUDER[body]
             out[f"body_sun_distance_m.{body}"] = d
             out[f"body_sun_direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, to_sun) / d[:, None]
-            out[f"body_sun_irradiance_w_m2.{body}"] = SOLAR_CONSTANT_W_M2 * (AU_M / d) ** 2
+            out[f"body_sun_irradiance_w_m2.{body}"] = SOLAR_CONSTANT * (AU_M / d) ** 2
             out[f"body_lit_fraction.{body}"] = body_lit_fraction(
                 p_sun, centres[body], BODY_RADIUS_M[body], centres[occ], BODY_RADIUS_M[occ])
 
