@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from allo_usd.assets.bodies import build_bodies
-from allo_usd.assets.primitives import box, cylinder, rot_y, transform
+from allo_usd.assets.primitives import box, cylinder, transform
+from allo_usd.core.geometry import rot_y
 from allo_usd.scene.spec import CameraPose
 from allo_usd.usd.base_stage import write_base_stage
 from allo_usd.core.geometry import look_at

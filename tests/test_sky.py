@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 from allo_usd.core import constants as C
 from allo_usd.sky import model as S
 from allo_usd.core.errors import AlloError, EphemerisRangeError, EpochError, SkyInputError
-from allo_usd.sky.model import (BODIES, BODY_RADIUS_M, Orbit, angle_between, body_placement, classify_eclipse,
+from allo_usd.core.geometry import angle_between
+from allo_usd.sky.model import (BODIES, BODY_RADIUS_M, Orbit, body_placement, classify_eclipse,
                                 compute_sky, default_epochs, disc_overlap_area, eclipse_from_vectors,
                                 solve_kepler, sun_light)
 from allo_usd.sky.report import CSV_COLUMNS, write_sky_report

@@ -21,10 +21,11 @@ from typing import Callable
 import numpy as np
 
 from allo_usd.core.errors import UnknownAnomalyError
+from allo_usd.core.geometry import rot_x, rot_y, rot_z
 from allo_usd.assets.catalogue import ANOMALY_IDS, ANOMALY_VARIANTS
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.assets.primitives import (box, cylinder, cylinder_between, extrude_polygon, frame_from_z, grid,
-                                        lathe, merge, path_frames, ring_prism, rot_x, rot_y, rot_z, smooth_path,
+                                        lathe, merge, path_frames, ring_prism, smooth_path,
                                         superellipsoid, sweep, transform)
 
 ANOMALY_TRIANGLE_BUDGET = 20_000

@@ -36,7 +36,8 @@ import numpy as np
 
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.assets.primitives import (box, box_between, cylinder, cylinder_between, dish, frame_from_z, grid,
-                                        merge, rot_x, rot_y, rot_z, scale_uv, transform, uv_sphere)
+                                        merge, scale_uv, transform, uv_sphere)
+from allo_usd.core.geometry import rot_x, rot_y, rot_z
 
 # ----------------------------------------------------------------------------- layout constants
 TRUSS_Z = 2.0             # height of the truss axis

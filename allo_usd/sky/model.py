@@ -82,6 +82,7 @@ import numpy as np
 from allo_usd.core.constants import (AU_M, EARTH_RADIUS_M, GM_SUN_M3_S2, MOON_RADIUS_M, SECONDS_PER_DAY, SOLAR_CONSTANT,
                                      SUN_RADIUS_M)
 from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
+from allo_usd.core.geometry import angle_between, rowdot, unit_rows
 from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 
 __all__ = [
@@ -93,7 +94,6 @@ __all__ = [
     "Orbit",
     "Sky",
     "SkyAt",
-    "angle_between",
     "body_lit_fraction",
     "body_placement",
     "body_sun_light",
@@ -392,17 +392,6 @@ class Orbit:
 # Eclipse geometry (pure numpy, vectorised)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def angle_between(a, b) -> np.ndarray:
-    """Angle between vectors (..., 3) as atan2(|a x b|, a . b): accurate at 0 and pi too."""
-    a = _unit(np.asarray(a, dtype=np.float64))
-    b = _unit(np.asarray(b, dtype=np.float64))
-    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i->...", a, b))
-
-
 def _x_minus_sin_x(x: np.ndarray) -> np.ndarray:
     """x - sin(x) without cancellation for small x (Taylor series below 0.5)."""
     x = np.asarray(x, dtype=np.float64)
@@ -534,9 +523,9 @@ def body_lit_fraction(sun, body, body_radius_m: float, occluder, occluder_radius
     out = np.ones(d_s.shape)
     cand = np.flatnonzero((angle_between(u_s, u_o) < reach) & (d_o < d_s))
     if cand.size:
-        s_hat = _unit(u_s[cand])
+        s_hat = unit_rows(u_s[cand])
         helper = np.where(np.abs(s_hat[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-        e1 = _unit(np.cross(s_hat, helper))
+        e1 = unit_rows(np.cross(s_hat, helper))
         e2 = np.cross(s_hat, e1)
         if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
             raise SkyInputError(f"points must be a positive integer, got {points!r}")
@@ -552,10 +541,6 @@ def body_lit_fraction(sun, body, body_radius_m: float, occluder, occluder_radius
 
 # ---------------------------------------------------------------------------------------------
 # Core geometry
-
-
-def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("ni,ni->n", a, b)
 
 
 def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]:
@@ -576,9 +561,9 @@ def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]
     v = v_moon - v_earth
     r_norm = np.linalg.norm(r, axis=1, keepdims=True)
     x = r / r_norm
-    z = _unit(np.cross(r, v))
+    z = unit_rows(np.cross(r, v))
     y = np.cross(z, x)
-    x_dot = (v - x * _rowdot(x, v)[:, None]) / r_norm
+    x_dot = (v - x * rowdot(x, v)[:, None]) / r_norm
     # z_dot from h_dot = r x a: the Earth-Moon central pull drops out, the Sun's tide remains.
     h = np.cross(r, v)
     h_norm = np.linalg.norm(h, axis=1, keepdims=True)
@@ -588,7 +573,7 @@ def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]
         - to_sun_e / np.linalg.norm(to_sun_e, axis=1, keepdims=True) ** 3
     )
     h_dot = np.cross(r, a_tide)
-    z_dot = (h_dot - z * _rowdot(z, h_dot)[:, None]) / h_norm
+    z_dot = (h_dot - z * rowdot(z, h_dot)[:, None]) / h_norm
 
     dt_s = ((np.atleast_1d(t.whole) - tp.whole) + (np.atleast_1d(t.tt_fraction) - tp.tt_fraction)) * SECONDS_PER_DAY
     pos_rot, vel_rot = orbit.rotating_state(dt_s)
@@ -596,8 +581,8 @@ def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]
     vel = vel_rot[:, :1] * x + vel_rot[:, 2:] * z + pos_rot[:, :1] * x_dot + pos_rot[:, 2:] * z_dot
 
     # Station frame: Z zenith (away from the Moon), X along velocity relative to the Moon.
-    zs = _unit(rel)
-    xs = _unit(vel - zs * _rowdot(zs, vel)[:, None])
+    zs = unit_rows(rel)
+    xs = unit_rows(vel - zs * rowdot(zs, vel)[:, None])
     ys = np.cross(zs, xs)
     icrf_to_station = np.stack([xs, ys, zs], axis=1)  # rows = station axes in ICRF
 
@@ -727,17 +712,17 @@ def _lit_two_occluders(u_sun, u_bodies, theta_sun, theta_bodies, seps) -> np.nda
     Disc centres are placed in the azimuthal-equidistant plane about the Sun's centre (the
     separation is preserved exactly) and the uncovered area is computed exactly there.
     """
-    s = _unit(np.asarray(u_sun, dtype=np.float64))
+    s = unit_rows(np.asarray(u_sun, dtype=np.float64))
     helper = np.where(np.abs(s[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    e1 = _unit(np.cross(s, helper))
+    e1 = unit_rows(np.cross(s, helper))
     e2 = np.cross(s, e1)
     centres = []
     for u, sep in zip(u_bodies, seps):
-        b = _unit(np.asarray(u, dtype=np.float64))
-        w = b - s * _rowdot(b, s)[:, None]
+        b = unit_rows(np.asarray(u, dtype=np.float64))
+        w = b - s * rowdot(b, s)[:, None]
         wn = np.linalg.norm(w, axis=1)
         wn = np.where(wn > 0.0, wn, 1.0)
-        centres.append(np.stack([_rowdot(w, e1), _rowdot(w, e2)], axis=1) * (np.asarray(sep) / wn)[:, None])
+        centres.append(np.stack([rowdot(w, e1), rowdot(w, e2)], axis=1) * (np.asarray(sep) / wn)[:, None])
     out = np.empty(s.shape[0])
     for m in range(s.shape[0]):
         r0 = float(theta_sun[m])
