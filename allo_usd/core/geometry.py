@@ -29,6 +29,13 @@ def _unit(name: str, value) -> np.ndarray:
     return a / np.linalg.norm(a)
 
 
+def unit(v) -> np.ndarray:
+    """One vector as float64 divided by its length, unchecked (asset building, where axes are
+    known to be non-zero; `_unit` checks user input)."""
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
 def unit_rows(v) -> np.ndarray:
     """`v` scaled to unit length along its last axis, unchecked (for vectors known to be non-zero;
     `_unit` checks a single vector)."""
