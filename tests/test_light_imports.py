@@ -32,7 +32,7 @@ def test_catalogue_names_every_builder():
 
 def test_de421_range_constants_match_the_file():
     from allo_usd.sky import ephemeris_range as R
-    from allo_usd.sky.model import _ISO_FMT, _ephemeris, _quiet_expiry
+    from allo_usd.sky.ephemeris import _ISO_FMT, _ephemeris, _quiet_expiry
 
     e = _ephemeris()
     assert (e.start_tdb_jd, e.end_tdb_jd) == (R.DE421_START_TDB_JD, R.DE421_END_TDB_JD)

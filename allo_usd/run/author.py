@@ -551,7 +551,8 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     `short` (planned - authored; above 0 only where the top-up bound was reached)."""
     from tqdm import tqdm
 
-    from allo_usd.sky.model import Orbit, compute_sky
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
 
     out_dir = Path(out_dir)
     keys = enumerate_scenes(plan)[: limit if limit is not None else None]
