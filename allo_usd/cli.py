@@ -76,7 +76,9 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out"),
 @app.command()
 def sky(out: Path = typer.Option(Path("out/sky"), "--out"), year: int = 2030, days: int = 365):
     """Write a year's sky table (CSV) and plot (PNG): distance, irradiance, eclipses, angular sizes."""
-    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+    from allo_usd.sky.ephemeris import default_epochs
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
     from allo_usd.sky.report import write_sky_report
 
     s = compute_sky(default_epochs(year, days), Orbit())

@@ -34,7 +34,8 @@ from allo_usd.run.author import (_Context, _drive, _Inline, author, author_sampl
                                  summary_lines, with_tree_stage)
 from allo_usd.plan.enumeration import enumerate_scenes
 from allo_usd.plan.model import paper_plan
-from allo_usd.sky.model import Orbit, compute_sky
+from allo_usd.sky.model import compute_sky
+from allo_usd.sky.orbit import Orbit
 
 ROOT = Path(__file__).resolve().parent.parent
 

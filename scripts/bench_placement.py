@@ -56,7 +56,9 @@ from allo_usd.scene.raycast import RayScene, pixel_rays
 from allo_usd.core.constants import EXPOSURE
 from allo_usd.usd.read import scene_inputs
 from allo_usd.scene.resolve import SceneInputs, build_spec, resolve_camera, resolve_placements
-from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+from allo_usd.sky.ephemeris import default_epochs
+from allo_usd.sky.model import compute_sky
+from allo_usd.sky.orbit import Orbit
 from allo_usd.plan.settings import EffectsSpec, RenderSpec
 
 UTC = timezone.utc

@@ -46,7 +46,9 @@ def author_layers(out: Path, resolution, samples, denoise) -> list[Path]:
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.scene.resolve import resolve_scene
     from allo_usd.usd.read import scene_inputs
-    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+    from allo_usd.sky.ephemeris import default_epochs
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
     from allo_usd.plan.settings import EffectsSpec, RenderSpec
 
     orbit = Orbit()
@@ -91,7 +93,9 @@ def distinct_layers(out: Path, n: int, resolution, samples: int, denoise: bool) 
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.scene.resolve import resolve_scene
     from allo_usd.usd.read import scene_inputs
-    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+    from allo_usd.sky.ephemeris import default_epochs
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
     from allo_usd.plan.settings import EffectsSpec, RenderSpec
 
     orbit = Orbit()

@@ -4,7 +4,7 @@
 
 Timings: best of ``--runs`` after a warm-up call (the first call, which opens DE421, is
 reported separately). Eclipses: every minute of 2030 is classified, then each contact is
-bisected to 0.5 s (``allo_usd.sky.model.eclipse_events``). ``--phases`` repeats the count (at 2-minute
+bisected to 0.5 s (``allo_usd.sky.events.eclipse_events``). ``--phases`` repeats the count (at 2-minute
 steps) for perilune epochs spread over one orbit period, since the count depends on it.
 """
 
@@ -24,8 +24,13 @@ import numpy as np
 if __name__ == "__main__":  # run from a checkout; importing this file changes nothing
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from allo_usd.sky import eclipse as X
+from allo_usd.sky import ephemeris as E
 from allo_usd.sky import model as S
-from allo_usd.sky.model import Orbit, compute_sky, default_epochs, eclipse_events
+from allo_usd.sky.ephemeris import default_epochs
+from allo_usd.sky.events import eclipse_events
+from allo_usd.sky.model import compute_sky
+from allo_usd.sky.orbit import Orbit
 
 UTC = timezone.utc
 START, STOP = datetime(2030, 1, 1, tzinfo=UTC), datetime(2031, 1, 1, tzinfo=UTC)
@@ -59,19 +64,19 @@ def main() -> int:
     epochs = default_epochs(2030, 365)
     timings: list[tuple[str, float]] = []
 
-    S._ephemeris.cache_clear()
+    E._ephemeris.cache_clear()
     t0 = time.perf_counter()
     year = compute_sky(epochs)
     timings.append(("first compute_sky, 365 days (opens DE421)", (time.perf_counter() - t0) * 1e3))
     year_ms = best_of(lambda: compute_sky(epochs), args.runs)
     timings.append((f"compute_sky, 365 days (best of {args.runs})", year_ms))
 
-    e = S._ephemeris()
-    t = S._time_from_utc([d.astimezone(UTC) for d in epochs])
+    e = E._ephemeris()
+    t = E._time_from_utc([d.astimezone(UTC) for d in epochs])
     timings.append((f"  of which skyfield Sun+Earth+Moon .at(), 365 (best of {args.runs})",
                     best_of(lambda: (e.sun.at(t), e.earth.at(t), e.moon.at(t)), args.runs)))
     timings.append((f"  of which epochs -> skyfield Time, 365 (best of {args.runs})",
-                    best_of(lambda: S._time_from_utc([d.astimezone(UTC) for d in epochs]), args.runs)))
+                    best_of(lambda: E._time_from_utc([d.astimezone(UTC) for d in epochs]), args.runs)))
     hourly = [START + timedelta(hours=k) for k in range(24 * 365)]
     timings.append(("compute_sky, 8,760 hours of 2030 (best of 5)", best_of(lambda: compute_sky(hourly), 5)))
     timings.append(("Sky.at + body_placement + sun_light, 1 day (best of 1000)",
@@ -85,7 +90,7 @@ def main() -> int:
     moon = [ev for ev in events if ev.body == "moon"]
     earth = [ev for ev in events if ev.body == "earth"]
     states = np.asarray(year.eclipse_state)
-    days = {s: int(np.sum(states == s)) for s in S.ECLIPSE_STATES}
+    days = {s: int(np.sum(states == s)) for s in X.ECLIPSE_STATES}
 
     phase_rows = []
     period = Orbit().period_days

@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 
-from allo_usd.assets.primitives import box, cylinder, rot_y, transform
+from allo_usd.assets.primitives import box, cylinder, transform
+from allo_usd.core.geometry import rot_y
 from allo_usd.core.geometry import look_at
 from allo_usd.assets.mesh import Asset, Material
 from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec

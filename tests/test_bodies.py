@@ -122,7 +122,8 @@ def test_rendered_body_has_its_albedo_and_a_terminator(tiny_base, tmp_path, body
     from allo_usd.core.geometry import look_at
     from allo_usd.usd.read import read_scene
     from allo_usd.scene.resolve import sun_and_bodies
-    from allo_usd.sky.model import compute_sky, default_epochs
+    from allo_usd.sky.ephemeris import default_epochs
+    from allo_usd.sky.model import compute_sky
     from allo_usd.scene.spec import CameraSpec
     from allo_usd.plan.settings import EffectsSpec
 

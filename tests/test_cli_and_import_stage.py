@@ -60,7 +60,8 @@ def test_base_stage_from_the_real_iss_renders(tmp_path):
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.scene.resolve import resolve_scene
     from allo_usd.usd.read import scene_inputs
-    from allo_usd.sky.model import compute_sky, default_epochs
+    from allo_usd.sky.ephemeris import default_epochs
+    from allo_usd.sky.model import compute_sky
     from allo_usd.plan.settings import RenderSpec
 
     pts, _ = read_triangles(base, "/World/Station")

@@ -166,7 +166,8 @@ def test_composed_values_equal_resolve_scene(authored, tmp_path):
     from allo_usd.scene.resolve import resolve_scene
     from allo_usd.usd.read import scene_inputs
     from allo_usd.plan.settings import preset_spec
-    from allo_usd.sky.model import Orbit, compute_sky
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
 
     out, paths = authored
     plan = tiny_plan()

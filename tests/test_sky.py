@@ -12,11 +12,16 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from allo_usd.core import constants as C
+from allo_usd.sky import eclipse as X
+from allo_usd.sky import ephemeris as E
 from allo_usd.sky import model as S
 from allo_usd.core.errors import AlloError, EphemerisRangeError, EpochError, SkyInputError
-from allo_usd.sky.model import (BODIES, BODY_RADIUS_M, Orbit, angle_between, body_placement, classify_eclipse,
-                                compute_sky, default_epochs, disc_overlap_area, eclipse_from_vectors,
-                                solve_kepler, sun_light)
+from allo_usd.core.geometry import angle_between
+from allo_usd.sky.eclipse import classify_eclipse, disc_overlap_area, eclipse_from_vectors
+from allo_usd.sky.ephemeris import default_epochs
+from allo_usd.sky.model import BODIES, BODY_RADIUS_M, body_placement, compute_sky, sun_light
+from allo_usd.sky.orbit import Orbit, solve_kepler
 from allo_usd.sky.report import CSV_COLUMNS, write_sky_report
 
 UTC = timezone.utc
@@ -73,7 +78,7 @@ def test_period_and_distance_range():
 def test_perilune_over_north_pole_of_rotating_frame():
     o = Orbit(perilune_epoch=datetime(2030, 5, 17, 6, tzinfo=UTC))
     sky = compute_sky([o.perilune_epoch], o)
-    eph = S._ephemeris()
+    eph = E._ephemeris()
     t = eph.ts.from_datetime(o.perilune_epoch)
     r = (eph.moon.at(t).position.m - eph.earth.at(t).position.m)
     v = (eph.moon.at(t).velocity.m_per_s - eph.earth.at(t).velocity.m_per_s)
@@ -110,7 +115,7 @@ def test_de421_range_edges():
 
 
 def test_skyfield_range_error_is_translated():
-    eph = S._ephemeris()
+    eph = E._ephemeris()
     t = eph.ts.utc(np.array([2060]), 1, 1)  # bypass the pre-check on purpose
     with pytest.raises(EphemerisRangeError, match="1899-07-29"):
         S._geometry(t, Orbit())
@@ -142,7 +147,7 @@ def test_aware_non_utc_and_iso_strings_are_converted():
 
 
 def test_no_expired_warning_leaks(recwarn):
-    S._ephemeris.cache_clear()
+    E._ephemeris.cache_clear()
     before = list(warnings.filters)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -243,7 +248,7 @@ def test_each_body_sees_its_own_sun(year):
         d = np.linalg.norm(v, axis=1)
         np.testing.assert_allclose(year.body_sun_distance_m[b], d, rtol=1e-12)
         assert angle_between(year.body_sun_direction[b], v).max() < 1e-12
-        np.testing.assert_allclose(year.body_sun_irradiance_w_m2[b], 1361.0 * (S.AU_M / d) ** 2, rtol=1e-12)
+        np.testing.assert_allclose(year.body_sun_irradiance_w_m2[b], 1361.0 * (C.AU_M / d) ** 2, rtol=1e-12)
         # A different Sun from the station's: the parallax is the body's distance over 1 AU at most.
         parallax = angle_between(year.body_sun_direction[b], year.direction["sun"])
         assert 0 < parallax.max() <= np.arcsin(year.distance_m[b] / year.distance_m["sun"]).max() * 1.001
@@ -274,10 +279,10 @@ def test_total_lunar_eclipse_turns_the_moon_lamp_off_and_a_solar_eclipse_barely_
 @given(sep=st.floats(0.0, 0.02), dist=st.floats(3.6e8, 4.1e8), r=st.floats(1.0, 100.0))
 def test_body_lit_fraction_of_a_small_body_is_the_point_value(sep, dist, r):
     """A body much smaller than the shadow sees what its centre sees (the two-disc lit fraction)."""
-    sun = np.array([[S.AU_M, 0.0, 0.0]])
+    sun = np.array([[C.AU_M, 0.0, 0.0]])
     occ = dist * np.array([[math.cos(sep), math.sin(sep), 0.0]])
-    got = S.body_lit_fraction(sun, np.zeros((1, 3)), r, occ, S.EARTH_RADIUS_M)
-    _, point, *_ = eclipse_from_vectors(sun, occ, S.SUN_RADIUS_M, S.EARTH_RADIUS_M)
+    got = X.body_lit_fraction(sun, np.zeros((1, 3)), r, occ, C.EARTH_RADIUS_M)
+    _, point, *_ = eclipse_from_vectors(sun, occ, C.SUN_RADIUS_M, C.EARTH_RADIUS_M)
     assert 0.0 <= got[0] <= 1.0
     assert got[0] == pytest.approx(point[0], abs=1e-4)
 
@@ -286,19 +291,19 @@ def test_body_lit_fraction_quadrature_converges():
     """256 points against 4,096 through a lunar and a solar eclipse: within 0.005."""
     from datetime import timedelta
 
-    e = S._ephemeris()
+    e = E._ephemeris()
     start = datetime(2029, 12, 20, 20, 0, tzinfo=UTC)
     dts = [start + timedelta(minutes=6 * k) for k in range(50)] + [datetime(2030, 11, 25, 6, 50, tzinfo=UTC)]
-    t = S._time_from_utc(dts)
+    t = E._time_from_utc(dts)
     p_sun, p_earth, p_moon = (body.at(t).position.m.T for body in (e.sun, e.earth, e.moon))
-    for body, occ, rb, ro in ((p_moon, p_earth, S.MOON_RADIUS_M, S.EARTH_RADIUS_M),
-                              (p_earth, p_moon, S.EARTH_RADIUS_M, S.MOON_RADIUS_M)):
-        coarse = S.body_lit_fraction(p_sun, body, rb, occ, ro)
-        fine = S.body_lit_fraction(p_sun, body, rb, occ, ro, points=4096)
+    for body, occ, rb, ro in ((p_moon, p_earth, C.MOON_RADIUS_M, C.EARTH_RADIUS_M),
+                              (p_earth, p_moon, C.EARTH_RADIUS_M, C.MOON_RADIUS_M)):
+        coarse = X.body_lit_fraction(p_sun, body, rb, occ, ro)
+        fine = X.body_lit_fraction(p_sun, body, rb, occ, ro, points=4096)
         assert np.abs(coarse - fine).max() < 0.005
         assert (fine < 1.0).any()
     with pytest.raises(SkyInputError, match="overlap"):
-        S.body_lit_fraction(p_sun[:1], p_moon[:1], rb, p_moon[:1] + 1.0, ro)
+        X.body_lit_fraction(p_sun[:1], p_moon[:1], rb, p_moon[:1] + 1.0, ro)
 
 
 @FAST
@@ -365,14 +370,14 @@ def test_lit_fraction_monotone_in_separation(ts, tb, s1, s2):
 @given(ts=st.floats(0.001, 0.02), tb=radius, extra=st.floats(0.0, 1.0))
 def test_far_apart_is_lit_and_full_cover_is_umbra(ts, tb, extra):
     code, lit = classify_eclipse(ts, tb, ts + tb + extra + 1e-12)
-    assert code == S.LIT and lit == 1.0
+    assert code == X.LIT and lit == 1.0
     assume(tb > ts * 1.0001)
     sep = extra * (tb - ts) * 0.999
     code, lit = classify_eclipse(ts, tb, sep)
-    assert code == S.UMBRA and lit == 0.0
+    assert code == X.UMBRA and lit == 0.0
     # body not nearer than the Sun casts no shadow
     code, lit = classify_eclipse(ts, tb, sep, body_nearer=False)
-    assert code == S.LIT and lit == 1.0
+    assert code == X.LIT and lit == 1.0
 
 
 @FAST
@@ -380,7 +385,7 @@ def test_far_apart_is_lit_and_full_cover_is_umbra(ts, tb, extra):
 def test_annular_lit_fraction(ts, k, f):
     tb = k * ts
     code, lit = classify_eclipse(ts, tb, f * (ts - tb))
-    assert code == S.ANNULAR
+    assert code == X.ANNULAR
     assert lit == pytest.approx(1 - k * k, rel=1e-9)
 
 
@@ -408,21 +413,21 @@ def test_classification_stable_under_tiny_perturbation(seed, dist_b, frac, body)
     d /= np.linalg.norm(d)
     r_b = BODY_RADIUS_M[body]
     assume(dist_b > 1.5 * r_b)
-    ts = math.asin(S.SUN_RADIUS_M / 1.496e11)
+    ts = math.asin(C.SUN_RADIUS_M / 1.496e11)
     tb = math.asin(r_b / dist_b)
     sep = frac * (ts + tb)  # from exact alignment (frac 0) to far outside
     margins = [abs(sep - (ts + tb)), abs(sep - abs(tb - ts))]
     assume(min(margins) > 1e-6 * (ts + tb))
     u_sun = d * 1.496e11
     u_b = _rotated(d, sep, rng) * dist_b
-    code0, lit0, *_ = eclipse_from_vectors(u_sun, u_b, S.SUN_RADIUS_M, r_b)
+    code0, lit0, *_ = eclipse_from_vectors(u_sun, u_b, C.SUN_RADIUS_M, r_b)
     for _ in range(20):
         ps = u_sun * (1 + 1e-9 * rng.uniform(-1, 1, 3))
         pb = u_b * (1 + 1e-9 * rng.uniform(-1, 1, 3))
-        code, lit, *_ = eclipse_from_vectors(ps, pb, S.SUN_RADIUS_M, r_b)
+        code, lit, *_ = eclipse_from_vectors(ps, pb, C.SUN_RADIUS_M, r_b)
         assert code == code0
         assert abs(lit - lit0) < 1e-4
-        if code0 == S.UMBRA:
+        if code0 == X.UMBRA:
             assert lit == 0.0
 
 
@@ -430,15 +435,15 @@ def test_two_occluders_exact_area():
     r0 = 0.00465
     # one occluder far away: equals the single-disc exact answer
     single = 1 - disc_overlap_area(r0, 0.01, 0.012) / (math.pi * r0 * r0)
-    both = S._sun_minus_discs_area(r0, [(0.012, 0.0, 0.01), (1.0, 0.0, 0.01)]) / (math.pi * r0 * r0)
+    both = X._sun_minus_discs_area(r0, [(0.012, 0.0, 0.01), (1.0, 0.0, 0.01)]) / (math.pi * r0 * r0)
     assert both == pytest.approx(single, rel=1e-12)
     # two occluders on opposite limbs, not touching each other: areas add
     a1 = disc_overlap_area(r0, 0.01, 0.013)
     a2 = disc_overlap_area(r0, 0.004, 0.006)
-    rest = S._sun_minus_discs_area(r0, [(0.013, 0.0, 0.01), (-0.006, 0.0, 0.004)])
+    rest = X._sun_minus_discs_area(r0, [(0.013, 0.0, 0.01), (-0.006, 0.0, 0.004)])
     assert rest == pytest.approx(math.pi * r0 * r0 - a1 - a2, rel=1e-10)
     # identical occluders: union = one of them
-    same = S._sun_minus_discs_area(r0, [(0.0, 0.008, 0.006), (0.0, 0.008, 0.006)])
+    same = X._sun_minus_discs_area(r0, [(0.0, 0.008, 0.006), (0.0, 0.008, 0.006)])
     assert same == pytest.approx(math.pi * r0 * r0 - disc_overlap_area(r0, 0.006, 0.008), rel=1e-10)
 
 

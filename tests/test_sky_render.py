@@ -15,7 +15,8 @@ from allo_usd.blender.render import render_scene
 from allo_usd.core.geometry import camera_intrinsics, look_at, matrix_to_quat
 from allo_usd.usd.read import read_scene
 from allo_usd.scene.resolve import sun_and_bodies
-from allo_usd.sky.model import compute_sky, default_epochs
+from allo_usd.sky.ephemeris import default_epochs
+from allo_usd.sky.model import compute_sky
 from allo_usd.scene.spec import CameraSpec
 from allo_usd.plan.settings import EffectsSpec
 

@@ -21,9 +21,11 @@ from typing import Callable
 import numpy as np
 
 from allo_usd.core.errors import UnknownAnomalyError
+from allo_usd.core.geometry import rot_x, rot_y, rot_z, unit
+from allo_usd.assets.catalogue import ANOMALY_IDS, ANOMALY_VARIANTS
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.assets.primitives import (box, cylinder, cylinder_between, extrude_polygon, frame_from_z, grid,
-                                        lathe, merge, path_frames, ring_prism, rot_x, rot_y, rot_z, smooth_path,
+                                        lathe, merge, path_frames, ring_prism, smooth_path,
                                         superellipsoid, sweep, transform)
 
 ANOMALY_TRIANGLE_BUDGET = 20_000
@@ -40,14 +42,9 @@ def _m(name: str, rgb, metallic: float = 0.0, roughness: float = 0.5) -> Materia
     return Material(name, tuple(float(c) for c in rgb), float(metallic), float(roughness))
 
 
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v)
-
-
 def _rot(axis, angle: float) -> np.ndarray:
     """Rotation matrix about a unit axis (Rodrigues)."""
-    k = _unit(axis)
+    k = unit(axis)
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
 
@@ -129,7 +126,7 @@ def _fold(pts: np.ndarray, origin, normal_angle: float, radius: float, angle: fl
 
 
 def _random_walk(rng: np.random.Generator, n: int, step: float, max_turn: float) -> np.ndarray:
-    d = _unit(rng.normal(size=3))
+    d = unit(rng.normal(size=3))
     pts = [np.zeros(3)]
     for _ in range(n - 1):
         axis = np.cross(d, rng.normal(size=3))
@@ -249,7 +246,7 @@ def _mli_sheet(variant: str) -> tuple[Parts, Mats]:
             i = r_ * w + c_
             nrm = np.cross(pts[i + 1] - pts[i - 1], pts[i + w] - pts[i - w])
             ties.append(cylinder(f"tie_{len(ties)}", 0.0065, 0.0025, "binding", 10,
-                                 _axis_matrix(pts[i] - 0.0005 * _unit(nrm), nrm)))
+                                 _axis_matrix(pts[i] - 0.0005 * unit(nrm), nrm)))
     outer, inner = {"gold": ("kapton", "aluminized"), "silver": ("aluminized", "mylar_bronze"),
                     "white": ("beta_cloth", "aluminized")}[variant]
     mats = [_mli_mat("outer", outer), _mli_mat("inner", inner), _m("binding", (0.55, 0.55, 0.53), 0.0, 0.75)]
@@ -379,7 +376,7 @@ def _data_cable(variant: str) -> tuple[Parts, Mats]:
         seg = _resample(path, np.linspace(s0, s0 + 0.04, 8))
         labels.append(sweep(f"label_{i}", seg, r * 1.4, "label", segments=10))
     parts.append(merge("id_labels", labels))
-    tips = [cylinder_between(f"tip_{i}", p, p + 0.012 * _unit(p - q), r * 0.5, "conductor", 8)
+    tips = [cylinder_between(f"tip_{i}", p, p + 0.012 * unit(p - q), r * 0.5, "conductor", 8)
             for i, (p, q) in enumerate(((path[0], path[1]), (path[-1], path[-2])))]
     parts.append(merge("conductors", tips))
     jacket = {"white": (0.78, 0.78, 0.76), "blue": (0.04, 0.12, 0.5)}[variant]
@@ -405,7 +402,7 @@ def _cable_harness(variant: str) -> tuple[Parts, Mats]:
         path = _resample(path, np.linspace(trim[0], _arc_length(path) - trim[1], 220))
         wires.append(sweep(f"wire_{i}", path, r, f"wire_{i}", segments=8))
         for p, q in ((path[0], path[1]), (path[-1], path[-2])):
-            tips.append(cylinder_between(f"tip_{i}_{len(tips)}", p, p + 0.01 * _unit(p - q), r * 0.55,
+            tips.append(cylinder_between(f"tip_{i}_{len(tips)}", p, p + 0.01 * unit(p - q), r * 0.55,
                                          "conductor", 8))
     ties = []
     for k, st in enumerate(np.arange(0.16, length - 0.1, 0.2)):
@@ -474,7 +471,7 @@ def _finger_path(base, direction, bend_axis, length: float, bend: float, samples
                  tip_r: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Centre line of a finger (3 phalanges bending about `bend_axis`) and arc lengths of the
     samples, dense near the rounded tip."""
-    d = _unit(direction)
+    d = unit(direction)
     pts = [np.asarray(base, dtype=np.float64)]
     for frac in (0.45, 0.3, 0.25):
         d = _rot(bend_axis, bend) @ d
@@ -508,7 +505,7 @@ def _eva_glove(variant: str) -> tuple[Parts, Mats]:
         fingers.append(sweep(f"finger_{i}", path, rad, "fabric", segments=14))
         k = int(np.searchsorted(s, s[-1] - 0.024))
         tips.append(sweep(f"tip_{i}", path[k:], rad[k:] + 0.0009, "rubber", segments=14))
-    thumb_axis = _unit((0.3, 0.35, -1.0))
+    thumb_axis = unit((0.3, 0.35, -1.0))
     path, s = _finger_path((-0.04, -0.005, -0.004), (-0.75, 0.62, -0.25), thumb_axis, 0.075, -curl * 0.8,
                            tip_r=0.0115)
     rad = _finger_radius(s, 0.0135, 0.0115)
@@ -686,8 +683,8 @@ def _tether_hook(variant: str) -> tuple[Parts, Mats]:
     parts.append(sweep("stitching", stitch_pts, 0.0015, "stitch", segments=12, aspect=7.5, exponent=0.3,
                        up=up[:6]))
     end = path[-1]
-    t_end = _unit(path[-1] - path[-3])
-    ring_frame = np.column_stack([_unit(np.cross(up[-1], t_end)), up[-1], t_end])
+    t_end = unit(path[-1] - path[-3])
+    ring_frame = np.column_stack([unit(np.cross(up[-1], t_end)), up[-1], t_end])
     dring = np.array([[0.0, 0.0], [0.018, 0.0], [0.018, 0.006], [0.009, 0.02], [-0.009, 0.02], [-0.018, 0.006],
                       [-0.018, 0.0]])
     dring3 = end + np.column_stack([dring[:, 0], np.zeros(len(dring)), dring[:, 1] + 0.004]) @ np.column_stack(
@@ -888,28 +885,24 @@ def _camera_unit(variant: str) -> tuple[Parts, Mats]:
 # Registry and public API
 # ---------------------------------------------------------------------------------------------
 
-_BUILDERS: dict[str, tuple[tuple[str, ...], Callable[[str], tuple[Parts, Mats]]]] = {
-    "mli_blanket": (("gold", "silver", "white"), _mli_sheet),
-    "mli_torn_sheet": (("silver", "gold"), _mli_torn),
-    "mli_strip": (("silver", "gold", "white"), _mli_strip),
-    "power_cable": (("black", "orange"), _power_cable),
-    "data_cable": (("white", "blue"), _data_cable),
-    "cable_harness": (("default", "grey"), _cable_harness),
-    "power_drill": (("yellow", "red"), _power_drill),
-    "eva_glove": (("default", "worn", "curled"), _eva_glove),
-    "wrench": (("chrome", "black_oxide"), _wrench),
-    "hammer": (("claw", "mallet"), _hammer),
-    "bolt_cluster": (("steel", "titanium"), _bolt_cluster),
-    "tether_hook": (("default", "yellow"), _tether_hook),
-    "handrail": (("bent", "straight"), _handrail),
-    "crew_bag": (("white", "blue"), _crew_bag),
-    "experiment_box": (("default", "black"), _experiment_box),
-    "camera_unit": (("camera", "light"), _camera_unit),
+_BUILDERS: dict[str, Callable[[str], tuple[Parts, Mats]]] = {
+    "mli_blanket": _mli_sheet,
+    "mli_torn_sheet": _mli_torn,
+    "mli_strip": _mli_strip,
+    "power_cable": _power_cable,
+    "data_cable": _data_cable,
+    "cable_harness": _cable_harness,
+    "power_drill": _power_drill,
+    "eva_glove": _eva_glove,
+    "wrench": _wrench,
+    "hammer": _hammer,
+    "bolt_cluster": _bolt_cluster,
+    "tether_hook": _tether_hook,
+    "handrail": _handrail,
+    "crew_bag": _crew_bag,
+    "experiment_box": _experiment_box,
+    "camera_unit": _camera_unit,
 }
-
-#: Every anomaly id mapped to its variants; the first variant is the default.
-ANOMALY_VARIANTS: dict[str, tuple[str, ...]] = {k: v[0] for k, v in _BUILDERS.items()}
-ANOMALY_IDS: tuple[str, ...] = tuple(ANOMALY_VARIANTS)
 
 
 def build_anomaly(name: str, variant: str | None = None) -> Asset:
@@ -921,7 +914,7 @@ def build_anomaly(name: str, variant: str | None = None) -> Asset:
     if name not in _BUILDERS:
         raise UnknownAnomalyError(
             f"unknown anomaly {name!r}; valid anomaly ids are: {', '.join(ANOMALY_IDS)}")
-    variants, builder = _BUILDERS[name]
+    variants, builder = ANOMALY_VARIANTS[name], _BUILDERS[name]
     variant = variants[0] if variant is None else variant
     if variant not in variants:
         raise UnknownAnomalyError(

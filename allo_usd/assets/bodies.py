@@ -33,14 +33,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from allo_usd.core.constants import AU_M, SOLAR_CONSTANT, SUN_RADIUS_M
 from allo_usd.assets.mesh import Asset, Material
 from allo_usd.assets.primitives import uv_sphere
 
-SOLAR_CONSTANT_W_M2 = 1361.0
-AU_M = 1.495978707e11
-SUN_RADIUS_M = 696_340e3
 # Radiance of the solar disc: irradiance / solid angle = E / (pi sin^2 theta) at 1 AU.
-SUN_RADIANCE = SOLAR_CONSTANT_W_M2 / (np.pi * (SUN_RADIUS_M / AU_M) ** 2)
+SUN_RADIANCE = SOLAR_CONSTANT / (np.pi * (SUN_RADIUS_M / AU_M) ** 2)
 
 MOON_ALBEDO = 0.11    # Bond albedo (geometric: 0.12)
 EARTH_ALBEDO = 0.306  # Bond albedo (geometric: 0.434)

@@ -21,21 +21,6 @@ def transform(translate=(0.0, 0.0, 0.0), rotate: np.ndarray | None = None, scale
     return m
 
 
-def rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=np.float64)
-
-
-def rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
-
-
 def frame_from_z(axis: np.ndarray) -> np.ndarray:
     """A rotation whose third column is unit(axis): maps local +Z onto `axis`."""
     z = np.asarray(axis, dtype=np.float64)

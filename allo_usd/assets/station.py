@@ -36,7 +36,8 @@ import numpy as np
 
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.assets.primitives import (box, box_between, cylinder, cylinder_between, dish, frame_from_z, grid,
-                                        merge, rot_x, rot_y, rot_z, scale_uv, transform, uv_sphere)
+                                        merge, scale_uv, transform, uv_sphere)
+from allo_usd.core.geometry import rot_x, rot_y, rot_z, unit
 
 # ----------------------------------------------------------------------------- layout constants
 TRUSS_Z = 2.0             # height of the truss axis
@@ -227,16 +228,11 @@ def _cached_textures() -> dict[str, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- helpers
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v)
-
-
 def _basis(u, v) -> np.ndarray:
     """Rotation with columns u, v (orthogonalised), u x v."""
-    u = _unit(u)
+    u = unit(u)
     v = np.asarray(v, dtype=np.float64)
-    v = _unit(v - np.dot(v, u) * u)
+    v = unit(v - np.dot(v, u) * u)
     return np.stack([u, v, np.cross(u, v)], axis=1)
 
 
@@ -458,7 +454,7 @@ def _panel_stack(b: _Parts, group: str, start, length_dir, width_dir, width: flo
                  panel: float, gap: float, offset: float, matrix) -> None:
     """n thin radiator panels in a row from `start`, with two edge rails behind them."""
     start = np.asarray(start, dtype=np.float64)
-    r, w = _unit(length_dir), _unit(width_dir)
+    r, w = unit(length_dir), unit(width_dir)
     normal = np.cross(w, r)
     for i in range(n):
         c = start + r * (offset + i * (panel + gap) + panel / 2)
@@ -565,9 +561,9 @@ def _solar(b: _Parts) -> None:
 def _small_array(b: _Parts, root, direction, length: float, width: float, tilt: float, group: str) -> None:
     """A single-blanket array on a boom (Russian modules, vehicles): direction is the span."""
     root = np.asarray(root, dtype=np.float64)
-    d = _unit(direction)
+    d = unit(direction)
     n = rot_y(tilt) @ np.array([0.0, 0.0, 1.0])
-    n = _unit(n - np.dot(n, d) * d)
+    n = unit(n - np.dot(n, d) * d)
     w = np.cross(d, n)                       # across the blanket
     c = root + d * (0.6 + length / 2)
     rot_f = np.stack([w, d, n], 1)           # grid u->w, v->d, normal n
@@ -586,7 +582,7 @@ def _small_array(b: _Parts, root, direction, length: float, width: float, tilt: 
 def _sections(b: _Parts, start, axis, sections, segments: int = 48) -> float:
     """Stack of cylinders / frusta along `axis` from `start`: (length, r0, r1, group, material)."""
     start = np.asarray(start, dtype=np.float64)
-    axis = _unit(axis)
+    axis = unit(axis)
     rot = frame_from_z(axis)
     t = 0.0
     for length, r0, r1, group, mat in sections:
@@ -612,7 +608,7 @@ def _foil(length: float, r0: float, r1: float) -> tuple:
 
 def _handrails(b: _Parts, start, axis, radius: float, t0: float, t1: float, angles, spacing: float = 1.6) -> None:
     start = np.asarray(start, dtype=np.float64)
-    axis = _unit(axis)
+    axis = unit(axis)
     e1, e2 = _perp(axis)
     n = max(1, int((t1 - t0) // spacing))
     ts = np.linspace(t0, t1, n + 2)[1:-1]
@@ -631,7 +627,7 @@ def _handrails(b: _Parts, start, axis, radius: float, t0: float, t1: float, angl
 def _clutter(rng, b: _Parts, start, axis, radius: float, t0: float, t1: float, count: int) -> None:
     """Small external boxes (avionics, MLI-covered payloads, grapple fixtures) on a barrel."""
     start = np.asarray(start, dtype=np.float64)
-    axis = _unit(axis)
+    axis = unit(axis)
     e1, e2 = _perp(axis)
     for k in range(count):
         a = rng.uniform(0, 2 * np.pi)
@@ -656,7 +652,7 @@ def _clutter(rng, b: _Parts, start, axis, radius: float, t0: float, t1: float, c
 
 def _cbm(b: _Parts, center, axis, r: float = 1.0, length: float = 0.35) -> None:
     """A berthing / docking ring from `center` along `axis`."""
-    axis = _unit(axis)
+    axis = unit(axis)
     b.add("module_ports", METAL, cylinder("p", r, length, METAL, 32, transform(center, frame_from_z(axis))))
 
 
@@ -682,7 +678,7 @@ def _node_ports(b: _Parts, center, radius: float, dirs, reach: float = 2.7) -> N
     """Berthing rings on a node's sides, each reaching `reach` from the node axis."""
     center = np.asarray(center, dtype=np.float64)
     for d in dirs:
-        d = _unit(d)
+        d = unit(d)
         _cbm(b, center + d * (radius - 0.2), d, 1.05, reach - radius + 0.2)
 
 
@@ -699,9 +695,9 @@ def _cupola(b: _Parts, top) -> None:
         i, j = k, (k + 1) % 6
         quad = pts[[i, j, j + 6, i + 6]]
         c = quad.mean(axis=0)
-        nrm = _unit(np.cross(quad[1] - quad[0], quad[2] - quad[1]))
-        along = _unit(quad[1] - quad[0])
-        up = _unit(np.cross(nrm, along))
+        nrm = unit(np.cross(quad[1] - quad[0], quad[2] - quad[1]))
+        along = unit(quad[1] - quad[0])
+        up = unit(np.cross(nrm, along))
         b.add("module_windows", WINDOW, _obox(c + nrm * 0.01, along, up, (0.75, 0.5, 0.03), WINDOW))
     b.add("module_windows", WINDOW, cylinder("p", 0.5, 0.05, WINDOW, 24, transform(top + down * 1.2, rot)))
 
@@ -783,7 +779,7 @@ def _modules(rng, b: _Parts) -> None:
     b.add("antennas", SKIN, dish("p", 0.95, 0.3, SKIN, 28, 4,
                                  transform(ku_base + (0.3, -0.5, 2.75), frame_from_z((1.0, -0.4, 0.8)))))
     b.add("truss_hardware", METAL, cylinder_between("p", ku_base + (0.3, -0.5, 2.75),
-                                                    ku_base + (0.3, -0.5, 2.75) + _unit((1.0, -0.4, 0.8)) * 0.9,
+                                                    ku_base + (0.3, -0.5, 2.75) + unit((1.0, -0.4, 0.8)) * 0.9,
                                                     0.05, METAL, 8))
     # PMA-1 between Unity and Zarya
     _sections(b, (-9.75, 0, zc), -X, [(2.0, 1.0, 1.3, "module_pma", SKIN)])
@@ -840,7 +836,7 @@ def _modules(rng, b: _Parts) -> None:
 def _soyuz(b: _Parts, start, axis, group: str) -> None:
     """Orbital module sphere, descent-module bell, service module with two small arrays."""
     start = np.asarray(start, dtype=np.float64)
-    axis = _unit(axis)
+    axis = unit(axis)
     orbital = uv_sphere("p", 1.13, MLI_SILVER, 28, 14, transform(start + axis * 1.13))
     b.add("russian_mli", MLI_SILVER, _sphere_tiled(orbital, 1.13, MLI_TILE))
     dark = "module_details_dark"
@@ -854,7 +850,7 @@ def _soyuz(b: _Parts, start, axis, group: str) -> None:
 
 def _progress(b: _Parts, start, axis) -> None:
     start = np.asarray(start, dtype=np.float64)
-    axis = _unit(axis)
+    axis = unit(axis)
     b.add("russian_mli", MLI_SILVER, _sphere_tiled(uv_sphere("p", 1.12, MLI_SILVER, 28, 14,
                                                                   transform(start + axis * 1.25)), 1.12, MLI_TILE))
     _sections(b, start + axis * 2.2, axis, [(1.7, 1.1, 1.1, "vehicles", SKIN),

@@ -6,7 +6,25 @@ from __future__ import annotations
 import math
 
 
-SOLAR_CONSTANT = 1361.0
+SOLAR_CONSTANT = 1361.0  # W/m^2 at 1 AU
+
+
+AU_M = 149_597_870_700.0
+
+
+SUN_RADIUS_M = 696_340e3
+
+
+EARTH_RADIUS_M = 6_371e3
+
+
+MOON_RADIUS_M = 1_737.4e3
+
+
+GM_SUN_M3_S2 = 1.32712440041e20  # the Sun's gravitational parameter
+
+
+SECONDS_PER_DAY = 86_400.0
 
 
 # Standard view transform, linear 1.0 = white: a white Lambertian surface facing a 1361 W/m^2 Sun

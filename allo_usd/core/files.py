@@ -1,10 +1,13 @@
-"""Files written whole or not at all: atomic writers, checksums, run locks and the one relative-path rule."""
+"""Files written whole or not at all: the one file writer (atomic_path) and the one directory
+writer (atomic_directory), checksums, run locks and the one relative-path rule."""
 
 from __future__ import annotations
 
 import errno
+import glob
 import os
 import re
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -13,29 +16,20 @@ from allo_usd.core.errors import AlloError, DiskFullError
 
 
 def relpath(target: Path, start: Path) -> str:
-    rel = os.path.relpath(Path(target).resolve(), Path(start).resolve())
+    """The one rule for a path written into a layer or shown beside one: `target` relative to the
+    directory `start`, both made absolute with symlinks resolved (so a resolved path and an
+    unresolved one of the same file still relate), POSIX separators, and anchored with "./" when
+    it does not start with "." (USD would read a bare name as a search path)."""
+    rel = Path(os.path.relpath(Path(target).resolve(), Path(start).resolve())).as_posix()
     return rel if rel.startswith(".") else f"./{rel}"
-
-
-def write_text_atomic(path: Path, text: str) -> Path:
-    """Write to a temporary name beside `path`, then rename: a reader never sees a partial file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)  # no space, or the user's quota is spent
 
 
 def temp_name_re(pid: int | None = None) -> re.Pattern:
-    """Names of atomic_path temporaries: `.NAME.PID.XXXXXXXX.EXT` (mkstemp's 8 random characters),
+    """Names of atomic_path temporaries: `.NAME.PID.XXXXXXXX.EXT` (mkstemp's 8 random characters;
+    atomic_directory's have no .EXT),
     those of writer `pid` only when given. Without a pid it also matches the names of earlier
     versions, which had no pid. The pid lets a dispatcher remove a dead worker's temporaries
     without touching those its live workers are writing."""
@@ -43,26 +37,101 @@ def temp_name_re(pid: int | None = None) -> re.Pattern:
     return re.compile(rf"^\.{who}\.[a-z0-9_]{{8}}(\.[A-Za-z0-9]+)?$")
 
 
-@contextmanager
-def atomic_path(path: Path, suffix: str = ""):
-    """Yield a temporary path beside `path` (named for this process, see temp_name_re); on success
-    rename it over `path`, else remove it."""
+def temp_beside(path: Path, suffix: str = "") -> Path:
+    """A new, empty temporary file beside `path`, named for this process (temp_name_re) and ending
+    in `suffix` or `path`'s suffix (some writers choose the format by it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=suffix or path.suffix)
     os.close(fd)
-    try:
-        yield Path(tmp)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except OSError as exc:
+    return Path(tmp)
+
+
+def _failed(exc: BaseException, tmp: Path, path: Path) -> None:
+    """Remove the temporary, and raise a full disk as DiskFullError (other errors propagate)."""
+    if Path(tmp).is_dir():
+        shutil.rmtree(tmp, ignore_errors=True)
+    else:
         Path(tmp).unlink(missing_ok=True)
-        if exc.errno in DISK_FULL_ERRNOS:
-            raise DiskFullError(f"no space left on the device while writing {path}; free space and re-run "
+    if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
+        raise DiskFullError(f"no space left on the device while writing {path}; free space and re-run "
                             "(finished outputs are kept and will be skipped)") from exc
+
+
+def commit_temp(tmp: Path, path: Path, mode: int | None = 0o644) -> None:
+    """Rename a temporary of temp_beside over `path`, made `mode` first (None keeps it: a hard link
+    shares its mode with its source); on failure remove it."""
+    try:
+        if mode is not None:
+            os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        _failed(exc, tmp, path)
         raise
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+
+
+@contextmanager
+def atomic_path(path: Path, suffix: str = "", mode: int | None = 0o644):
+    """The one file writer: yield a temporary path beside `path` (temp_beside); on success rename it
+    over `path`, else remove it. A full disk raises DiskFullError."""
+    tmp = temp_beside(path, suffix)
+    try:
+        yield tmp
+    except BaseException as exc:
+        _failed(exc, tmp, path)
+        raise
+    commit_temp(tmp, path, mode)
+
+
+def write_text_atomic(path: Path, text: str, **open_args) -> Path:
+    """Write `text` whole or not at all (a reader never sees a partial file); `open_args` as for open()."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", **open_args) as f:
+            f.write(text)
+    return Path(path)
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+# a directory temporary after ".DEST": ".PID.XXXXXXXX" (atomic_directory) or ".<32 hex>.tmp" (earlier versions)
+_DIR_TEMP = re.compile(r"^\.(?:(\d+)\.[a-z0-9_]{8}|[0-9a-f]{32}\.tmp)$")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return True
+
+
+@contextmanager
+def atomic_directory(dest: Path):
+    """The one directory writer: yield a new temporary directory beside `dest` (named like
+    atomic_path's temporaries); on success replace `dest` by it (an existing `dest` is removed
+    first), else remove it. A killed run leaves nothing under the final name; the leftovers of dead
+    writers of the same `dest` are removed first."""
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    for stale in dest.parent.glob(f".{glob.escape(dest.name)}.*"):
+        m = _DIR_TEMP.match(stale.name[len(dest.name) + 1:])
+        if m and stale.is_dir() and (m.group(1) is None or not _alive(int(m.group(1)))):
+            shutil.rmtree(stale, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(dir=dest.parent, prefix=f".{dest.name}.{os.getpid()}."))
+    try:
+        os.chmod(tmp, 0o755)  # mkdtemp makes 0700; a tree is meant to be shared
+        yield tmp
+        if dest.exists():
+            shutil.rmtree(dest)
+        os.replace(tmp, dest)
+    except BaseException as exc:
+        _failed(exc, tmp, dest)
         raise
 
 

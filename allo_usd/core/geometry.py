@@ -29,6 +29,47 @@ def _unit(name: str, value) -> np.ndarray:
     return a / np.linalg.norm(a)
 
 
+def unit(v) -> np.ndarray:
+    """One vector as float64 divided by its length, unchecked (asset building, where axes are
+    known to be non-zero; `_unit` checks user input)."""
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+def unit_rows(v) -> np.ndarray:
+    """`v` scaled to unit length along its last axis, unchecked (for vectors known to be non-zero;
+    `_unit` checks a single vector)."""
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products of matching rows of two (n, 3) arrays."""
+    return np.einsum("ni,ni->n", a, b)
+
+
+def angle_between(a, b) -> np.ndarray:
+    """Angle between vectors (..., 3) as atan2(|a x b|, a . b): accurate at 0 and pi too."""
+    a = unit_rows(np.asarray(a, dtype=np.float64))
+    b = unit_rows(np.asarray(b, dtype=np.float64))
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i->...", a, b))
+
+
+def rot_x(a: float) -> np.ndarray:
+    """Rotation by `a` radians about +X (right-handed)."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=np.float64)
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
+
+
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z), w >= 0, from a proper rotation matrix (Shepperd's method)."""
     r = check_finite("rotation matrix", r)

@@ -47,7 +47,6 @@ import re
 import shutil
 import signal
 import threading
-import uuid
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -65,7 +64,7 @@ COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "
            "seed", "plan_seed", "seed_path", "layer", "layer_sha256", "sha256", "source")
 MANIFEST = "manifest.csv"
 FILE_KEYS = ("allo_mask", "mask", "image")  # placement order: the image, which loaders glob, comes last
-# Temporaries of place() (.NAME.<32 hex>.tmp) and of write.atomic_path (mkstemp: .NAME.<8 chars>.SUFFIX).
+# Temporaries of core.files.atomic_path (mkstemp: .NAME.<8 chars>.SUFFIX) and of earlier place() (.NAME.<32 hex>.tmp).
 TEMPORARY = re.compile(r"^\..+\.(?:[0-9a-f]{32}\.tmp|[a-z0-9_]{8}\.(?:png|csv|parquet|json))$")
 INDEXED = re.compile(r"^\d{6}_.+\.png$")
 
@@ -89,13 +88,13 @@ def place(src: Path, dst: Path, link: bool = True) -> str:
         if (link and same) or (not link and not same and sha256_file(src) == sha256_file(dst)):
             return "kept"  # a copy run replaces earlier links by copies, and keeps equal copies
     if link:
-        tmp = dst.parent / f".{dst.name}.{uuid.uuid4().hex}.tmp"
         try:
-            os.link(src, tmp)
-            os.replace(tmp, dst)
+            with atomic_path(dst, mode=None) as tmp:  # mode=None: never chmod the linked source
+                tmp.unlink()
+                os.link(src, tmp)
             return "link"
         except OSError:  # other file system, or links not allowed: copy instead
-            tmp.unlink(missing_ok=True)
+            pass
     with atomic_path(dst) as tmp:
         shutil.copyfile(src, tmp)
     return "copy"

@@ -3,12 +3,12 @@ to author, the per-asset quotas, and the reserve groups that top up skipped dept
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from allo_usd.core.seeds import key_hash
 from allo_usd.plan.model import Plan
 
 
@@ -38,8 +38,7 @@ class SceneKey:
 
 
 def _rng(*keys) -> np.random.Generator:
-    path = "/".join(map(str, keys))
-    return np.random.default_rng(int.from_bytes(hashlib.sha256(path.encode()).digest()[:8], "little"))
+    return np.random.default_rng(key_hash(*keys))
 
 
 def _split_evenly(total: int, parts: int) -> list[int]:

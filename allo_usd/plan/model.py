@@ -42,9 +42,9 @@ class Dates(_Model):
 
     @model_validator(mode="after")
     def _inside_de421(self):
-        from allo_usd.sky.model import de421_range
+        from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 
-        lo, hi = (datetime.fromisoformat(s) for s in de421_range())
+        lo, hi = (datetime.fromisoformat(s) for s in (DE421_START_UTC, DE421_END_UTC))
         first, last = self.epochs()[0], self.epochs()[-1]
         if first < lo or last > hi:
             raise ValueError(f"epochs {first:%Y-%m-%d} .. {last:%Y-%m-%d} leave the DE421 ephemeris "
@@ -95,7 +95,7 @@ class AnomalyChoice(_Model):
 
     @model_validator(mode="after")
     def _known(self):
-        from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+        from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
         if self.id not in ANOMALY_VARIANTS:
             raise ValueError(f"unknown anomaly id {self.id!r}; fix: use one of {', '.join(ANOMALY_VARIANTS)}")
@@ -106,13 +106,13 @@ class AnomalyChoice(_Model):
         return self
 
     def choices(self) -> list[tuple[str, str]]:
-        from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+        from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
         return [(self.id, v) for v in (self.variants or ANOMALY_VARIANTS[self.id])]
 
 
 def _all_anomalies() -> list[AnomalyChoice]:
-    from allo_usd.assets.anomalies import ANOMALY_IDS
+    from allo_usd.assets.catalogue import ANOMALY_IDS
 
     return [AnomalyChoice(id=a) for a in ANOMALY_IDS]
 

@@ -38,7 +38,7 @@ from pathlib import Path
 
 from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_path, write_composed_scene,
                                   write_pose_layer, write_sky_layer)
-from allo_usd.core.files import write_text_atomic
+from allo_usd.core.files import atomic_directory, write_text_atomic
 from allo_usd.core.errors import PlacementError, PlanError
 from allo_usd.plan.model import Plan
 from allo_usd.plan.enumeration import SceneKey, anomaly_quotas, enumerate_scenes, reserve_cap, reserve_group
@@ -505,21 +505,11 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
             raise PlanError(f"{base.parent} was built from {recorded or 'another station'}, not from {made_from}; "
                             "fix: author this plan into a new output directory (or delete that stages/ folder)")
     else:
-        import shutil
-        import uuid
-
         from allo_usd.usd.build_stage import build_base_stage
 
-        tmp = base.parent.with_name(f".{base.parent.name}.{uuid.uuid4().hex}.tmp")
-        try:
+        with atomic_directory(base.parent) as tmp:  # replaces an incomplete build of an older version
             build_base_stage(tmp, str(source), plan.station.units)
             (tmp / STATION_MARKER).write_text(json.dumps(made_from, indent=1, sort_keys=True) + "\n")
-            if base.parent.exists():  # an incomplete build of an older version: replace it
-                shutil.rmtree(base.parent)
-            os.replace(tmp, base.parent)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
     return plan.model_copy(update={"base_stage": str(base.resolve())})
 
 
@@ -558,7 +548,8 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     `short` (planned - authored; above 0 only where the top-up bound was reached)."""
     from tqdm import tqdm
 
-    from allo_usd.sky.model import Orbit, compute_sky
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
 
     out_dir = Path(out_dir)
     keys = enumerate_scenes(plan)[: limit if limit is not None else None]

@@ -126,7 +126,9 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
 
     from allo_usd.output.dataset import _pixels
     from allo_usd.run.dispatch import output_to
-    from allo_usd.sky.model import Orbit, compute_sky, default_epochs
+    from allo_usd.sky.ephemeris import default_epochs
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
 
     out_dir = Path(out_dir)
     tree = out_dir / "layers"

@@ -22,7 +22,7 @@ import numpy as np
 from allo_usd.scene.spec import CameraPose
 from allo_usd.core.errors import PlacementError
 from allo_usd.core.constants import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM
-from allo_usd.core.geometry import check_finite, fibonacci_sphere, look_at
+from allo_usd.core.geometry import check_finite, fibonacci_sphere, look_at, rot_x, rot_y, rot_z
 from allo_usd.scene.raycast import RayScene
 
 N_TRAIN, N_TEST = 40, 10
@@ -122,7 +122,7 @@ def best_view(station: RayScene, position) -> tuple[ViewQuality, np.ndarray, flo
     if not top:
         return None
     a = ANGLE_SIGMA_RAD
-    turns = np.array([_ry(a), _ry(-a), _rx(a), _rx(-a)])
+    turns = np.array([rot_y(a), rot_y(-a), rot_x(a), rot_x(-a)])
     tilted = _qualities(station, p, np.einsum("kij,tjl->ktil", rots[[k for k, _ in top]], turns).reshape(-1, 3, 3),
                         _SCREEN_GRID)
     robust = []
@@ -186,24 +186,9 @@ def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangl
             for k, i in enumerate(train + test)]
 
 
-def _rz(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-
-
-def _ry(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
-
-
-def _rx(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
-
-
 def perturbation_matrix(angles) -> np.ndarray:
     yaw, pitch, roll = angles
-    return _rz(yaw) @ _ry(pitch) @ _rx(roll)
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
 def too_close(scene: RayScene, p: np.ndarray, clearance: float = CLEARANCE_M) -> bool:

@@ -9,13 +9,13 @@ from __future__ import annotations
 import csv
 import math
 import os
-import tempfile
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
 from allo_usd.core.errors import SkyInputError
+from allo_usd.core.files import atomic_path
 from allo_usd.sky.model import BODIES, Sky
 
 CSV_COLUMNS = (
@@ -30,14 +30,6 @@ CSV_COLUMNS = (
     "earth_angular_diameter_deg",
     "moon_angular_diameter_deg",
 )
-
-
-def _atomic_target(path: Path):
-    """A temporary file in the destination directory (so os.replace is atomic)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.chmod(tmp, 0o644)  # mkstemp makes 0600; reports are meant to be shared
-    return fd, Path(tmp)
 
 
 def _rows(sky: Sky) -> list[list[str]]:
@@ -63,16 +55,10 @@ def _rows(sky: Sky) -> list[list[str]]:
 
 def write_sky_csv(sky: Sky, csv_path: str | os.PathLike) -> Path:
     path = Path(csv_path)
-    fd, tmp = _atomic_target(path)
-    try:
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
-            writer = csv.writer(fh, lineterminator="\n")
-            writer.writerow(CSV_COLUMNS)
-            writer.writerows(_rows(sky))
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(CSV_COLUMNS)
+        writer.writerows(_rows(sky))
     return path
 
 
@@ -125,14 +111,8 @@ def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path
     ax.set_xlabel("date (UTC)")
 
     path = Path(png_path)
-    fd, tmp = _atomic_target(path)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -7,14 +7,13 @@ anomalies) a variant set whose variants reference different geometry files.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
 from allo_usd.core.errors import AlloError
+from allo_usd.core.files import atomic_path, commit_temp, temp_beside
 from allo_usd.assets.mesh import Asset, MeshPart
 from allo_usd.usd import layout
 
@@ -35,12 +34,8 @@ def _vertex_normals(part: MeshPart) -> np.ndarray:
 
 
 def _write_png(path: Path, array: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".png.tmp")
-    os.close(fd)
-    Image.fromarray(np.ascontiguousarray(array, dtype=np.uint8)).save(tmp, format="PNG", optimize=False)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(array, dtype=np.uint8)).save(tmp, format="PNG", optimize=False)
 
 
 def stage_metadata(stage, default_prim: str) -> None:
@@ -132,11 +127,8 @@ def new_layer(path: Path):
     from allo_usd.usd import schema
 
     schema.register()  # before any stage opens: the schema registry reads plugins only once
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    if tmp.exists():
-        tmp.unlink()
+    tmp = temp_beside(path)  # a .usda/.usdc name: Sdf picks the format by it
+    tmp.unlink()  # Sdf creates the file itself
     layer = Sdf.Layer.CreateNew(str(tmp))
     if layer is None:
         raise AlloError(f"could not create {tmp}; check the directory is writable")
@@ -155,7 +147,7 @@ def commit_layer(layer, tmp: Path, path: Path) -> None:
         Path(tmp).unlink(missing_ok=True)
         raise AlloError(f"could not write {path} ({reason.strip() or 'save failed'}); check the disk "
                         "has space and the directory is writable; nothing was replaced")
-    os.replace(tmp, path)
+    commit_temp(tmp, path)
 
 
 def write_interface(usda_path: Path, root: str, label: str, geometry: dict[str, str] | str,

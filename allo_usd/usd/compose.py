@@ -21,9 +21,9 @@ from __future__ import annotations
 import filecmp
 import os
 import shutil
-import uuid
 from pathlib import Path
 
+from allo_usd.core.files import atomic_directory, relpath
 from allo_usd.scene.spec import CameraSpec, SceneSpec, SunSpec
 from allo_usd.usd.scene_layer import (anomaly_asset_path, check_base_stage, pose_prims, scene_custom, scene_prims,
                                       sky_prims, validate_spec, write_layer)
@@ -80,17 +80,10 @@ def copy_base_stage(base_stage: Path, out_dir: Path) -> Path:
                              f"e.g. {differ[0]}); the layers under {out_dir} were authored over that copy. "
                              "Fix: author into a new directory, or delete the old tree")
         return dest
-    for stale in Path(out_dir).glob(f".{STAGE_DIR}.*.tmp"):
-        shutil.rmtree(stale, ignore_errors=True)  # a copy that a killed run left behind
-    tmp = Path(out_dir) / f".{STAGE_DIR}.{uuid.uuid4().hex}.tmp"
-    try:
+    with atomic_directory(dest.parent) as tmp:
         for f in files:
             (tmp / f).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(base_stage.parent / f, tmp / f)
-        os.replace(tmp, dest.parent)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return dest
 
 
@@ -104,12 +97,6 @@ def pose_layer_path(out_dir: Path, seed: int, sample_id: str) -> Path:
 
 def scene_layer_path(out_dir: Path, split: str, kind: str, scene_id: str) -> Path:
     return Path(out_dir) / SCENE_DIR / split / kind / f"{scene_id}.usda"
-
-
-def _rel(target: Path, start: Path) -> str:
-    rel = os.path.relpath(os.path.abspath(target), os.path.abspath(start))
-    rel = rel.replace(os.sep, "/")
-    return rel if rel.startswith(".") else f"./{rel}"  # anchored: never a search path
 
 
 def write_sky_layer(path: Path, *, day: int, epoch: str, perilune_epoch: str, sun: SunSpec, bodies: dict) -> Path:
@@ -144,7 +131,7 @@ def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_l
             if os.path.commonpath([top, os.path.abspath(t)]) != top:
                 raise LayerError(f"{path} would refer to {t}, outside its tree {root}; fix: copy the base stage "
                                  f"into the tree first (allo_usd.usd.compose.copy_base_stage)")
-    ref = "" if spec.anomaly is None else _rel(targets[3], here)
-    sublayers = [_rel(pose_layer, here), _rel(sky_layer, here), _rel(base_stage, here)]
+    ref = "" if spec.anomaly is None else relpath(targets[3], here)
+    sublayers = [relpath(pose_layer, here), relpath(sky_layer, here), relpath(base_stage, here)]
     return write_layer(path, scene_prims(spec, ref), sublayers, scene_custom(spec),
                        f"allo-usd scene {spec.scene_id}")

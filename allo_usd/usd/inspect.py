@@ -24,7 +24,6 @@ check the fast path). Attribute values are compared at the default time code.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -100,10 +99,10 @@ def _same(a, b, rtol: float = 1e-9, atol: float = 1e-12) -> bool:
 
 
 def _rel(path: str, start: Path) -> str:
-    if not path:
-        return path
-    rel = os.path.relpath(path, start)
-    return rel if rel.startswith(".") else f"./{rel}"
+    """core.files.relpath, keeping an empty path (an anonymous layer) empty."""
+    from allo_usd.core.files import relpath
+
+    return relpath(path, start) if path else path
 
 
 def _stack(stage) -> list:

@@ -1,0 +1,198 @@
+"""The ephemeris and epochs of the sky: DE421 opened offline, UTC epochs as skyfield times.
+
+Ephemeris
+    JPL DE421 from the ``skyfield-data`` package, opened offline
+    (``Loader(skyfield_data.get_skyfield_data_path())``, ``load.timescale(builtin=True)``).
+    Positions are **geometric** (``body.at(t)``: no light time, no aberration; the apparent
+    direction differs by at most ~20 arcsec = 1e-4 rad, about 0.13 px at the centre of a
+    1920-wide 25 mm / 36 mm frame). All epochs are computed in ONE vectorised skyfield call per
+    body (Sun, Earth, Moon; barycentric, ICRF axes). Valid range: DE421's 1899-07-29 .. 2053-10-09
+    (TDB); epochs outside raise :class:`~allo_usd.core.errors.EphemerisRangeError` before skyfield is
+    asked for a position.
+
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import functools
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+from typing import Sequence
+
+import numpy as np
+
+from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
+from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
+
+_EXPIRED_WARNING = r".*finals2000A\.all has expired.*"
+_ISO_FMT = "%Y-%m-%dT%H:%M:%SZ"
+
+
+# ---------------------------------------------------------------------------------------------
+# Ephemeris (offline, cached)
+
+
+@contextlib.contextmanager
+def _quiet_expiry():
+    """Silence skyfield-data's "finals2000A.all has expired" RuntimeWarning, here only."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=_EXPIRED_WARNING, category=RuntimeWarning)
+        yield
+
+
+@dataclass(frozen=True)
+class _Ephemeris:
+    ts: object  # skyfield Timescale
+    eph: object  # skyfield SpiceKernel
+    sun: object
+    earth: object
+    moon: object
+    start_tdb_jd: float
+    end_tdb_jd: float
+    path: str
+
+
+@functools.lru_cache(maxsize=1)
+def _ephemeris() -> _Ephemeris:
+    """Open DE421 and the builtin timescale from skyfield-data; never touches the network."""
+    with _quiet_expiry():
+        import skyfield_data
+        from skyfield.api import Loader
+
+        directory = skyfield_data.get_skyfield_data_path()
+        path = os.path.join(directory, "de421.bsp")
+        if not os.path.isfile(path):
+            raise EphemerisRangeError(
+                f"DE421 is missing: expected {path} from the skyfield-data package; "
+                "reinstall skyfield-data (no network download is attempted)"
+            )
+        load = Loader(directory, verbose=False)
+        ts = load.timescale(builtin=True)
+        eph = load("de421.bsp")
+    atexit.register(eph.close)
+    starts = [s.start_jd for s in eph.spk.segments]
+    ends = [s.end_jd for s in eph.spk.segments]
+    return _Ephemeris(
+        ts=ts, eph=eph, sun=eph["sun"], earth=eph["earth"], moon=eph["moon"],
+        start_tdb_jd=float(max(starts)), end_tdb_jd=float(min(ends)), path=path,
+    )
+
+
+def de421_range() -> tuple[str, str]:
+    """The range DE421 covers, as ISO UTC strings (the file's limits are 00:00 TDB)."""
+    return DE421_START_UTC, DE421_END_UTC
+
+
+def _range_text() -> str:
+    lo, hi = de421_range()
+    return f"DE421 covers 1899-07-29T00:00 TDB to 2053-10-09T00:00 TDB ({lo} to {hi} UTC)"
+
+
+# ---------------------------------------------------------------------------------------------
+# Epochs
+
+
+def _as_utc(value: object, what: str = "epoch") -> datetime:
+    """One epoch as an aware UTC datetime. Naive datetimes are refused, never guessed."""
+    if isinstance(value, str):
+        try:
+            parsed = datetime.fromisoformat(value)
+        except ValueError as exc:
+            raise EpochError(
+                f"{what} {value!r} is not an ISO 8601 date-time; write e.g. '2030-01-01T00:00:00Z'"
+            ) from exc
+        value = parsed
+    if not isinstance(value, datetime):
+        raise EpochError(
+            f"{what} must be a timezone-aware datetime in UTC, got {type(value).__name__} {value!r}; "
+            "use datetime(2030, 1, 1, tzinfo=timezone.utc)"
+        )
+    if value.tzinfo is None or value.tzinfo.utcoffset(value) is None:
+        raise EpochError(
+            f"{what} {value.isoformat()} is naive (no timezone); pass a timezone-aware UTC datetime, "
+            "e.g. datetime(2030, 1, 1, tzinfo=timezone.utc) or '2030-01-01T00:00:00Z'"
+        )
+    return value.astimezone(timezone.utc)
+
+
+def _iso(dt: datetime) -> str:
+    return dt.strftime(_ISO_FMT)
+
+
+def default_epochs(year: int = 2030, days: int = 365) -> list[datetime]:
+    """``days`` consecutive days at 00:00 UTC from 1 January of ``year`` (aware datetimes)."""
+    if isinstance(year, bool) or not isinstance(year, (int, np.integer)):
+        raise EpochError(f"year must be an integer, got {year!r}")
+    if isinstance(days, bool) or not isinstance(days, (int, np.integer)) or days < 1:
+        raise EpochError(f"days must be a positive integer, got {days!r}")
+    start = datetime(int(year), 1, 1, tzinfo=timezone.utc)
+    return [start + timedelta(days=k) for k in range(int(days))]
+
+
+def _time_from_utc(dts: Sequence[datetime], offsets_s: np.ndarray | None = None):
+    """Vectorised skyfield Time from aware UTC datetimes (plus optional second offsets)."""
+    e = _ephemeris()
+    n = len(dts)
+    y = np.fromiter((d.year for d in dts), dtype=np.int64, count=n)
+    mo = np.fromiter((d.month for d in dts), dtype=np.int64, count=n)
+    da = np.fromiter((d.day for d in dts), dtype=np.int64, count=n)
+    h = np.fromiter((d.hour for d in dts), dtype=np.int64, count=n)
+    mi = np.fromiter((d.minute for d in dts), dtype=np.int64, count=n)
+    s = np.fromiter((d.second + d.microsecond * 1e-6 for d in dts), dtype=np.float64, count=n)
+    if offsets_s is not None:
+        s = s + offsets_s
+    with _quiet_expiry():
+        return e.ts.utc(y, mo, da, h, mi, s)
+
+
+def _time_from_start(start: datetime, offsets_s: np.ndarray):
+    """Vectorised skyfield Time at ``start`` + offsets (seconds, UTC; skyfield normalises)."""
+    e = _ephemeris()
+    sec = start.second + start.microsecond * 1e-6 + np.asarray(offsets_s, dtype=np.float64)
+    with _quiet_expiry():
+        return e.ts.utc(start.year, start.month, start.day, start.hour, start.minute, sec)
+
+
+def _check_range(t, labels: Sequence[str] | None) -> None:
+    """Raise EphemerisRangeError (with the valid range) before skyfield touches DE421."""
+    e = _ephemeris()
+    whole = np.atleast_1d(t.whole)
+    frac = np.atleast_1d(t.tdb_fraction)
+    bad = ((whole - e.start_tdb_jd) + frac < 0.0) | ((whole - e.end_tdb_jd) + frac > 0.0)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        if labels is None:
+            with _quiet_expiry():
+                shown = [t[int(i)].utc_strftime(_ISO_FMT) for i in idx[:3]]
+        else:
+            shown = [labels[int(i)] for i in idx[:3]]
+        more = f" and {idx.size - 3} more" if idx.size > 3 else ""
+        raise EphemerisRangeError(
+            f"epoch {', '.join(shown)}{more} is outside the ephemeris: {_range_text()}; "
+            "choose epochs inside that range"
+        )
+
+
+@contextlib.contextmanager
+def _translate_range_error():
+    from skyfield.errors import EphemerisRangeError as SkyfieldRangeError
+
+    try:
+        yield
+    except SkyfieldRangeError as exc:  # pre-check should make this unreachable
+        raise EphemerisRangeError(f"{exc}; {_range_text()}") from exc
+
+
+def _finite(name: str, value: float) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise SkyInputError(f"{name} must be a number, got {value!r}") from exc
+    if not math.isfinite(v):
+        raise SkyInputError(f"{name} must be finite, got {value!r}")
+    return v
