@@ -14,6 +14,7 @@ from allo_usd.core.constants import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WI
 from allo_usd.core.geometry import matrix_to_quat
 from allo_usd.assets.mesh import Asset
 from allo_usd.usd import schema
+from allo_usd.core.constants import EARTH_RADIUS_M, MOON_RADIUS_M, SOLAR_CONSTANT, SUN_RADIUS_M
 from allo_usd.sky import model as sky
 from allo_usd.usd import attributes as A
 from allo_usd.usd.attributes import CLASS_MASK_SOURCE
@@ -50,9 +51,16 @@ def set_pose(prim, position, rotation) -> None:
 
     xf = UsdGeom.Xformable(prim)
     xf.ClearXformOpOrder()
-    q = matrix_to_quat(np.asarray(rotation))
     xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*map(float, position)))
-    xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Quatd(float(q[0]), Gf.Vec3d(*map(float, q[1:]))))
+    xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(gf_quatd(rotation))
+
+
+def gf_quatd(rotation):
+    """A rotation matrix as the Gf.Quatd of an xformOp:orient (the one conversion authoring uses)."""
+    from pxr import Gf
+
+    q = matrix_to_quat(np.asarray(rotation, dtype=np.float64))
+    return Gf.Quatd(float(q[0]), Gf.Vec3d(*map(float, q[1:])))
 
 
 def define_camera(stage, path: str):
@@ -118,7 +126,7 @@ def _define_sun(stage, path: str, doc: str):
     from pxr import Gf, UsdLux
 
     lamp = UsdLux.DistantLight.Define(stage, path)
-    lamp.CreateIntensityAttr(1361.0)
+    lamp.CreateIntensityAttr(SOLAR_CONSTANT)
     lamp.CreateAngleAttr(0.533)
     lamp.CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
     schema.apply(lamp.GetPrim(), "AlloEclipseAPI")
@@ -143,7 +151,7 @@ def define_sky(stage, bodies: dict[str, Asset]) -> None:
         link.CreateIncludeRootAttr(False)
         link.CreateIncludesRel().SetTargets([Sdf.Path(layout.body_path(name))])
     default_body_pos = {"Sun": (1.495978707e11, 0, 0), "Earth": (0, 3.844e8, 0), "Moon": (0, 0, -7.0e7)}
-    default_body_radius = {"Sun": 696_340e3, "Earth": 6_371e3, "Moon": 1_737.4e3}
+    default_body_radius = {"Sun": SUN_RADIUS_M, "Earth": EARTH_RADIUS_M, "Moon": MOON_RADIUS_M}
     for name in bodies:
         prim = UsdGeom.Xform.Define(stage, layout.body_path(name)).GetPrim()
         prim.GetReferences().AddReference(f"./bodies/{name}.usda")

@@ -17,20 +17,19 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from allo_usd import __version__
 from allo_usd.usd import schema
-from allo_usd.sky import model as sky
+from allo_usd.sky import eclipse as sky_eclipse
 from allo_usd.core.sensor import SensorParams
 from allo_usd.core.errors import AlloError, LayerError
-from allo_usd.core.geometry import check_finite, matrix_to_quat, rotation_towards
+from allo_usd.core.geometry import check_finite, rotation_towards
 from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
 from allo_usd.core.limits import resolution_problem
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
-from allo_usd.usd.base_stage import LIT_BODIES
+from allo_usd.usd.base_stage import LIT_BODIES, gf_quatd
 from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.core.files import relpath, write_text_atomic
 
@@ -47,13 +46,6 @@ class Prim:
     variants: dict = field(default_factory=dict)
     active: bool | None = None
     rels: dict = field(default_factory=dict)  # {relationship: [target paths]} (explicit targets)
-
-
-def _quatd(rotation):
-    from pxr import Gf
-
-    q = matrix_to_quat(np.asarray(rotation, dtype=np.float64))
-    return Gf.Quatd(float(q[0]), Gf.Vec3d(*map(float, q[1:])))
 
 
 def _vec3d(v):
@@ -88,8 +80,8 @@ def validate_spec(spec: SceneSpec) -> None:
         raise LayerError(f"split must be 'train' or 'test', got {spec.split!r}")
 
 
-ECLIPSE_STATES = sky.ECLIPSE_STATES                 # allo:eclipseState's allowed tokens
-ECLIPSE_BODIES = ("none", *sky.SHADOW_BODIES)      # allo:eclipseBody's allowed tokens
+ECLIPSE_STATES = sky_eclipse.ECLIPSE_STATES                 # allo:eclipseState's allowed tokens
+ECLIPSE_BODIES = ("none", *sky_eclipse.SHADOW_BODIES)      # allo:eclipseBody's allowed tokens
 
 
 def _check_sun(what: str, sun: SunSpec) -> None:
@@ -118,7 +110,7 @@ def body_light(body: BodySpec, sun: SunSpec) -> SunSpec:
 def sun_prim(path: str, sun: SunSpec) -> Prim:
     """A sun lamp's opinions: direction, irradiance (lit fraction included), angle and eclipse state."""
     return Prim(path, {
-        "xformOp:orient": ("quatd", _quatd(rotation_towards(sun.direction))),
+        "xformOp:orient": ("quatd", gf_quatd(rotation_towards(sun.direction))),
         "inputs:intensity": ("float", float(sun.irradiance)),
         "inputs:angle": ("float", float(sun.angular_diameter_deg)),
         **A.opinions((A.LIT_FRACTION, float(sun.lit_fraction)), (A.ECLIPSE_STATE, sun.eclipse_state),
@@ -147,7 +139,7 @@ def pose_prims(pose: int, camera: CameraSpec) -> list[Prim]:
                                           (A.CAMERA_OFFSET_ROTATION, _vec3d(camera.offset_rotation)),
                                           (A.CAMERA_ATTEMPTS, int(camera.attempts))), api=("AlloSceneAPI",)),
             Prim(layout.CAMERA, {"xformOp:translate": ("double3", _vec3d(camera.position)),
-                                   "xformOp:orient": ("quatd", _quatd(camera.rotation))})]
+                                   "xformOp:orient": ("quatd", gf_quatd(camera.rotation))})]
 
 
 def anomaly_prim(a: AnomalySpec, asset_ref: str) -> Prim:
@@ -156,7 +148,7 @@ def anomaly_prim(a: AnomalySpec, asset_ref: str) -> Prim:
                      (A.ANOMALY_DEPTH_INDEX, int(a.depth_index)), (A.ANOMALY_DEPTH_OFFSET, float(a.depth_offset)),
                      (A.ANOMALY_ATTEMPTS, int(a.attempts)),
                      (A.ANOMALY_PREDICTED_AREA_FRACTION, float(a.predicted_area_fraction))),
-        "xformOp:translate": ("double3", _vec3d(a.position)), "xformOp:orient": ("quatd", _quatd(a.rotation)),
+        "xformOp:translate": ("double3", _vec3d(a.position)), "xformOp:orient": ("quatd", gf_quatd(a.rotation)),
         "xformOpOrder": ("uniform token[]", ["xformOp:translate", "xformOp:orient"])},
         api=("AlloAnomalyAPI",), define="Xform", reference=asset_ref, variants={"variant": a.variant})
 
