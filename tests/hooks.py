@@ -16,10 +16,6 @@ from pathlib import Path
 _WRITER = None  # allo_usd.run.job's own EXR writer, kept while a hook replaces it
 
 
-def slow_down(scene: str, seconds: float = 0.4) -> None:
-    time.sleep(seconds)
-
-
 def crash_on(scenes, scene: str) -> None:
     """Die with SIGSEGV, as a crashing Blender would, before rendering one of `scenes`."""
     if scene in scenes:
