@@ -23,23 +23,34 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                        help="Local worker processes (default: the cores this process may use)."),
            scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (tcp://host:8786)."),
            threads: int = typer.Option(0, "--threads", help="Cycles threads per worker (default: cores // workers)."),
-           retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed.")):
+           retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed."),
+           save_blend: Path = typer.Option(None, "--save-blend", metavar="FILE",
+                                           help="A single layer only: also save the Blender scene it builds as "
+                                                "FILE (.blend), to open what Blender got.")):
     """Render scene layers: RGB PNG, linear EXR, 3-class mask PNG and a metadata JSON per scene.
 
     One .usda layer renders in this process. A directory renders all its scene layers (searched
     recursively; an authored plan's scenes/) on a local pool (--workers) or a Dask cluster
     (--scheduler), resuming from OUT/manifest.jsonl; failures go to OUT/failed.jsonl and Blender's
     output to OUT/logs/. A plan is authored into OUT/layers first, then rendered into OUT/renders.
+    With --save-blend FILE a single layer is rendered (even if done) and its Blender scene saved.
     """
-    from allo_usd.run.dispatch import author_and_dispatch, dispatch, output_to
+    from allo_usd.run.dispatch import author_and_dispatch, dispatch
+    from allo_usd.run.worker import output_to
 
     suffix = source.suffix.lower()
-    if suffix == ".usda" and source.is_file() and scheduler is None and not workers:
+    single = suffix == ".usda" and source.is_file() and scheduler is None and not workers
+    if save_blend is not None and not single:
+        raise AlloError("--save-blend saves the Blender scene of one layer: pass a single .usda layer (without "
+                        "--workers or --scheduler)")
+    if single:
         from allo_usd.run.job import render_layer
 
         with output_to(out / "logs" / "render.log"):  # Blender's own prints
-            meta = render_layer(source, out, force=force, threads=threads or None)
+            meta = render_layer(source, out, force=force, threads=threads or None, save_blend=save_blend)
         typer.echo(f"{source} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
+        if save_blend is not None:
+            typer.echo(f"Blender scene saved as {save_blend}")
         return
     kwargs = dict(workers=workers or None, scheduler=scheduler, threads=threads or None, retries=retries)
     if source.is_file() and suffix in (".toml", ".yaml", ".yml"):

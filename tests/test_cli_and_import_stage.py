@@ -95,3 +95,45 @@ def test_plan_station_option_uses_the_imported_model(tmp_path):
     assert not any(p.endswith("/stages/station/Station.usda") and "/plan/" not in p for p in used)
     meta = render_layer(layers[0], tmp_path / "renders")  # single layer: the plan root is allowed
     assert meta["class_pixels"]["station_and_bodies"] > 0
+
+
+@pytest.mark.render
+def test_cli_render_save_blend_keeps_what_blender_got(tiny_base, tmp_path):
+    """`allo-usd render LAYER --save-blend FILE` saves the Blender scene the layer built, which a
+    fresh Blender opens with the camera and the station in it; the render itself is unchanged."""
+    import json
+    import subprocess
+    import sys
+
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from helpers import make_spec
+
+    layer = write_scene_layer(make_spec(anomaly=True, samples=2), tmp_path / "layers" / "s.usda", tiny_base)
+    cli = [sys.executable, "-m", "allo_usd.cli", "render", str(layer)]
+    assert subprocess.run(cli + ["--out", str(tmp_path / "plain")], capture_output=True).returncode == 0
+    blend = tmp_path / "debug" / "s.blend"
+    r = subprocess.run(cli + ["--out", str(tmp_path / "out"), "--save-blend", str(blend)], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr
+    assert f"saved as {blend}" in r.stdout
+    head = blend.read_bytes()[:8]
+    assert head.startswith(b"BLENDER") or head.startswith(b"\x28\xb5\x2f\xfd"), head  # plain or zstd
+    assert blend.stat().st_size > 50_000
+    for name in ("s.png", "s.exr", "s_mask.png"):  # saving the scene does not change the render
+        assert (tmp_path / "out" / name).read_bytes() == (tmp_path / "plain" / name).read_bytes(), name
+
+    probe = ("import bpy, json, sys; bpy.ops.wm.open_mainfile(filepath=sys.argv[1]); "
+             "s = bpy.context.scene; print(json.dumps({'camera': s.camera.name if s.camera else None, "
+             "'objects': sorted(o.name for o in s.objects), 'engine': s.render.engine, "
+             "'size': [s.render.resolution_x, s.render.resolution_y]}))")
+    r = subprocess.run([sys.executable, "-c", probe, str(blend)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["camera"] == "/World/Camera" and got["engine"] == "CYCLES" and got["size"] == [64, 36]
+    assert [o for o in got["objects"] if o.startswith("/World/Station/")], got["objects"]
+    assert [o for o in got["objects"] if "/Anomaly" in o], got["objects"]
+
+    r = subprocess.run([sys.executable, "-m", "allo_usd.cli", "render", str(tmp_path / "layers"), "--out",
+                        str(tmp_path / "many"), "--save-blend", str(blend)], capture_output=True, text=True)
+    assert r.returncode == 2 and "single .usda layer" in r.stderr, r.stderr

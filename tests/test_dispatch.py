@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -17,11 +18,12 @@ import pytest
 from PIL import Image
 
 from allo_usd.usd.scene_layer import write_scene_layer
-from allo_usd.run.dispatch import (MANIFEST, WORKDIR, _append_jsonl, clean_stale, core_sets, dispatch, find_layers,
-                                   is_verified, load_manifest)
+from allo_usd.run.dispatch import core_sets, dispatch, find_layers
+from allo_usd.run.manifest import MANIFEST, WORKDIR, _append_jsonl, clean_stale, is_done, is_verified, load_manifest
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
 from allo_usd.core.files import temp_name_re
 
+import hooks
 from helpers import make_spec
 
 pytestmark = pytest.mark.render
@@ -51,7 +53,8 @@ def check_outputs(out: Path, layers: list[Path], size=(64, 36)) -> None:
         with OpenEXR.File(str(out / f"{s}.exr"), separate_channels=True) as f:
             assert f.channels()["R"].pixels.shape == (h, w)
         assert json.loads((out / f"{s}.json").read_text())["files"]["rgb"] == f"{s}.png"
-        assert is_verified(load_manifest(out)[s], layer, out)
+        assert is_verified(load_manifest(out)[s], layer, out) and is_done(layer, out, load_manifest(out))
+        assert is_done(layer, out)  # what `allo-usd render LAYER` checks agrees
     assert not [p.name for p in out.iterdir() if p.name.startswith(".") and p.name != ".allo-dispatch.lock"]
 
 
@@ -228,17 +231,20 @@ def test_dask_by_address_renders_an_authored_plan_from_relative_paths(authored_p
     assert {r["layer"] for r in manifest_rows(out)} == {str(p.resolve()) for p in layers}
 
 
-def test_dask_crash_costs_one_worker_death_per_attempt(tiny_base, tmp_path, monkeypatch):
+def test_dask_crash_costs_one_worker_death_per_attempt(tiny_base, tmp_path):
     """Dask would retry a task whose worker died `allowed-failures` (3) times on its own; the run
-    makes each of its attempts cost exactly one worker death, so `retries` bounds the deaths."""
+    makes each of its attempts cost exactly one worker death, so `retries` bounds the deaths.
+
+    s1 crashes only once s0 and s2 are in the manifest: a worker's death also fails the tasks
+    queued on it, so the outcome would otherwise hang on which worker Dask gave which scene."""
     from distributed import Client, LocalCluster
 
     layers = make_layers(tiny_base, tmp_path / "layers", 3)
     out = tmp_path / "out"
-    monkeypatch.setenv("ALLO_TEST_CRASH_SCENE", "s1")  # the workers inherit it when they start
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+    crash = functools.partial(hooks.crash_after, {"s1"}, out, {"s0", "s2"})
+    with LocalCluster(n_workers=3, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
-        summary = dispatch(layers, out, scheduler=client, threads=1, retries=1, progress=False)
+        summary = dispatch(layers, out, scheduler=client, threads=1, retries=1, progress=False, before_render=crash)
         events = [msg for _, msg in client.get_events("all")  # one event per worker removal
                   if isinstance(msg, dict) and msg.get("action") == "remove-worker" and not msg.get("expected")]
         assert client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.allowed_failures) == 3
@@ -246,8 +252,8 @@ def test_dask_crash_costs_one_worker_death_per_attempt(tiny_base, tmp_path, monk
     [row] = summary.failed
     assert row["scene"] == "s1" and row["kind"] == "crash" and row["attempts"] == 2
     assert "KilledWorker" in row["reason"] and len(row["reasons"]) == 2
-    deaths = [e for e in events if any("allo-render-s1-" in str(k) for k in e.get("processing-tasks", ()))]
-    assert len(deaths) == 2, events  # 2 attempts, 2 worker deaths (Dask's own retries would make it 4 each)
+    assert len(events) == 2, events  # 2 attempts, 2 worker deaths (Dask's own retries would make it 4 each)
+    assert all(any("allo-render-s1-" in str(k) for k in e.get("processing-tasks", ())) for e in events), events
     check_outputs(out, [p for p in layers if p.stem != "s1"])
 
 
@@ -281,60 +287,66 @@ def _check_nothing_corrupt(out: Path, ref: Path, layers: list[Path]) -> set[str]
     return finished
 
 
-def test_sigkill_at_random_moments_then_resume(tiny_base, tmp_path):
-    """Kill the whole run (parent and workers) with SIGKILL at seeded-random moments, three times
-    over the same output directory (so later kills hit resumed runs), then resume: no missing,
-    duplicated or corrupt file; finished scenes are never rendered again; the rest render once.
+KILLABLE = """
+import functools, sys
+sys.path.insert(0, sys.argv[3])
+import hooks
+from allo_usd.run.dispatch import dispatch
+pause = functools.partial(hooks.pause_at, sys.argv[4], sys.argv[5].split(","), sys.argv[6].split(","))
+summary = dispatch(sys.argv[1], sys.argv[2], workers=2, progress=False, before_render=pause)
+print("interrupted" if summary.interrupted else "finished", flush=True)
+"""
 
-    Each kill moment is random across the run's timeline: after a random number k of the
-    remaining scenes has finished, plus a random delay within one scene's time (k = 0: within
-    the start-up, which the uninterrupted reference run measures), so kills land in start-up,
-    mid-render and mid-write alike."""
+
+# (signal, scenes that stop before rendering, scenes that stop half-way through their EXR, finished after)
+ROUNDS = [
+    (signal.SIGKILL, ["s0", "s1"], [], set()),  # start-up: both workers about to render their first scene
+    (signal.SIGINT, ["s2"], ["s1"], {"s0"}),  # Ctrl-C: s0 done, s1 mid-write, s2 about to render
+    (signal.SIGKILL, ["s5"], ["s4"], {"s0", "s1", "s2", "s3"}),  # s4 mid-write (its PNG whole), s5 about to render
+]
+
+
+def test_kills_at_well_defined_points_then_resume(tiny_base, tmp_path):
+    """Stop a run (parent and workers) three times over the same output directory, each time once
+    both workers have reached a known point (the before_render hook stops them there and leaves a
+    marker file), with SIGKILL or SIGINT; then resume: no missing, duplicated or corrupt file;
+    finished scenes are never rendered again; the rest render once, byte-identical to an
+    uninterrupted run. Which worker took which scene does not matter: with one worker stopped for
+    good, the other goes on until it reaches its own stop."""
     layers = make_layers(tiny_base, tmp_path / "layers", 6)
     names = sorted(p.stem for p in layers)
-    code = ("import sys; from allo_usd.run.dispatch import dispatch; "
-            "dispatch(sys.argv[1], sys.argv[2], workers=2, progress=False)")
-    delay = 0.4  # widen each render so kills land mid-render too
-    env = {**os.environ, "ALLO_TEST_DELAY": str(delay)}
-
-    def start(out: Path) -> subprocess.Popen:
-        return subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "layers"), str(out)], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-
-    def wait_for(out: Path, rows: int, proc) -> None:
-        deadline = time.monotonic() + 120
-        while proc.poll() is None and time.monotonic() < deadline:
-            if (out / MANIFEST).is_file() and len(load_manifest(out)) >= rows:
-                return
-            time.sleep(0.02)
-
     ref = tmp_path / "ref"
-    t0 = time.monotonic()
-    proc = start(ref)
-    wait_for(ref, 1, proc)
-    startup = time.monotonic() - t0  # until the first scene is done
-    assert proc.wait() == 0
+    assert sorted(dispatch(layers, ref, workers=2, progress=False).rendered) == names
     check_outputs(ref, layers)
-    per_scene = delay + max(r["render_seconds"] for r in manifest_rows(ref))
 
     out = tmp_path / "out"
-    rng = np.random.default_rng(20300101)
     finished: set[str] = set()
-    for _ in range(3):
+    for i, (sig, before, mid_write, expected) in enumerate(ROUNDS):
+        markers = tmp_path / f"markers{i}"
+        markers.mkdir()
         kept = {s: ((out / f"{s}.png").stat().st_mtime_ns, load_manifest(out)[s]) for s in finished}
-        k = int(rng.integers(0, len(names) - len(finished))) if len(finished) < len(names) else 0
-        proc = start(out)
-        if k:
-            wait_for(out, len(finished) + k, proc)
-        time.sleep(float(rng.uniform(0.0, per_scene if k else startup)))
+        proc = subprocess.Popen([sys.executable, "-c", KILLABLE, str(tmp_path / "layers"), str(out),
+                                 str(Path(hooks.__file__).parent), str(markers), ",".join(before), ",".join(mid_write)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stops = [markers / f"{s}.before" for s in before] + [markers / f"{s}.mid_write" for s in mid_write]
+        deadline = time.monotonic() + 300
+        while not all(p.is_file() for p in stops):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
         children = _writer_processes(proc.pid)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+        assert len(children) >= 2
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=120)
         gone, alive = psutil.wait_procs(children, timeout=30)  # workers die with their parent
         assert not alive
+        if sig == signal.SIGINT:  # a clean stop: summary, exit 0, no temporaries left
+            assert proc.returncode == 0 and stdout.strip() == "interrupted", (stdout, stderr)
+            assert not [p.name for p in out.iterdir() if p.name.startswith(".") and p.name != ".allo-dispatch.lock"]
         now = _check_nothing_corrupt(out, ref, layers) if out.is_dir() else set()
-        assert now >= finished  # finished scenes stay finished ...
+        assert now == expected and now >= finished  # finished scenes stay finished ...
         assert {s: ((out / f"{s}.png").stat().st_mtime_ns, load_manifest(out)[s]) for s in finished} == kept
+        for s in mid_write:  # the PNG written before the stop is whole; the EXR never got its name
+            assert s not in now and (out / f"{s}.png").is_file() and not (out / f"{s}.exr").exists()
         finished = now  # ... and were not rendered again
 
     summary = dispatch(tmp_path / "layers", out, workers=2, progress=False)
@@ -346,11 +358,12 @@ def test_sigkill_at_random_moments_then_resume(tiny_base, tmp_path):
             assert (out / f"{s}{suffix}").read_bytes() == (ref / f"{s}{suffix}").read_bytes()
 
 
-def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path, monkeypatch):
+def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path):
+    """A worker that dies rendering s1 is replaced and s1 alone retried (a local worker holds one
+    task at a time, so whichever worker took it, no other scene pays)."""
     layers = make_layers(tiny_base, tmp_path / "layers", 3)
     out = tmp_path / "out"
-    monkeypatch.setenv("ALLO_TEST_CRASH_SCENE", "s1")
-    summary = dispatch(layers, out, workers=2, progress=False)
+    summary = dispatch(layers, out, workers=2, progress=False, before_render=functools.partial(hooks.crash_on, {"s1"}))
     assert sorted(summary.rendered) == ["s0", "s2"]
     [row] = [json.loads(line) for line in (out / "failed.jsonl").read_text().splitlines()]
     assert row["scene"] == "s1" and row["kind"] == "crash" and row["attempts"] == 3
@@ -358,8 +371,7 @@ def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path, monkeypat
     assert "logs/worker-" in row["reason"]  # where the dead worker's own output went
     assert not (out / "s1.png").exists()
 
-    monkeypatch.delenv("ALLO_TEST_CRASH_SCENE")  # the next run retries the failed scene only
-    summary = dispatch(layers, out, workers=2, progress=False)
+    summary = dispatch(layers, out, workers=2, progress=False)  # the next run retries the failed scene only
     assert summary.rendered == ["s1"] and not (out / "failed.jsonl").exists()
     check_outputs(out, layers)
 
@@ -368,7 +380,7 @@ WRITER = """
 import sys
 from pathlib import Path
 from allo_usd.run.worker import _workdir
-from allo_usd.write import atomic_path
+from allo_usd.core.files import atomic_path
 out = Path(sys.argv[1])
 (_workdir(out) / "render.exr").write_bytes(b"Blender's file")
 with atomic_path(out / sys.argv[2]) as tmp:
@@ -412,12 +424,11 @@ def test_manifest_appends_never_leave_a_torn_line(tmp_path):
 
 # ---------------------------------------------------------------- full disk
 
-def test_full_disk_stops_cleanly(tiny_base, tmp_path, monkeypatch):
+def test_full_disk_stops_cleanly(tiny_base, tmp_path):
     layers = make_layers(tiny_base, tmp_path / "layers", 4)
     out = tmp_path / "out"
-    monkeypatch.setenv("ALLO_TEST_ENOSPC_SCENE", "s1")
     with pytest.raises(DiskFullError, match="no space left"):
-        dispatch(layers, out, workers=1, progress=False)
+        dispatch(layers, out, workers=1, progress=False, before_render=functools.partial(hooks.full_disk_on, {"s1"}))
     done = load_manifest(out)
     assert set(done) == {"s0"}  # stopped at s1: s2 and s3 never started
     assert not (out / "s1.exr").exists() and not (out / "s2.png").exists()
@@ -425,7 +436,6 @@ def test_full_disk_stops_cleanly(tiny_base, tmp_path, monkeypatch):
     [row] = [json.loads(line) for line in (out / "failed.jsonl").read_text().splitlines()]
     assert row["kind"] == "disk_full"
 
-    monkeypatch.delenv("ALLO_TEST_ENOSPC_SCENE")
     summary = dispatch(layers, out, workers=2, progress=False)
     assert summary.skipped == ["s0"] and sorted(summary.rendered) == ["s1", "s2", "s3"]
     check_outputs(out, layers)

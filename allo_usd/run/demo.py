@@ -98,25 +98,6 @@ def contact_sheet(rows: list[tuple[str, np.ndarray, np.ndarray]], path: Path) ->
     return path
 
 
-def _render(layer: Path, renders: Path) -> dict:
-    """Render a layer unless its outputs exist for these very layer bytes (a changed layer, e.g.
-    another resolution, is rendered again)."""
-    import json
-
-    from allo_usd.run.job import output_paths, render_layer
-    from allo_usd.core.files import sha256_file
-
-    meta_path = output_paths(layer, renders)["meta"]
-    force = False
-    if meta_path.is_file():
-        try:
-            old = json.loads(meta_path.read_text()).get("layer_sha256")
-        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-            old = None
-        force = old != sha256_file(layer)
-    return render_layer(layer, renders, force=force)
-
-
 def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage: Path = BASE_STAGE,
              progress: bool = True) -> Path:
     """Author, render and contact-sheet the demo scenes under `out_dir`; returns the sheet's path.
@@ -125,7 +106,8 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     from tqdm import tqdm
 
     from allo_usd.output.dataset import _pixels
-    from allo_usd.run.dispatch import output_to
+    from allo_usd.run.job import render_layer
+    from allo_usd.run.worker import output_to
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
@@ -143,7 +125,9 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
             spec = demo_spec(world, i, resolution, samples)
             layer = write_demo_layer(spec, tree, stage)
             with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
-                meta = _render(layer, out_dir / "renders")
+                # skipped when done for these very layer bytes (allo_usd.run.manifest.is_done); a
+                # changed layer, e.g. another resolution, renders again
+                meta = render_layer(layer, out_dir / "renders")
             bar.write(f"{spec.scene_id}: {meta['render_seconds']:.1f} s, anomaly {meta['anomaly_fraction']:.3%}, "
                       f"sun {spec.sun.eclipse_state}")
             rgb = _pixels(out_dir / "renders" / meta["files"]["rgb"])

@@ -1,87 +1,32 @@
-"""Run render tasks (one scene layer each) on a local pool of worker processes or a Dask cluster.
+"""Render many scene layers on a local pool of worker processes or a Dask cluster, so that a run
+can be killed, crash a worker or fill the disk at any moment and a re-run finishes the rest.
 
-Which layers: a directory is searched recursively for scene layers (a .usda whose
-customLayerData holds allo.sceneId); in an authored plan's tree (a directory with plan.toml and
-scenes/) only scenes/SPLIT/KIND/ is searched, since sky/, poses/ and stages/ hold shared
-sublayers, not scenes. Finding no scene layer is an error, not an empty success. Paths are made
-absolute before any task is sent, so Dask workers (another working directory, another host with
-the same mounts) find the same files.
-
-Local pool (the default): N warm worker processes, started with the *spawn* method (bpy is not
-fork-safe), each importing bpy once and rendering one layer at a time with `cores // N` Cycles
-threads (the layer is not edited; Cycles gives the same image for any thread count). Each
-worker's stdout and stderr (the file descriptors: Blender prints from C) go to
-`OUT/logs/worker-N.log`, so the terminal shows only the progress bar and our messages. The
-parent hands one task at a time to each idle worker over a pipe and watches the worker's process
-sentinel, so when a worker dies (segfault, out-of-memory kill) the parent knows exactly which
-task it held: that task alone is retried, up to `retries` times, on a freshly started worker;
-then it is recorded in `failed.jsonl` and the run goes on. (`concurrent.futures` cannot do this:
-a dead worker breaks the whole ProcessPoolExecutor and fails every pending future with it.)
-Workers die with their parent (PR_SET_PDEATHSIG on Linux, plus a parent-watch thread), so a
-killed run leaves no orphan renderers writing behind it.
-
-When the workers' threads fit the cores this process may use, each worker is pinned to its own
-cores before it imports bpy (`core_sets`). Blender sizes its TBB pool from the process's CPU
-affinity, and an unpinned 1-thread worker keeps a second TBB thread spinning in sched_yield for
-the whole render (measured: 2 workers x 1 thread took 42.8 s unpinned vs 40.0 s pinned on 24
-scenes; docs/bench_workers.md). Pinning never changes an image.
-
-Dask (`scheduler=ADDRESS` or a `distributed.Client`): the same task function runs on the
-cluster's workers. bpy is one global, non-thread-safe state, so `render_task` holds a
-per-process lock (a worker started with `--nthreads 2` renders one scene at a time; start
-workers with `--nthreads 1` and as many processes as you like) and keeps one warm Session per
-worker process, created on its first task. A task whose worker dies comes back as KilledWorker
-and is resubmitted up to `retries` times. Dask's own retry of tasks whose worker died
-(`distributed.scheduler.allowed-failures`, 3 by default) would multiply that bound (4 worker
-deaths per attempt), so while a run is going it sets the scheduler's allowed-failures to 0 (and
-puts the old value back at the end; concurrent runs count holds) and submits with retries=0:
-each of our attempts costs at most one worker death. Outputs must go to a file system every
-worker can reach.
-
-Crash safety, for both backends:
-- every output is written under a temporary name and renamed (allo_usd.output.writers.atomic_path);
-- `OUT/manifest.jsonl` gets one line per finished scene (sha256 of the layer and of each output
-  file), appended with a single write and fsync; a torn last line (power cut) is ignored;
-- a re-run skips a scene only if the manifest lists it, its layer is unchanged and every output
-  exists with a matching checksum; anything else is rendered again;
-- stale temporaries (`.NAME.PID.XXXXXXXX.ext` from atomic_path, Blender's render files under
-  `OUT/.allo-tmp/PID/`) are removed at the start and end of a run; when a local worker dies, only
-  the temporaries named for its pid go, never those its live neighbours are writing; a lock file
-  keeps two runs from sharing one output directory;
-- a bad layer (AlloError) is recorded as failed at once, without retries; a render that failed
-  for reasons outside the layer (RenderFailedError, any other exception) is retried like a crash;
-- a full disk (DiskFullError: ENOSPC/EDQUOT from our writes, or a device found full after
-  Blender's own EXR write, which Blender does not report; allo_usd.blender.render) stops the run:
-  pending tasks are dropped, workers stopped, and DiskFullError is raised (exit 2 from the CLI);
-  finished outputs stay valid and are skipped next time; a manifest line is never left torn;
-- Ctrl-C stops the run the same way and returns a summary with `interrupted=True`.
-
-Test hooks (environment variables read by the worker, test-only): ALLO_TEST_CRASH_SCENE and
-ALLO_TEST_ENOSPC_SCENE (comma-separated scene names: die with SIGSEGV / hit ENOSPC while writing
-that scene's EXR), ALLO_TEST_DELAY (seconds to sleep before each render).
+The local pool is our own rather than concurrent.futures: a dead worker breaks a whole
+ProcessPoolExecutor, while here the parent knows which task each worker held and retries that
+one alone. How the two backends stay crash-safe is described in docs/dispatch.md.
 """
 
 from __future__ import annotations
 
-import errno
-import json
 import os
 import re
-import shutil
 import signal
 import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError
-from allo_usd.run.job import output_paths
+from allo_usd.core.files import RunLock
+from allo_usd.run.manifest import (MANIFEST, WORKDIR, _append_jsonl, _compact_manifest, clean_stale, is_done,
+                                   is_verified, load_manifest)
+from allo_usd.run.worker import _worker_main, render_task
 from allo_usd.usd.safety import ENV_ROOTS
-from allo_usd.core.files import DISK_FULL_ERRNOS, RunLock, sha256_file, temp_name_re
-from allo_usd.run.worker import WORKDIR, _worker_main, output_to, render_task
 
-MANIFEST = "manifest.jsonl"
+Hook = Callable[[str], None]
+
 FAILED = "failed.jsonl"
 LOCK = ".allo-dispatch.lock"
 LOGS = "logs"
@@ -158,94 +103,6 @@ def find_layers(source: str | Path | list) -> list[Path]:
     return layers
 
 
-# ---------------------------------------------------------------- manifest
-
-def _read_jsonl(path: Path) -> list[dict]:
-    rows = []
-    if path.is_file():
-        for line in path.read_text(errors="replace").splitlines():
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line torn by a crash mid-append
-            if isinstance(row, dict) and "scene" in row:
-                rows.append(row)
-    return rows
-
-
-def load_manifest(out_dir: Path) -> dict[str, dict]:
-    """Finished scenes by name (the last row of a scene wins)."""
-    return {row["scene"]: row for row in _read_jsonl(Path(out_dir) / MANIFEST)}
-
-
-def _append_jsonl(path: Path, row: dict) -> None:
-    """One os.write of one line on an O_APPEND descriptor, then fsync: a crash loses at most the line.
-    A line torn by an earlier crash is ended first, so it cannot swallow this one; a write cut
-    short by a full disk is truncated away, so the file never ends in half a line."""
-    data = (json.dumps(row, sort_keys=True) + "\n").encode()
-    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
-    try:
-        size = os.fstat(fd).st_size
-        try:
-            if size and os.pread(fd, 1, size - 1) != b"\n":
-                data = b"\n" + data
-            if os.write(fd, data) != len(data):
-                raise OSError(errno.ENOSPC, "short write", str(path))
-            os.fsync(fd)
-        except OSError as exc:
-            if exc.errno in DISK_FULL_ERRNOS:
-                try:
-                    os.ftruncate(fd, size)
-                except OSError:
-                    pass
-                raise DiskFullError(f"no space left on the device while appending to {path}; free space and "
-                                    "re-run") from exc
-            raise
-    finally:
-        os.close(fd)
-
-
-def _compact_manifest(out_dir: Path) -> None:
-    """Rewrite the manifest with one row per scene (atomically), dropping torn lines and repeats."""
-    from allo_usd.core.files import atomic_path
-
-    path = Path(out_dir) / MANIFEST
-    if not path.is_file():
-        return
-    rows = load_manifest(out_dir)
-    text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows.values())
-    if text != path.read_text(errors="replace"):
-        with atomic_path(path) as tmp:
-            tmp.write_text(text)
-
-
-def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
-    """The manifest row matches the current layer and every output exists with its checksum."""
-    if not row or row.get("layer_sha256") != sha256_file(layer):
-        return False
-    files = row.get("files") or {}
-    expected = {p.name for p in output_paths(layer, out_dir).values()}
-    if set(files) != expected:
-        return False
-    return all((Path(out_dir) / name).is_file() and sha256_file(Path(out_dir) / name) == digest
-               for name, digest in files.items())
-
-
-def clean_stale(out_dir: Path, pid: int | None = None) -> int:
-    """Remove temporaries left by killed writers (only those of writer `pid` when given: the
-    others may belong to live workers); returns how many files beside the outputs went."""
-    out_dir = Path(out_dir)
-    pattern = temp_name_re(pid)
-    n = 0
-    if out_dir.is_dir():
-        for p in out_dir.iterdir():
-            if pattern.match(p.name) and p.is_file():
-                p.unlink(missing_ok=True)
-                n += 1
-    shutil.rmtree(out_dir / WORKDIR if pid is None else out_dir / WORKDIR / str(int(pid)), ignore_errors=True)
-    return n
-
-
 def usable_cores() -> int:
     """Cores this process may run on (its CPU affinity, as Blender's TBB sees it), not the machine's."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
@@ -262,13 +119,13 @@ def core_sets(workers: int, threads: int, cores: list[int] | None = None) -> lis
 
 class _Worker:
     def __init__(self, ctx, env: dict, cores: tuple[int, ...] | None = None, index: int = 0,
-                 log_dir: Path | None = None):
+                 log_dir: Path | None = None, before_render: Hook | None = None):
         self.cores, self.index = cores, index
         self.log = None if log_dir is None else Path(log_dir) / f"worker-{index}.log"
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_worker_main, daemon=True, name=f"allo-render-worker-{index}",
                                 args=(child, env, os.getpid(), cores, None if self.log is None else str(self.log),
-                                      index))
+                                      index, before_render))
         self.proc.start()
         child.close()
         self.task: _Task | None = None
@@ -363,7 +220,8 @@ class _Run:
         self.bar.close()
 
 
-def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict) -> None:
+def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict,
+               before_render: Hook | None = None) -> None:
     import multiprocessing
     from multiprocessing.connection import wait
 
@@ -371,8 +229,7 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
     pending = deque(tasks)
     n = min(workers, len(tasks))
     log_dir = out_dir / LOGS
-    pool = [_Worker(ctx, env, cores, i, log_dir) for i, cores in enumerate(core_sets(n, threads))]
-    disk_full: DiskFullError | None = None
+    pool = [_Worker(ctx, env, cores, i, log_dir, before_render) for i, cores in enumerate(core_sets(n, threads))]
     try:
         while pending or any(w.task for w in pool):
             for w in pool:
@@ -403,7 +260,8 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                     reason = f"{_death_reason(w.proc.exitcode)}; its output is in {w.log}"
                     w.kill()
                     clean_stale(out_dir, pid=w.proc.pid)  # its half-written temporaries, not its neighbours'
-                    pool[i] = _Worker(ctx, env, w.cores, w.index, log_dir)  # after: a reused pid keeps its files
+                    # after the cleanup: a reused pid keeps its files
+                    pool[i] = _Worker(ctx, env, w.cores, w.index, log_dir, before_render)
                     if run.retry_or_fail(task, "crash", reason):
                         pending.appendleft(task)
                 elif run.settle(task, result):
@@ -446,7 +304,8 @@ def _hold_one_death_per_attempt(client, hold: bool) -> bool:
         return False
 
 
-def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict) -> None:
+def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict,
+              before_render: Hook | None = None) -> None:
     from distributed import Client, as_completed
 
     client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
@@ -457,7 +316,8 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
 
         def submit(task: _Task):
             task.attempts += 1
-            return client.submit(render_task, str(task.layer), str(out_dir), threads, roots, pure=False, retries=0,
+            return client.submit(render_task, str(task.layer), str(out_dir), threads, roots, before_render,
+                                 pure=False, retries=0,
                                  key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
 
         futures = {submit(t): t for t in tasks}
@@ -490,13 +350,15 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
 # ---------------------------------------------------------------- entry point
 
 def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
-             retries: int = 2, progress: bool | None = None, extra_roots: tuple = ()) -> Summary:
+             retries: int = 2, progress: bool | None = None, extra_roots: tuple = (),
+             before_render: Hook | None = None) -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
 
     `workers` local processes (default: the cores this process may use) with `threads` Cycles
     threads each (default: cores // workers), or the Dask cluster at `scheduler` (an address or
     a Client). Returns a Summary; raises DiskFullError when the disk fills (after stopping
-    cleanly) and AlloError when `source` holds no scene layer.
+    cleanly) and AlloError when `source` holds no scene layer. `before_render(scene_name)` is
+    called in the worker before each render (a picklable function; tests inject faults with it).
     """
     t0 = time.perf_counter()
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
@@ -513,18 +375,18 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         done = load_manifest(out_dir)
         tasks = []
         for layer in layers:
-            if is_verified(done.get(layer.stem), layer, out_dir):
+            if is_done(layer, out_dir, done):
                 summary.skipped.append(layer.stem)
             else:
                 tasks.append(_Task(layer))
         run = _Run(out_dir, len(tasks), retries, progress, summary)
         try:
             if tasks and scheduler is not None:
-                _run_dask(tasks, out_dir, scheduler, threads, run, env)
+                _run_dask(tasks, out_dir, scheduler, threads, run, env, before_render)
             elif tasks:
                 cores = usable_cores()
                 n = max(1, workers or cores)
-                _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env)
+                _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env, before_render)
         except KeyboardInterrupt:
             summary.interrupted = True
         finally:
@@ -549,5 +411,5 @@ def author_and_dispatch(plan_path: Path, out_dir: Path, **kwargs) -> Summary:
                     **kwargs)
 
 
-__all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "load_manifest", "is_verified",
-           "clean_stale", "render_task", "output_to", "usable_cores", "LayerError"]
+__all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "load_manifest", "is_done", "is_verified",
+           "clean_stale", "render_task", "usable_cores", "MANIFEST", "WORKDIR", "LayerError"]

@@ -1,7 +1,8 @@
 """One render job: a scene layer in, its files out (PNG, EXR, mask, metadata).
 
 The unit of work for local pools and Dask alike. Outputs are written atomically and the
-metadata JSON goes last, so its presence marks a finished scene and re-runs skip it.
+metadata JSON goes last, so its presence (naming the layer's sha256) marks a finished scene and
+re-runs skip it (allo_usd.run.manifest.is_done).
 """
 
 from __future__ import annotations
@@ -12,29 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd import __version__
-from allo_usd.usd.read import layer_outputs
 from allo_usd.output.writers import write_exr, write_json, write_mask_png, write_rgb_exr, write_rgb_png
-
-
-def output_paths(layer: Path, out_dir: Path, outputs: tuple[str, ...] | None = None) -> dict[str, Path]:
-    """Files one scene produces, by the render vars it orders (PNG + EXR for color, the class mask,
-    a float32 depth EXR), plus the metadata JSON."""
-    stem = Path(layer).stem
-    out_dir = Path(out_dir)
-    outputs = layer_outputs(layer) if outputs is None else outputs
-    paths = {}
-    if "color" in outputs:
-        paths.update(rgb=out_dir / f"{stem}.png", exr=out_dir / f"{stem}.exr")
-    paths["mask"] = out_dir / f"{stem}_mask.png"
-    if "depth" in outputs:
-        paths["depth"] = out_dir / f"{stem}_depth.exr"
-    paths["meta"] = out_dir / f"{stem}.json"
-    return paths
-
-
-def is_done(layer: Path, out_dir: Path) -> bool:
-    paths = output_paths(layer, out_dir)
-    return all(p.is_file() for p in paths.values())
+from allo_usd.run.manifest import is_done, output_paths
 
 
 def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -55,28 +35,28 @@ def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
 
 
 def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
-                 workdir: Path | None = None, session=None) -> dict:
+                 workdir: Path | None = None, session=None, save_blend: Path | None = None) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON).
 
     `threads` overrides the layer's allo:render:threads for this process only (the layer is not
     edited): a pool of N workers on C cores runs each with C // N threads. Cycles gives the same
     image for any thread count. `workdir` holds Blender's temporary render file. `session` (an
     allo_usd.blender.session.Session) keeps the Blender scene warm and applies only what differs
-    from its previous scene; the files are byte-identical to a from-scratch build.
+    from its previous scene; the files are byte-identical to a from-scratch build. `save_blend`
+    also saves the built Blender scene there as a .blend (before rendering), to open what Blender got.
     """
     import dataclasses
     import json
 
-    from allo_usd.blender.render import render_scene
     from allo_usd.usd.read import read_scene
 
     paths = output_paths(layer, out_dir)
-    if not force and is_done(layer, out_dir):
+    if not force and save_blend is None and is_done(layer, out_dir):
         return json.loads(paths["meta"].read_text())
     desc = read_scene(layer)
     if threads is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, threads=int(threads)))
-    result = render_scene(desc, workdir) if session is None else session.render(desc, workdir)
+    result = _render(desc, workdir, session, save_blend)
     paths = output_paths(layer, out_dir, desc.render.outputs)
     effects = {}
     if "rgb" in paths:
@@ -102,3 +82,25 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     }
     write_json(paths["meta"], meta)
     return meta
+
+
+def _render(desc, workdir: Path | None, session, save_blend: Path | None):
+    from allo_usd.blender.render import render_scene
+
+    if save_blend is None:
+        return render_scene(desc, workdir) if session is None else session.render(desc, workdir)
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.debug import save_blend as save
+    from allo_usd.blender.render import render_current
+
+    try:
+        if session is None:
+            build_scene(desc)
+        else:
+            session.apply(desc)
+        save(save_blend)
+        return render_current(desc, workdir)
+    except BaseException:
+        if session is not None:
+            session.invalidate()
+        raise

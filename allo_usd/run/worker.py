@@ -11,56 +11,36 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
 from allo_usd.core.files import DISK_FULL_ERRNOS, sha256_file
-from allo_usd.run.job import output_paths
+from allo_usd.run.manifest import WORKDIR, output_paths
 from allo_usd.usd.safety import ENV_ROOTS
-
-WORKDIR = ".allo-tmp"
 
 
 # ---------------------------------------------------------------- the task (runs in a worker)
-
-def _listed(var: str, scene: str) -> bool:
-    return scene in [s.strip() for s in os.environ.get(var, "").split(",") if s.strip()]
-
-
-def _test_hooks(scene: str) -> None:
-    if os.environ.get("ALLO_TEST_DELAY"):
-        time.sleep(float(os.environ["ALLO_TEST_DELAY"]))
-    if _listed("ALLO_TEST_CRASH_SCENE", scene):
-        os.kill(os.getpid(), signal.SIGSEGV)
-    if _listed("ALLO_TEST_ENOSPC_SCENE", scene):
-        import errno
-
-        from allo_usd.run import job
-        from allo_usd.core.files import atomic_path
-
-        def full_disk(path, *args, **kwargs):
-            with atomic_path(path) as tmp:
-                tmp.write_bytes(b"partial EXR")
-                raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
-
-        job.write_rgb_exr = full_disk
-
 
 _BPY_LOCK = threading.Lock()  # bpy is one global state and not thread-safe: one render per process at a time
 _SESSION = None  # this process's warm Blender session (allo_usd.blender.session), made by its first task
 
 
-def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str = "") -> dict:
+def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str = "",
+                before_render: Callable[[str], None] | None = None) -> dict:
     """Render one layer (forced: the parent decided it is not done) and checksum its outputs.
 
     Never raises for a bad layer or a full disk: returns {"status": "error", "kind": ...} so
     the parent can tell them apart from a crash, which it sees as a dead worker instead. Safe to
     call from several threads of one process (a Dask worker with --nthreads > 1): they take turns.
+    `before_render(scene_name)`, if given, is called first, inside the lock (tests inject faults
+    with it; it must be picklable: a module-level function or a partial of one).
     """
     with _BPY_LOCK:
-        return _render_task(layer, out_dir, threads, roots)
+        return _render_task(layer, out_dir, threads, roots, before_render)
 
 
-def _render_task(layer: str, out_dir: str, threads: int | None, roots: str) -> dict:
+def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
+                 before_render: Callable[[str], None] | None) -> dict:
     global _SESSION
     _fix_bpy_path()
     from allo_usd.run.job import render_layer
@@ -75,7 +55,8 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str) -> d
                 "message": f"{type(exc).__name__}: {exc}" if prefix else str(exc)}
 
     try:
-        _test_hooks(scene)
+        if before_render is not None:
+            before_render(scene)
         if _SESSION is None:
             from allo_usd.blender.session import Session
 
@@ -188,7 +169,7 @@ def _fix_bpy_path() -> None:
 
 
 def _worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
-                 log: str | None = None, index: int = 0) -> None:
+                 log: str | None = None, index: int = 0, before_render: Callable[[str], None] | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
     _die_with_parent(parent_pid)
     if log:
@@ -208,4 +189,4 @@ def _worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None
             return
         if msg is None:
             return
-        conn.send(render_task(**msg))
+        conn.send(render_task(**msg, before_render=before_render))

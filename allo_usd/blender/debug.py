@@ -1,0 +1,20 @@
+"""Save the Blender scene as built, so a user can open in Blender exactly what a layer became."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from allo_usd.core.errors import AlloError
+
+
+def save_blend(path: Path) -> Path:
+    """Write the current Blender scene to `path` (.blend) as a copy: the session keeps its own
+    file name and state, so the render that follows is unchanged."""
+    import bpy
+
+    path = Path(path).resolve()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    result = bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True, check_existing=False)
+    if "FINISHED" not in result or not path.is_file():
+        raise AlloError(f"Blender could not save {path} ({result}); check that the directory is writable")
+    return path
