@@ -30,7 +30,7 @@ from collections import Counter  # noqa: E402
 from itertools import groupby  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from allo_usd.run.author import (_Context, _drive, _Inline, author, author_sample, ensure_sky_layer,
+from allo_usd.run.author import (AuthorContext, drive, InlineRunner, author, author_sample, ensure_sky_layer,
                                  summary_lines, with_tree_stage)
 from allo_usd.plan.enumeration import enumerate_scenes
 from allo_usd.plan.model import paper_plan
@@ -121,7 +121,7 @@ def main() -> None:
             t = time.perf_counter()
             plan = with_tree_stage(plan, out)
             sky = compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch))
-            ctx = _Context(plan, out, sky)
+            ctx = AuthorContext(plan, out, sky)
             ctx.world.station_scene
             for day in range(plan.dates.days):
                 ensure_sky_layer(ctx, day)
@@ -141,7 +141,7 @@ def main() -> None:
             per_place = (time.process_time() - t) / len(sub_p)
             # The top-up of the subset's shortfalls, decided exactly as authoring does.
             t = time.process_time()
-            topup, _ = _drive(_Inline(ctx), ctx, [k for s in sub_p for k in s], [], skipped, {}, _Quiet())
+            topup, _ = drive(InlineRunner(ctx), ctx, [k for s in sub_p for k in s], [], skipped, {}, _Quiet())
             t_topup = time.process_time() - t
             n_normal = sum(len(s) for s in normal)
             scale = len(placements) / len(sub_p)

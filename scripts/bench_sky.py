@@ -64,19 +64,19 @@ def main() -> int:
     epochs = default_epochs(2030, 365)
     timings: list[tuple[str, float]] = []
 
-    E._ephemeris.cache_clear()
+    E.load_de421.cache_clear()
     t0 = time.perf_counter()
     year = compute_sky(epochs)
     timings.append(("first compute_sky, 365 days (opens DE421)", (time.perf_counter() - t0) * 1e3))
     year_ms = best_of(lambda: compute_sky(epochs), args.runs)
     timings.append((f"compute_sky, 365 days (best of {args.runs})", year_ms))
 
-    e = E._ephemeris()
-    t = E._time_from_utc([d.astimezone(UTC) for d in epochs])
+    e = E.load_de421()
+    t = E.time_from_utc([d.astimezone(UTC) for d in epochs])
     timings.append((f"  of which skyfield Sun+Earth+Moon .at(), 365 (best of {args.runs})",
                     best_of(lambda: (e.sun.at(t), e.earth.at(t), e.moon.at(t)), args.runs)))
     timings.append((f"  of which epochs -> skyfield Time, 365 (best of {args.runs})",
-                    best_of(lambda: E._time_from_utc([d.astimezone(UTC) for d in epochs]), args.runs)))
+                    best_of(lambda: E.time_from_utc([d.astimezone(UTC) for d in epochs]), args.runs)))
     hourly = [START + timedelta(hours=k) for k in range(24 * 365)]
     timings.append(("compute_sky, 8,760 hours of 2030 (best of 5)", best_of(lambda: compute_sky(hourly), 5)))
     timings.append(("Sky.at + body_placement + sun_light, 1 day (best of 1000)",

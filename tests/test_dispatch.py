@@ -19,7 +19,7 @@ from PIL import Image
 
 from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.run.dispatch import core_sets, dispatch, find_layers
-from allo_usd.run.manifest import MANIFEST, WORKDIR, _append_jsonl, clean_stale, is_done, is_verified, load_manifest
+from allo_usd.run.manifest import MANIFEST, WORKDIR, append_jsonl, clean_stale, is_done, is_verified, load_manifest
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
 from allo_usd.core.files import temp_name_re
 
@@ -379,10 +379,10 @@ def test_crashing_worker_is_retried_then_recorded(tiny_base, tmp_path):
 WRITER = """
 import sys
 from pathlib import Path
-from allo_usd.run.worker import _workdir
+from allo_usd.run.worker import render_workdir
 from allo_usd.core.files import atomic_path
 out = Path(sys.argv[1])
-(_workdir(out) / "render.exr").write_bytes(b"Blender's file")
+(render_workdir(out) / "render.exr").write_bytes(b"Blender's file")
 with atomic_path(out / sys.argv[2]) as tmp:
     tmp.write_bytes(b"complete")
     print("writing", flush=True)
@@ -417,7 +417,7 @@ def test_cleanup_after_a_crash_spares_live_writers(tmp_path):
 def test_manifest_appends_never_leave_a_torn_line(tmp_path):
     path = tmp_path / MANIFEST
     path.write_text('{"scene": "a"}\n{"scene": "b", "fil')  # a line torn by a power cut
-    _append_jsonl(path, {"scene": "c"})
+    append_jsonl(path, {"scene": "c"})
     assert [r["scene"] for r in load_manifest(tmp_path).values()] == ["a", "c"]
     assert path.read_text().endswith('"fil\n{"scene": "c"}\n')
 
@@ -497,7 +497,7 @@ def test_real_full_disk_stops_the_run_at_blenders_write(tiny_base, tmp_path, sma
 def test_a_cut_short_render_file_is_retried_unless_the_disk_is_full(tmp_path, small_tmpfs):
     """What Blender leaves on a failed write: with room on the device it is a retriable render
     failure (not the layer's fault), on a full device it is DiskFullError."""
-    from allo_usd.blender.render import _read_multilayer_exr, _unreadable, check_render_file
+    from allo_usd.blender.render import read_multilayer_exr, unreadable_render_file, check_render_file
     from allo_usd.output.writers import write_exr
 
     good = write_exr(tmp_path / "good.exr", {"R": np.ones((36, 64), np.float32)}, half=False)
@@ -508,8 +508,8 @@ def test_a_cut_short_render_file_is_retried_unless_the_disk_is_full(tmp_path, sm
         if d.parent == small_tmpfs:
             _fill(small_tmpfs, leave=0)
         with pytest.raises(Exception) as err:
-            _read_multilayer_exr(cut)
-        problem = _unreadable(cut, "s.usda", f"cannot be read ({err.value})")
+            read_multilayer_exr(cut)
+        problem = unreadable_render_file(cut, "s.usda", f"cannot be read ({err.value})")
         expected = DiskFullError if d.parent == small_tmpfs else RenderFailedError
         assert type(problem) is expected
         if expected is DiskFullError:

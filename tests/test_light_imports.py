@@ -32,10 +32,10 @@ def test_catalogue_names_every_builder():
 
 def test_de421_range_constants_match_the_file():
     from allo_usd.sky import ephemeris_range as R
-    from allo_usd.sky.ephemeris import _ISO_FMT, _ephemeris, _quiet_expiry
+    from allo_usd.sky.ephemeris import ISO_FORMAT, load_de421, quiet_expiry
 
-    e = _ephemeris()
+    e = load_de421()
     assert (e.start_tdb_jd, e.end_tdb_jd) == (R.DE421_START_TDB_JD, R.DE421_END_TDB_JD)
-    with _quiet_expiry():
-        utc = (e.ts.tdb_jd(e.start_tdb_jd).utc_strftime(_ISO_FMT), e.ts.tdb_jd(e.end_tdb_jd).utc_strftime(_ISO_FMT))
+    with quiet_expiry():
+        utc = (e.ts.tdb_jd(e.start_tdb_jd).utc_strftime(ISO_FORMAT), e.ts.tdb_jd(e.end_tdb_jd).utc_strftime(ISO_FORMAT))
     assert utc == (R.DE421_START_UTC, R.DE421_END_UTC)

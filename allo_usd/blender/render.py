@@ -34,7 +34,7 @@ class RenderResult:
     seconds: float
 
 
-def _read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
+def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
     import OpenEXR
 
     channels = {}
@@ -83,7 +83,7 @@ def check_render_file(out: Path, finished: bool, desc_layer: str) -> None:
                                 "the dispatcher retries it")
 
 
-def _unreadable(out: Path, desc_layer: str, problem: str) -> Exception:
+def unreadable_render_file(out: Path, desc_layer: str, problem: str) -> Exception:
     """A render file we cannot use: disk full if the device is (nearly) full, else a retriable failure."""
     free, inodes = free_space(out.parent)
     if inodes == 0 or free < MIN_FREE_BYTES:
@@ -112,18 +112,18 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
         seconds = time.perf_counter() - t0
         check_render_file(out, "FINISHED" in result, desc.layer)
         try:
-            ch = _read_multilayer_exr(out)
+            ch = read_multilayer_exr(out)
         except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain exceptions for cut-short files
-            raise _unreadable(out, desc.layer, f"cannot be read ({type(exc).__name__}: {exc})") from exc
+            raise unreadable_render_file(out, desc.layer, f"cannot be read ({type(exc).__name__}: {exc})") from exc
         from allo_usd.blender.compositor import has_compositor
 
         layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
         r, g, b = (ch.get(f"{layer}.{c}") for c in "RGB")
         if r is None:
-            raise _unreadable(out, desc.layer, f"has no {layer} pass (channels: {sorted(ch)})")
+            raise unreadable_render_file(out, desc.layer, f"has no {layer} pass (channels: {sorted(ch)})")
         index = _find(ch, "IndexOB.X", "Object Index.X", "IndexOB.V")
         if index is None:
-            raise _unreadable(out, desc.layer, f"has no object index pass (channels: {sorted(ch)})")
+            raise unreadable_render_file(out, desc.layer, f"has no object index pass (channels: {sorted(ch)})")
     rgb = np.stack([r, g, b], axis=-1).astype(np.float32)  # EXR rows run top-down, like PNG
     mask = np.rint(index).astype(np.uint8)
     depth = _find(ch, "Depth.Z", "Depth.V") if "depth" in desc.render.outputs else None

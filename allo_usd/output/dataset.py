@@ -182,7 +182,7 @@ def remove_unlisted(out: Path, category: str, rows) -> list[str]:
     return gone
 
 
-def _pixels(path: Path, mode: str | None = None) -> np.ndarray:
+def read_pixels(path: Path, mode: str | None = None) -> np.ndarray:
     """An image file's pixels (the file closed again)."""
     with Image.open(path) as im:
         return np.asarray(im.convert(mode) if mode else im)
@@ -224,7 +224,7 @@ def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) ->
     mask_src = src / meta["files"]["mask"]
     place(mask_src, out / row["allo_mask"], link)
     if row["mask"]:
-        write_png(out / row["mask"], np.where(_pixels(mask_src) == 2, 255, 0).astype(np.uint8))
+        write_png(out / row["mask"], np.where(read_pixels(mask_src) == 2, 255, 0).astype(np.uint8))
     place(src / meta["files"]["rgb"], out / row["image"], link)
 
 
@@ -445,7 +445,7 @@ def grid_sheet(out: Path, rows: list[dict], path: Path, limit: int = 48, thumb_w
     rows = sorted(rows, key=lambda r: (r["kind"] != "anomaly", int(r["index"])))
     if len(rows) > limit:  # an even sample keeps the sheet small for big datasets
         rows = [rows[i] for i in np.linspace(0, len(rows) - 1, limit).round().astype(int)]
-    height, width = _pixels(out / rows[0]["image"]).shape[:2]
+    height, width = read_pixels(out / rows[0]["image"]).shape[:2]
     thumb_h = max(1, round(thumb_w * height / width))
     measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
     labels = [label_lines(r["name"], thumb_w, measure) for r in rows]
@@ -457,7 +457,7 @@ def grid_sheet(out: Path, rows: list[dict], path: Path, limit: int = 48, thumb_w
     draw = ImageDraw.Draw(sheet)
     for i, (r, lines) in enumerate(zip(rows, labels)):
         x, y = pad + (i % cols) * (thumb_w + pad), pad + (i // cols) * (thumb_h + label_h + pad)
-        rgb, mask = _pixels(out / r["image"], "RGB"), _pixels(out / r["allo_mask"])
+        rgb, mask = read_pixels(out / r["image"], "RGB"), read_pixels(out / r["allo_mask"])
         tile = Image.fromarray(mask_overlay(rgb, mask)).resize((thumb_w, thumb_h), Image.Resampling.NEAREST)
         sheet.paste(tile, (x, y + label_h))
         colour = (255, 120, 120) if r["kind"] == "anomaly" else (220, 220, 220)

@@ -56,7 +56,7 @@ CHUNK_RESERVE = 1          # reserve groups per pool task (each walk decides as 
 _ctx = None  # the per-process authoring context (set by _init)
 
 
-class _Context:
+class AuthorContext:
     """What every worker needs, built once per process: the world (base stage, station BVH) and sky."""
 
     def __init__(self, plan: Plan, out_dir: Path, sky, stop=None):
@@ -85,10 +85,10 @@ class _Context:
 def _init(plan_json: str, out_dir: str, sky, stop) -> None:
     global _ctx
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and tells us through `stop`
-    _ctx = _Context(Plan.model_validate_json(plan_json), Path(out_dir), sky, stop)
+    _ctx = AuthorContext(Plan.model_validate_json(plan_json), Path(out_dir), sky, stop)
 
 
-def ensure_sky_layer(ctx: _Context, day: int) -> Path:
+def ensure_sky_layer(ctx: AuthorContext, day: int) -> Path:
     """The shared sky layer of `day`, written if missing."""
     path = sky_layer_path(ctx.out_dir, day)
     if not path.exists():
@@ -120,7 +120,7 @@ class Resolved:
     results: dict
 
 
-def resolve_sample(ctx: _Context, keys: list[SceneKey]) -> Resolved:
+def resolve_sample(ctx: AuthorContext, keys: list[SceneKey]) -> Resolved:
     """Perturb the sample's camera and, for an anomaly, place the object at every depth."""
     from allo_usd.scene.resolve import resolve_camera, resolve_placements
 
@@ -137,7 +137,7 @@ def resolve_sample(ctx: _Context, keys: list[SceneKey]) -> Resolved:
     return Resolved(camera, seed, seed_path, results)
 
 
-def write_sample(ctx: _Context, keys: list[SceneKey], resolved: Resolved) -> list[dict]:
+def write_sample(ctx: AuthorContext, keys: list[SceneKey], resolved: Resolved) -> list[dict]:
     """Write the pose layer (once, if any of `keys` is authored) and the layers of `keys` that pass;
     returns the skipped rows of those that do not. Existing layers are kept (resume)."""
     from allo_usd.scene.resolve import build_spec
@@ -168,13 +168,13 @@ def write_sample(ctx: _Context, keys: list[SceneKey], resolved: Resolved) -> lis
     return rows
 
 
-def author_sample(ctx: _Context, keys: list[SceneKey]) -> tuple[int, list[dict]]:
+def author_sample(ctx: AuthorContext, keys: list[SceneKey]) -> tuple[int, list[dict]]:
     """Resolve one camera sample and write its pose layer and its scenes' layers.
     Returns (scenes handled, skipped rows)."""
     return len(keys), write_sample(ctx, keys, resolve_sample(ctx, keys))
 
 
-def _author_samples(ctx: _Context, samples: list[list[SceneKey]]) -> tuple[int, list[dict]]:
+def _author_samples(ctx: AuthorContext, samples: list[list[SceneKey]]) -> tuple[int, list[dict]]:
     """A pool task: author planned samples (stops early when the parent asks)."""
     done, skipped = 0, []
     for keys in samples:
@@ -185,7 +185,7 @@ def _author_samples(ctx: _Context, samples: list[list[SceneKey]]) -> tuple[int, 
     return done, skipped
 
 
-def _resolve_groups(ctx: _Context, groups: list[tuple[tuple, int, list[SceneKey]]]) -> list[tuple]:
+def _resolve_groups(ctx: AuthorContext, groups: list[tuple[tuple, int, list[SceneKey]]]) -> list[tuple]:
     """A pool task: resolve reserve groups without writing; [(sav, k, Resolved)] (a prefix when stopped)."""
     out = []
     for sav, k, keys in groups:
@@ -281,7 +281,7 @@ class _TopUp:
     groups the pool should resolve next. Decisions depend only on each walk's groups in order, so
     how far ahead the pool computes, or which task finishes first, changes nothing written."""
 
-    def __init__(self, ctx: _Context, keys: list[SceneKey], skipped: dict, ledger: dict, bar):
+    def __init__(self, ctx: AuthorContext, keys: list[SceneKey], skipped: dict, ledger: dict, bar):
         self.ctx, self.plan, self.skipped, self.ledger, self.bar = ctx, ctx.plan, skipped, ledger, bar
         self.depths = list(self.plan.anomalies.depths)
         self.quotas = anomaly_quotas(keys)
@@ -557,7 +557,7 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     given, plan = plan, with_tree_stage(plan, out_dir)
     save_plan(given, out_dir / "plan.toml")  # as given: the tree's record, and its root for allo_usd.usd.safety
     sky = compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch))
-    ctx = _Context(plan, out_dir, sky)
+    ctx = AuthorContext(plan, out_dir, sky)
     for day in sorted({k.day for k in keys}):
         ensure_sky_layer(ctx, day)
 
@@ -578,7 +578,7 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     finished = False
     try:
         with _runner(ctx, plan, out_dir, sky, workers) as runner:
-            topup, interrupted = _drive(runner, ctx, keys, todo, skipped, ledger, bar)
+            topup, interrupted = drive(runner, ctx, keys, todo, skipped, ledger, bar)
         finished = not interrupted
     finally:
         bar.close()
@@ -608,7 +608,7 @@ def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: b
     return author(plan, out_dir, limit=limit, progress=progress, workers=workers).paths
 
 
-def _drive(runner, ctx: _Context, keys: list[SceneKey], todo: list[list[SceneKey]], skipped: dict,
+def drive(runner, ctx: AuthorContext, keys: list[SceneKey], todo: list[list[SceneKey]], skipped: dict,
            ledger: dict, bar) -> tuple[_TopUp | None, bool]:
     """Run the planned samples (anomaly placements first, then normal scenes) and the top-up on
     `runner`, keeping a few tasks in flight: reserve groups go before normal scenes, and normal
@@ -669,13 +669,13 @@ def _drive(runner, ctx: _Context, keys: list[SceneKey], todo: list[list[SceneKey
     return topup, interrupted
 
 
-class _Inline:
+class InlineRunner:
     """Runs each task at once in this process (one worker)."""
 
     in_flight = 1
     chunks = (1, 1, 1)  # (planned placements, normal samples, reserve groups) per task
 
-    def __init__(self, ctx: _Context):
+    def __init__(self, ctx: AuthorContext):
         self.ctx = ctx
 
     def submit(self, fn, *args) -> Future:
@@ -688,7 +688,7 @@ class _Inline:
 
 
 class _Pool:
-    """A spawn-based process pool; each worker builds its own `_Context` once."""
+    """A spawn-based process pool; each worker builds its own `AuthorContext` once."""
 
     chunks = (CHUNK_SAMPLES, CHUNK_NORMAL, CHUNK_RESERVE)
 
@@ -703,9 +703,9 @@ class _Pool:
 
 
 @contextmanager
-def _runner(ctx: _Context, plan: Plan, out_dir: Path, sky, workers: int):
+def _runner(ctx: AuthorContext, plan: Plan, out_dir: Path, sky, workers: int):
     if workers <= 1:
-        yield _Inline(ctx)
+        yield InlineRunner(ctx)
         return
     import multiprocessing as mp
 
@@ -761,7 +761,7 @@ def author_scene(plan: Plan, scene_id: str, out_dir: Path) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     given, plan = plan, with_tree_stage(plan, out_dir)
     save_plan(given, out_dir / "plan.toml")
-    ctx = _Context(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
+    ctx = AuthorContext(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
     ensure_sky_layer(ctx, key.day)
     skipped = write_sample(ctx, [key], resolve_sample(ctx, sample))
     if skipped:

@@ -105,7 +105,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     atomic file writes, so finished scenes are kept and a re-run renders only what is missing."""
     from tqdm import tqdm
 
-    from allo_usd.output.dataset import _pixels
+    from allo_usd.output.dataset import read_pixels
     from allo_usd.run.job import render_layer
     from allo_usd.run.worker import output_to
     from allo_usd.sky.ephemeris import default_epochs
@@ -130,8 +130,8 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
                 meta = render_layer(layer, out_dir / "renders")
             bar.write(f"{spec.scene_id}: {meta['render_seconds']:.1f} s, anomaly {meta['anomaly_fraction']:.3%}, "
                       f"sun {spec.sun.eclipse_state}")
-            rgb = _pixels(out_dir / "renders" / meta["files"]["rgb"])
-            mask = _pixels(out_dir / "renders" / meta["files"]["mask"])
+            rgb = read_pixels(out_dir / "renders" / meta["files"]["rgb"])
+            mask = read_pixels(out_dir / "renders" / meta["files"]["mask"])
             rows.append((spec.scene_id, rgb, mask))
             bar.update(1)
     return contact_sheet(rows, out_dir / "contact_sheet.png")

@@ -20,9 +20,9 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError
 from allo_usd.core.files import RunLock
-from allo_usd.run.manifest import (MANIFEST, WORKDIR, _append_jsonl, _compact_manifest, clean_stale, is_done,
+from allo_usd.run.manifest import (MANIFEST, WORKDIR, append_jsonl, compact_manifest, clean_stale, is_done,
                                    is_verified, load_manifest)
-from allo_usd.run.worker import _worker_main, render_task
+from allo_usd.run.worker import worker_main, render_task
 from allo_usd.usd.safety import ENV_ROOTS
 
 Hook = Callable[[str], None]
@@ -123,7 +123,7 @@ class _Worker:
         self.cores, self.index = cores, index
         self.log = None if log_dir is None else Path(log_dir) / f"worker-{index}.log"
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, daemon=True, name=f"allo-render-worker-{index}",
+        self.proc = ctx.Process(target=worker_main, daemon=True, name=f"allo-render-worker-{index}",
                                 args=(child, env, os.getpid(), cores, None if self.log is None else str(self.log),
                                       index, before_render))
         self.proc.start()
@@ -173,7 +173,7 @@ class _Run:
     def ok(self, task: _Task, result: dict) -> None:
         row = {k: v for k, v in result.items() if k != "status"}
         row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        _append_jsonl(self.out_dir / MANIFEST, row)
+        append_jsonl(self.out_dir / MANIFEST, row)
         self.summary.rendered.append(task.scene)
         self._tick()
 
@@ -183,7 +183,7 @@ class _Run:
                "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         self.summary.failed.append(row)
         try:
-            _append_jsonl(self.out_dir / FAILED, row)
+            append_jsonl(self.out_dir / FAILED, row)
         finally:
             self._tick()
 
@@ -371,7 +371,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     with RunLock(out_dir, LOCK, "render"):
         clean_stale(out_dir)
         (out_dir / FAILED).unlink(missing_ok=True)  # failures of this run only; earlier ones are retried
-        _compact_manifest(out_dir)
+        compact_manifest(out_dir)
         done = load_manifest(out_dir)
         tasks = []
         for layer in layers:
@@ -393,7 +393,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
             run.close()
             clean_stale(out_dir)
             try:
-                _compact_manifest(out_dir)
+                compact_manifest(out_dir)
             except DiskFullError:
                 pass  # the appended manifest is valid as it is; compaction waits for the next run
     summary.seconds = time.perf_counter() - t0

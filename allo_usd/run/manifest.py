@@ -66,7 +66,7 @@ def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
 
 # ---------------------------------------------------------------- manifest.jsonl
 
-def _read_jsonl(path: Path) -> list[dict]:
+def read_jsonl(path: Path) -> list[dict]:
     rows = []
     if path.is_file():
         for line in path.read_text(errors="replace").splitlines():
@@ -81,10 +81,10 @@ def _read_jsonl(path: Path) -> list[dict]:
 
 def load_manifest(out_dir: Path) -> dict[str, dict]:
     """Finished scenes by name (the last row of a scene wins)."""
-    return {row["scene"]: row for row in _read_jsonl(Path(out_dir) / MANIFEST)}
+    return {row["scene"]: row for row in read_jsonl(Path(out_dir) / MANIFEST)}
 
 
-def _append_jsonl(path: Path, row: dict) -> None:
+def append_jsonl(path: Path, row: dict) -> None:
     """One os.write of one line on an O_APPEND descriptor, then fsync: a crash loses at most the line.
     A line torn by an earlier crash is ended first, so it cannot swallow this one; a write cut
     short by a full disk is truncated away, so the file never ends in half a line."""
@@ -111,7 +111,7 @@ def _append_jsonl(path: Path, row: dict) -> None:
         os.close(fd)
 
 
-def _compact_manifest(out_dir: Path) -> None:
+def compact_manifest(out_dir: Path) -> None:
     """Rewrite the manifest with one row per scene (atomically), dropping torn lines and repeats."""
     from allo_usd.core.files import atomic_path
 

@@ -61,7 +61,7 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
             from allo_usd.blender.session import Session
 
             _SESSION = Session()  # one Blender scene per process, patched from scene to scene
-        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=_workdir(out_p), session=_SESSION)
+        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=render_workdir(out_p), session=_SESSION)
     except DiskFullError as exc:
         return error("disk_full", exc, prefix=False)
     except RenderFailedError as exc:  # not the layer's fault: retried
@@ -83,7 +83,7 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
             "cores": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
 
 
-def _workdir(out_dir: Path) -> Path:
+def render_workdir(out_dir: Path) -> Path:
     """This process's own directory for Blender's render files (removed if the process dies)."""
     d = out_dir / WORKDIR / str(os.getpid())
     d.mkdir(parents=True, exist_ok=True)
@@ -168,7 +168,7 @@ def _fix_bpy_path() -> None:
         sys.path[:] = [p for p in sys.path if not _BPY_SCRIPTS.search(p)]
 
 
-def _worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
+def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
                  log: str | None = None, index: int = 0, before_render: Callable[[str], None] | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
     _die_with_parent(parent_pid)

@@ -22,7 +22,7 @@ import numpy as np
 from allo_usd.core.constants import MOON_RADIUS_M, SUN_RADIUS_M
 from allo_usd.core.errors import SkyInputError
 from allo_usd.core.geometry import angle_between, rowdot, unit_rows
-from allo_usd.sky.ephemeris import _finite
+from allo_usd.sky.ephemeris import finite_number
 
 SHADOW_BODIES: tuple[str, ...] = ("moon", "earth")
 ECLIPSE_STATES: tuple[str, ...] = ("lit", "penumbra", "annular", "umbra")  # index = state code
@@ -150,7 +150,7 @@ def body_lit_fraction(sun, body, body_radius_m: float, occluder, occluder_radius
     sun, body, occ = (np.atleast_2d(np.asarray(x, dtype=np.float64)) for x in (sun, body, occluder))
     if not (np.isfinite(sun).all() and np.isfinite(body).all() and np.isfinite(occ).all()):
         raise SkyInputError("body_lit_fraction: positions contain NaN or inf")
-    r_b, r_o = _finite("body_radius_m", body_radius_m), _finite("occluder_radius_m", occluder_radius_m)
+    r_b, r_o = finite_number("body_radius_m", body_radius_m), finite_number("occluder_radius_m", occluder_radius_m)
     if r_b <= 0.0 or r_o <= 0.0:
         raise SkyInputError("body_lit_fraction: radii must be positive")
     u_s, u_o = sun - body, occ - body
@@ -235,7 +235,7 @@ def _sun_minus_discs_area(r0: float, discs: list[tuple[float, float, float]]) ->
     return max(0.0, min(total, math.pi * r0 * r0))
 
 
-def _lit_two_occluders(u_sun, u_bodies, theta_sun, theta_bodies, seps) -> np.ndarray:
+def lit_two_occluders(u_sun, u_bodies, theta_sun, theta_bodies, seps) -> np.ndarray:
     """Lit fraction of the Sun's disc behind two occulting discs (rare: Moon and Earth at once).
 
     Disc centres are placed in the azimuthal-equidistant plane about the Sun's centre (the

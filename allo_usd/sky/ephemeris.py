@@ -30,7 +30,7 @@ from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
 from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 
 _EXPIRED_WARNING = r".*finals2000A\.all has expired.*"
-_ISO_FMT = "%Y-%m-%dT%H:%M:%SZ"
+ISO_FORMAT = "%Y-%m-%dT%H:%M:%SZ"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -38,7 +38,7 @@ _ISO_FMT = "%Y-%m-%dT%H:%M:%SZ"
 
 
 @contextlib.contextmanager
-def _quiet_expiry():
+def quiet_expiry():
     """Silence skyfield-data's "finals2000A.all has expired" RuntimeWarning, here only."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=_EXPIRED_WARNING, category=RuntimeWarning)
@@ -58,9 +58,9 @@ class _Ephemeris:
 
 
 @functools.lru_cache(maxsize=1)
-def _ephemeris() -> _Ephemeris:
+def load_de421() -> _Ephemeris:
     """Open DE421 and the builtin timescale from skyfield-data; never touches the network."""
-    with _quiet_expiry():
+    with quiet_expiry():
         import skyfield_data
         from skyfield.api import Loader
 
@@ -97,7 +97,7 @@ def _range_text() -> str:
 # Epochs
 
 
-def _as_utc(value: object, what: str = "epoch") -> datetime:
+def as_utc(value: object, what: str = "epoch") -> datetime:
     """One epoch as an aware UTC datetime. Naive datetimes are refused, never guessed."""
     if isinstance(value, str):
         try:
@@ -120,8 +120,8 @@ def _as_utc(value: object, what: str = "epoch") -> datetime:
     return value.astimezone(timezone.utc)
 
 
-def _iso(dt: datetime) -> str:
-    return dt.strftime(_ISO_FMT)
+def iso_utc(dt: datetime) -> str:
+    return dt.strftime(ISO_FORMAT)
 
 
 def default_epochs(year: int = 2030, days: int = 365) -> list[datetime]:
@@ -134,9 +134,9 @@ def default_epochs(year: int = 2030, days: int = 365) -> list[datetime]:
     return [start + timedelta(days=k) for k in range(int(days))]
 
 
-def _time_from_utc(dts: Sequence[datetime], offsets_s: np.ndarray | None = None):
+def time_from_utc(dts: Sequence[datetime], offsets_s: np.ndarray | None = None):
     """Vectorised skyfield Time from aware UTC datetimes (plus optional second offsets)."""
-    e = _ephemeris()
+    e = load_de421()
     n = len(dts)
     y = np.fromiter((d.year for d in dts), dtype=np.int64, count=n)
     mo = np.fromiter((d.month for d in dts), dtype=np.int64, count=n)
@@ -146,29 +146,29 @@ def _time_from_utc(dts: Sequence[datetime], offsets_s: np.ndarray | None = None)
     s = np.fromiter((d.second + d.microsecond * 1e-6 for d in dts), dtype=np.float64, count=n)
     if offsets_s is not None:
         s = s + offsets_s
-    with _quiet_expiry():
+    with quiet_expiry():
         return e.ts.utc(y, mo, da, h, mi, s)
 
 
-def _time_from_start(start: datetime, offsets_s: np.ndarray):
+def time_from_start(start: datetime, offsets_s: np.ndarray):
     """Vectorised skyfield Time at ``start`` + offsets (seconds, UTC; skyfield normalises)."""
-    e = _ephemeris()
+    e = load_de421()
     sec = start.second + start.microsecond * 1e-6 + np.asarray(offsets_s, dtype=np.float64)
-    with _quiet_expiry():
+    with quiet_expiry():
         return e.ts.utc(start.year, start.month, start.day, start.hour, start.minute, sec)
 
 
-def _check_range(t, labels: Sequence[str] | None) -> None:
+def check_range(t, labels: Sequence[str] | None) -> None:
     """Raise EphemerisRangeError (with the valid range) before skyfield touches DE421."""
-    e = _ephemeris()
+    e = load_de421()
     whole = np.atleast_1d(t.whole)
     frac = np.atleast_1d(t.tdb_fraction)
     bad = ((whole - e.start_tdb_jd) + frac < 0.0) | ((whole - e.end_tdb_jd) + frac > 0.0)
     if bad.any():
         idx = np.flatnonzero(bad)
         if labels is None:
-            with _quiet_expiry():
-                shown = [t[int(i)].utc_strftime(_ISO_FMT) for i in idx[:3]]
+            with quiet_expiry():
+                shown = [t[int(i)].utc_strftime(ISO_FORMAT) for i in idx[:3]]
         else:
             shown = [labels[int(i)] for i in idx[:3]]
         more = f" and {idx.size - 3} more" if idx.size > 3 else ""
@@ -188,7 +188,7 @@ def _translate_range_error():
         raise EphemerisRangeError(f"{exc}; {_range_text()}") from exc
 
 
-def _finite(name: str, value: float) -> float:
+def finite_number(name: str, value: float) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:

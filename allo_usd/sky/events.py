@@ -9,8 +9,8 @@ import numpy as np
 
 from allo_usd.core.errors import SkyInputError
 from allo_usd.sky.eclipse import ECLIPSE_STATES, LIT, SHADOW_BODIES, UMBRA
-from allo_usd.sky.ephemeris import _as_utc, _check_range, _finite, _iso, _time_from_start
-from allo_usd.sky.model import _geometry
+from allo_usd.sky.ephemeris import as_utc, check_range, finite_number, iso_utc, time_from_start
+from allo_usd.sky.model import sky_geometry
 from allo_usd.sky.orbit import Orbit
 
 
@@ -37,9 +37,9 @@ def _span_geometry(start: datetime, offsets_s: np.ndarray, orbit: Orbit, chunk: 
     parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     for lo in range(0, offsets_s.size, chunk):
         off = offsets_s[lo:lo + chunk]
-        t = _time_from_start(start, off)
-        _check_range(t, None)
-        g = _geometry(t, orbit, body_light=False)
+        t = time_from_start(start, off)
+        check_range(t, None)
+        g = sky_geometry(t, orbit, body_light=False)
         for k in keys:
             parts[k].append(g[k])
     return {k: np.concatenate(v) for k, v in parts.items()}
@@ -88,10 +88,10 @@ def eclipse_events(
     Returns (events sorted by start, info dict with the scan size and how many samples had
     both bodies over the Sun).
     """
-    start = _as_utc(start, "start")
-    stop = _as_utc(stop, "stop")
-    step_s = _finite("step_s", step_s)
-    tol_s = _finite("tol_s", tol_s)
+    start = as_utc(start, "start")
+    stop = as_utc(stop, "stop")
+    step_s = finite_number("step_s", step_s)
+    tol_s = finite_number("tol_s", tol_s)
     if step_s <= 0 or tol_s <= 0:
         raise SkyInputError("step_s and tol_s must be positive")
     span = (stop - start).total_seconds()
@@ -125,8 +125,8 @@ def eclipse_events(
             deepest = int(np.max(code[seg]))
             events.append(EclipseEvent(
                 body=body,
-                start=_iso(start + timedelta(seconds=float(t_start[k]))),
-                end=_iso(start + timedelta(seconds=float(t_end[k]))),
+                start=iso_utc(start + timedelta(seconds=float(t_start[k]))),
+                end=iso_utc(start + timedelta(seconds=float(t_end[k]))),
                 duration_s=float(t_end[k] - t_start[k]),
                 umbra_s=umbra_s,
                 min_lit_fraction=float(np.min(lit[seg])),

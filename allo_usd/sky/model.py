@@ -52,9 +52,9 @@ from allo_usd.core.constants import (AU_M, EARTH_RADIUS_M, GM_SUN_M3_S2, MOON_RA
                                      SUN_RADIUS_M)
 from allo_usd.core.errors import EpochError, SkyInputError
 from allo_usd.core.geometry import angle_between, rowdot, unit_rows
-from allo_usd.sky.eclipse import (ECLIPSE_STATES, LIT, SHADOW_BODIES, UMBRA, _lit_two_occluders, body_lit_fraction,
+from allo_usd.sky.eclipse import (ECLIPSE_STATES, LIT, SHADOW_BODIES, UMBRA, lit_two_occluders, body_lit_fraction,
                                   classify_eclipse)
-from allo_usd.sky.ephemeris import (_as_utc, _check_range, _ephemeris, _iso, _quiet_expiry, _time_from_utc,
+from allo_usd.sky.ephemeris import (as_utc, check_range, load_de421, iso_utc, quiet_expiry, time_from_utc,
                                     _translate_range_error)
 from allo_usd.sky.orbit import Orbit
 
@@ -73,7 +73,7 @@ _BODY_NAMES = np.array(("",) + SHADOW_BODIES)  # 0 -> '', 1 -> moon, 2 -> earth
 # Core geometry
 
 
-def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]:
+def sky_geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]:
     """Everything for the (already range-checked) skyfield Time array ``t`` (the sunlight on the
     Earth and the Moon only with ``body_light``; eclipse scans of the station skip it)."""
     p_sun, (p_earth, v_earth), (p_moon, v_moon), tp = _ephemeris_states(t, orbit)
@@ -101,8 +101,8 @@ def _geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]
 def _ephemeris_states(t, orbit: Orbit):
     """Barycentric ICRF positions (m) of the Sun, Earth and Moon, the Earth's and the Moon's with
     velocities (m/s), and the perilune epoch as a skyfield Time."""
-    e = _ephemeris()
-    with _quiet_expiry(), _translate_range_error():
+    e = load_de421()
+    with quiet_expiry(), _translate_range_error():
         sun = e.sun.at(t)
         earth = e.earth.at(t)
         moon = e.moon.at(t)
@@ -203,7 +203,7 @@ def _station_eclipse(vectors: dict, seen: dict) -> dict[str, np.ndarray]:
     if np.any(partial):  # Moon and Earth both over the Sun: lit area by quadrature
         lit_final[partial] = np.minimum(
             lit_final[partial],
-            _lit_two_occluders(
+            lit_two_occluders(
                 vectors["sun"][partial], [vectors[b][partial] for b in SHADOW_BODIES],
                 seen["angular_radius_rad.sun"][partial],
                 [seen[f"angular_radius_rad.{b}"][partial] for b in SHADOW_BODIES],
@@ -330,7 +330,7 @@ def _prepare_epochs(epochs: Iterable[object]) -> list[datetime]:
         raise EpochError(f"epochs must be a sequence of aware datetimes, got {type(epochs).__name__}") from exc
     if not items:
         raise EpochError("no epochs given; pass at least one timezone-aware UTC datetime")
-    return [_as_utc(v, f"epoch[{k}]") for k, v in enumerate(items)]
+    return [as_utc(v, f"epoch[{k}]") for k, v in enumerate(items)]
 
 
 def compute_sky(epochs: Iterable[datetime], orbit: Orbit = Orbit()) -> Sky:
@@ -343,10 +343,10 @@ def compute_sky(epochs: Iterable[datetime], orbit: Orbit = Orbit()) -> Sky:
     if not isinstance(orbit, Orbit):
         raise SkyInputError(f"orbit must be an allo_usd.sky.model.Orbit, got {type(orbit).__name__}")
     dts = _prepare_epochs(epochs)
-    labels = [_iso(d) for d in dts]
-    t = _time_from_utc(dts)
-    _check_range(t, labels)
-    g = _geometry(t, orbit)
+    labels = [iso_utc(d) for d in dts]
+    t = time_from_utc(dts)
+    check_range(t, labels)
+    g = sky_geometry(t, orbit)
     return Sky(
         epochs=tuple(labels),
         station_icrf_m=_readonly(g["station_icrf_m"]),

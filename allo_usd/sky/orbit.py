@@ -21,7 +21,7 @@ import numpy as np
 
 from allo_usd.core.constants import MOON_RADIUS_M, SECONDS_PER_DAY
 from allo_usd.core.errors import SkyInputError
-from allo_usd.sky.ephemeris import _as_utc, _finite, _iso
+from allo_usd.sky.ephemeris import as_utc, finite_number, iso_utc
 
 
 # ---------------------------------------------------------------------------------------------
@@ -34,7 +34,7 @@ def solve_kepler(mean_anomaly, eccentricity: float, tol: float = 1e-12, max_iter
     M is wrapped to [-pi, pi) first, so E is returned in [-pi, pi]. Starts from Danby's
     E0 = M + 0.85 e sign(M), which converges for every 0 <= e < 1.
     """
-    e = _finite("eccentricity", eccentricity)
+    e = finite_number("eccentricity", eccentricity)
     if not 0.0 <= e < 1.0:
         raise SkyInputError(f"eccentricity must be in [0, 1), got {e}")
     m = np.asarray(mean_anomaly, dtype=np.float64)
@@ -63,9 +63,9 @@ class Orbit:
     perilune_epoch: datetime = datetime(2030, 1, 1, tzinfo=timezone.utc)
 
     def __post_init__(self) -> None:
-        rp = _finite("perilune_radius_m", self.perilune_radius_m)
-        ra = _finite("apolune_radius_m", self.apolune_radius_m)
-        p = _finite("period_days", self.period_days)
+        rp = finite_number("perilune_radius_m", self.perilune_radius_m)
+        ra = finite_number("apolune_radius_m", self.apolune_radius_m)
+        p = finite_number("period_days", self.period_days)
         if rp <= MOON_RADIUS_M:
             raise SkyInputError(f"perilune_radius_m {rp} must exceed the Moon's radius {MOON_RADIUS_M} m")
         if ra < rp:
@@ -75,7 +75,7 @@ class Orbit:
         object.__setattr__(self, "perilune_radius_m", rp)
         object.__setattr__(self, "apolune_radius_m", ra)
         object.__setattr__(self, "period_days", p)
-        object.__setattr__(self, "perilune_epoch", _as_utc(self.perilune_epoch, "perilune_epoch"))
+        object.__setattr__(self, "perilune_epoch", as_utc(self.perilune_epoch, "perilune_epoch"))
 
     @property
     def semi_major_axis_m(self) -> float:
@@ -117,7 +117,7 @@ class Orbit:
             "perilune_radius_m": self.perilune_radius_m,
             "apolune_radius_m": self.apolune_radius_m,
             "period_days": self.period_days,
-            "perilune_epoch": _iso(self.perilune_epoch),
+            "perilune_epoch": iso_utc(self.perilune_epoch),
             "model": "NRHO approx: Kepler ellipse in Earth-Moon rotating x-z plane, perilune +z",
         }
 

@@ -31,7 +31,7 @@ import numpy as np
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
-from allo_usd.usd.read import _matrix, open_stage
+from allo_usd.usd.read import world_matrix, open_stage
 
 ROOTS = (layout.WORLD, layout.RENDER)
 ABSENT = "<absent>"
@@ -135,7 +135,7 @@ def describe(layer: str | Path) -> dict:
     anomaly = None
     aprim = stage.GetPrimAtPath(layout.ANOMALY)
     if aprim and aprim.IsActive():
-        m = _matrix(cache, aprim)
+        m = world_matrix(cache, aprim)
         anomaly = {"asset": _attr(aprim, A.ANOMALY_ASSET.name), "variant": _attr(aprim, A.ANOMALY_ASSET_VARIANT.name),
                    "variant_selection": aprim.GetVariantSets().GetAllVariantSelections().get("variant"),
                    "depth_index": _attr(aprim, A.ANOMALY_DEPTH_INDEX.name),
@@ -156,7 +156,7 @@ def describe(layer: str | Path) -> dict:
                if a.GetName().startswith(A.SENSOR_PREFIX)} if effects[A.EFFECTS_SENSOR_NOISE.short] else None)
 
     def lamp(prim) -> dict:
-        m = _matrix(cache, prim)
+        m = world_matrix(cache, prim)
         d = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z: +Z points at the Sun
         link = UsdLux.LightAPI(prim).GetLightLinkCollectionAPI()
         return {"path": str(prim.GetPath()), "irradiance": _attr(prim, "inputs:intensity"),
@@ -178,7 +178,7 @@ def describe(layer: str | Path) -> dict:
     targets = UsdRender.Settings(sp).GetCameraRel().GetForwardedTargets() if sp else []
     cam_prim = stage.GetPrimAtPath(targets[0]) if targets else stage.GetPrimAtPath(layout.CAMERA)
     if cam_prim:
-        m = _matrix(cache, cam_prim)
+        m = world_matrix(cache, cam_prim)
         camera = {"path": str(cam_prim.GetPath()), "position": tuple(map(float, m[:3, 3])),
                   "orientation_wxyz": tuple(map(float, matrix_to_quat(m[:3, :3]))),
                   "forward": tuple(map(float, -m[:3, 2])), "up": tuple(map(float, m[:3, 1]))}

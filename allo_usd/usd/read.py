@@ -164,7 +164,7 @@ def _check_resolution(w: int, h: int, where) -> None:
         raise LayerError(f"{where}.resolution = ({w}, {h}): {problem}; fix the layer")
 
 
-def _matrix(cache, prim, max_distance: float = MAX_POSITION_M) -> np.ndarray:
+def world_matrix(cache, prim, max_distance: float = MAX_POSITION_M) -> np.ndarray:
     from pxr import Tf
 
     _check_xform_ops(prim)
@@ -268,7 +268,7 @@ def read_mesh(prim, cache, materials: dict) -> MeshDesc:
     else:
         key = "__default__"
         materials.setdefault(key, MaterialDesc(key, (0.5, 0.5, 0.5), 0.0, 0.5))
-    return MeshDesc(path, points, counts, indices, uv, smooth, key, _matrix(cache, prim), _class_id(prim),
+    return MeshDesc(path, points, counts, indices, uv, smooth, key, world_matrix(cache, prim), _class_id(prim),
                     _ray_visibility(prim))
 
 
@@ -283,7 +283,7 @@ def read_camera(prim, cache) -> CameraDesc:
               cam.GetVerticalApertureAttr().Get()]
     if not all(v is not None and np.isfinite(v) and v > 0 for v in values):
         raise LayerError(f"camera {prim.GetPath()} needs positive focalLength and apertures, got {values}")
-    m = _matrix(cache, prim, MAX_CAMERA_DISTANCE_M)
+    m = world_matrix(cache, prim, MAX_CAMERA_DISTANCE_M)
     return CameraDesc(m, values[0] * to_mm, values[1] * to_mm, values[2] * to_mm,
                       (float(clip[0]), float(clip[1])), str(prim.GetPath()))
 
@@ -317,7 +317,7 @@ def read_sun(prim, cache, mesh_paths=None) -> SunDesc | None:
     link = None if mesh_paths is None else read_light_link(prim, mesh_paths)
     if link is not None and not (link.exclude or link.paths):
         return None  # it lights nothing
-    m = _matrix(cache, prim)
+    m = world_matrix(cache, prim)
     direction = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z, so +Z points at the Sun
     return SunDesc(tuple(direction), intensity, _number(light.GetAngleAttr().Get(), f"{where}.inputs:angle", lo=0, hi=180),
                    _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3), str(where), link)
@@ -333,7 +333,7 @@ def read_spot(prim, cache) -> SpotDesc:
     where = prim.GetPath()
     intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0) * 2.0 ** _number(
         light.GetExposureAttr().Get() or 0.0, f"{where}.inputs:exposure", lo=-64, hi=64)
-    return SpotDesc(_matrix(cache, prim), _number(light.GetRadiusAttr().Get(), f"{where}.inputs:radius", lo=0.0),
+    return SpotDesc(world_matrix(cache, prim), _number(light.GetRadiusAttr().Get(), f"{where}.inputs:radius", lo=0.0),
                     intensity, _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3),
                     _number(cone, f"{where}.shaping:cone:angle", lo=0, hi=180),
                     _number(softness or 0.0, f"{where}.shaping:cone:softness", lo=0), str(where))
@@ -513,7 +513,7 @@ def read_rig(base_stage: str | Path) -> list:
     for prim in stage.GetPrimAtPath(layout.RIG).GetChildren():
         if not prim.HasAPI("AlloCameraPoseAPI"):
             continue
-        m = _matrix(cache, prim)
+        m = world_matrix(cache, prim)
         poses.append(CameraPose(int(prim.GetAttribute(A.POSE_INDEX.name).Get()),
                                 str(prim.GetAttribute(A.POSE_SPLIT.name).Get()), m[:3, 3].copy(), m[:3, :3].copy()))
     if not poses:
@@ -542,7 +542,7 @@ def read_triangles(layer_path: str | Path, root: str, variant: str | None = None
         if p.IsA(UsdGeom.Mesh):
             mesh = UsdGeom.Mesh(p)
             local = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
-            m = _matrix(cache, p)
+            m = world_matrix(cache, p)
             pts.append(local @ m[:3, :3].T + m[:3, 3])
             t = fan_triangulate(np.asarray(mesh.GetFaceVertexCountsAttr().Get()),
                                 np.asarray(mesh.GetFaceVertexIndicesAttr().Get()))
