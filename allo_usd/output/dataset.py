@@ -65,7 +65,7 @@ COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "
 MANIFEST = "manifest.csv"
 FILE_KEYS = ("allo_mask", "mask", "image")  # placement order: the image, which loaders glob, comes last
 # Temporaries of core.files.atomic_path (mkstemp: .NAME.<8 chars>.SUFFIX) and of earlier place() (.NAME.<32 hex>.tmp).
-TEMPORARY = re.compile(r"^\..+\.(?:[0-9a-f]{32}\.tmp|[a-z0-9_]{8}\.(?:png|csv|parquet|json))$")
+TEMPORARY = re.compile(r"^\..+\.(?:[0-9a-f]{32}\.tmp|[a-z0-9_]{8}\.(?:png|csv|parquet|json|tmp))$")
 INDEXED = re.compile(r"^\d{6}_.+\.png$")
 
 
@@ -89,13 +89,13 @@ def place(src: Path, dst: Path, link: bool = True) -> str:
             return "kept"  # a copy run replaces earlier links by copies, and keeps equal copies
     if link:
         try:
-            with atomic_path(dst, mode=None) as tmp:  # mode=None: never chmod the linked source
+            with atomic_path(dst, suffix=".tmp", mode=None) as tmp:  # never chmod the linked source
                 tmp.unlink()
                 os.link(src, tmp)
             return "link"
         except OSError:  # other file system, or links not allowed: copy instead
             pass
-    with atomic_path(dst) as tmp:
+    with atomic_path(dst, suffix=".tmp") as tmp:  # .tmp: no loader globbing *.png sees it
         shutil.copyfile(src, tmp)
     return "copy"
 
