@@ -122,7 +122,7 @@ def main() -> None:
             plan = with_tree_stage(plan, out)
             sky = compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch))
             ctx = AuthorContext(plan, out, sky)
-            ctx.world.station_scene
+            ctx.inputs.station_scene
             for day in range(plan.dates.days):
                 ensure_sky_layer(ctx, day)
             t_setup = time.perf_counter() - t

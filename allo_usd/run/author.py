@@ -57,7 +57,7 @@ _ctx = None  # the per-process authoring context (set by _init)
 
 
 class AuthorContext:
-    """What every worker needs, built once per process: the world (base stage, station BVH) and sky."""
+    """What every worker needs, built once per process: the scene inputs (base stage, station BVH) and sky."""
 
     def __init__(self, plan: Plan, out_dir: Path, sky, stop=None):
         from allo_usd.core.constants import EXPOSURE
@@ -66,7 +66,7 @@ class AuthorContext:
 
         self.plan, self.out_dir, self.stop = plan, Path(out_dir), stop
         self.base_stage = plan.resolve_base_stage()
-        self.world = scene_inputs(self.base_stage, sky, plan.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+        self.inputs = scene_inputs(self.base_stage, sky, plan.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
         q = plan.quality
         self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE, **quality_of(q))
         self.effects = EffectsSpec(**plan.effects.model_dump())
@@ -75,7 +75,7 @@ class AuthorContext:
 
     def sky(self, day: int):
         if day not in self._sky_cache:
-            self._sky_cache[day] = self._sun_and_bodies(self.world.sky, day)
+            self._sky_cache[day] = self._sun_and_bodies(self.inputs.sky, day)
         return self._sky_cache[day]
 
     def stopped(self) -> bool:
@@ -93,7 +93,7 @@ def ensure_sky_layer(ctx: AuthorContext, day: int) -> Path:
     path = sky_layer_path(ctx.out_dir, day)
     if not path.exists():
         sun, bodies = ctx.sky(day)
-        write_sky_layer(path, day=day, epoch=ctx.world.sky.epochs[day], perilune_epoch=ctx.world.perilune_epoch,
+        write_sky_layer(path, day=day, epoch=ctx.inputs.sky.epochs[day], perilune_epoch=ctx.inputs.perilune_epoch,
                         sun=sun, bodies=bodies)
     return path
 
@@ -126,12 +126,12 @@ def resolve_sample(ctx: AuthorContext, keys: list[SceneKey]) -> Resolved:
 
     k0 = keys[0]
     anomaly = None if k0.asset is None else (k0.asset, k0.variant)
-    camera, rng, seed, seed_path = resolve_camera(ctx.world, day=k0.day, pose=k0.pose, plan_seed=k0.seed,
+    camera, rng, seed, seed_path = resolve_camera(ctx.inputs, day=k0.day, pose=k0.pose, plan_seed=k0.seed,
                                                   anomaly=anomaly, reserve=k0.reserve)
     results: dict = {k.depth_index: None for k in keys}
     if anomaly is not None:
         try:
-            results = dict(enumerate(resolve_placements(ctx.world, camera, rng, anomaly, ctx.render.resolution)))
+            results = dict(enumerate(resolve_placements(ctx.inputs, camera, rng, anomaly, ctx.render.resolution)))
         except PlacementError as exc:
             results = {k.depth_index: f"no initial placement: {exc}" for k in keys}
     return Resolved(camera, seed, seed_path, results)
@@ -160,7 +160,7 @@ def write_sample(ctx: AuthorContext, keys: list[SceneKey], resolved: Resolved) -
         path = scene_layer_path(ctx.out_dir, key.split, key.kind, key.scene_id)
         if path.exists():
             continue
-        spec = build_spec(ctx.world, scene_id=key.scene_id, day=key.day, pose=key.pose, seed=resolved.seed,
+        spec = build_spec(ctx.inputs, scene_id=key.scene_id, day=key.day, pose=key.pose, seed=resolved.seed,
                           seed_path=resolved.seed_path, camera=resolved.camera, render=ctx.render,
                           effects=ctx.effects, anomaly=a, sky=ctx.sky(key.day))
         write_composed_scene(spec, path, pose_layer=pose_path, sky_layer=sky_layer_path(ctx.out_dir, key.day),
@@ -532,6 +532,20 @@ class Authored:
         return {r["asset"]: int(r["short"]) for r in self.counts if r["asset"] and int(r["short"]) > 0}
 
 
+def open_tree(plan: Plan, out_dir: Path) -> AuthorContext:
+    """Make `out_dir` a tree for `plan` and return the authoring context over it: the tree's own
+    base stage (with_tree_stage), `plan.toml` as given (the tree's record, and its root for
+    allo_usd.usd.safety) and the sky of every plan day. `author` and `author_scene` start here."""
+    from allo_usd.sky.model import compute_sky
+    from allo_usd.sky.orbit import Orbit
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    given, plan = plan, with_tree_stage(plan, out_dir)
+    save_plan(given, out_dir / "plan.toml")
+    return AuthorContext(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
+
+
 def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
            workers: int | None = None) -> Authored:
     """Author the plan's scenes (the first `limit` of them) under `out_dir`, then top up the anomalous
@@ -548,16 +562,10 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     `short` (planned - authored; above 0 only where the top-up bound was reached)."""
     from tqdm import tqdm
 
-    from allo_usd.sky.model import compute_sky
-    from allo_usd.sky.orbit import Orbit
-
     out_dir = Path(out_dir)
     keys = enumerate_scenes(plan)[: limit if limit is not None else None]
-    out_dir.mkdir(parents=True, exist_ok=True)
-    given, plan = plan, with_tree_stage(plan, out_dir)
-    save_plan(given, out_dir / "plan.toml")  # as given: the tree's record, and its root for allo_usd.usd.safety
-    sky = compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch))
-    ctx = AuthorContext(plan, out_dir, sky)
+    ctx = open_tree(plan, out_dir)
+    plan, sky = ctx.plan, ctx.inputs.sky
     for day in sorted({k.day for k in keys}):
         ensure_sky_layer(ctx, day)
 
@@ -749,8 +757,6 @@ def author_scene(plan: Plan, scene_id: str, out_dir: Path) -> Path:
     the same bytes that authoring the whole plan gives it (its camera sample is resolved whole, so
     the random draws match; only this scene's layer is written). Raises PlacementError if the
     placement check skips it (authoring the plan would top it up from a reserve group)."""
-    from allo_usd.sky.model import Orbit, compute_sky
-
     keys = enumerate_scenes(plan)
     key = next((k for k in keys if k.scene_id == scene_id), None)
     if key is None:
@@ -758,10 +764,7 @@ def author_scene(plan: Plan, scene_id: str, out_dir: Path) -> Path:
                         "allo_usd.enumerate_scenes(plan) (e.g. " + keys[0].scene_id + ")")
     sample = [k for k in keys if k.sample_id == key.sample_id and k.split == key.split]
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    given, plan = plan, with_tree_stage(plan, out_dir)
-    save_plan(given, out_dir / "plan.toml")
-    ctx = AuthorContext(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
+    ctx = open_tree(plan, out_dir)
     ensure_sky_layer(ctx, key.day)
     skipped = write_sample(ctx, [key], resolve_sample(ctx, sample))
     if skipped:

@@ -41,9 +41,9 @@ DEMO_SCENES = (  # (day, pose, anomaly or None)
 DEMO_SEED = 2030
 
 
-def demo_spec(world: SceneInputs, index: int, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> SceneSpec:
+def demo_spec(inputs: SceneInputs, index: int, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> SceneSpec:
     """Demo scene `index` of DEMO_SCENES, fully resolved."""
-    from allo_usd.assets.anomalies import ANOMALY_VARIANTS
+    from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
     render = RenderSpec(resolution=tuple(resolution), preset="demo", samples=samples, exposure=EXPOSURE)
     day, pose, anomaly = DEMO_SCENES[index]
@@ -53,15 +53,15 @@ def demo_spec(world: SceneInputs, index: int, resolution=(480, 270), samples: in
     scene_id = f"d{day:03d}_p{pose:02d}" + ("" if anomaly is None else f"_{anomaly[0]}_z0")
     for shift in range(12):  # a pose whose view shows no nearby structure gets the next day's draw
         try:
-            return resolve_scene(world, scene_id=scene_id, day=day + shift, pose=pose, plan_seed=seed,
+            return resolve_scene(inputs, scene_id=scene_id, day=day + shift, pose=pose, plan_seed=seed,
                                  render=render, anomaly=anomaly)
         except PlacementError:
             continue
     raise PlacementError(f"demo scene {scene_id}: no valid anomaly placement in 12 days")
 
 
-def demo_specs(world: SceneInputs, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> list:
-    return [demo_spec(world, i, resolution, samples, seed) for i in range(len(DEMO_SCENES))]
+def demo_specs(inputs: SceneInputs, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> list:
+    return [demo_spec(inputs, i, resolution, samples, seed) for i in range(len(DEMO_SCENES))]
 
 
 def write_demo_layer(spec: SceneSpec, tree: Path, base_stage: Path, seed: int = DEMO_SEED) -> Path:
@@ -118,11 +118,11 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     stage = copy_base_stage(base_stage, tree)
     orbit = Orbit()
     sky = compute_sky(default_epochs(), orbit)
-    world = scene_inputs(stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    inputs = scene_inputs(stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
     rows = []
     with tqdm(total=len(DEMO_SCENES), unit="scene", desc="demo", disable=not progress) as bar:
         for i in range(len(DEMO_SCENES)):
-            spec = demo_spec(world, i, resolution, samples)
+            spec = demo_spec(inputs, i, resolution, samples)
             layer = write_demo_layer(spec, tree, stage)
             with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
                 # skipped when done for these very layer bytes (allo_usd.run.manifest.is_done); a

@@ -18,10 +18,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from allo_usd.core.errors import AlloError, DiskFullError, LayerError
+from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock
-from allo_usd.run.manifest import (MANIFEST, WORKDIR, append_jsonl, compact_manifest, clean_stale, is_done,
-                                   is_verified, load_manifest)
+from allo_usd.run.manifest import MANIFEST, append_jsonl, clean_stale, compact_manifest, is_done, load_manifest
 from allo_usd.run.worker import worker_main, render_task
 from allo_usd.usd.safety import ENV_ROOTS
 
@@ -411,5 +410,4 @@ def author_and_dispatch(plan_path: Path, out_dir: Path, **kwargs) -> Summary:
                     **kwargs)
 
 
-__all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "load_manifest", "is_done", "is_verified",
-           "clean_stale", "render_task", "usable_cores", "MANIFEST", "WORKDIR", "LayerError"]
+__all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "core_sets", "usable_cores"]

@@ -7,12 +7,12 @@ re-runs skip it (allo_usd.run.manifest.is_done).
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
 
 from allo_usd import __version__
+from allo_usd.core.files import sha256_file
 from allo_usd.output.writers import write_exr, write_json, write_mask_png, write_rgb_exr, write_rgb_png
 from allo_usd.run.manifest import is_done, output_paths
 
@@ -50,9 +50,8 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
 
     from allo_usd.usd.read import read_scene
 
-    paths = output_paths(layer, out_dir)
     if not force and save_blend is None and is_done(layer, out_dir):
-        return json.loads(paths["meta"].read_text())
+        return json.loads(output_paths(layer, out_dir)["meta"].read_text())
     desc = read_scene(layer)
     if threads is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, threads=int(threads)))
@@ -69,7 +68,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     counts = np.bincount(result.mask.ravel(), minlength=3)
     meta = {
         "layer": str(Path(layer).resolve()),
-        "layer_sha256": hashlib.sha256(Path(layer).read_bytes()).hexdigest(),
+        "layer_sha256": sha256_file(layer),
         "package_version": __version__,
         "render_seconds": round(result.seconds, 3),
         "resolution": list(desc.render.resolution),

@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 
 from allo_usd.core.errors import DiskFullError
-from allo_usd.core.files import DISK_FULL_ERRNOS, sha256_file, temp_name_re
+from allo_usd.core.files import DISK_FULL_ERRNOS, atomic_path, sha256_file, temp_name_re
 from allo_usd.usd.read import layer_outputs
 
 MANIFEST = "manifest.jsonl"
@@ -113,8 +113,6 @@ def append_jsonl(path: Path, row: dict) -> None:
 
 def compact_manifest(out_dir: Path) -> None:
     """Rewrite the manifest with one row per scene (atomically), dropping torn lines and repeats."""
-    from allo_usd.core.files import atomic_path
-
     path = Path(out_dir) / MANIFEST
     if not path.is_file():
         return

@@ -169,7 +169,7 @@ def _fix_bpy_path() -> None:
 
 
 def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
-                 log: str | None = None, index: int = 0, before_render: Callable[[str], None] | None = None) -> None:
+                log: str | None = None, index: int = 0, before_render: Callable[[str], None] | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
     _die_with_parent(parent_pid)
     if log:

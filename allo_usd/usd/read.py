@@ -12,13 +12,12 @@ import numpy as np
 
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout, schema
-from allo_usd.core.labels import BACKGROUND
+from allo_usd.core.labels import BACKGROUND, CLASS_IDS
 from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
 from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, MaterialDesc, MeshDesc, RenderDesc,
                                       SceneDescription, SpotDesc, SunDesc)
 from allo_usd.core.errors import LayerError
 from allo_usd.core.limits import resolution_problem
-from allo_usd.core.labels import CLASS_IDS
 from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
 
 
