@@ -137,3 +137,23 @@ def test_cli_render_save_blend_keeps_what_blender_got(tiny_base, tmp_path):
     r = subprocess.run([sys.executable, "-m", "allo_usd.cli", "render", str(tmp_path / "layers"), "--out",
                         str(tmp_path / "many"), "--save-blend", str(blend)], capture_output=True, text=True)
     assert r.returncode == 2 and "single .usda layer" in r.stderr, r.stderr
+
+
+def test_cli_render_save_blend_refuses_paths_blender_cannot_write(tiny_base, tmp_path):
+    """A directory or an unwritable place for --save-blend is a clear error (exit 2), not a traceback."""
+    import subprocess
+    import sys
+
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from helpers import make_spec
+
+    layer = write_scene_layer(make_spec(samples=1), tmp_path / "layers" / "s.usda", tiny_base)
+    (tmp_path / "adir").mkdir()
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    for target, words in ((tmp_path / "adir", "is a directory"), (blocker / "x.blend", "could not save")):
+        r = subprocess.run([sys.executable, "-m", "allo_usd.cli", "render", str(layer), "--out", str(tmp_path / "o"),
+                            "--save-blend", str(target)], capture_output=True, text=True)
+        assert r.returncode == 2 and words in r.stderr and "fix:" in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert not (tmp_path / "o" / "s.png").exists()  # refused before anything was rendered
