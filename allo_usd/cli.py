@@ -196,6 +196,8 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
            limit: int = typer.Option(None, "--limit", help="Author only the first N scenes of the plan "
                                      "(and the reserve scenes that top up their skipped depths)."),
            workers: int = typer.Option(None, "--workers", help="Processes (default: 2 for large plans)."),
+           replace: bool = typer.Option(False, "--replace", help="OUT was authored from another plan: delete "
+                                        "its layers (scenes/, sky/, poses/, stages/, the CSVs) and author this one."),
            progress: bool = typer.Option(True, help="Show a progress bar.")):
     """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done).
 
@@ -204,13 +206,16 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     --limit N the quotas are those of the first N scenes, and their skipped depths are topped up
     too. Ends with planned vs authored counts (also in OUT/counts.csv); exits 1 if an asset stays
     short because its reserve groups ran out (anomalies.reserve_groups_per_slot).
+
+    OUT remembers its plan (OUT/plan.toml): a different plan is refused unless --replace. One
+    author run at a time per OUT; a second one is refused (exit 2).
     """
     from allo_usd.run.author import AuthoringInterrupted, author as author_tree, summary_lines
     from allo_usd.plan.io import load_plan
 
     try:
         plan = load_plan(plan_file)
-        done = author_tree(plan, out, limit=limit, progress=progress, workers=workers)
+        done = author_tree(plan, out, limit=limit, progress=progress, workers=workers, replace=replace)
     except AuthoringInterrupted as exc:
         typer.echo(f"{exc}", err=True)
         raise SystemExit(130) from None

@@ -27,7 +27,10 @@ import csv
 import io
 import json
 import os
+import re
+import shutil
 import signal
+import tempfile
 import time
 from collections import Counter, deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -39,7 +42,7 @@ from pathlib import Path
 from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_path, write_composed_scene,
                                   write_pose_layer, write_sky_layer)
 from allo_usd.core.files import atomic_directory, write_text_atomic
-from allo_usd.core.errors import PlacementError, PlanError
+from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
 from allo_usd.plan.model import Plan
 from allo_usd.plan.enumeration import SceneKey, anomaly_quotas, enumerate_scenes, reserve_cap, reserve_group
 from allo_usd.plan.io import save_plan
@@ -80,6 +83,15 @@ class AuthorContext:
 
     def stopped(self) -> bool:
         return self.stop is not None and self.stop.is_set()
+
+    def read_stage(self) -> None:
+        """Read what scene resolution takes from the base stage now (its camera rig, the station's
+        triangles, every anomaly asset variant of the plan), so a broken stage fails here, once,
+        and not in the middle of a run or in a worker."""
+        self.inputs.poses, self.inputs.station_parts  # noqa: B018 (cached properties, read now)
+        for choice in self.plan.anomalies.assets:
+            for asset, variant in choice.choices():
+                self.inputs.anomaly_geometry(asset, variant)
 
 
 def _init(plan_json: str, out_dir: str, sky, stop) -> None:
@@ -532,22 +544,190 @@ class Authored:
         return {r["asset"]: int(r["short"]) for r in self.counts if r["asset"] and int(r["short"]) > 0}
 
 
-def open_tree(plan: Plan, out_dir: Path) -> AuthorContext:
-    """Make `out_dir` a tree for `plan` and return the authoring context over it: the tree's own
-    base stage (with_tree_stage), `plan.toml` as given (the tree's record, and its root for
-    allo_usd.usd.safety) and the sky of every plan day. `author` and `author_scene` start here."""
+# ---------------------------------------------------------------------------------------------
+# The tree: one writer at a time, the plan it was made from, a readable base stage
+
+TREE_PLAN = "plan.toml"            # the plan a tree was authored from (its record, and its root for usd.safety)
+TREE_LOCK = ".allo-author.lock"    # one author run at a time per tree (core.files.RunLock)
+# What authoring writes at the top of a tree (plan.toml aside): `replace` removes exactly these.
+TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "counts.csv", "skipped.csv", "reserves.csv")
+_TRASH = re.compile(r"^\.replaced\.[a-z0-9_]{8}$")   # a replace's trash (mkdtemp), left if the run was killed
+# Plan fields the tree checks by content, not by name: the base stage's path and the station's
+# source (stages/ must be a byte copy of the plan's stage, or built from the same model file).
+UNCOMPARED = {"base_stage", "station"}
+
+
+@contextmanager
+def tree_lock(out_dir: Path):
+    """Hold the tree's lock (RunLock on `TREE_LOCK`) for the block. The holder writes its pid into
+    the lock file and empties it on release (so a finished tree's bytes do not depend on who
+    wrote it); a second run is refused with one line naming the holder."""
+    from allo_usd.core.errors import AlloError
+    from allo_usd.core.files import RunLock
+
+    lock = RunLock(out_dir, TREE_LOCK, "author")
+    try:
+        lock.__enter__()
+    except AlloError:
+        holder = ""
+        try:
+            holder = lock.path.read_text().strip()
+        except OSError:
+            pass
+        raise AlloError(f"another author run{f' ({holder})' if holder else ''} is writing to {Path(out_dir)}; "
+                        f"wait for it to finish, then re-run to resume (or stop it), or author into "
+                        f"another --out") from None
+    try:
+        os.ftruncate(lock.fd, 0)
+        os.pwrite(lock.fd, f"pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)
+        yield
+    finally:
+        try:
+            os.ftruncate(lock.fd, 0)
+        finally:
+            lock.__exit__(None, None, None)
+
+
+def plan_fields(plan: Plan) -> dict:
+    """The plan as flat `section.field` -> value (JSON types), the fields a tree compares."""
+    flat = {}
+
+    def walk(prefix: str, value) -> None:
+        if isinstance(value, dict):
+            for k in sorted(value):
+                walk(f"{prefix}.{k}" if prefix else k, value[k])
+        else:
+            flat[prefix] = value
+
+    walk("", plan.model_dump(mode="json", exclude=UNCOMPARED))
+    return flat
+
+
+def _shown(field: str, value) -> str:
+    if field == "quality.resolution" and isinstance(value, list) and len(value) == 2:
+        return f"{value[0]}x{value[1]}"
+    return json.dumps(value, separators=(",", ":"))
+
+
+def plan_differences(recorded: Plan, given: Plan) -> list[str]:
+    """'field RECORDED in the tree, GIVEN in this plan' for each field where the plans differ (the
+    validated models, so formatting, field order and omitted defaults do not count)."""
+    a, b = plan_fields(recorded), plan_fields(given)
+    return [f"{k} {_shown(k, a.get(k))} in the tree, {_shown(k, b.get(k))} in the plan given"
+            for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+
+
+def _refuse(out_dir: Path, why: str) -> PlanError:
+    return PlanError(f"{out_dir} {why}; fix: author into a fresh --out, or pass --replace (replace=True) to "
+                     f"delete this tree's layers and author the plan given")
+
+
+def check_tree_plan(plan: Plan, out_dir: Path) -> bool:
+    """Refuse to author `plan` into a tree made from another plan; True if the tree already records
+    this plan (then plan.toml is kept as first written). `--limit` is not part of the plan, so the
+    same plan with another limit resumes."""
+    from allo_usd.plan.io import load_plan
+
+    record = out_dir / TREE_PLAN
+    if not record.is_file():
+        found = [n for n in ("scenes", "sky", "poses") if (out_dir / n).is_dir()]
+        if found:
+            raise _refuse(out_dir, f"holds authored layers ({', '.join(found)}/) but no {TREE_PLAN}, so the plan "
+                                   "they were made from is unknown")
+        return False
+    try:
+        recorded = load_plan(record)
+    except PlanError as exc:
+        raise _refuse(out_dir, f"records its plan in {record}, which cannot be read "
+                               f"({str(exc).splitlines()[0]})") from None
+    diff = plan_differences(recorded, plan)
+    if diff:
+        more = f" (and {len(diff) - 1} more: {'; '.join(diff[1:4])}{'; ...' if len(diff) > 4 else ''})" \
+            if len(diff) > 1 else ""
+        raise _refuse(out_dir, f"was authored from another plan: {diff[0]}{more}")
+    return True
+
+
+def replace_tree(out_dir: Path) -> list[str]:
+    """Remove what authoring wrote under `out_dir` (TREE_ENTRIES; plan.toml is rewritten after),
+    nothing else: each entry is renamed into one hidden trash directory (a symlink moves as a
+    link, its target untouched), which is then deleted. Only a folder that is a tree (plan.toml or
+    stages/base.usda at its top) is touched. Returns the names removed."""
+    from allo_usd.usd.compose import tree_base_stage
+
+    out_dir = Path(out_dir)
+    for stale in out_dir.iterdir():   # a replace killed before it emptied its trash
+        if _TRASH.match(stale.name) and stale.is_dir() and not stale.is_symlink():
+            shutil.rmtree(stale, ignore_errors=True)
+    present = [n for n in TREE_ENTRIES if os.path.lexists(out_dir / n)]
+    if not present:
+        return []
+    if not (out_dir / TREE_PLAN).is_file() and not tree_base_stage(out_dir).is_file():
+        raise PlanError(f"{out_dir} holds {', '.join(present)} but is not an authored tree (no {TREE_PLAN}, no "
+                        "stages/base.usda), so --replace leaves it alone; fix: author into a fresh --out, or "
+                        "remove those entries yourself")
+    trash = Path(tempfile.mkdtemp(dir=out_dir, prefix=".replaced."))
+    for name in present:
+        os.rename(out_dir / name, trash / name)
+    shutil.rmtree(trash)
+    return present
+
+
+def _broken_stage(stage: Path, exc: BaseException, copy: Path | None = None) -> LayerError:
+    """The one error for a base stage that cannot be read (pxr's own message reduced to its last line)."""
+    first = (str(exc).strip().splitlines() or [type(exc).__name__])[-1].strip()
+    also = f", and delete the tree's copy {copy} (or author with --replace)" if copy is not None else ""
+    return LayerError(f"base stage {stage} cannot be read ({first[:300]}); fix: regenerate it (`make stage`, "
+                      f"i.e. scripts/make_base_stage.py) or restore stages/ (git checkout stages){also}, then re-run")
+
+
+def _stage_source(plan: Plan) -> Path:
+    return plan.resolve_base_stage() if plan.station.source == "procedural" else Path(plan.station.source)
+
+
+@contextmanager
+def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
+    """Hold `out_dir` (tree_lock) as a tree for `plan` and yield the authoring context over it: the
+    plan must be the one the tree records (check_tree_plan; `replace` first removes the tree's
+    layers: replace_tree); the tree's own base stage (with_tree_stage), read whole before any
+    scene (its rig, the station and the plan's anomaly assets: a broken stage is one LayerError
+    naming it and the fix); `plan.toml` (the tree's record, and its root for allo_usd.usd.safety)
+    and the sky of every plan day. `author` and `author_scene` start here."""
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
+    from allo_usd.usd.compose import tree_base_stage
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    given, plan = plan, with_tree_stage(plan, out_dir)
-    save_plan(given, out_dir / "plan.toml")
-    return AuthorContext(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
+    with tree_lock(out_dir):
+        if replace:
+            replace_tree(out_dir)   # plan.toml is rewritten below
+        same = not replace and check_tree_plan(plan, out_dir)
+        source, stages = _stage_source(plan), tree_base_stage(out_dir).parent
+        had_stages = stages.exists()
+        given = plan
+        try:
+            plan = with_tree_stage(plan, out_dir)
+        except (AlloError, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # pxr's Tf.ErrorException (a RuntimeError) and the like
+            raise _broken_stage(source, exc) from None
+        ctx = AuthorContext(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
+        try:
+            ctx.read_stage()
+        except (DiskFullError, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # LayerError "re-author it" is a scene layer's fix, not a stage's
+            if not had_stages:    # the copy this run made from a broken stage: do not keep it
+                shutil.rmtree(stages, ignore_errors=True)
+            raise _broken_stage(source, exc, stages if had_stages else None) from None
+        if not same:
+            save_plan(given, out_dir / TREE_PLAN)
+        yield ctx
 
 
 def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
-           workers: int | None = None) -> Authored:
+           workers: int | None = None, replace: bool = False) -> Authored:
     """Author the plan's scenes (the first `limit` of them) under `out_dir`, then top up the anomalous
     depths the placement check skipped (see the module doc). With `limit`, the quotas are those of
     the anomalous scenes among the first `limit`, and their shortfalls are topped up too (so the
@@ -559,13 +739,21 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     `reserves.csv` (per reserve group used: its (day, pose) and the depths authored and skipped)
     and, once finished, `counts.csv`: per split/kind and per anomaly asset, `planned`, `authored`,
     `skipped` (planned depths skipped), `reserve_groups` and `from_reserve` (the top-up) and
-    `short` (planned - authored; above 0 only where the top-up bound was reached)."""
+    `short` (planned - authored; above 0 only where the top-up bound was reached).
+
+    The tree remembers its plan: authoring another plan into it is refused (PlanError naming the
+    fields that differ) unless `replace`, which first removes the tree's layers; the same plan,
+    with any `limit`, resumes. One author run at a time per tree (`TREE_LOCK`)."""
+    keys = enumerate_scenes(plan)[: limit if limit is not None else None]
+    with open_tree(plan, out_dir, replace) as ctx:
+        return _author_tree(ctx, keys, progress, workers)
+
+
+def _author_tree(ctx: AuthorContext, keys: list[SceneKey], progress: bool, workers: int | None) -> Authored:
+    """`author` over an open tree (its lock held)."""
     from tqdm import tqdm
 
-    out_dir = Path(out_dir)
-    keys = enumerate_scenes(plan)[: limit if limit is not None else None]
-    ctx = open_tree(plan, out_dir)
-    plan, sky = ctx.plan, ctx.inputs.sky
+    plan, sky, out_dir = ctx.plan, ctx.inputs.sky, ctx.out_dir
     for day in sorted({k.day for k in keys}):
         ensure_sky_layer(ctx, day)
 
@@ -609,11 +797,11 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
 
 
 def author_plan(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool = True,
-                workers: int | None = None) -> list[Path]:
+                workers: int | None = None, replace: bool = False) -> list[Path]:
     """Author the plan (see `author`); returns the scene layer paths: the planned scenes that were
     not skipped, then the reserve scenes that top up the skipped ones. Skipped depths are listed
     in `out_dir/skipped.csv` with the reason, and planned vs authored counts in `out_dir/counts.csv`."""
-    return author(plan, out_dir, limit=limit, progress=progress, workers=workers).paths
+    return author(plan, out_dir, limit=limit, progress=progress, workers=workers, replace=replace).paths
 
 
 def drive(runner, ctx: AuthorContext, keys: list[SceneKey], todo: list[list[SceneKey]], skipped: dict,
@@ -752,11 +940,12 @@ def _single_threaded_numerics():
                 os.environ[k] = v
 
 
-def author_scene(plan: Plan, scene_id: str, out_dir: Path) -> Path:
+def author_scene(plan: Plan, scene_id: str, out_dir: Path, replace: bool = False) -> Path:
     """One scene of `plan`, by id, into the tree at `out_dir` with the sky and pose layers it stacks:
     the same bytes that authoring the whole plan gives it (its camera sample is resolved whole, so
     the random draws match; only this scene's layer is written). Raises PlacementError if the
-    placement check skips it (authoring the plan would top it up from a reserve group)."""
+    placement check skips it (authoring the plan would top it up from a reserve group). Like `author`,
+    it refuses a tree made from another plan unless `replace`."""
     keys = enumerate_scenes(plan)
     key = next((k for k in keys if k.scene_id == scene_id), None)
     if key is None:
@@ -764,9 +953,9 @@ def author_scene(plan: Plan, scene_id: str, out_dir: Path) -> Path:
                         "allo_usd.enumerate_scenes(plan) (e.g. " + keys[0].scene_id + ")")
     sample = [k for k in keys if k.sample_id == key.sample_id and k.split == key.split]
     out_dir = Path(out_dir)
-    ctx = open_tree(plan, out_dir)
-    ensure_sky_layer(ctx, key.day)
-    skipped = write_sample(ctx, [key], resolve_sample(ctx, sample))
+    with open_tree(plan, out_dir, replace) as ctx:
+        ensure_sky_layer(ctx, key.day)
+        skipped = write_sample(ctx, [key], resolve_sample(ctx, sample))
     if skipped:
         raise PlacementError(f"scene {scene_id} was skipped: {skipped[0]['reason']}; fix: author the whole plan, "
                              "which tops skipped depths up from reserve groups")
