@@ -145,7 +145,9 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
     """Assemble renders into an MVTec-AD-style tree, 3-class masks, a manifest and contact sheets.
 
     Re-runs add only new or re-rendered scenes. Ctrl-C stops after the scene in hand (exit 130);
-    the manifest always lists every file in the tree. Mask-only renders are left out (no image)."""
+    the manifest always lists every file in the tree. Mask-only renders are left out (no image).
+    A render whose JSON contradicts itself or names files outside its folder is left out with a
+    note; no renders, or renders of different resolutions, stop the run (exit 2)."""
     import warnings
 
     from allo_usd.output.dataset import assemble, read_manifest

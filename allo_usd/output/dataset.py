@@ -27,6 +27,14 @@ Why these choices:
 - The paper's training set is normal only, and an anomalous scene whose anomaly has no visible
   pixel would be a wrong label: both are left out of the tree with a warning. So are mask-only
   renders (RenderSpec.mask_only): they have no image to train or test on.
+- A render JSON is not trusted (check_render): split and kind come from fixed sets, names are
+  plain tokens, every file it names must be a regular file of its own render folder, its images
+  must agree in size, with its resolution and with its class pixels, and its kind with its mask.
+  A record that fails is left out with a warning naming it and why (one bad render among
+  thousands does not stop a dataset). Every destination's real path must lie inside OUT, or
+  the run stops (AlloError). A folder with no render record, or renders of different
+  resolutions in one category, stop the run before anything is placed. Scenes with no station
+  or body pixel, and all-black images, are kept and flagged in a warning.
 - The manifest is written ahead: before a batch of scenes gets its files, manifest.csv is
   atomically rewritten with their rows, so however a run ends (Ctrl-C, kill -9, a crash) no
   file in the tree is missing from the manifest. A row whose files did not arrive is completed
@@ -188,13 +196,118 @@ def read_pixels(path: Path, mode: str | None = None) -> np.ndarray:
         return np.asarray(im.convert(mode) if mode else im)
 
 
-def _kind(scene: dict, meta: dict) -> str | None:
-    kind = "anomaly" if scene.get("variant") == "anomaly" else "good"
-    if kind == "anomaly" and scene.get("split") != "test":
-        return None
-    if kind == "anomaly" and meta.get("class_pixels", {}).get("anomaly", 0) == 0:
+SPLITS = ("train", "test")                     # a render's scene split, and the dataset's split folders
+VARIANTS = {"normal": "good", "anomaly": "anomaly"}   # a render's scene variant -> the dataset's kind folder
+NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")    # a scene name, the category: a plain file name
+TOKEN = re.compile(r"^[A-Za-z0-9_-]+$")               # an anomaly asset or variant
+
+
+class Refused(Exception):
+    """Why a render record is left out of the dataset (its JSON contradicts itself or its files)."""
+
+
+def _count(value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise Refused(f"class_pixels holds {value!r}, not a pixel count")
+    return value
+
+
+def source_file(render_dir: Path, name) -> Path:
+    """`name` from a render JSON's "files" as a file of `render_dir`: a plain name (no separator,
+    not . or ..) of a regular file whose real path lies in the render directory itself."""
+    if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name \
+            or "\0" in name:
+        raise Refused(f"file name {name!r} is not a plain file name in its render directory")
+    path = render_dir / name
+    real = os.path.realpath(path)
+    if os.path.dirname(real) != os.path.realpath(render_dir):
+        raise Refused(f"file {name!r} resolves to {real}, outside its render directory {render_dir}")
+    if not os.path.isfile(real):
+        raise Refused(f"file {name!r} is missing or not a regular file")
+    return path
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
+        raise Refused(f"{path.name} is not a readable image ({exc})") from None
+
+
+def check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int]]:
+    """(kind, (width, height)) of a render record with an image, or Refused saying why it cannot
+    be filed. The record is not trusted: its split and variant come from fixed sets (SPLITS,
+    VARIANTS), names are plain tokens, every file it names is a regular file of its own render
+    directory, its images agree in size with each other and with its resolution, its class pixels
+    add up to the image, and the kind agrees with the mask (an anomalous scene's mask, read here,
+    must show the anomaly; a normal scene's pixel counts must show none). `_kind` then leaves out
+    anomalous training scenes and invisible anomalies, as before."""
+    name, scene, files = meta_path.stem, meta.get("scene"), meta.get("files")
+    if not NAME.match(name):
+        raise Refused(f"scene name {name!r} is not a plain name ([A-Za-z0-9_.-])")
+    if not isinstance(scene, dict) or not isinstance(files, dict):
+        raise Refused("its JSON has no scene or files table")
+    if scene.get("split") not in SPLITS:
+        raise Refused(f"split {scene.get('split')!r} is not one of {', '.join(SPLITS)}")
+    if scene.get("variant") not in VARIANTS:
+        raise Refused(f"variant {scene.get('variant')!r} is not one of {', '.join(VARIANTS)}")
+    anomaly = scene.get("anomaly")
+    if scene["variant"] == "normal" and anomaly:
+        raise Refused("a normal scene that records an anomaly")
+    if anomaly is not None and (not isinstance(anomaly, dict) or not all(
+            TOKEN.match(str(anomaly.get(k, ""))) for k in ("asset", "assetVariant"))):
+        raise Refused(f"anomaly {anomaly!r} does not name an asset and variant ([A-Za-z0-9_-])")
+    src = meta_path.parent
+    rgb, mask = (source_file(src, files.get(k)) for k in ("rgb", "mask"))
+    size = image_size(rgb)
+    if image_size(mask) != size:
+        raise Refused(f"its mask is {'x'.join(map(str, image_size(mask)))}, its image {'x'.join(map(str, size))}")
+    resolution = meta.get("resolution")
+    if resolution is not None and list(resolution) != list(size):
+        raise Refused(f"its JSON says {resolution}, its image is {'x'.join(map(str, size))}")
+    pixels = meta.get("class_pixels")
+    if not isinstance(pixels, dict):
+        raise Refused("its JSON has no class_pixels")
+    counts = {k: _count(pixels.get(k, 0)) for k in ("background", "station_and_bodies", "anomaly")}
+    if sum(counts.values()) != size[0] * size[1]:
+        raise Refused(f"class_pixels add up to {sum(counts.values())}, not its {size[0]}x{size[1]} pixels")
+    if scene["variant"] == "normal" and counts["anomaly"]:
+        raise Refused(f"a normal scene whose mask has {counts['anomaly']} anomaly pixels")
+    if scene["variant"] == "anomaly" and counts["anomaly"]:
+        if anomaly is None:
+            raise Refused("an anomalous scene that records no anomaly asset")
+        shown = int(np.count_nonzero(read_pixels(mask) == 2))
+        if shown != counts["anomaly"]:
+            raise Refused(f"its JSON counts {counts['anomaly']} anomaly pixels, its mask {shown}")
+    return VARIANTS[scene["variant"]], size
+
+
+def _kind(scene: dict, meta: dict, kind: str) -> str | None:
+    """`kind`, or None for a scene the dataset leaves out: anomalous in the train split, or an
+    anomaly with no visible pixel (a wrong label either way)."""
+    if kind == "anomaly" and (scene["split"] != "test" or meta["class_pixels"].get("anomaly", 0) == 0):
         return None
     return kind
+
+
+def all_black(path: Path, size: tuple[int, int]) -> bool:
+    """Is the PNG at `path` black everywhere? Decoded only when its file is small enough to be (a
+    black image compresses to almost nothing), so a large dataset is not decoded twice."""
+    if os.path.getsize(path) > size[0] * size[1] * 3 // 100 + 4096:
+        return False
+    return not read_pixels(path).any()
+
+
+def _inside(out: Path, rel: str) -> Path:
+    """`out / rel`, refused (AlloError) unless its real path stays inside `out`: nothing is written
+    or removed outside the dataset, whatever the manifest says or a symlinked folder points at."""
+    path = Path(out) / rel
+    top, real = os.path.realpath(out), os.path.realpath(path)
+    if Path(rel).is_absolute() or os.path.commonpath([top, real]) != top:
+        raise AlloError(f"{path} resolves to {real}, outside the dataset {out} (a symlinked folder, or a manifest "
+                        f"row naming another place); fix: remove it, or assemble into a fresh --out")
+    return path
 
 
 def _row(category, index, name, meta_path: Path, meta: dict, kind: str) -> dict:
@@ -221,11 +334,11 @@ def _row(category, index, name, meta_path: Path, meta: dict, kind: str) -> dict:
 def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> None:
     """Put one scene's files in the tree: 3-class mask, binary ground truth, then the image."""
     src = meta_path.parent
-    mask_src = src / meta["files"]["mask"]
-    place(mask_src, out / row["allo_mask"], link)
+    mask_src, rgb_src = (source_file(src, meta["files"][k]) for k in ("mask", "rgb"))
+    place(mask_src, _inside(out, row["allo_mask"]), link)
     if row["mask"]:
-        write_png(out / row["mask"], np.where(read_pixels(mask_src) == 2, 255, 0).astype(np.uint8))
-    place(src / meta["files"]["rgb"], out / row["image"], link)
+        write_png(_inside(out, row["mask"]), np.where(read_pixels(mask_src) == 2, 255, 0).astype(np.uint8))
+    place(rgb_src, _inside(out, row["image"]), link)
 
 
 def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, out: Path) -> bool:
@@ -246,11 +359,11 @@ def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, out: Path) -> 
 def _remove_files(out: Path, row: dict) -> None:
     for key in FILE_KEYS:
         if row.get(key):
-            (out / row[key]).unlink(missing_ok=True)
+            _inside(out, row[key]).unlink(missing_ok=True)
 
 
 def _complete(out: Path, row: dict) -> bool:
-    return all((out / row[k]).is_file() for k in FILE_KEYS if row.get(k))
+    return all(_inside(out, row[k]).is_file() for k in FILE_KEYS if row.get(k))
 
 
 @contextmanager
@@ -296,8 +409,9 @@ def assemble(render_dirs, out_dir, layout: str = "mvtec", link: bool = True, cat
 def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene) -> Path:
     if layout not in LAYOUTS:
         raise AlloError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
-    if not category or "/" in category or category in ("allo_masks", "contact_sheets"):
-        raise AlloError(f"category {category!r} must be a plain directory name")
+    if not NAME.match(category or "") or category in ("allo_masks", "contact_sheets"):
+        raise AlloError(f"category {category!r} must be a plain directory name ([A-Za-z0-9_.-], not allo_masks or "
+                        "contact_sheets); fix: e.g. --category allo")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     manifest = out / MANIFEST
@@ -326,24 +440,44 @@ def _clean_tree(out: Path, manifest: Path, category: str) -> dict[tuple, dict]:
 
 def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, link, out: Path) -> list[tuple]:
     """(name, meta path, meta, kind, index) of each render to place: new scenes get the next free
-    indices, changed ones keep theirs, unchanged linked ones are skipped; the rest are reported."""
+    indices, changed ones keep theirs, unchanged linked ones are skipped; the rest are reported.
+    Render records that check_render refuses are left out with a warning; renders of another
+    resolution than the rest (or than the category's images already in the tree) stop the run."""
     next_index = 1 + max((int(r["index"]) for r in rows.values() if r["category"] == category), default=-1)
-    left_out, mask_only, todo = [], [], []
-    for meta_path, meta in scan(render_dirs, progress):
+    found = scan(render_dirs, progress)
+    if not found:
+        raise AlloError(f"no renders in {', '.join(map(str, render_dirs))}: no NAME.json render record there; fix: "
+                        "pass the directories `allo-usd render` wrote (its --out; for a plan, OUT/renders)")
+    left_out, mask_only, refused, todo, sizes, dark, black = [], [], [], [], {}, [], []
+    for meta_path, meta in found:
         name = meta_path.stem
-        if "rgb" not in meta["files"]:
+        if isinstance(meta.get("files"), dict) and "rgb" not in meta["files"]:
             mask_only.append(name)
             continue
-        kind = _kind(meta["scene"], meta)
+        try:
+            kind, size = check_render(meta_path, meta)
+        except Refused as exc:
+            refused.append(f"{meta_path}: {exc}")
+            continue
+        kind = _kind(meta["scene"], meta, kind)
         if kind is None:
             left_out.append(name)
             continue
+        sizes.setdefault(size, []).append(name)
+        if meta["class_pixels"].get("station_and_bodies", 0) == 0:
+            dark.append(name)
         old = rows.get((category, name))
         if old and link and _unchanged(old, meta_path, meta, kind, out):
             continue
+        if all_black(source_file(meta_path.parent, meta["files"]["rgb"]), size):
+            black.append(name)
         index = int(old["index"]) if old else next_index
         next_index += old is None
         todo.append((name, meta_path, meta, kind, index))
+    _one_resolution(sizes, rows, category, out)
+    if refused:
+        warnings.warn(f"{len(refused)} render(s) refused and left out, their JSON contradicting itself or naming "
+                      f"files outside its render directory: {'; '.join(refused[:5])}", stacklevel=3)
     if left_out:
         warnings.warn(f"{len(left_out)} scene(s) left out (anomalous in the train split, or anomaly not visible): "
                       f"{', '.join(left_out[:10])}", stacklevel=3)
@@ -351,7 +485,31 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
         warnings.warn(f"{len(mask_only)} mask-only render(s) left out: they have no color image to train or test "
                       f"on (render their layers with color to include them): {', '.join(mask_only[:10])}",
                       stacklevel=3)
+    if dark:
+        warnings.warn(f"SUSPICIOUS: {len(dark)} scene(s) show no station or body pixel (class_pixels "
+                      f"station_and_bodies = 0): a camera looking away or a failed render; check them: "
+                      f"{', '.join(dark[:10])}", stacklevel=3)
+    if black:
+        warnings.warn(f"{len(black)} scene(s) have an all-black image (an umbra scene without the inspection light "
+                      f"is black in the PNG, lit only in the EXR; otherwise a failed render): {', '.join(black[:10])}",
+                      stacklevel=3)
     return todo
+
+
+def _one_resolution(sizes: dict[tuple, list[str]], rows: dict[tuple, dict], category: str, out: Path) -> None:
+    """Refuse to mix image sizes in one category (models train on one size): the renders among
+    themselves, and against an image the category already holds."""
+    held = next((r for r in rows.values() if r["category"] == category and _complete(out, r)), None)
+    try:
+        size = image_size(_inside(out, held["image"])) if held is not None else None
+    except Refused:
+        size = None   # unreadable: its render replaces it, or _finish drops it
+    if size is not None:
+        sizes = {size: [f"{held['name']} and the rest of {category}/ already in the dataset"]} | sizes
+    if len(sizes) > 1:
+        shown = "; ".join(f"{w}x{h}: {len(names)} (e.g. {names[0]})" for (w, h), names in sizes.items())
+        raise AlloError(f"renders of different resolutions would be mixed in {out / category} ({shown}); fix: "
+                        f"assemble each resolution into its own --out (or --category)")
 
 
 def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: Path, category: str, link,
@@ -420,7 +578,7 @@ def _finish(out: Path, manifest: Path, rows: dict[tuple, dict], category: str, s
     for split in ("train", "test"):
         picked = [r for r in all_rows if r["category"] == category and r["split"] == split]
         if picked:
-            grid_sheet(out, picked, out / "contact_sheets" / f"{category}_{split}.png", sheet_limit)
+            grid_sheet(out, picked, _inside(out, f"contact_sheets/{category}_{split}.png"), sheet_limit)
 
 
 def label_lines(text: str, width: float, draw) -> list[str]:
