@@ -7,6 +7,12 @@ first: Blender stores an assigned `matrix_world` decomposed into location, rotat
 in the object's rotation mode, so the default 'XYZ' would round-trip every rotation through
 Euler angles (docs/physics.md section 4); a quaternion keeps it a rotation at any pitch.
 
+Every value from the description goes in through `assign`, which reads it back: Blender clamps an
+out-of-range float silently (a focal length of 1e-30 becomes 1 mm), so a value it would change is
+a LayerError instead. The reader (`allo_usd.usd.read`) already bounds every value to the bpy hard
+limits; this catches a description made some other way. A texture Blender cannot decode is a
+LayerError too (Blender only logs it and renders magenta or black).
+
 Sun lamps follow the light linking the reader resolved (`SunDesc.link`): Cycles light linking
 through a receiver collection per lamp, whose members are all EXCLUDE (the lamp lights every
 object but them: the station's sun and the bodies) or all INCLUDE (only them: a body's own sun).
@@ -18,6 +24,7 @@ import math
 
 import numpy as np
 
+from allo_usd.core.errors import LayerError
 from allo_usd.usd.description import (CameraDesc, MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc,
                                       SunDesc)
 
@@ -41,10 +48,58 @@ def _matrix(m: np.ndarray):
     return Matrix([list(map(float, row)) for row in np.asarray(m)])
 
 
+def _floats(value) -> np.ndarray:
+    try:
+        return np.asarray(tuple(value), dtype=np.float64)
+    except TypeError:
+        return np.asarray([value], dtype=np.float64)
+
+
+def assign(owner, prop: str, value, what: str) -> None:
+    """owner.prop = value, refusing a value Blender does not keep (it clamps floats to the property's
+    hard limits silently): a LayerError naming `what` (the attribute that recorded it)."""
+    try:
+        setattr(owner, prop, value)
+    except (TypeError, ValueError, OverflowError) as exc:  # an int outside C int range, a wrong type
+        raise LayerError(f"{what} = {value!r} cannot be given to Blender ({exc}); fix the layer") from None
+    got = getattr(owner, prop)
+    if not np.allclose(_floats(got), _floats(value), rtol=1e-6, atol=0.0, equal_nan=False):
+        rna = owner.bl_rna.properties[prop] if prop in owner.bl_rna.properties else None
+        limits = f" (Blender's {owner.bl_rna.identifier}.{prop} takes {rna.hard_min:g}..{rna.hard_max:g})" \
+            if rna is not None and hasattr(rna, "hard_min") else ""
+        shown = tuple(_floats(got)) if len(_floats(got)) > 1 else _floats(got)[0]
+        raise LayerError(f"{what} = {value!r} would become {shown} in Blender{limits}; fix the layer")
+
+
+def load_texture(path: str, material: str):
+    """A texture image, loaded and decoded now (Blender loads lazily and only logs a broken file)."""
+    bpy = _bpy()
+    try:
+        image = bpy.data.images.load(path, check_existing=True)
+    except RuntimeError as exc:
+        raise LayerError(f"texture {path} of material {material} cannot be loaded by Blender "
+                         f"({str(exc).strip()}); restore the file") from None
+    width, height = image.size  # asking for the size decodes the file
+    if not (image.has_data and width * height > 0):
+        bpy.data.images.remove(image)
+        raise LayerError(f"texture {path} of material {material} is not an image Blender can decode (broken or "
+                         "cut short); restore the real image (fix the asset)")
+    return image
+
+
 def place(obj, m: np.ndarray) -> None:
     """Set an object's world matrix, decomposed into a quaternion (never Euler angles)."""
     obj.rotation_mode = "QUATERNION"
     obj.matrix_world = _matrix(m)
+
+
+def set_principled(bsdf, desc: MaterialDesc) -> None:
+    """The Principled BSDF's plain values (the node graph aside)."""
+    inputs, where = bsdf.inputs, f"material {desc.path}"
+    assign(inputs["Base Color"], "default_value", (*desc.base_color, 1.0), f"{where} diffuseColor")
+    assign(inputs["Metallic"], "default_value", desc.metallic, f"{where} metallic")
+    assign(inputs["Roughness"], "default_value", desc.roughness, f"{where} roughness")
+    assign(inputs["IOR"], "default_value", desc.ior, f"{where} ior")  # 1.0: no specular layer, a Lambertian surface
 
 
 def build_material(desc: MaterialDesc):
@@ -52,13 +107,10 @@ def build_material(desc: MaterialDesc):
     mat = bpy.data.materials.new(desc.path)
     tree = mat.node_tree
     bsdf = next(n for n in tree.nodes if n.type == "BSDF_PRINCIPLED")
-    bsdf.inputs["Base Color"].default_value = (*desc.base_color, 1.0)
-    bsdf.inputs["Metallic"].default_value = desc.metallic
-    bsdf.inputs["Roughness"].default_value = desc.roughness
-    bsdf.inputs["IOR"].default_value = desc.ior  # 1.0: no specular layer, a Lambertian surface
+    set_principled(bsdf, desc)
     if desc.base_color_texture:
         tex = tree.nodes.new("ShaderNodeTexImage")
-        tex.image = bpy.data.images.load(desc.base_color_texture, check_existing=True)
+        tex.image = load_texture(desc.base_color_texture, desc.path)
         tex.image.colorspace_settings.name = "sRGB"
         uvmap = tree.nodes.new("ShaderNodeUVMap")
         uvmap.uv_map = "st"
@@ -72,8 +124,9 @@ def build_material(desc: MaterialDesc):
         tree.links.new(mix.outputs["Result"], bsdf.inputs["Base Color"])
     strength = max(desc.emissive_color)
     if strength > 0:
-        bsdf.inputs["Emission Color"].default_value = (*(c / strength for c in desc.emissive_color), 1.0)
-        bsdf.inputs["Emission Strength"].default_value = strength
+        assign(bsdf.inputs["Emission Color"], "default_value", (*(c / strength for c in desc.emissive_color), 1.0),
+               f"material {desc.path} emissiveColor")
+        assign(bsdf.inputs["Emission Strength"], "default_value", strength, f"material {desc.path} emissiveColor")
     return mat
 
 
@@ -106,15 +159,21 @@ def build_mesh(desc: MeshDesc, material):
     return obj
 
 
+def set_lens(cam, desc: CameraDesc) -> None:
+    """Focal length, sensor size (mm) and clipping range (m) of a Blender camera."""
+    assign(cam, "lens", desc.focal_length_mm, f"{desc.path} focal length (mm)")
+    assign(cam, "sensor_width", desc.sensor_width_mm, f"{desc.path} horizontal aperture (mm)")
+    assign(cam, "sensor_height", desc.sensor_height_mm, f"{desc.path} vertical aperture (mm)")
+    assign(cam, "clip_start", desc.clip[0], f"{desc.path} clipping range near (m)")
+    assign(cam, "clip_end", desc.clip[1], f"{desc.path} clipping range far (m)")
+
+
 def build_camera(desc: CameraDesc):
     bpy = _bpy()
     cam = bpy.data.cameras.new(desc.path)
     cam.lens_unit = "MILLIMETERS"
-    cam.lens = desc.focal_length_mm
     cam.sensor_fit = "HORIZONTAL"
-    cam.sensor_width = desc.sensor_width_mm
-    cam.sensor_height = desc.sensor_height_mm
-    cam.clip_start, cam.clip_end = desc.clip
+    set_lens(cam, desc)
     obj = bpy.data.objects.new(desc.path, cam)
     place(obj, desc.matrix)
     bpy.context.scene.collection.objects.link(obj)
@@ -127,9 +186,9 @@ def set_sun(obj, desc: SunDesc) -> None:
     from allo_usd.core.geometry import rotation_towards
 
     light = obj.data
-    light.energy = desc.irradiance          # Cycles sun strength is irradiance, W/m^2
-    light.angle = math.radians(desc.angle_deg)
-    light.color = desc.color
+    assign(light, "energy", desc.irradiance, f"{desc.path} irradiance")  # Cycles sun strength is irradiance, W/m^2
+    assign(light, "angle", math.radians(desc.angle_deg), f"{desc.path} angle (radians)")
+    assign(light, "color", desc.color, f"{desc.path} color")
     m = np.eye(4)
     m[:3, :3] = rotation_towards(desc.direction)
     place(obj, m)
@@ -166,11 +225,11 @@ def spot_power_w(desc: SpotDesc) -> float:
 def build_spot(desc: SpotDesc):
     bpy = _bpy()
     light = bpy.data.lights.new(desc.path, type="SPOT")
-    light.energy = spot_power_w(desc)
-    light.shadow_soft_size = desc.radius
-    light.spot_size = min(max(math.radians(2.0 * desc.cone_angle_deg), 0.01745), math.pi)
-    light.spot_blend = min(max(desc.softness, 0.0), 1.0)
-    light.color = desc.color
+    assign(light, "energy", spot_power_w(desc), f"{desc.path} power (W)")
+    assign(light, "shadow_soft_size", desc.radius, f"{desc.path} radius")
+    assign(light, "spot_size", math.radians(2.0 * desc.cone_angle_deg), f"{desc.path} cone (2 x half angle, radians)")
+    assign(light, "spot_blend", desc.softness, f"{desc.path} cone softness")
+    assign(light, "color", desc.color, f"{desc.path} color")
     obj = bpy.data.objects.new(desc.path, light)
     place(obj, desc.matrix)
     bpy.context.scene.collection.objects.link(obj)
@@ -182,31 +241,32 @@ def configure_render(render: RenderDesc) -> None:
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
-    scene.render.resolution_x, scene.render.resolution_y = render.resolution
+    assign(scene.render, "resolution_x", render.resolution[0], "render resolution width")
+    assign(scene.render, "resolution_y", render.resolution[1], "render resolution height")
     scene.render.resolution_percentage = 100
     scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
     mask_only = "color" not in render.outputs
-    scene.cycles.samples = 1 if mask_only else render.samples  # the class mask comes from sample 0
+    assign(scene.cycles, "samples", 1 if mask_only else render.samples, "render samples")  # the mask: sample 0
     scene.cycles.use_adaptive_sampling = render.adaptive_threshold > 0 and not mask_only
     if render.adaptive_threshold > 0:
-        scene.cycles.adaptive_threshold = render.adaptive_threshold
+        assign(scene.cycles, "adaptive_threshold", render.adaptive_threshold, "render adaptive threshold")
     scene.cycles.use_denoising = render.denoise and not mask_only
     if render.denoise:
         scene.cycles.denoiser = "OPENIMAGEDENOISE"
         scene.cycles.denoising_prefilter = render.denoise_prefilter
         scene.cycles.denoising_quality = render.denoise_quality
         scene.cycles.denoising_use_gpu = False
-    scene.cycles.seed = render.seed
+    assign(scene.cycles, "seed", render.seed, "render seed")
     scene.cycles.use_animated_seed = False
-    scene.cycles.max_bounces = 0 if mask_only else render.max_bounces
+    assign(scene.cycles, "max_bounces", 0 if mask_only else render.max_bounces, "render max bounces")
     scene.cycles.diffuse_bounces = min(4, render.max_bounces)
     scene.cycles.sample_clamp_direct = 0.0
     scene.cycles.sample_clamp_indirect = 0.0  # the default 10 eats ~10% of a 1361 W/m^2 sun
-    scene.cycles.film_exposure = render.exposure
+    assign(scene.cycles, "film_exposure", render.exposure, "render exposure")
     scene.render.film_transparent = False
     if render.threads > 0:
         scene.render.threads_mode = "FIXED"
-        scene.render.threads = render.threads
+        assign(scene.render, "threads", render.threads, "render threads")
     else:
         scene.render.threads_mode = "AUTO"
     scene.render.use_persistent_data = True

@@ -323,11 +323,7 @@ class Session:
 
     @staticmethod
     def _patch_material(mat, desc: MaterialDesc) -> None:
-        bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
-        bsdf.inputs["Base Color"].default_value = (*desc.base_color, 1.0)
-        bsdf.inputs["Metallic"].default_value = desc.metallic
-        bsdf.inputs["Roughness"].default_value = desc.roughness
-        bsdf.inputs["IOR"].default_value = desc.ior
+        build.set_principled(next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED"), desc)
 
     def _patch_mesh(self, obj, old: MeshDesc, new: MeshDesc) -> None:
         if not _eq(old.matrix, new.matrix):
@@ -358,12 +354,8 @@ class Session:
 
     def _patch_camera(self, desc: SceneDescription) -> None:
         obj = self._find(self.desc.camera.path)  # the camera the scene shows now
-        cam, c = obj.data, desc.camera
-        cam.lens = c.focal_length_mm
-        cam.sensor_width = c.sensor_width_mm
-        cam.sensor_height = c.sensor_height_mm
-        cam.clip_start, cam.clip_end = c.clip
-        build.place(obj, c.matrix)
+        build.set_lens(obj.data, desc.camera)
+        build.place(obj, desc.camera.matrix)
 
     def _remove_light(self, name: str) -> None:
         """Remove a light object, its data and its light-linking collections."""

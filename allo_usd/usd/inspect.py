@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from allo_usd.core.errors import LayerError
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
@@ -120,7 +121,9 @@ def _attr(prim, name, default=None):
 
 
 def describe(layer: str | Path) -> dict:
-    """What the scene is, read from the USD alone: identity, anomaly, sky, camera, render, stack."""
+    """What the scene is, read from the USD alone: identity, anomaly, sky, camera, render, stack.
+    A layer this project did not author (no AlloSceneAPI on its default prim) is a LayerError that
+    says so, rather than a table of None."""
     from pxr import Usd, UsdGeom, UsdLux, UsdRender
 
     from allo_usd.core.geometry import matrix_to_quat
@@ -129,6 +132,13 @@ def describe(layer: str | Path) -> dict:
     stage = open_stage(layer)
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     world = stage.GetDefaultPrim() or stage.GetPrimAtPath(layout.WORLD)
+    scene_api = A.SCENE_ID.api_schema
+    if not world or not world.HasAPI(scene_api):
+        why = (f"its default prim {world.GetPath()} has no {scene_api} (no {A.SCENE_ID.name})" if world else
+               f"it has no default prim and no {layout.WORLD}")
+        raise LayerError(f"{layer} is not a scene layer authored by allo-usd: {why}; `allo-usd inspect` describes "
+                         "the scene layers that `allo-usd author` writes (fix the path; for other USD files use "
+                         "usdcat or usdview)")
     provenance = dict(stage.GetRootLayer().customLayerData.get("allo", {}))
     a = lambda attr, default=None: _attr(world, attr.name, default)  # noqa: E731
 

@@ -6,6 +6,7 @@ stage is the scene, this module is a one-way translation of it.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,42 @@ from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
 # Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
 MAX_POSITION_M = 1e12          # any prim, from the station at the origin (the Sun is ~1.5e11 m away)
 MAX_CAMERA_DISTANCE_M = 1e4    # the camera, from the station (ALLO cameras sit within ~70 m of it)
+
+# What the reader lets through to Blender (docs/reliability_reader.md, "Reader bounds"). Each range lies
+# inside the hard limits of the bpy RNA property the value ends in, so Blender never clamps a value the
+# layer records: tests/test_reader_bounds.py reads those limits from bpy and checks every one.
+LENS_MM = (1.0, 100_000.0)        # Camera.lens (Blender's hard minimum is 1 mm)
+SENSOR_MM = (1.0, 10_000.0)       # Camera.sensor_width / sensor_height (hard minimum 1 mm)
+CLIP_M = (1e-5, 1e13)             # Camera.clip_start / clip_end (hard minimum 1e-6 m); the Sun is 1.5e11 m away
+SUN_ANGLE_DEG = (0.0, 180.0)      # SunLight.angle, 0..pi
+SPOT_CONE_DEG = (0.5, 90.0)       # half angle; SpotLight.spot_size (the full cone) is 1..180 degrees
+SPOT_SOFTNESS = (0.0, 1.0)        # SpotLight.spot_blend
+SPOT_RADIUS_M = (0.0, 1000.0)     # SpotLight.shadow_soft_size
+MAX_LIGHT = 1e20                  # irradiance (W/m^2) or radiance, after inputs:exposure: even a spot's power
+                                  # 4 pi^2 r^2 L at the largest radius stays a finite float32 (Light.energy)
+MAX_COLOUR = 1e6                  # light colour, diffuse colour, texture scale (Blender colours: 0..FLT_MAX)
+UNIT_INTERVAL = (0.0, 1.0)        # metallic, roughness (Principled BSDF sockets, hard 0..1)
+IOR = (1.0, 10.0)                 # UsdPreviewSurface ior (1: no specular layer)
+MIN_SCALE = 1e-6                  # the smallest scale along any axis (a transform's smallest singular value):
+MAX_SCALE = MAX_POSITION_M        # below it a prim is degenerate (a camera renders black, a mesh vanishes)
+RENDER_SAMPLES = (1, 65536)       # Cycles samples (hard 1..16777216)
+RENDER_BOUNCES = (0, 1024)        # Cycles max_bounces
+RENDER_ADAPTIVE = (0.0, 1.0)      # Cycles adaptive_threshold
+RENDER_SEED = (0, 2 ** 31 - 1)    # Cycles seed (hard 0..2^31-1; plans author seed % 2^31)
+RENDER_THREADS = (0, 1024)        # RenderSettings.threads (1..1024; 0 = one per core)
+RENDER_EXPOSURE = (0.0, 2.0 ** 32)  # Cycles film_exposure (> 0)
+MIN_SIDE_PX = 4                   # RenderSettings.resolution_x/_y hard minimum
+# Size of what the reader takes in at all, checked before the expensive work.
+MAX_DEPTH = 128                   # prim nesting depth (/World/Station/Geom/Truss is 4; the real stage reaches 6)
+MAX_PRIMS = 200_000               # prims traversed (the real base stage composes ~180)
+MAX_MESH_POINTS = 10_000_000      # per mesh (the real stage's largest has ~26k; 10M points is 120 MB as float32)
+MAX_MESH_FACE_VERTICES = 40_000_000
+MAX_SCENE_POINTS = 20_000_000     # over all meshes
+MAX_TEXTURE_BYTES = 256 << 20     # a texture file
+IMAGE_SIGNATURES = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"v/1\x01": "OpenEXR",
+                    b"II*\x00": "TIFF", b"MM\x00*": "TIFF", b"#?RADIANCE": "Radiance HDR", b"#?RGBE": "Radiance HDR",
+                    b"BM": "BMP"}
+PNG_END = b"IEND\xaeB`\x82"       # the last chunk of every complete PNG
 
 
 def _tf_message(exc) -> str:
@@ -77,56 +114,88 @@ def _tf_message_list(errors) -> str:
     return "; ".join(out) + (f" (and {len(errors) - 3} more)" if len(errors) > 3 else "")
 
 
-def _number(value, what: str, integer: bool = False, lo: float = -np.inf, hi: float = np.inf):
-    """A finite int/float within [lo, hi], or a LayerError naming the attribute and the value."""
+def _fmt(x) -> str:
+    return str(x) if isinstance(x, (int, np.integer)) else f"{x:g}"
+
+
+def _range(lo, hi, unit: str = "") -> str:
+    return f"{_fmt(lo)}..{_fmt(hi)}" + (f" {unit}" if unit else "")
+
+
+def _number(value, what: str, integer: bool = False, lo: float = -np.inf, hi: float = np.inf, unit: str = "",
+            why: str = ""):
+    """A finite int/float within [lo, hi], or a LayerError naming the attribute, the value and the range."""
     kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
     if isinstance(value, bool) or not isinstance(value, kinds):
         raise LayerError(f"{what} must be {'an integer' if integer else 'a number'}, got {value!r}; fix the layer")
     if not (np.isfinite(value) and lo <= value <= hi):
-        raise LayerError(f"{what}={value!r} is outside {lo}..{hi}; fix the layer")
+        raise LayerError(f"{what} = {value!r} is outside {_range(lo, hi, unit)}{why}; fix the layer")
     return int(value) if integer else float(value)
 
 
-def _vector(value, what: str, n: int) -> tuple[float, ...]:
-    try:
-        out = tuple(float(c) for c in value)
-    except (TypeError, ValueError):
-        raise LayerError(f"{what} must be {n} numbers, got {value!r}; fix the layer") from None
-    if len(out) != n or not np.isfinite(out).all():
+def _vector(value, what: str, n: int, lo: float = -np.inf, hi: float = np.inf) -> tuple[float, ...]:
+    """n finite numbers within [lo, hi] each (a vector or colour), or a LayerError naming the attribute."""
+    out = None
+    if not isinstance(value, (str, bytes, bool)) and value is not None:
+        try:
+            out = tuple(float(c) for c in value)
+        except (TypeError, ValueError):
+            pass
+    if out is None or len(out) != n or not np.isfinite(out).all():
         raise LayerError(f"{what} must be {n} finite numbers, got {value!r}; fix the layer")
+    if not all(lo <= c <= hi for c in out):
+        raise LayerError(f"{what} = {tuple(out)} has a component outside {_range(lo, hi)}; fix the layer")
     return out
 
 
-def _check_xform_ops(prim) -> None:
-    """Every xformOp on the prim and its ancestors holds finite values of a transform type."""
+def _colour(value, what: str, hi: float = MAX_COLOUR) -> tuple[float, float, float]:
+    """An RGB triple, each component finite and within 0..hi (Blender clamps negative colours to 0)."""
+    return _vector(value, what, 3, 0.0, hi)
+
+
+def _check_op_values(prim) -> None:
+    """Every xformOp on `prim` holds finite values of its op's type."""
     from pxr import Gf, UsdGeom
 
+    if not prim.IsA(UsdGeom.Xformable):
+        return
+    for op in UsdGeom.Xformable(prim).GetOrderedXformOps():
+        v = op.Get()
+        if isinstance(v, (Gf.Quatd, Gf.Quatf, Gf.Quath)):
+            values = [v.GetReal(), *v.GetImaginary()]
+            ok = op.GetOpType() == UsdGeom.XformOp.TypeOrient
+        elif isinstance(v, (Gf.Matrix4d, Gf.Matrix4f)):
+            values = [c for row in v for c in row]
+            ok = op.GetOpType() == UsdGeom.XformOp.TypeTransform
+        elif isinstance(v, (Gf.Vec3d, Gf.Vec3f, Gf.Vec3h)):
+            values, ok = list(v), op.GetOpType() not in (UsdGeom.XformOp.TypeOrient,
+                                                          UsdGeom.XformOp.TypeTransform)
+        elif isinstance(v, (float, int)) and not isinstance(v, bool):
+            values, ok = [v], op.GetOpType() in (UsdGeom.XformOp.TypeRotateX, UsdGeom.XformOp.TypeRotateY,
+                                                 UsdGeom.XformOp.TypeRotateZ)
+        else:
+            values, ok = [], False
+        if not ok:
+            raise LayerError(f"{op.GetAttr().GetPath()} holds {v!r}, not a value of its op type; fix the "
+                             "layer that sets it")
+        if not np.isfinite(np.asarray(values, dtype=np.float64)).all():
+            raise LayerError(f"{op.GetAttr().GetPath()} = {v} is not finite; fix the layer that sets it")
+        if op.GetOpType() == UsdGeom.XformOp.TypeOrient:
+            _check_quaternion(op.GetAttr().GetPath(), v, values)
+
+
+def _check_xform_ops(prim, checked: set | None = None) -> None:
+    """Every xformOp on the prim and its ancestors holds finite values of a transform type. With
+    `checked` (a set of prim paths, shared across calls) each prim is checked once: the walk stops at
+    an ancestor already checked, so reading a stage is linear in its prims, not in prims x depth."""
     p = prim
     while p and not p.IsPseudoRoot():
-        if p.IsA(UsdGeom.Xformable):
-            for op in UsdGeom.Xformable(p).GetOrderedXformOps():
-                v = op.Get()
-                if isinstance(v, (Gf.Quatd, Gf.Quatf, Gf.Quath)):
-                    values = [v.GetReal(), *v.GetImaginary()]
-                    ok = op.GetOpType() == UsdGeom.XformOp.TypeOrient
-                elif isinstance(v, (Gf.Matrix4d, Gf.Matrix4f)):
-                    values = [c for row in v for c in row]
-                    ok = op.GetOpType() == UsdGeom.XformOp.TypeTransform
-                elif isinstance(v, (Gf.Vec3d, Gf.Vec3f, Gf.Vec3h)):
-                    values, ok = list(v), op.GetOpType() not in (UsdGeom.XformOp.TypeOrient,
-                                                                  UsdGeom.XformOp.TypeTransform)
-                elif isinstance(v, (float, int)) and not isinstance(v, bool):
-                    values, ok = [v], op.GetOpType() in (UsdGeom.XformOp.TypeRotateX, UsdGeom.XformOp.TypeRotateY,
-                                                         UsdGeom.XformOp.TypeRotateZ)
-                else:
-                    values, ok = [], False
-                if not ok:
-                    raise LayerError(f"{op.GetAttr().GetPath()} holds {v!r}, not a value of its op type; fix the "
-                                     "layer that sets it")
-                if not np.isfinite(np.asarray(values, dtype=np.float64)).all():
-                    raise LayerError(f"{op.GetAttr().GetPath()} = {v} is not finite; fix the layer that sets it")
-                if op.GetOpType() == UsdGeom.XformOp.TypeOrient:
-                    _check_quaternion(op.GetAttr().GetPath(), v, values)
+        if checked is not None:
+            if p.GetPath() in checked:
+                return
+        _check_op_values(p)
+        if checked is not None:
+            checked.add(p.GetPath())
         p = p.GetParent()
 
 
@@ -157,22 +226,62 @@ def _check_position(cache, prim, m: np.ndarray, max_distance: float) -> None:
                      "xformOp:translate (or parent transform) that puts it there")
 
 
+def _scales(m: np.ndarray) -> np.ndarray | None:
+    """The scales along a transform's principal axes (singular values of its 3x3, largest first), or
+    None if it is projective (its last row, column-vector convention, is not 0 0 0 1)."""
+    if not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0), rtol=0, atol=1e-12):
+        return None
+    return np.linalg.svd(m[:3, :3], compute_uv=False)
+
+
+def _degenerate(m: np.ndarray) -> bool:
+    s = _scales(m)
+    return s is None or not (s[-1] >= MIN_SCALE and s[0] <= MAX_SCALE)
+
+
+def _check_scale(cache, prim, m: np.ndarray) -> None:
+    """The transform scales every axis by MIN_SCALE..MAX_SCALE: a zero scale renders a camera black with an
+    all-background mask and makes a mesh or a light vanish, silently. The error names the outermost prim
+    whose own world transform is already degenerate (the one to fix)."""
+    if not _degenerate(m):
+        return
+    culprit, culprit_m = prim, m
+    parent = prim.GetParent()
+    while parent and not parent.IsPseudoRoot():
+        pm = np.array(cache.GetLocalToWorldTransform(parent), dtype=np.float64).T
+        if not _degenerate(pm):
+            break
+        culprit, culprit_m, parent = parent, pm, parent.GetParent()
+    s = _scales(culprit_m)
+    what = ("is projective (its last row is not 0 0 0 1)" if s is None else
+            f"scales its axes by {s[-1]:.3g}..{s[0]:.3g}, outside {_range(MIN_SCALE, MAX_SCALE)}")
+    raise LayerError(f"{culprit.GetPath()} has a degenerate transform: it {what}, so {prim.GetPath()} would render "
+                     "as nothing (a camera black, a mesh or light vanished); fix the layer: its xformOp:scale "
+                     "(or xformOp:transform) must scale every axis by a real amount, e.g. (1, 1, 1)")
+
+
 def _check_resolution(w: int, h: int, where) -> None:
     problem = resolution_problem(w, h)
     if problem:
         raise LayerError(f"{where}.resolution = ({w}, {h}): {problem}; fix the layer")
+    if min(w, h) < MIN_SIDE_PX:
+        raise LayerError(f"{where}.resolution = ({w}, {h}): Blender renders at least {MIN_SIDE_PX} pixels per side "
+                         f"(it would silently render {max(w, MIN_SIDE_PX)}x{max(h, MIN_SIDE_PX)}); fix the layer")
 
 
-def world_matrix(cache, prim, max_distance: float = MAX_POSITION_M) -> np.ndarray:
+def world_matrix(cache, prim, max_distance: float = MAX_POSITION_M, checked: set | None = None) -> np.ndarray:
+    """The prim's local-to-world matrix (column-vector convention), after checking every xformOp on it
+    and its ancestors (`checked`: see _check_xform_ops), its scale and its distance from the station."""
     from pxr import Tf
 
-    _check_xform_ops(prim)
+    _check_xform_ops(prim, checked)
     try:
         m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64).T  # USD is row-vector
     except Tf.ErrorException as exc:
         raise LayerError(f"{prim.GetPath()} has an unreadable transform ({_tf_message(exc)}); fix the layer") from None
     if not np.isfinite(m).all():
         raise LayerError(f"{prim.GetPath()} has a non-finite transform; fix the layer that sets it")
+    _check_scale(cache, prim, m)
     _check_position(cache, prim, m, max_distance)
     return m
 
@@ -212,53 +321,199 @@ def _input(shader, name, default):
     return (default if value is None else value), None
 
 
-def read_material(material) -> MaterialDesc:
-    from pxr import UsdShade
+def check_texture_file(path: str, where) -> None:
+    """A texture must be a regular file of at most MAX_TEXTURE_BYTES that starts with a known image
+    signature (a complete PNG also ends with its IEND chunk), or Blender renders it magenta or black and
+    only logs an error. `where` names the attribute that points at it."""
+    import stat
 
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise LayerError(f"texture {path} ({where}) cannot be read ({exc.strerror}); restore the file or fix "
+                         "the layer's path to it") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise LayerError(f"texture {path} ({where}) is not a regular file; point it at an image file (fix the layer)")
+    if st.st_size > MAX_TEXTURE_BYTES:
+        raise LayerError(f"texture {path} ({where}) is {st.st_size / 2 ** 20:,.0f} MiB, above the "
+                         f"{MAX_TEXTURE_BYTES >> 20} MiB allowed; use a smaller image (fix the asset)")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+            f.seek(max(0, st.st_size - 16))
+            tail = f.read()
+    except OSError as exc:
+        raise LayerError(f"texture {path} ({where}) cannot be read ({exc.strerror}); restore the file") from None
+    kind = next((k for sig, k in IMAGE_SIGNATURES.items() if head.startswith(sig)), None)
+    if kind is None:
+        raise LayerError(f"texture {path} ({where}) is not an image: it starts with {head[:8]!r}, not a "
+                         f"{', '.join(sorted(set(IMAGE_SIGNATURES.values())))} signature; restore the real image "
+                         "(fix the asset)")
+    if kind == "PNG" and not tail.endswith(PNG_END):
+        raise LayerError(f"texture {path} ({where}) is a PNG cut short (it does not end with an IEND chunk); "
+                         "restore the complete file (fix the asset)")
+
+
+def _read_texture(material_path: str, prim) -> tuple[str, tuple[float, float, float]]:
+    """(file, colour scale) of the UsdUVTexture a diffuseColor is connected to."""
+    from pxr import Sdf, UsdShade
+
+    tex = UsdShade.Shader(prim)
+    where = prim.GetPath()
+    if tex.GetIdAttr().Get() != "UsdUVTexture":
+        raise LayerError(f"material {material_path}: diffuseColor is connected to {where}, which is not a "
+                         "UsdUVTexture (the only texture allo-usd renders); fix the layer")
+    inp = tex.GetInput("file")
+    asset = inp.Get() if inp else None
+    if not isinstance(asset, Sdf.AssetPath):
+        raise LayerError(f"{where}.inputs:file must be an asset path, got {asset!r}; fix the layer")
+    texture = asset.resolvedPath
+    if not texture:
+        raise LayerError(f"material {material_path}: texture {asset} does not resolve to a file; restore the "
+                         "asset's textures/ folder")
+    check_texture_file(texture, f"{where}.inputs:file")
+    scale = tex.GetInput("scale").Get() if tex.GetInput("scale") else None
+    colour = (1.0, 1.0, 1.0) if scale is None else _vector(scale, f"{where}.inputs:scale", 4, 0.0, MAX_COLOUR)[:3]
+    return texture, colour
+
+
+def read_material(material) -> MaterialDesc:
+    """A UsdPreviewSurface material; every input is type-checked and bounded to what Blender's
+    Principled BSDF takes without clamping."""
     path = str(material.GetPath())
     surface = material.ComputeSurfaceSource()[0]
     if not surface or surface.GetIdAttr().Get() != "UsdPreviewSurface":
         raise LayerError(f"material {path} has no UsdPreviewSurface; allo-usd renders UsdPreviewSurface only")
+
+    def where(name: str) -> str:
+        return f"{surface.GetPath()}.inputs:{name}"
+
     color, src = _input(surface, "diffuseColor", (0.18, 0.18, 0.18))
     texture = None
     if src is not None:
-        tex = UsdShade.Shader(src[0].GetPrim())
-        asset = tex.GetInput("file").Get()
-        texture = asset.resolvedPath if asset else None
-        if not texture:
-            raise LayerError(f"material {path}: texture {asset} does not resolve to a file; restore the "
-                             "asset's textures/ folder")
-        scale = tex.GetInput("scale").Get() if tex.GetInput("scale") else None
-        color = tuple(scale)[:3] if scale is not None else (1.0, 1.0, 1.0)
-    metallic, _ = _input(surface, "metallic", 0.0)
-    roughness, _ = _input(surface, "roughness", 0.5)
-    emissive, _ = _input(surface, "emissiveColor", (0.0, 0.0, 0.0))
-    ior = _number(_input(surface, "ior", 1.5)[0], f"{path} inputs:ior", lo=1.0, hi=10.0)
-    return MaterialDesc(path, tuple(float(c) for c in color), float(metallic), float(roughness), texture,
-                        tuple(float(c) for c in emissive), ior)
+        texture, color = _read_texture(path, src[0].GetPrim())
+    else:
+        color = _colour(color, where("diffuseColor"))
+    metallic = _number(_input(surface, "metallic", 0.0)[0], where("metallic"), lo=UNIT_INTERVAL[0], hi=UNIT_INTERVAL[1])
+    roughness = _number(_input(surface, "roughness", 0.5)[0], where("roughness"), lo=UNIT_INTERVAL[0],
+                        hi=UNIT_INTERVAL[1])
+    emissive = _colour(_input(surface, "emissiveColor", (0.0, 0.0, 0.0))[0], where("emissiveColor"), MAX_LIGHT)
+    ior = _number(_input(surface, "ior", 1.5)[0], where("ior"), lo=IOR[0], hi=IOR[1])
+    return MaterialDesc(path, color, metallic, roughness, texture, emissive, ior)
 
 
-def read_mesh(prim, cache, materials: dict) -> MeshDesc:
-    from pxr import UsdGeom, UsdShade
+def _mesh_array(attr, what: str, kind: str, width: int | None, limit: int) -> np.ndarray:
+    """A mesh's array attribute as numpy: `kind` "i" (integers) or "f" (numbers), `width` values per
+    element (None: scalars), at most `limit` elements (checked before the copy)."""
+    value = attr.Get() if attr else None
+    if value is None:
+        raise LayerError(f"mesh {what} is missing; regenerate its asset (fix the layer)")
+    try:
+        n = len(value)
+    except TypeError:
+        n = None
+    if n is None or isinstance(value, (str, bytes)):
+        raise LayerError(f"mesh {what} must be an array, got {value!r}; regenerate its asset (fix the layer)")
+    if n > limit:
+        raise LayerError(f"mesh {what} holds {n:,} values, at most {limit:,} allowed; decimate the mesh "
+                         "(regenerate its asset)")
+    arr = np.asarray(value)
+    shape_ok = arr.ndim == 1 if width is None else (arr.ndim == 2 and arr.shape[1] == width) or n == 0
+    if arr.dtype.kind not in ("iu" if kind == "i" else "iuf") or not shape_ok:
+        want = "integers" if kind == "i" else f"{width}-vectors of numbers"
+        raise LayerError(f"mesh {what} must hold {want}, got {attr.GetTypeName()}; regenerate its asset")
+    return arr
+
+
+def mesh_topology(prim) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points float32 (N, 3), faceVertexCounts int32, faceVertexIndices int32) of a UsdGeom.Mesh, checked:
+    bounded sizes, finite points within MAX_POSITION_M of the mesh's origin, every face at least 3 vertices,
+    counts summing to the indices, indices within the points (Blender crashes on a negative face count)."""
+    from pxr import UsdGeom
 
     mesh = UsdGeom.Mesh(prim)
     path = str(prim.GetPath())
-    points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float32)
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(), dtype=np.int32)
-    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int32)
-    if points.ndim != 2 or len(points) == 0 or len(counts) == 0:
+    points = _mesh_array(mesh.GetPointsAttr(), f"{path}.points", "f", 3, MAX_MESH_POINTS)
+    counts = _mesh_array(mesh.GetFaceVertexCountsAttr(), f"{path}.faceVertexCounts", "i", None, MAX_MESH_FACE_VERTICES)
+    indices = _mesh_array(mesh.GetFaceVertexIndicesAttr(), f"{path}.faceVertexIndices", "i", None,
+                          MAX_MESH_FACE_VERTICES)
+    if len(points) == 0 or len(counts) == 0:
         raise LayerError(f"mesh {path} has no points or faces; regenerate its asset")
+    with np.errstate(over="ignore", invalid="ignore"):
+        points = points.astype(np.float32)
     if not np.isfinite(points).all():
         raise LayerError(f"mesh {path} has NaN or infinite points; regenerate its asset")
-    if counts.sum() != len(indices) or indices.min() < 0 or indices.max() >= len(points):
-        raise LayerError(f"mesh {path} has inconsistent face indices; regenerate its asset")
-    uv = None
+    reach = float(np.abs(points).max())
+    if reach > MAX_POSITION_M:
+        raise LayerError(f"mesh {path}.points reach {reach:.3g} m from the mesh's origin, beyond the "
+                         f"{MAX_POSITION_M:g} m allowed; regenerate its asset")
+    if counts.min() < 3:
+        face = int(np.argmin(counts))
+        raise LayerError(f"mesh {path}.faceVertexCounts[{face}] = {int(counts[face])}: every face needs at least 3 "
+                         "vertices; regenerate its asset")
+    total = int(counts.astype(np.int64).sum())
+    if total != len(indices):
+        raise LayerError(f"mesh {path}.faceVertexCounts sum to {total:,}, but faceVertexIndices holds "
+                         f"{len(indices):,}; regenerate its asset")
+    if indices.min() < 0 or indices.max() >= len(points):
+        bad = int(indices.min()) if indices.min() < 0 else int(indices.max())
+        raise LayerError(f"mesh {path}.faceVertexIndices holds {bad}, outside the points 0..{len(points) - 1}; "
+                         "regenerate its asset")
+    return points, counts.astype(np.int32), indices.astype(np.int32)
+
+
+def _read_uv(prim, n_face_vertices: int) -> np.ndarray | None:
+    """primvars:st, face-varying: one finite (u, v) per face vertex, or None when the mesh has none."""
+    from pxr import Tf, UsdGeom
+
+    path = prim.GetPath()
     st = UsdGeom.PrimvarsAPI(prim).GetPrimvar("st")
-    if st and st.HasValue():
-        if st.GetInterpolation() != UsdGeom.Tokens.faceVarying:
-            raise LayerError(f"mesh {path}: primvars:st must be faceVarying")
-        uv = np.asarray(st.ComputeFlattened(), dtype=np.float32)
-    smooth = bool(mesh.GetNormalsAttr().HasAuthoredValue()) and mesh.GetNormalsInterpolation() != UsdGeom.Tokens.faceVarying
+    if not (st and st.HasValue()):
+        return None
+    if st.GetInterpolation() != UsdGeom.Tokens.faceVarying:
+        raise LayerError(f"mesh {path}: primvars:st must be faceVarying, not {st.GetInterpolation()}; regenerate "
+                         "its asset")
+    try:
+        flat = st.ComputeFlattened()
+    except Tf.ErrorException:
+        flat = None
+    uv = None if flat is None else np.asarray(flat)
+    if uv is None or uv.dtype.kind not in "iuf" or uv.shape != (n_face_vertices, 2):
+        shape = "nothing usable" if uv is None else f"{uv.shape[0]:,} values of {st.GetTypeName()}"
+        raise LayerError(f"mesh {path}.primvars:st holds {shape}; faceVarying needs one (u, v) per face vertex "
+                         f"({n_face_vertices:,}); regenerate its asset")
+    if not np.isfinite(uv).all():
+        raise LayerError(f"mesh {path}.primvars:st has NaN or infinite values; regenerate its asset")
+    return uv.astype(np.float32)
+
+
+def _smooth(mesh, path, n_points: int, n_faces: int, n_face_vertices: int) -> bool:
+    """Whether the mesh is smooth-shaded: it has per-vertex normals (whose count must match their
+    interpolation)."""
+    from pxr import UsdGeom
+
+    attr = mesh.GetNormalsAttr()
+    if not attr.HasAuthoredValue():
+        return False
+    interp = mesh.GetNormalsInterpolation()
+    need = {UsdGeom.Tokens.vertex: n_points, UsdGeom.Tokens.varying: n_points,
+            UsdGeom.Tokens.faceVarying: n_face_vertices, UsdGeom.Tokens.uniform: n_faces,
+            UsdGeom.Tokens.constant: 1}.get(interp)
+    value = attr.Get()
+    n = len(value) if value is not None and not isinstance(value, (str, bytes)) and hasattr(value, "__len__") else None
+    if need is None or n != need:
+        raise LayerError(f"mesh {path}.normals holds {n} values, but {interp} interpolation needs {need}; "
+                         "regenerate its asset")
+    return interp != UsdGeom.Tokens.faceVarying
+
+
+def read_mesh(prim, cache, materials: dict, checked: set | None = None) -> MeshDesc:
+    from pxr import UsdGeom, UsdShade
+
+    path = str(prim.GetPath())
+    points, counts, indices = mesh_topology(prim)
+    uv = _read_uv(prim, len(indices))
+    smooth = _smooth(UsdGeom.Mesh(prim), path, len(points), len(counts), len(indices))
     bound = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
     if bound:
         key = str(bound.GetPath())
@@ -267,24 +522,40 @@ def read_mesh(prim, cache, materials: dict) -> MeshDesc:
     else:
         key = "__default__"
         materials.setdefault(key, MaterialDesc(key, (0.5, 0.5, 0.5), 0.0, 0.5))
-    return MeshDesc(path, points, counts, indices, uv, smooth, key, world_matrix(cache, prim), _class_id(prim),
-                    _ray_visibility(prim))
+    return MeshDesc(path, points, counts, indices, uv, smooth, key, world_matrix(cache, prim, checked=checked),
+                    _class_id(prim), _ray_visibility(prim))
 
 
-def read_camera(prim, cache) -> CameraDesc:
+def _millimetres(value, what: str, bounds: tuple[float, float], blender: str) -> float:
+    """A lens value in tenths of a scene unit (metres: 100 mm per unit), in mm within `bounds`."""
+    v = _number(value, what)
+    mm = v * 100.0
+    if not bounds[0] <= mm <= bounds[1]:
+        raise LayerError(f"{what} = {value!r} ({mm:.3g} mm) is outside {_range(bounds[0] / 100, bounds[1] / 100)} "
+                         f"({_range(*bounds, 'mm')}, within Blender's {blender}, which would clamp it); fix the layer")
+    return mm
+
+
+def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
     from pxr import UsdGeom
 
     cam = UsdGeom.Camera(prim)
-    # Lens values are tenths of a scene unit; with metersPerUnit = 1 that is 100 mm per unit.
-    to_mm = 100.0
-    clip = cam.GetClippingRangeAttr().Get()
-    values = [cam.GetFocalLengthAttr().Get(), cam.GetHorizontalApertureAttr().Get(),
-              cam.GetVerticalApertureAttr().Get()]
-    if not all(v is not None and np.isfinite(v) and v > 0 for v in values):
-        raise LayerError(f"camera {prim.GetPath()} needs positive focalLength and apertures, got {values}")
-    m = world_matrix(cache, prim, MAX_CAMERA_DISTANCE_M)
-    return CameraDesc(m, values[0] * to_mm, values[1] * to_mm, values[2] * to_mm,
-                      (float(clip[0]), float(clip[1])), str(prim.GetPath()))
+    where = prim.GetPath()
+    projection = cam.GetProjectionAttr().Get()
+    if projection != UsdGeom.Tokens.perspective:
+        raise LayerError(f"{where}.projection = {projection!r}: allo-usd renders perspective cameras only; fix the "
+                         "layer")
+    focal = _millimetres(cam.GetFocalLengthAttr().Get(), f"{where}.focalLength", LENS_MM, "Camera.lens")
+    width = _millimetres(cam.GetHorizontalApertureAttr().Get(), f"{where}.horizontalAperture", SENSOR_MM,
+                         "Camera.sensor_width")
+    height = _millimetres(cam.GetVerticalApertureAttr().Get(), f"{where}.verticalAperture", SENSOR_MM,
+                          "Camera.sensor_height")
+    near, far = _vector(cam.GetClippingRangeAttr().Get(), f"{where}.clippingRange", 2)
+    if not CLIP_M[0] <= near < far <= CLIP_M[1]:
+        raise LayerError(f"{where}.clippingRange = ({near:g}, {far:g}) must be near < far within "
+                         f"{_range(*CLIP_M, 'm')} (Blender's Camera.clip_start/clip_end); fix the layer")
+    m = world_matrix(cache, prim, MAX_CAMERA_DISTANCE_M, checked)
+    return CameraDesc(m, focal, width, height, (near, far), str(where))
 
 
 def read_light_link(prim, mesh_paths) -> LightLink | None:
@@ -301,7 +572,19 @@ def read_light_link(prim, mesh_paths) -> LightLink | None:
     return LightLink(True, off) if len(off) <= len(on) else LightLink(False, on)
 
 
-def read_sun(prim, cache, mesh_paths=None) -> SunDesc | None:
+def _intensity(light, where) -> float:
+    """inputs:intensity x 2^inputs:exposure, non-negative and at most MAX_LIGHT."""
+    intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0, hi=MAX_LIGHT)
+    exposure_attr = light.GetExposureAttr().Get()
+    exposure = _number(0.0 if exposure_attr is None else exposure_attr, f"{where}.inputs:exposure", lo=-64, hi=64)
+    value = intensity * 2.0 ** exposure
+    if value > MAX_LIGHT:
+        raise LayerError(f"{where}.inputs:exposure = {exposure:g} makes the intensity {value:.3g}, above the "
+                         f"{MAX_LIGHT:g} allowed; fix the layer")
+    return value
+
+
+def read_sun(prim, cache, mesh_paths=None, checked: set | None = None) -> SunDesc | None:
     """A UsdLux.DistantLight as a sun lamp; None when it is off (intensity 0: umbra, or a total eclipse
     of the body it lights) or lights none of `mesh_paths` (when given, its light linking is resolved
     against them)."""
@@ -309,33 +592,40 @@ def read_sun(prim, cache, mesh_paths=None) -> SunDesc | None:
 
     light = UsdLux.DistantLight(prim)
     where = prim.GetPath()
-    intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0) * 2.0 ** _number(
-        light.GetExposureAttr().Get() or 0.0, f"{where}.inputs:exposure", lo=-64, hi=64)
+    intensity = _intensity(light, where)
     if intensity == 0.0:
         return None  # the lamp is off
     link = None if mesh_paths is None else read_light_link(prim, mesh_paths)
     if link is not None and not (link.exclude or link.paths):
         return None  # it lights nothing
-    m = world_matrix(cache, prim)
+    m = world_matrix(cache, prim, checked=checked)
     direction = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z, so +Z points at the Sun
-    return SunDesc(tuple(direction), intensity, _number(light.GetAngleAttr().Get(), f"{where}.inputs:angle", lo=0, hi=180),
-                   _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3), str(where), link)
+    angle = _number(light.GetAngleAttr().Get(), f"{where}.inputs:angle", lo=SUN_ANGLE_DEG[0], hi=SUN_ANGLE_DEG[1],
+                    unit="degrees", why=" (Blender's SunLight.angle)")
+    return SunDesc(tuple(direction), intensity, angle, _colour(light.GetColorAttr().Get(), f"{where}.inputs:color"),
+                   str(where), link)
 
 
-def read_spot(prim, cache) -> SpotDesc:
+def read_spot(prim, cache, checked: set | None = None) -> SpotDesc:
+    """A UsdLux.SphereLight with ShapingAPI as a Blender spot lamp (without ShapingAPI: a hemisphere,
+    the widest cone Blender's spot draws)."""
     from pxr import UsdLux
 
     light = UsdLux.SphereLight(prim)
     shaping = UsdLux.ShapingAPI(prim)
-    cone = shaping.GetShapingConeAngleAttr().Get() if prim.HasAPI(UsdLux.ShapingAPI) else 180.0
-    softness = shaping.GetShapingConeSoftnessAttr().Get() if prim.HasAPI(UsdLux.ShapingAPI) else 0.0
+    shaped = prim.HasAPI(UsdLux.ShapingAPI)
+    cone = shaping.GetShapingConeAngleAttr().Get() if shaped else SPOT_CONE_DEG[1]
+    softness = shaping.GetShapingConeSoftnessAttr().Get() if shaped else None
     where = prim.GetPath()
-    intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0) * 2.0 ** _number(
-        light.GetExposureAttr().Get() or 0.0, f"{where}.inputs:exposure", lo=-64, hi=64)
-    return SpotDesc(world_matrix(cache, prim), _number(light.GetRadiusAttr().Get(), f"{where}.inputs:radius", lo=0.0),
-                    intensity, _vector(light.GetColorAttr().Get(), f"{where}.inputs:color", 3),
-                    _number(cone, f"{where}.shaping:cone:angle", lo=0, hi=180),
-                    _number(softness or 0.0, f"{where}.shaping:cone:softness", lo=0), str(where))
+    intensity = _intensity(light, where)
+    radius = _number(light.GetRadiusAttr().Get(), f"{where}.inputs:radius", lo=SPOT_RADIUS_M[0], hi=SPOT_RADIUS_M[1],
+                     unit="m")
+    cone = _number(cone, f"{where}.inputs:shaping:cone:angle", lo=SPOT_CONE_DEG[0], hi=SPOT_CONE_DEG[1],
+                   unit="degrees", why=" (a half angle: Blender's spot cone is 1..180 degrees in all)")
+    softness = _number(0.0 if softness is None else softness, f"{where}.inputs:shaping:cone:softness",
+                       lo=SPOT_SOFTNESS[0], hi=SPOT_SOFTNESS[1])
+    return SpotDesc(world_matrix(cache, prim, checked=checked), radius, intensity,
+                    _colour(light.GetColorAttr().Get(), f"{where}.inputs:color"), cone, softness, str(where))
 
 
 def _get(prim, name, default=None):
@@ -345,9 +635,7 @@ def _get(prim, name, default=None):
 
 
 def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
-    from pxr import UsdRender
-
-    from pxr import Gf
+    from pxr import Gf, UsdRender
 
     settings = UsdRender.Settings(settings_prim)
     res = settings.GetResolutionAttr().Get()
@@ -356,8 +644,8 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
     w, h = int(res[0]), int(res[1])
     _check_resolution(w, h, settings_prim.GetPath())
 
-    def num(name, default, integer=False, lo=-np.inf, hi=np.inf):
-        return _number(_get(settings_prim, name, default), name, integer, lo, hi)
+    def num(name, default, integer=False, bounds=(-np.inf, np.inf)):
+        return _number(_get(settings_prim, name, default), name, integer, *bounds)
 
     def flag(name, default):
         value = _get(settings_prim, name, default)
@@ -371,23 +659,23 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
             raise LayerError(f"{name} = {value!r} is not one of {', '.join(allowed)}; fix the layer")
         return value
 
-    samples = num(A.RENDER_SAMPLES.name, 64, True, 1, 65536)
+    samples = num(A.RENDER_SAMPLES.name, 64, True, RENDER_SAMPLES)
     outputs = []
     for product_path in settings.GetProductsRel().GetForwardedTargets():
         product = UsdRender.Product(settings_prim.GetStage().GetPrimAtPath(product_path))
         for var_path in product.GetOrderedVarsRel().GetForwardedTargets():
             var = UsdRender.Var(settings_prim.GetStage().GetPrimAtPath(var_path))
             outputs.append(str(var.GetSourceNameAttr().Get()))
-    exposure = num(A.RENDER_EXPOSURE.name, 1.0)
+    exposure = num(A.RENDER_EXPOSURE.name, 1.0, bounds=RENDER_EXPOSURE)
     if not exposure > 0:
         raise LayerError(f"{A.RENDER_EXPOSURE.name} must be a positive number, got {exposure}; fix the layer")
     render = RenderDesc(resolution=(w, h), preset=str(_get(settings_prim, A.RENDER_PRESET.name, "preview")),
                         samples=samples,
-                        adaptive_threshold=num(A.RENDER_ADAPTIVE_THRESHOLD.name, 0.0, lo=0.0, hi=1.0),
+                        adaptive_threshold=num(A.RENDER_ADAPTIVE_THRESHOLD.name, 0.0, bounds=RENDER_ADAPTIVE),
                         denoise=flag(A.RENDER_DENOISE.name, True),
-                        max_bounces=num(A.RENDER_MAX_BOUNCES.name, 8, True, 0, 1024),
-                        seed=num(A.RENDER_SEED.name, 0, True, -2 ** 31, 2 ** 32 - 1), exposure=exposure,
-                        threads=num(A.RENDER_THREADS.name, 0, True, 0, 4096), outputs=tuple(outputs),
+                        max_bounces=num(A.RENDER_MAX_BOUNCES.name, 8, True, RENDER_BOUNCES),
+                        seed=num(A.RENDER_SEED.name, 0, True, RENDER_SEED), exposure=exposure,
+                        threads=num(A.RENDER_THREADS.name, 0, True, RENDER_THREADS), outputs=tuple(outputs),
                         denoise_prefilter=choice(A.RENDER_DENOISE_PREFILTER.name, "FAST", DENOISE_PREFILTERS),
                         denoise_quality=choice(A.RENDER_DENOISE_QUALITY.name, "BALANCED", DENOISE_QUALITIES))
     noise = flag(A.EFFECTS_SENSOR_NOISE.name, False)
@@ -450,27 +738,61 @@ def read_meta(stage) -> dict:
     return meta
 
 
+def _world(stage, layer_path):
+    """The stage's default prim, which must be /World (else USD reports 'Accessed invalid null prim')."""
+    from pxr import Sdf
+
+    prim = stage.GetDefaultPrim()
+    if not prim or prim.GetPath() != Sdf.Path(layout.WORLD):
+        name = stage.GetRootLayer().defaultPrim
+        raise LayerError(f"{layer_path}: defaultPrim is {name or 'not set'!r}" +
+                         ("" if prim or not name else ", which names no prim") +
+                         f"; fix the layer: set defaultPrim = \"{layout.WORLD_NAME}\" in its metadata")
+    return prim
+
+
+def _short(path) -> str:
+    parts = str(path).split("/")
+    return str(path) if len(parts) <= 6 else "/".join(parts[:4] + ["..."] + parts[-1:])
+
+
+def _check_size(prim, count: int, layer_path) -> None:
+    """Bound the hierarchy as it is traversed, before anything costly happens at a prim (reading time
+    grew with the square of the nesting depth: 10,000 nested Xforms took about 30 s)."""
+    if count > MAX_PRIMS:
+        raise LayerError(f"{layer_path}: the composed stage holds more than {MAX_PRIMS:,} prims, the most a scene may "
+                         "have; fix the layer: simplify or merge its prims")
+    depth = prim.GetPath().pathElementCount
+    if depth > MAX_DEPTH:
+        raise LayerError(f"{layer_path}: {_short(prim.GetPath())} is nested {depth} levels deep, beyond the "
+                         f"{MAX_DEPTH} allowed; fix the layer: flatten its hierarchy")
+
+
 def read_scene(layer_path: str | Path) -> SceneDescription:
     """Read a scene layer (composed over its base stage) into a plain description."""
-    from pxr import Usd, UsdGeom, UsdLux
+    from pxr import Usd, UsdGeom, UsdLux, UsdRender
 
     stage = open_stage(layer_path)
+    _world(stage, layer_path)
     settings_path = stage.GetMetadata("renderSettingsPrimPath") or layout.RENDER_SETTINGS
     settings_prim = stage.GetPrimAtPath(settings_path)
     if not settings_prim:
         raise LayerError(f"{layer_path}: no render settings at {settings_path}; the base stage sublayer is "
                          "missing or broken (check subLayers)")
     render, effects = read_render(settings_prim)
-    from pxr import UsdRender
     cam_targets = UsdRender.Settings(settings_prim).GetCameraRel().GetForwardedTargets()
     if not cam_targets or not stage.GetPrimAtPath(cam_targets[0]).IsA(UsdGeom.Camera):
         raise LayerError(f"{layer_path}: render settings name no camera; set {settings_path}.camera")
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
-    camera = read_camera(stage.GetPrimAtPath(cam_targets[0]), cache)
+    checked: set = set()  # prims whose xformOps are checked (world_matrix)
+    camera = read_camera(stage.GetPrimAtPath(cam_targets[0]), cache, checked)
 
     meshes, materials, sun_prims, spot = [], {}, [], None
+    count = points = 0
     it = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.PrimIsActive & Usd.PrimIsDefined & ~Usd.PrimIsAbstract))
     for prim in it:
+        count += 1
+        _check_size(prim, count, layer_path)
         if prim.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
             it.PruneChildren()
             continue
@@ -479,16 +801,20 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
             continue
         _check_variants(prim)
         if prim.IsA(UsdGeom.Mesh):
-            meshes.append(read_mesh(prim, cache, materials))
+            meshes.append(read_mesh(prim, cache, materials, checked))
+            points += len(meshes[-1].points)
+            if points > MAX_SCENE_POINTS:
+                raise LayerError(f"{layer_path}: the scene's meshes hold more than {MAX_SCENE_POINTS:,} points in "
+                                 f"all (at {prim.GetPath()}); fix the layer: use lighter assets")
         elif prim.IsA(UsdLux.DistantLight):
             sun_prims.append(prim)  # read once every mesh is known: light linking names meshes
         elif prim.IsA(UsdLux.SphereLight):
-            spot = read_spot(prim, cache)
+            spot = read_spot(prim, cache, checked)
     if not meshes:
         raise LayerError(f"{layer_path}: the composed stage has no meshes; the base stage or its station "
                          "payload did not load (check subLayers and stages/)")
     mesh_paths = [m.path for m in meshes]
-    suns = tuple(s for s in (read_sun(p, cache, mesh_paths) for p in sun_prims) if s is not None)
+    suns = tuple(s for s in (read_sun(p, cache, mesh_paths, checked) for p in sun_prims) if s is not None)
     if not effects.inspection_light:
         spot = None
     if not effects.body_shine:  # no earthshine/moonshine: the bodies are seen but light nothing
@@ -539,12 +865,11 @@ def read_triangles(layer_path: str | Path, root: str, variant: str | None = None
     pts, tris, off = [], [], 0
     for p in Usd.PrimRange(prim):
         if p.IsA(UsdGeom.Mesh):
-            mesh = UsdGeom.Mesh(p)
-            local = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
+            points, counts, indices = mesh_topology(p)
+            local = points.astype(np.float64)
             m = world_matrix(cache, p)
             pts.append(local @ m[:3, :3].T + m[:3, 3])
-            t = fan_triangulate(np.asarray(mesh.GetFaceVertexCountsAttr().Get()),
-                                np.asarray(mesh.GetFaceVertexIndicesAttr().Get()))
+            t = fan_triangulate(counts, indices)
             tris.append(t + off)
             off += len(local)
     if not pts:
