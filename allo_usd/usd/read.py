@@ -18,7 +18,7 @@ from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
 from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, MaterialDesc, MeshDesc, RenderDesc,
                                       SceneDescription, SpotDesc, SunDesc)
 from allo_usd.core.errors import LayerError
-from allo_usd.core.limits import resolution_problem
+from allo_usd.core.limits import MIN_SIDE_PX, resolution_problem
 from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
 
 
@@ -49,7 +49,6 @@ RENDER_ADAPTIVE = (0.0, 1.0)      # Cycles adaptive_threshold
 RENDER_SEED = (0, 2 ** 31 - 1)    # Cycles seed (hard 0..2^31-1; plans author seed % 2^31)
 RENDER_THREADS = (0, 1024)        # RenderSettings.threads (1..1024; 0 = one per core)
 RENDER_EXPOSURE = (0.0, 2.0 ** 32)  # Cycles film_exposure (> 0)
-MIN_SIDE_PX = 4                   # RenderSettings.resolution_x/_y hard minimum
 # Size of what the reader takes in at all, checked before the expensive work.
 MAX_DEPTH = 128                   # prim nesting depth (/World/Station/Geom/Truss is 4; the real stage reaches 6)
 MAX_PRIMS = 200_000               # prims traversed (the real base stage composes ~180)
@@ -264,9 +263,6 @@ def _check_resolution(w: int, h: int, where) -> None:
     problem = resolution_problem(w, h)
     if problem:
         raise LayerError(f"{where}.resolution = ({w}, {h}): {problem}; fix the layer")
-    if min(w, h) < MIN_SIDE_PX:
-        raise LayerError(f"{where}.resolution = ({w}, {h}): Blender renders at least {MIN_SIDE_PX} pixels per side "
-                         f"(it would silently render {max(w, MIN_SIDE_PX)}x{max(h, MIN_SIDE_PX)}); fix the layer")
 
 
 def world_matrix(cache, prim, max_distance: float = MAX_POSITION_M, checked: set | None = None) -> np.ndarray:
