@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import typer
 
 from allo_usd.core.errors import AlloError
+from allo_usd.core.files import ensure_output_dir, ensure_output_file
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Author, record and render the ALLO lunar-orbit anomaly dataset as USD layers.")
@@ -16,57 +18,96 @@ app.add_typer(asset_app, name="asset")
 
 @app.command()
 def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
-                                         help="A scene layer (.usda), a directory of them, or a plan (.toml/.yaml)."),
+                                         help="A scene layer (.usda, .usdc or .usd), a directory of them, or a plan "
+                                              "(.toml/.yaml)."),
            out: Path = typer.Option(Path("out/render"), "--out", help="Output directory."),
            force: bool = typer.Option(False, help="Re-render a single layer even if its outputs exist."),
            workers: int = typer.Option(0, "--workers",
                                        help="Local worker processes (default: the cores this process may use)."),
            scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (tcp://host:8786)."),
            threads: int = typer.Option(0, "--threads", help="Cycles threads per worker (default: cores // workers)."),
-           retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed."),
+           retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed or timed out."),
+           timeout: float = typer.Option(0, "--timeout", metavar="SECONDS",
+                                         help="Time limit of one scene on a worker, after which the worker is killed "
+                                              "and the scene retried (0: 120 s + 5e-5 s per pixel x sample of the "
+                                              "layer)."),
            save_blend: Path = typer.Option(None, "--save-blend", metavar="FILE",
                                            help="A single layer only: also save the Blender scene it builds as "
                                                 "FILE (.blend), to open what Blender got.")):
     """Render scene layers: RGB PNG, linear EXR, 3-class mask PNG and a metadata JSON per scene.
 
-    One .usda layer renders in this process. A directory renders all its scene layers (searched
+    One layer renders in this process. A directory renders all its scene layers (searched
     recursively; an authored plan's scenes/) on a local pool (--workers) or a Dask cluster
     (--scheduler), resuming from OUT/manifest.jsonl; failures go to OUT/failed.jsonl and Blender's
     output to OUT/logs/. A plan is authored into OUT/layers first, then rendered into OUT/renders.
     With --save-blend FILE a single layer is rendered (even if done) and its Blender scene saved.
+    Each scene on a worker has a time limit (--timeout); past it the scene is retried, then failed.
     """
-    from allo_usd.run.dispatch import author_and_dispatch, dispatch
-    from allo_usd.run.worker import output_to
+    import warnings
 
+    from allo_usd.usd.sniff import LAYER_SUFFIXES
+
+    for name, value in (("--workers", workers), ("--threads", threads), ("--retries", retries),
+                        ("--timeout", timeout)):
+        if value < 0:
+            raise AlloError(f"{name} {value:g} is negative; pass 0 for the default or a positive number")
     suffix = source.suffix.lower()
-    single = suffix == ".usda" and source.is_file() and scheduler is None and not workers
+    is_layer = suffix in LAYER_SUFFIXES and source.exists() and not source.is_dir()
+    single = is_layer and scheduler is None and not workers
     if save_blend is not None and not single:
-        raise AlloError("--save-blend saves the Blender scene of one layer: pass a single .usda layer (without "
-                        "--workers or --scheduler)")
+        raise AlloError("--save-blend saves the Blender scene of one layer: pass a single .usda layer (or .usdc, "
+                        ".usd; without --workers or --scheduler)")
+    if not (source.is_dir() or is_layer or (source.is_file() and suffix in (".toml", ".yaml", ".yml"))):
+        raise AlloError(f"{source} does not exist or is not a layer (.usda, .usdc, .usd), a directory of layers or "
+                        "a plan (.toml/.yaml); check the path")
+    ensure_output_dir(out)
     if single:
-        from allo_usd.run.job import render_layer
-
-        with output_to(out / "logs" / "render.log"):  # Blender's own prints
-            meta = render_layer(source, out, force=force, threads=threads or None, save_blend=save_blend)
-        typer.echo(f"{source} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
-        if save_blend is not None:
-            typer.echo(f"Blender scene saved as {save_blend}")
+        _render_one(source, out, force, threads, save_blend)
         return
-    kwargs = dict(workers=workers or None, scheduler=scheduler, threads=threads or None, retries=retries)
-    if source.is_file() and suffix in (".toml", ".yaml", ".yml"):
-        summary = author_and_dispatch(source, out, **kwargs)
-    elif source.is_dir() or (source.is_file() and suffix == ".usda"):
-        summary = dispatch(source, out, **kwargs)
-    else:
-        raise AlloError(f"{source} does not exist or is not a .usda layer, a directory of layers or a plan "
-                        "(.toml/.yaml); check the path")
+    from allo_usd.run.dispatch import author_and_dispatch, dispatch
+
+    kwargs = dict(workers=workers or None, scheduler=scheduler, threads=threads or None, retries=retries,
+                  timeout=timeout or None)
+    with warnings.catch_warnings(record=True) as notes:
+        warnings.simplefilter("always")
+        if source.is_dir() or is_layer:
+            summary = dispatch(source, out, **kwargs)
+        else:
+            summary = author_and_dispatch(source, out, **kwargs)
+    _notes(notes)
     typer.echo(f"{source} -> {out}: {summary}")
     for row in summary.failed:
         typer.echo(f"  failed {row['scene']}: {row['reason']}", err=True)
     if summary.interrupted:
+        typer.echo(f"interrupted: finished scenes are kept under {out}; re-run the same command to render the rest",
+                   err=True)
         raise SystemExit(130)
     if summary.failed:
         raise SystemExit(1)
+
+
+def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: Path | None) -> None:
+    """One layer in this process, under the same output lock as a directory render; a full disk
+    (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is a DiskFullError."""
+    from allo_usd.core.files import RunLock, is_regular_file
+    from allo_usd.run.dispatch import LOCK
+    from allo_usd.run.job import render_layer
+    from allo_usd.run.worker import disk_full_error, output_to
+
+    if not is_regular_file(layer):
+        raise AlloError(f"{layer} is not a regular file (a FIFO, a device or a socket); pass a scene layer file")
+    with RunLock(out, LOCK, "render"):
+        try:
+            with output_to(out / "logs" / "render.log"):  # Blender's own prints
+                meta = render_layer(layer, out, force=force, threads=threads or None, save_blend=save_blend)
+        except (OSError, RuntimeError) as exc:
+            full = disk_full_error(exc, out)
+            if full is None:
+                raise
+            raise full from None
+    typer.echo(f"{layer} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
+    if save_blend is not None:
+        typer.echo(f"Blender scene saved as {save_blend}")
 
 
 @app.command()
@@ -75,6 +116,7 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out"),
     """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet."""
     from allo_usd.run.demo import run_demo
 
+    ensure_output_dir(out)
     try:
         sheet = run_demo(out, (width, height), samples)
     except KeyboardInterrupt:
@@ -92,8 +134,8 @@ def sky(out: Path = typer.Option(Path("out/sky"), "--out"), year: int = 2030, da
     from allo_usd.sky.orbit import Orbit
     from allo_usd.sky.report import write_sky_report
 
+    ensure_output_dir(out)
     s = compute_sky(default_epochs(year, days), Orbit())
-    out.mkdir(parents=True, exist_ok=True)
     write_sky_report(s, out / f"sky_{year}.csv", out / f"sky_{year}.png")
     typer.echo(f"wrote {out / f'sky_{year}.csv'} and {out / f'sky_{year}.png'}")
 
@@ -104,6 +146,7 @@ def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ or STL fil
                  units: str = typer.Option("auto", help="m, cm, mm, in, ft or auto."),
                  label: str = typer.Option("station", help="Class label: station or anomaly.")):
     """Convert a real mesh (through trimesh) into a USD asset in metres, Z up."""
+    ensure_output_dir(out)
     from allo_usd.assets.importer import import_mesh_report
     from allo_usd.usd.asset import write_asset
 
@@ -148,6 +191,7 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
     the manifest always lists every file in the tree. Mask-only renders are left out (no image).
     A render whose JSON contradicts itself or names files outside its folder is left out with a
     note; no renders, or renders of different resolutions, stop the run (exit 2)."""
+    ensure_output_dir(out)
     import warnings
 
     from allo_usd.output.dataset import assemble, read_manifest
@@ -180,6 +224,7 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
              paper: bool = typer.Option(False, "--paper", help="The ALLO paper's Table II plan (51,409 scenes)."),
              demo: bool = typer.Option(False, "--demo", help="A tiny plan: 2 days, 3 poses, 1 anomaly.")):
     """Write a dataset plan file (the paper's, or a tiny demo one) to edit and author."""
+    ensure_output_file(out)
     from allo_usd.core.errors import PlanError
     from allo_usd.plan.model import demo_plan, paper_plan
     from allo_usd.plan.enumeration import enumerate_scenes
@@ -212,6 +257,7 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     OUT remembers its plan (OUT/plan.toml): a different plan is refused unless --replace. One
     author run at a time per OUT; a second one is refused (exit 2).
     """
+    ensure_output_dir(out)
     from allo_usd.run.author import AuthoringInterrupted, author as author_tree, summary_lines
     from allo_usd.plan.io import load_plan
 
@@ -233,11 +279,63 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
         raise SystemExit(1)
 
 
+_PXR_COMMANDS = {"render", "inspect", "diff", "demo", "author", "asset"}
+
+
+@app.callback()
+def _before_command(ctx: typer.Context) -> None:
+    # pxr's module loader swallows a Ctrl-C that lands while it loads (allo_usd.usd.sniff.load_pxr)
+    if ctx.invoked_subcommand in _PXR_COMMANDS:
+        from allo_usd.usd.sniff import load_pxr
+
+        load_pxr()
+
+
+_OS_FIXES = {errno.EACCES: "fix its permissions or choose another path",
+             errno.EPERM: "fix its permissions or choose another path",
+             errno.EROFS: "it is on a read-only file system: choose another path",
+             errno.ENOSPC: "free space and re-run (finished outputs are kept)",
+             errno.EDQUOT: "free space (the disk quota is spent) and re-run (finished outputs are kept)",
+             errno.ENOENT: "check the path",
+             errno.ENOTDIR: "a part of the path is a file, not a directory: check the path",
+             errno.EISDIR: "it is a directory: pass a file",
+             errno.ENAMETOOLONG: "use a shorter path",
+             errno.ELOOP: "it is a symlink loop: check the path"}
+
+
+def _os_error_line(exc: OSError) -> str | None:
+    """One line for an OSError a user's path or disk caused, or None (then it is a bug: traceback)."""
+    fix = _OS_FIXES.get(exc.errno)
+    if fix is None or (exc.filename is None and exc.errno not in (errno.ENOSPC, errno.EDQUOT)):
+        return None
+    where = f" {exc.filename}" if exc.filename is not None else ""
+    return f"error: cannot use{where}: {exc.strerror or exc}; {fix}"
+
+
+_INTERRUPTED = ("interrupted (Ctrl-C): finished outputs are kept, temporaries removed; re-run the same command to "
+                "go on")
+
+
 def main() -> None:
     try:
         app()
     except AlloError as exc:
         typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        typer.echo(_INTERRUPTED, err=True)
+        raise SystemExit(130) from None
+    except SystemExit as exc:
+        # typer ends a command that a Ctrl-C stopped with a silent Exit(130): say what happened
+        ctx = exc.__context__
+        if exc.code == 130 and ctx is not None and isinstance(ctx.__cause__, KeyboardInterrupt):
+            typer.echo(_INTERRUPTED, err=True)
+        raise
+    except OSError as exc:
+        line = _os_error_line(exc)
+        if line is None:
+            raise
+        typer.secho(line, fg=typer.colors.RED, err=True)
         raise SystemExit(2) from None
 
 

@@ -8,6 +8,7 @@ import glob
 import os
 import re
 import shutil
+import stat
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -167,3 +168,86 @@ class RunLock:
 
     def __exit__(self, *exc):
         os.close(self.fd)
+
+
+def read_head(path: Path, limit: int = 16384) -> bytes | None:
+    """At most `limit` bytes from the start of a regular file (symlinks followed); None for
+    anything else (a FIFO, a device, a socket, a directory), which is never opened for reading
+    past a non-blocking open: a FIFO named like a layer cannot block the caller, and a symlink
+    to /dev/zero or a huge sparse file costs `limit` bytes, not the whole file."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError:
+        return None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # replaced between the stat and the open
+            return None
+        chunks, size = [], 0
+        while size < limit:
+            chunk = os.read(fd, limit - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
+def is_regular_file(path: Path) -> bool:
+    """A regular file (symlinks followed), not a FIFO, device or socket that reading could block on."""
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except OSError:
+        return False
+
+
+def _nearest_existing(path: Path) -> Path:
+    for p in (path, *path.parents):
+        if os.path.lexists(p):
+            return p
+    return path
+
+
+def ensure_output_dir(path: Path, what: str = "--out") -> Path:
+    """Make sure `path` is a directory this process can write, before any work is spent on it:
+    create it (with its parents) and write and remove a probe file in it. Raises AlloError naming
+    the path and the fix (it is a file, a parent is a file, it cannot be created or written),
+    or DiskFullError when the probe finds the device full."""
+    path = Path(path)
+    if os.path.lexists(path) and not path.is_dir():
+        raise AlloError(f"{what} {path} exists and is not a directory; pass a directory (or remove the file)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        base = _nearest_existing(path.parent)
+        why = exc.strerror or type(exc).__name__
+        if base.exists() and not base.is_dir():
+            why = f"{base} is a file"
+        raise AlloError(f"{what} {path} cannot be created ({why}); choose a directory you can write") from None
+    try:
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".allo-write-probe.")
+        try:
+            os.write(fd, b"probe")
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        if exc.errno in DISK_FULL_ERRNOS:
+            raise DiskFullError(f"no space left on the device holding {what} {path}; free space or choose another "
+                                "directory") from None
+        raise AlloError(f"{what} {path} cannot be written ({exc.strerror or exc}); fix its permissions or choose "
+                        "another directory") from None
+    return path
+
+
+def ensure_output_file(path: Path, what: str = "--out") -> Path:
+    """Make sure the file `path` can be written: not a directory, and its directory writable
+    (ensure_output_dir on the parent, which is created if missing)."""
+    path = Path(path)
+    if path.is_dir():
+        raise AlloError(f"{what} {path} is a directory; pass a file name")
+    ensure_output_dir(path.parent, f"{what} {path.name}'s directory")
+    return path

@@ -9,17 +9,17 @@ one alone. How the two backends stay crash-safe is described in docs/dispatch.md
 from __future__ import annotations
 
 import os
-import re
 import signal
 import sys
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
-from allo_usd.core.files import RunLock
+from allo_usd.core.files import RunLock, ensure_output_dir, is_regular_file
 from allo_usd.run.manifest import MANIFEST, append_jsonl, clean_stale, compact_manifest, is_done, load_manifest
 from allo_usd.run.worker import worker_main, render_task
 from allo_usd.usd.safety import ENV_ROOTS
@@ -27,6 +27,14 @@ from allo_usd.usd.safety import ENV_ROOTS
 Hook = Callable[[str], None]
 
 FAILED = "failed.jsonl"
+# The default time limit of one scene (per attempt; dispatch(timeout=None), `render --timeout 0`):
+# TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * pixels * samples of the layer's own render settings.
+# The base covers a worker's first Blender scene build, the denoiser and the writes; the per
+# pixel-sample cost is ~3.5x what one Cycles thread took on this (loaded) machine (docs/reliability_dispatch.md).
+TIMEOUT_BASE_S = 120.0
+TIMEOUT_S_PER_PIXEL_SAMPLE = 5e-5
+TIMEOUT_FALLBACK_COST = 1920 * 1080 * 256  # a layer that names no resolution or samples: the paper's full render
+STARTUP_S = 300.0  # more time for a worker that has not yet taken its task (still importing bpy)
 LOCK = ".allo-dispatch.lock"
 LOGS = "logs"
 
@@ -47,20 +55,23 @@ class Summary:
 
 # ---------------------------------------------------------------- which layers
 
-def _is_scene_layer(path: Path) -> bool:
+def _is_scene_layer(path: Path) -> bool | None:
     """Scene layers carry customLayerData.allo.sceneId; shared sublayers do not and are skipped.
-    A file that is not even USD text is kept, so the reader reports it instead of hiding it."""
-    head = path.read_bytes()[:16384]
-    if not head.startswith(b"#usda"):
-        return True
-    return re.search(rb"\bsceneId\s*=", head) is not None
+    A file that is not even USD is kept, so the reader reports it instead of hiding it. None for
+    a path that is not a regular file (a FIFO, a device): it is never opened for reading, and
+    only the first 16 KiB of a regular file are read (allo_usd.usd.sniff)."""
+    from allo_usd.usd.sniff import is_scene_layer
+
+    return is_scene_layer(path)
 
 
 def _scene_layers_under(root: Path) -> list[Path]:
-    """Every scene layer below `root`, recursively, skipping hidden directories; in an authored
-    plan's tree (plan.toml beside scenes/) only scenes/ is searched: sky/, poses/ and stages/
-    hold shared sublayers, and a paper plan has ~39,000 pose layers not worth opening."""
+    """Every scene layer (.usda, .usdc, .usd) below `root`, recursively, skipping hidden
+    directories; in an authored plan's tree (plan.toml beside scenes/) only scenes/ is searched:
+    sky/, poses/ and stages/ hold shared sublayers, and a paper plan has ~39,000 pose layers not
+    worth opening. A layer name that is not a regular file is left out with a warning."""
     from allo_usd.usd.compose import SCENE_DIR
+    from allo_usd.usd.sniff import LAYER_SUFFIXES
 
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
@@ -69,8 +80,16 @@ def _scene_layers_under(root: Path) -> list[Path]:
             dirnames[:] = [SCENE_DIR]
         else:
             dirnames[:] = [d for d in dirnames if not d.startswith(".")]
-        found += [here / f for f in filenames if f.endswith(".usda") and not f.startswith(".")]
-    return sorted(p for p in found if _is_scene_layer(p))
+        found += [here / f for f in filenames if f.lower().endswith(LAYER_SUFFIXES) and not f.startswith(".")]
+    layers = []
+    for p in sorted(found):
+        kind = _is_scene_layer(p)
+        if kind is None:
+            warnings.warn(f"{p} is not a regular file (a FIFO, device, socket or broken link); left out of the "
+                          "render: replace it by a layer file or remove it", UserWarning, stacklevel=2)
+        elif kind:
+            layers.append(p)
+    return layers
 
 
 def find_layers(source: str | Path | list) -> list[Path]:
@@ -89,10 +108,14 @@ def find_layers(source: str | Path | list) -> list[Path]:
                                 "holds allo.sceneId; sky/, poses/ and stages/ layers are shared sublayers, not "
                                 f"scenes); author a plan there with `allo-usd author PLAN --out {source}`, or "
                                 "pass the directory that holds the scene layers")
-        elif source.is_file():
+        elif os.path.exists(source):
             layers = [source]
         else:
             raise AlloError(f"{source} is neither a layer nor a directory of layers; check the path")
+    for p in layers:
+        if not is_regular_file(p):
+            raise AlloError(f"{p} is not a regular file (a FIFO, a device, a socket or missing); pass a scene "
+                            "layer file (.usda, .usdc or .usd)")
     stems: dict[str, Path] = {}
     for p in layers:
         if p.stem in stems:
@@ -118,16 +141,18 @@ def core_sets(workers: int, threads: int, cores: list[int] | None = None) -> lis
 
 class _Worker:
     def __init__(self, ctx, env: dict, cores: tuple[int, ...] | None = None, index: int = 0,
-                 log_dir: Path | None = None, before_render: Hook | None = None):
+                 out_dir: Path | None = None, before_render: Hook | None = None):
         self.cores, self.index = cores, index
-        self.log = None if log_dir is None else Path(log_dir) / f"worker-{index}.log"
+        self.log = None if out_dir is None else Path(out_dir) / LOGS / f"worker-{index}.log"
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=worker_main, daemon=True, name=f"allo-render-worker-{index}",
                                 args=(child, env, os.getpid(), cores, None if self.log is None else str(self.log),
-                                      index, before_render))
+                                      index, before_render, None if out_dir is None else str(out_dir)))
         self.proc.start()
         child.close()
         self.task: _Task | None = None
+        self.sent: float = 0.0              # when the task was sent (monotonic)
+        self.started: float | None = None   # when the worker said it took it
 
     def kill(self) -> None:
         if self.proc.is_alive():
@@ -136,11 +161,28 @@ class _Worker:
         self.conn.close()
 
 
+def time_limit(layer: Path, timeout: float | None = None) -> float:
+    """Seconds one attempt at `layer` may take: `timeout` when given (> 0), else the default
+    formula from the layer's pixels and samples (TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * cost)."""
+    if timeout:
+        return float(timeout)
+    from allo_usd.usd.sniff import render_cost
+
+    cost = render_cost(layer)
+    return TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * (cost[0] * cost[1] if cost else TIMEOUT_FALLBACK_COST)
+
+
+def _timeout_reason(limit: float) -> str:
+    return (f"no result within the time limit of {limit:.0f} s; the worker was killed (raise the limit with "
+            "`render --timeout SECONDS`, or check the layer's sublayers: a FIFO or a hung mount blocks a reader)")
+
+
 @dataclass
 class _Task:
     layer: Path
     attempts: int = 0
     reasons: list[str] = field(default_factory=list)
+    limit: float | None = None  # seconds per attempt (time_limit), worked out when first sent
 
     @property
     def scene(self) -> str:
@@ -220,21 +262,30 @@ class _Run:
 
 
 def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict,
-               before_render: Hook | None = None) -> None:
+               before_render: Hook | None = None, timeout: float | None = None) -> None:
     import multiprocessing
     from multiprocessing.connection import wait
 
     ctx = multiprocessing.get_context("spawn")
     pending = deque(tasks)
     n = min(workers, len(tasks))
-    log_dir = out_dir / LOGS
-    pool = [_Worker(ctx, env, cores, i, log_dir, before_render) for i, cores in enumerate(core_sets(n, threads))]
+    pool = [_Worker(ctx, env, cores, i, out_dir, before_render) for i, cores in enumerate(core_sets(n, threads))]
+
+    def replace(i: int, w: _Worker) -> None:
+        w.kill()
+        clean_stale(out_dir, pid=w.proc.pid)  # its half-written temporaries, not its neighbours'
+        # after the cleanup: a reused pid keeps its files
+        pool[i] = _Worker(ctx, env, w.cores, w.index, out_dir, before_render)
+
     try:
         while pending or any(w.task for w in pool):
             for w in pool:
                 if w.task is None and pending:
                     w.task = pending.popleft()
                     w.task.attempts += 1
+                    if w.task.limit is None:
+                        w.task.limit = time_limit(w.task.layer, timeout)
+                    w.sent, w.started = time.monotonic(), None
                     w.conn.send({"layer": str(w.task.layer), "out_dir": str(out_dir), "threads": threads,
                                  "roots": env.get(ENV_ROOTS, "")})
             busy = [w for w in pool if w.task]
@@ -242,25 +293,33 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
             for i, w in enumerate(pool):
                 if w.task is None:
                     continue
-                result = None
-                if w.conn.poll():
+                result, dead = None, False
+                while result is None and not dead and w.conn.poll():
                     try:
-                        result = w.conn.recv()
+                        msg = w.conn.recv()
                     except (EOFError, OSError):
-                        result = None
-                    dead = result is None
-                else:
+                        dead = True
+                        break
+                    if msg.get("status") == "started":  # the worker took the task: its clock starts
+                        w.started = time.monotonic()
+                    else:
+                        result = msg
+                if result is None and not dead:
                     dead = not w.proc.is_alive()
-                if not result and not dead:
+                late = result is None and not dead and time.monotonic() > (
+                    w.started + w.task.limit if w.started is not None else w.sent + STARTUP_S + w.task.limit)
+                if result is None and not dead and not late:
                     continue
                 task, w.task = w.task, None
-                if dead:
+                if late:
+                    w.proc.kill()  # SIGKILL: a render stuck in C (a FIFO sublayer, a hung mount) ignores the rest
+                    replace(i, w)
+                    if run.retry_or_fail(task, "timeout", _timeout_reason(task.limit)):
+                        pending.appendleft(task)
+                elif dead:
                     w.proc.join(5)
                     reason = f"{_death_reason(w.proc.exitcode)}; its output is in {w.log}"
-                    w.kill()
-                    clean_stale(out_dir, pid=w.proc.pid)  # its half-written temporaries, not its neighbours'
-                    # after the cleanup: a reused pid keeps its files
-                    pool[i] = _Worker(ctx, env, w.cores, w.index, log_dir, before_render)
+                    replace(i, w)
                     if run.retry_or_fail(task, "crash", reason):
                         pending.appendleft(task)
                 elif run.settle(task, result):
@@ -304,7 +363,10 @@ def _hold_one_death_per_attempt(client, hold: bool) -> bool:
 
 
 def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict,
-              before_render: Hook | None = None) -> None:
+              before_render: Hook | None = None, timeout: float | None = None) -> None:
+    """The tasks on a Dask cluster. Each attempt's clock starts when the scheduler first lists it
+    as processing on a worker; past its limit the future is cancelled, the worker restarted (the
+    stuck thread holds that process's bpy lock) and the attempt counted as a timeout."""
     from distributed import Client, as_completed
 
     client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
@@ -312,30 +374,47 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
     held = False
     try:
         held = _hold_one_death_per_attempt(client, True)
+        futures: dict = {}
+        started: dict = {}  # future key -> (monotonic time it was first seen processing, worker address)
 
-        def submit(task: _Task):
+        def submit(task: _Task) -> None:
             task.attempts += 1
-            return client.submit(render_task, str(task.layer), str(out_dir), threads, roots, before_render,
-                                 pure=False, retries=0,
-                                 key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
+            if task.limit is None:
+                task.limit = time_limit(task.layer, timeout)
+            fut = client.submit(render_task, str(task.layer), str(out_dir), threads, roots, before_render,
+                                pure=False, retries=0,
+                                key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
+            futures[fut] = task
+            completed.add(fut)
 
-        futures = {submit(t): t for t in tasks}
-        completed = as_completed(list(futures))
+        completed = as_completed()
+        for t in tasks:
+            submit(t)
         try:
-            for fut in completed:
-                task = futures.pop(fut)
-                try:
-                    result = fut.result()
-                except Exception as exc:  # noqa: BLE001 - KilledWorker, a lost connection, ...
-                    if run.retry_or_fail(task, "crash", f"{type(exc).__name__}: {exc}"):
-                        new = submit(task)
-                        futures[new] = task
-                        completed.add(new)
-                    continue
-                if run.settle(task, result):
-                    new = submit(task)
-                    futures[new] = task
-                    completed.add(new)
+            while futures:
+                done = completed.next_batch(block=False)
+                if not done:
+                    time.sleep(0.25)
+                for fut in done:
+                    if fut not in futures:  # cancelled after its time ran out
+                        continue
+                    task = futures.pop(fut)
+                    started.pop(fut.key, None)
+                    try:
+                        result = fut.result()
+                    except Exception as exc:  # noqa: BLE001 - KilledWorker, a lost connection, ...
+                        if run.retry_or_fail(task, "crash", f"{type(exc).__name__}: {exc}"):
+                            submit(task)
+                        continue
+                    if run.settle(task, result):
+                        submit(task)
+                for fut, task in _overdue(client, futures, started):
+                    del futures[fut]
+                    worker = started.pop(fut.key)[1]
+                    client.cancel([fut], force=True)
+                    _restart_worker(client, worker)
+                    if run.retry_or_fail(task, "timeout", _timeout_reason(task.limit)):
+                        submit(task)
         finally:
             if futures:
                 client.cancel(list(futures), force=True)
@@ -346,11 +425,36 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
             client.close()
 
 
+def _overdue(client, futures: dict, started: dict) -> list:
+    """Futures past their task's limit, counted from when each was first seen processing (noted in
+    `started`); the scheduler's processing list is asked only while some future has no start yet."""
+    now = time.monotonic()
+    if any(f.key not in started for f in futures):
+        try:
+            processing = client.processing()
+        except Exception:  # noqa: BLE001 - a scheduler that does not answer this time: ask again next second
+            processing = {}
+        where = {key: addr for addr, keys in processing.items() for key in keys}
+        for f in futures:
+            if f.key not in started and f.key in where:
+                started[f.key] = (now, where[f.key])
+    return [(f, t) for f, t in futures.items() if f.key in started and now - started[f.key][0] > t.limit]
+
+
+def _restart_worker(client, address: str) -> None:
+    """Restart the Dask worker at `address` (through its nanny); warn when that is not possible."""
+    try:
+        client.restart_workers([address], timeout=120, raise_for_error=True)
+    except Exception as exc:  # noqa: BLE001 - no nanny, or the restart failed: the run goes on without it
+        print(f"warning: could not restart the Dask worker {address} after a timeout ({type(exc).__name__}: {exc}); "
+              "its stuck render keeps that process busy: restart it by hand", file=sys.stderr)
+
+
 # ---------------------------------------------------------------- entry point
 
 def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
              retries: int = 2, progress: bool | None = None, extra_roots: tuple = (),
-             before_render: Hook | None = None) -> Summary:
+             before_render: Hook | None = None, timeout: float | None = None) -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
 
     `workers` local processes (default: the cores this process may use) with `threads` Cycles
@@ -358,11 +462,17 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     a Client). Returns a Summary; raises DiskFullError when the disk fills (after stopping
     cleanly) and AlloError when `source` holds no scene layer. `before_render(scene_name)` is
     called in the worker before each render (a picklable function; tests inject faults with it).
+    `timeout` is the limit of one attempt in seconds (None or 0: time_limit's formula per layer);
+    an attempt past it is killed and retried like a crash, then recorded with kind "timeout".
     """
     t0 = time.perf_counter()
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
+    if workers is not None and workers < 0:
+        raise AlloError(f"workers={workers}: pass a number of worker processes >= 1 (or 0 for one per core)")
+    if timeout is not None and timeout < 0:
+        raise AlloError(f"timeout={timeout}: pass seconds > 0, or 0 for the default limit from each layer's size")
     layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
-    out_dir.mkdir(parents=True, exist_ok=True)
+    ensure_output_dir(out_dir, "output directory")
     roots = sorted({str(p.resolve().parent) for p in layers} | {str(Path(r).resolve()) for r in extra_roots})
     prior = os.environ.get(ENV_ROOTS, "")
     env = {ENV_ROOTS: os.pathsep.join([*roots, *([prior] if prior else [])])}
@@ -381,11 +491,12 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         run = _Run(out_dir, len(tasks), retries, progress, summary)
         try:
             if tasks and scheduler is not None:
-                _run_dask(tasks, out_dir, scheduler, threads, run, env, before_render)
+                _run_dask(tasks, out_dir, scheduler, threads, run, env, before_render, timeout)
             elif tasks:
                 cores = usable_cores()
                 n = max(1, workers or cores)
-                _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env, before_render)
+                _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env, before_render,
+                           timeout)
         except KeyboardInterrupt:
             summary.interrupted = True
         finally:

@@ -68,19 +68,43 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
         return error("error", exc)
     except AlloError as exc:
         return error("layer", exc)
-    except OSError as exc:
-        if exc.errno in DISK_FULL_ERRNOS:
-            return error("disk_full", DiskFullError(f"no space left on the device holding {out_p} ({exc}); free "
-                                                    "space and re-run"), prefix=False)
-        return error("error", exc)
-    except Exception as exc:  # noqa: BLE001 - reported to the parent, which retries it
-        return error("error", exc)
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which retries it unless the disk is full
+        full = disk_full_error(exc, out_p)
+        return error("disk_full", full, prefix=False) if full is not None else error("error", exc)
     files = {p.name: sha256_file(p) for p in output_paths(layer_p, out_p).values()}
     return {"status": "ok", "scene": scene, "layer": str(layer_p.resolve()), "layer_sha256": meta["layer_sha256"],
             "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", scene),
             "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}",
             "full_build": bool(_SESSION.last.full_build),
             "cores": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
+
+
+_FULL_WORDS = tuple(os.strerror(e).lower() for e in DISK_FULL_ERRNOS) + ("no space", "disk full", "quota exceeded")
+
+
+def disk_full_error(exc: BaseException, out_dir: Path) -> DiskFullError | None:
+    """`exc` as a DiskFullError when it means the device is full, else None: our writers' own
+    DiskFullError, an OSError with ENOSPC/EDQUOT, or a RuntimeError from a C++ writer (OpenEXR:
+    'Failed to write pixel data ... No space left on device') that says so, or that failed to
+    write while the device holding `out_dir` has no free blocks left."""
+    if isinstance(exc, DiskFullError):
+        return exc
+    said = " ".join(str(exc).split())  # OpenEXR's messages span lines
+    full = f"no space left on the device holding {out_dir} ({said}); free space and re-run (finished outputs are kept)"
+    if isinstance(exc, OSError):
+        return DiskFullError(full) if exc.errno in DISK_FULL_ERRNOS else None
+    if not isinstance(exc, RuntimeError):
+        return None
+    text = str(exc).lower()
+    if any(w in text for w in _FULL_WORDS):
+        return DiskFullError(full)
+    if "write" in text:
+        try:
+            if os.statvfs(out_dir).f_bavail == 0:
+                return DiskFullError(full)
+        except OSError:
+            pass
+    return None
 
 
 def render_workdir(out_dir: Path) -> Path:
@@ -168,8 +192,23 @@ def _fix_bpy_path() -> None:
         sys.path[:] = [p for p in sys.path if not _BPY_SCRIPTS.search(p)]
 
 
+def own_tmpdir(out_dir: Path) -> Path:
+    """Point this process's temporary directory (TMPDIR, and Python's tempfile) at
+    OUT/.allo-tmp/PID/tmp, before bpy is imported: Blender makes its session folder
+    (blender_XXXXXX) there, and a worker that is killed (as every pool worker is at the end of a
+    run) cannot remove it itself; the dispatcher removes OUT/.allo-tmp/PID instead."""
+    tmp = render_workdir(Path(out_dir)) / "tmp"
+    tmp.mkdir(parents=True, exist_ok=True)
+    os.environ["TMPDIR"] = str(tmp)
+    import tempfile
+
+    tempfile.tempdir = None  # computed again from TMPDIR
+    return tmp
+
+
 def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
-                log: str | None = None, index: int = 0, before_render: Callable[[str], None] | None = None) -> None:
+                log: str | None = None, index: int = 0, before_render: Callable[[str], None] | None = None,
+                out_dir: str | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
     _die_with_parent(parent_pid)
     if log:
@@ -179,6 +218,8 @@ def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None 
     if cores:  # before bpy: TBB sizes its pool from the affinity mask when it starts
         os.sched_setaffinity(0, cores)
     os.environ.update(env)
+    if out_dir:
+        own_tmpdir(Path(out_dir))
     _fix_bpy_path()
     import bpy  # noqa: F401 - warm: import once per worker, not per scene (its Session comes with the first task)
 
@@ -189,4 +230,5 @@ def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None 
             return
         if msg is None:
             return
+        conn.send({"status": "started"})  # the parent's time limit for this task starts now
         conn.send(render_task(**msg, before_render=before_render))

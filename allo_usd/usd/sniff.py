@@ -1,0 +1,101 @@
+"""Cheap looks at a layer file before anything opens it for real: is it a scene layer (text
+.usda, or a binary crate .usdc/.usd), what a render of it costs (pixels x samples), and pxr
+loaded once with Ctrl-C held back (pxr's module loader swallows a KeyboardInterrupt that lands
+while it imports its C++ modules, and leaves pxr half-loaded)."""
+
+from __future__ import annotations
+
+import re
+import signal
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+from allo_usd.core.files import read_head
+from allo_usd.usd import attributes as A
+from allo_usd.usd import layout
+
+HEAD_BYTES = 16384           # how much of a file the scan reads: a scene layer names its sceneId in its header
+LAYER_SUFFIXES = (".usda", ".usdc", ".usd")
+CRATE_MAGIC = b"PXR-USDC"    # the first bytes of a binary (crate) layer
+TEXT_MAGIC = b"#usda"
+PXR_MODULES = ("Tf", "Gf", "Vt", "Sdf", "Plug", "Kind", "Usd", "UsdGeom", "UsdLux", "UsdRender", "UsdSemantics",
+               "UsdShade", "UsdUtils")
+
+
+def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
+    """True for a scene layer (customLayerData.allo.sceneId), False for a shared sublayer; None
+    when `path` is not a regular file (a FIFO, a device: never opened for reading). A file that
+    is neither USD text nor crate is True, so the reader reports it instead of hiding it. Reads
+    at most HEAD_BYTES of a text layer; a crate layer's customLayerData is read by Sdf, which
+    maps the file and reads only the fields it needs."""
+    head = read_head(path, HEAD_BYTES) if head is None else head
+    if head is None:
+        return None
+    if head.startswith(TEXT_MAGIC):
+        return re.search(rb"\bsceneId\s*=", head) is not None
+    if head.startswith(CRATE_MAGIC):
+        load_pxr()
+        from pxr import Sdf, Tf
+
+        try:
+            layer = Sdf.Layer.FindOrOpen(str(path))
+        except Tf.ErrorException:
+            return True  # a broken crate: let the reader say what is wrong
+        return bool(layer) and "sceneId" in dict(layer.customLayerData.get("allo", {}))
+    return True
+
+
+def render_cost(path: Path) -> tuple[int, int] | None:
+    """(pixels, samples) the scene layer itself orders on its render settings, read from the layer
+    alone (no sublayer opened), or None when it does not say (or cannot be read)."""
+    load_pxr()
+    from pxr import Sdf, Tf
+
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Tf.ErrorException:
+        return None
+    spec = layer.GetPrimAtPath(layout.RENDER_SETTINGS) if layer else None
+    if not spec:
+        return None
+    res, samples = spec.attributes.get("resolution"), spec.attributes.get(A.RENDER_SAMPLES.name)
+    try:
+        w, h = (int(v) for v in res.default)
+        return w * h, int(samples.default)
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
+_LOADED = False
+
+
+@contextmanager
+def _interrupt_held():
+    """Hold SIGINT for the block (main thread only) and raise KeyboardInterrupt after it if one came."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda sig, frame: caught.append(sig))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught and previous not in (signal.SIG_IGN, None):
+        raise KeyboardInterrupt
+
+
+def load_pxr() -> None:
+    """Import the pxr modules this package uses, once, with Ctrl-C held back until they are in: a
+    KeyboardInterrupt raised while pxr's loader imports a C++ module's Python wrappers is caught
+    and printed as a warning by that loader (the command would run on, with pxr half-loaded)."""
+    global _LOADED
+    if _LOADED:
+        return
+    import importlib
+
+    with _interrupt_held():
+        for name in PXR_MODULES:
+            importlib.import_module(f"pxr.{name}")
+    _LOADED = True
