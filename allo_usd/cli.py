@@ -194,8 +194,8 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
         raise PlanError("choose exactly one of --paper or --demo")
     plan = paper_plan() if paper else demo_plan()
     save_plan(plan, out)
-    typer.echo(f"wrote {out}: {count_scenes(plan)} scenes (it records only what differs from the defaults; "
-               f"quality.preset fills every quality field it leaves out)")
+    typer.echo(f"wrote {out}: {count_scenes(plan)} scenes (only the fields the plan sets; "
+               f"quality.preset fills the quality fields it leaves out)")
 
 
 @app.command()

@@ -119,6 +119,18 @@ def test_a_yaml_alias_bomb_is_refused(tmp_path):
     assert len(str(err.value)) < 1000
 
 
+@pytest.mark.parametrize("suffix, text", [
+    (".yaml", "name: " + "[" * 50_000 + "]" * 50_000),    # libyaml's node builder would crash the process
+    (".yaml", "name: x\nposes: " + "{a: " * 20_000 + "1" + "}" * 20_000),
+    (".toml", "name = " + "[" * 50_000 + "]" * 50_000),
+])
+def test_deep_nesting_is_a_plan_error(tmp_path, suffix, text):
+    path = tmp_path / f"plan{suffix}"
+    path.write_text(text)
+    with pytest.raises(PlanError, match=r"not valid (YAML|TOML).*(nested|recursion)"):
+        load_plan(path)
+
+
 def test_validation_messages_never_print_the_whole_input():
     huge = list(range(100, 200_100))
     with pytest.raises(PlanError) as err:

@@ -279,7 +279,7 @@ class Station(_Model):
 class Plan(_Model):
     """A whole dataset: every field has a default, so `Plan(name="x")` is a valid (full-grid) plan."""
 
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_.-]+$")
     dates: Dates = Field(default_factory=Dates)
     perilune_epoch: datetime = Field(datetime(2030, 1, 1, tzinfo=timezone.utc),
                                      description="UTC instant of the orbit's perilune passage.")
