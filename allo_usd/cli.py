@@ -143,16 +143,23 @@ def sky(out: Path = typer.Option(Path("out/sky"), "--out"), year: int = 2030, da
 @asset_app.command("import")
 def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ or STL file."),
                  out: Path = typer.Option(Path("out/assets"), "--out", help="Directory for the USD asset."),
-                 units: str = typer.Option("auto", help="m, cm, mm, in, ft or auto."),
+                 units: str = typer.Option("auto", help="The file's unit: m, cm, mm, in, ft, or auto (glTF: "
+                                           "metres; an absurd size for a station is read as inches)."),
+                 up_axis: str = typer.Option("auto", "--up-axis", help="The file axis that points up: x, y, z, "
+                                             "-x, -y, -z, or auto (the format's: glTF and OBJ y, STL z)."),
                  label: str = typer.Option("station", help="Class label: station or anomaly.")):
-    """Convert a real mesh (through trimesh) into a USD asset in metres, Z up."""
+    """Convert a real mesh (through trimesh) into a USD asset in metres, Z up.
+
+    The orientation and unit are the format's (glTF is +Y up and metres by specification) or
+    --up-axis / --units; never guessed from the file name (NASA's ISS_2016.glb: --up-axis=-z)."""
     ensure_output_dir(out)
     from allo_usd.assets.importer import import_mesh_report
     from allo_usd.usd.asset import write_asset
 
-    report = import_mesh_report(file, units=units)
+    report = import_mesh_report(file, units=units, up_axis=up_axis)
     path = write_asset(report.asset, out, label)
-    typer.echo(f"{file} -> {path} (unit {report.unit}, {report.triangles} triangles)")
+    typer.echo(f"{file} -> {path} (unit {report.unit}, up axis {report.source_up_axis}, "
+               f"{report.triangles} triangles)")
 
 
 @app.command()
@@ -227,14 +234,15 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
     ensure_output_file(out)
     from allo_usd.core.errors import PlanError
     from allo_usd.plan.model import demo_plan, paper_plan
-    from allo_usd.plan.enumeration import enumerate_scenes
+    from allo_usd.plan.enumeration import count_scenes
     from allo_usd.plan.io import save_plan
 
     if paper == demo:
         raise PlanError("choose exactly one of --paper or --demo")
     plan = paper_plan() if paper else demo_plan()
     save_plan(plan, out)
-    typer.echo(f"wrote {out}: {len(enumerate_scenes(plan))} scenes")
+    typer.echo(f"wrote {out}: {count_scenes(plan)} scenes (only the fields the plan sets; "
+               f"quality.preset fills the quality fields it leaves out)")
 
 
 @app.command()

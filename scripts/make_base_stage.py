@@ -2,7 +2,11 @@
 """Regenerate the base stage and every asset under stages/ (deterministic; the files are committed).
 
     python scripts/make_base_stage.py                       # procedural station -> stages/
-    python scripts/make_base_stage.py --station ISS.glb --out out/stages_iss   # imported model
+    python scripts/make_base_stage.py --station ISS_2016.glb --units in --up-axis=-z --out out/stages_iss
+
+An imported model's orientation and unit are its format's (glTF: +Y up, metres) or --up-axis /
+--units (allo_usd.assets.importer); NASA's ISS_2016.glb breaks glTF's rule (inches, +Z nadir),
+so it needs both given (--units auto reads its inches from its size).
 
 Byte-identical across x86-64 machines: numpy's small products and norms (`@`, `np.dot`,
 `np.linalg.norm`) go through OpenBLAS, which picks a kernel per CPU at load time, and the
@@ -46,9 +50,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=STAGES)
     ap.add_argument("--station", help="glTF/OBJ/STL model to use instead of the procedural station")
-    ap.add_argument("--units", default="auto")
+    ap.add_argument("--units", default="auto", help="the model's unit: m, cm, mm, in, ft or auto")
+    ap.add_argument("--up-axis", default="auto", help="the model axis pointing up: x, y, z, -x, -y, -z or auto "
+                                                      "(the format's: glTF and OBJ y, STL z)")
     args = ap.parse_args(argv)
-    print(build(args.out, args.station, args.units))
+    print(build(args.out, args.station, args.units, args.up_axis))
     return 0
 
 

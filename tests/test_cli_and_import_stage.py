@@ -51,7 +51,7 @@ def test_base_stage_from_the_real_iss_renders(tmp_path):
     spec = importlib.util.spec_from_file_location("make_base_stage", ROOT / "scripts" / "make_base_stage.py")
     gen = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen)
-    base = gen.build(tmp_path / "stages", str(ISS))
+    base = gen.build(tmp_path / "stages", str(ISS), "in", "-z")  # the file breaks glTF's +Y up: say so
     assert validation_errors(base) == []
 
     from allo_usd.usd.scene_layer import write_scene_layer
@@ -84,7 +84,7 @@ def test_plan_station_option_uses_the_imported_model(tmp_path):
 
     plan = Plan(name="iss", dates=Dates(days=1), poses=Poses(train=[3], test=[41]),
                 anomalies=Anomalies(assets=[]), quality=Quality(resolution=(64, 36), samples=2),
-                station=Station(source=str(ISS)))
+                station=Station(source=str(ISS), units="in", up_axis="-z"))
     layers = author_plan(plan, tmp_path / "plan", progress=False)
     assert layers and (tmp_path / "plan" / "stages" / "base.usda").is_file()
     from allo_usd.usd.read import open_stage

@@ -116,7 +116,8 @@ def test_plan_quality_preset_fills_what_the_plan_leaves_out():
     assert (final.denoise_prefilter, final.denoise_quality) == (PRESETS["final"]["denoise_prefilter"],
                                                                 PRESETS["final"]["denoise_quality"])
     assert Quality(preset="final", samples=100).samples == 100  # what the plan says wins
-    assert Quality(preset="my-label").samples == 64               # a label fills nothing
+    with pytest.raises(ValueError, match="preset"):                # an unknown name is refused (issue 13)
+        Quality(preset="my-label")
     assert Quality().samples == PRESETS["preview"]["samples"]      # the default preset is preview
 
 
@@ -138,7 +139,7 @@ def test_quality_and_effects_are_declared_once():
     for name in PRESETS:
         assert set(PRESETS[name]) == quality, name
     # defaults agree: a plan's default quality and effects are the dataclasses' defaults
-    assert quality_of(Quality(preset="label")) == quality_of(QualitySettings())
+    assert quality_of(Quality()) == PRESETS["preview"]   # the default preset fills every quality field
     assert Effects().model_dump() == {f.name: getattr(EffectFlags(), f.name) for f in fields(EffectFlags)}
     # every field has its allo: attribute, and the render/effects attributes record nothing else
     render_fields = {a.field for a in A.RENDER_QUALITY}

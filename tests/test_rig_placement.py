@@ -285,7 +285,7 @@ def test_rig_around_the_imported_iss():
     from allo_usd.scene.rig import (MIN_SPACING_M, TEST_NEIGHBOUR_M, TEST_SEPARATION_M, TEST_TURN_DEG, base_poses,
                                     view_quality)
 
-    station, candidates, _ = station_and_fixtures(str(ISS))
+    station, candidates, _ = station_and_fixtures(str(ISS), units="in", up_axis="-z")  # its axes break glTF's
     pts, tris = station.triangle_soup()
     poses = base_poses(candidates, pts, tris)
     assert [p.split for p in poses] == ["train"] * 40 + ["test"] * 10

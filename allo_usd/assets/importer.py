@@ -1,6 +1,6 @@
 """Import glTF/GLB, OBJ (+MTL) and STL files as an `Asset` in metres, Z up.
 
-    report = import_mesh_report("ISS_2016.glb", rotation=ISS_2016_ROTATION)
+    report = import_mesh_report("ISS_2016.glb", up_axis="-z")
     report.asset, report.unit, report.scale, report.transform
 
 `import_mesh(...)` is the same call returning only the Asset. Files are read with trimesh
@@ -14,7 +14,11 @@ Conversion, in this order, all in float64 (a file point p in its world frame):
 * scale: from `units` ('m', 'cm', 'mm', 'in', 'ft', or 'auto'; see "Unit heuristic").
 * U: the exact integer rotation taking the file's up axis to +Z (see `UP_AXIS_ROTATIONS`).
   'auto' is 'y' for glTF (Y up by spec) and OBJ (Y up by convention), 'z' for STL. glTF 'y'
-  maps (x, y, z) -> (x, -z, y), i.e. +90 degrees about X.
+  maps (x, y, z) -> (x, -z, y), i.e. +90 degrees about X. The up axis and the unit come from
+  the format (and for units='auto', the size heuristic below) or from the caller (`up_axis`,
+  `units`: `allo-usd asset import --up-axis/--units`, a plan's [station]); never from the
+  file's name, so a renamed copy imports identically. (USD files, which carry their own
+  upAxis and metersPerUnit, are not imported here: this package reads meshes with trimesh.)
 * R_user: the optional `rotation` (3x3 proper rotation), e.g. `ISS_2016_ROTATION`.
 * offset: with recenter=True the translation putting the bounding-box centre at the origin.
 
@@ -73,7 +77,9 @@ sides respectively), so the truss runs along Y. The default glTF conversion ther
 108 m truss along Z. Our station frame is +X flight direction, Z zenith, truss along Y;
 `ISS_2016_ROTATION` (+90 degrees about X, applied after the glTF conversion) gives that:
 the combined map is (x, y, z) -> (x, -y, -z), extent 80 (X) x 108 (Y, truss) x 26 (Z) m, and
-+Y is then port. `up_axis='-z'` is an equivalent spelling for this file.
++Y is then port. `up_axis='-z'` is an equivalent spelling for this file, and the one to give
+(`--up-axis=-z`, or `up_axis = "-z"` in a plan's [station]): nothing in the file says its axes
+break glTF's rule, so only the caller can.
 """
 
 from __future__ import annotations

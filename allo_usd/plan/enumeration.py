@@ -4,12 +4,13 @@ to author, the per-asset quotas, and the reserve groups that top up skipped dept
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from allo_usd.core.seeds import key_hash
-from allo_usd.plan.model import Plan
+from allo_usd.plan.model import Plan, planned_sizes
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,7 +48,17 @@ def _split_evenly(total: int, parts: int) -> list[int]:
 
 
 def enumerate_scenes(plan: Plan) -> list[SceneKey]:
-    """Every scene of the plan, in a fixed order: normal train, normal test, anomalous test.
+    """Every scene of the plan, as a list: `list(iter_scenes(plan))` (see there)."""
+    return list(iter_scenes(plan))
+
+
+def count_scenes(plan: Plan) -> int:
+    """len(enumerate_scenes(plan)), by arithmetic (allo_usd.plan.model.planned_sizes): nothing is enumerated."""
+    return sum(planned_sizes(plan).values())
+
+
+def iter_scenes(plan: Plan) -> Iterator[SceneKey]:
+    """Every scene of the plan, lazily, in a fixed order: normal train, normal test, anomalous test.
 
     Subsets are drawn by generators seeded from the plan seeds and the scene group's name, so the
     same plan always enumerates the same scenes. Normal scenes: the (seed, day, pose) grid, or a
@@ -56,26 +67,31 @@ def enumerate_scenes(plan: Plan) -> list[SceneKey]:
     anomaly (asset, variant) assigned round-robin in the sampled order; a count that is not a
     multiple of len(depths) drops the highest depths of the last placement. These are the planned
     scenes; depths that placement skips are topped up when authoring, from `reserve_group`s.
+
+    Lazy: taking the first N scenes (`author --limit N`) builds no more than the subset indices of
+    a normal split and one seed's placements; the plan's size is bounded when it is validated.
     """
     days, seeds = plan.dates.days, plan.seeds
-    out: list[SceneKey] = []
     for split, poses, count in (("train", plan.poses.train, plan.counts.normal_train),
                                 ("test", plan.poses.test, plan.counts.normal_test)):
-        grid = [(s, d, p) for s in seeds for d in range(days) for p in poses]
-        if count is not None and count < len(grid):
-            keep = np.sort(_rng("normal", split, *seeds).choice(len(grid), size=count, replace=False))
-            grid = [grid[i] for i in keep]
-        out += [SceneKey(f"s{s}_d{d:03d}_p{p:02d}", split, "normal", d, p, s) for s, d, p in grid]
+        n_grid = len(seeds) * days * len(poses)   # (seed, day, pose) in that nesting order
+        if count is not None and count < n_grid:
+            cells = np.sort(_rng("normal", split, *seeds).choice(n_grid, size=count, replace=False))
+        else:
+            cells = range(n_grid)
+        for i in cells:
+            sd, p = divmod(int(i), len(poses))
+            s, d = divmod(sd, days)
+            yield SceneKey(f"s{seeds[s]}_d{d:03d}_p{poses[p]:02d}", split, "normal", d, poses[p], seeds[s])
 
     depths = plan.anomalies.depths
     by_asset = [a.choices() for a in plan.anomalies.assets]
     pairs_per_seed = days * len(plan.poses.test)
     n_anom = plan.counts.anomalous_test
     if not by_asset or not plan.poses.test or n_anom == 0:
-        return out
+        return
     n_place = pairs_per_seed * len(seeds) if n_anom is None else math.ceil(n_anom / len(depths))
-    n_keys = n_place * len(depths) if n_anom is None else n_anom
-    anomalous: list[SceneKey] = []
+    left = n_place * len(depths) if n_anom is None else n_anom
     for seed, k in zip(seeds, _split_evenly(n_place, len(seeds))):
         picked = _rng("anomaly", seed, *seeds).permutation(pairs_per_seed)[:k]
         rows = []
@@ -85,9 +101,11 @@ def enumerate_scenes(plan: Plan) -> list[SceneKey]:
             rows.append((d, plan.poses.test[p], asset, variant))
         for d, p, asset, variant in sorted(rows):
             for z in depths:
-                anomalous.append(SceneKey(f"s{seed}_d{d:03d}_p{p:02d}_{asset}-{variant}_z{z}", "test", "anomaly",
-                                          d, p, seed, asset, variant, z))
-    return out + anomalous[:n_keys]
+                if left <= 0:
+                    return
+                left -= 1
+                yield SceneKey(f"s{seed}_d{d:03d}_p{p:02d}_{asset}-{variant}_z{z}", "test", "anomaly",
+                               d, p, seed, asset, variant, z)
 
 
 def _round_robin(by_asset: list[list[tuple[str, str]]], j: int) -> tuple[str, str]:

@@ -1,5 +1,13 @@
 """Plan files: TOML or YAML by extension, validated on load with errors that name the field and
-the fix, written atomically; and the plan's JSON Schema (schemas/plan.schema.json)."""
+the fix, written atomically; and the plan's JSON Schema (schemas/plan.schema.json).
+
+A written plan holds only the fields its author set (pydantic's `model_fields_set`, through the
+nested models), so it re-reads to the same Plan and every field left out keeps its meaning: the
+quality preset fills it, or the default does. Hostile files fail fast, as PlanError: a file above
+MAX_PLAN_BYTES is refused before it is parsed, text that is not UTF-8 is named as such, YAML
+aliases (the "billion laughs" expansion) and nesting deeper than MAX_DEPTH are refused, and validation messages show at most
+MAX_ERRORS problems, each value cut short; the plan's size in scenes is bounded when it is
+validated (allo_usd.plan.model.MAX_PLAN_SCENES)."""
 
 from __future__ import annotations
 
@@ -9,14 +17,21 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from allo_usd.core.errors import PlanError
-from allo_usd.plan.model import Plan
+from allo_usd.plan.model import Plan, _short
+
+MAX_PLAN_BYTES = 1 << 18   # 256 KiB (parsed in about a second at worst): the paper's plan is under 1 KB
+MAX_ERRORS = 20            # problems listed per invalid plan
+MAX_LINE = 400             # characters per listed problem
+MAX_DEPTH = 32             # YAML nesting (a plan's deepest value is 5 deep: anomalies.assets[i].variants)
 
 
 def format_validation_error(exc: ValidationError) -> str:
-    """pydantic's errors as 'field: problem; fix: ...' lines."""
+    """pydantic's errors as 'field: problem; fix: ...' lines: at most MAX_ERRORS of them, each cut
+    to MAX_LINE characters, values shortened, so a hostile input is never printed whole."""
     lines = []
-    for err in exc.errors():
-        loc = ".".join(str(x) for x in err["loc"]) or "plan"
+    errors = exc.errors(include_url=False, include_context=False)
+    for err in errors[:MAX_ERRORS]:
+        loc = _cut(".".join(str(x) for x in err["loc"]) or "plan", 120)
         msg = err["msg"].removeprefix("Value error, ")
         if "fix:" not in msg:
             if err["type"] == "extra_forbidden":
@@ -24,8 +39,11 @@ def format_validation_error(exc: ValidationError) -> str:
             elif err["type"] == "missing":
                 msg += "; fix: add it"
             else:
-                msg += f"; fix: give a valid value (got {err.get('input')!r})"
-        lines.append(f"{loc}: {msg}")
+                msg += f"; fix: give a valid value (got {_short(err.get('input'))})"
+        line = f"{loc}: {msg}"
+        lines.append(line if len(line) <= MAX_LINE else line[:MAX_LINE - 3] + "...")
+    if len(errors) > MAX_ERRORS:
+        lines.append(f"... and {len(errors) - MAX_ERRORS} more problems")
     return "\n".join(lines)
 
 
@@ -50,25 +68,63 @@ def load_plan(path: Path) -> Plan:
     fmt = _format(path)
     if not path.is_file():
         raise PlanError(f"plan {path} does not exist; fix: write one with `allo-usd plan --paper --out {path}`")
-    text = path.read_text()
     try:
-        if fmt == "toml":
-            import tomllib
-
-            data = tomllib.loads(text)
-        else:
-            import yaml
-
-            data = yaml.safe_load(text)
-    except Exception as exc:  # tomllib.TOMLDecodeError, yaml.YAMLError
-        raise PlanError(f"{path} is not valid {fmt.upper()}: {exc}; fix the syntax") from None
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_PLAN_BYTES + 1)
+    except OSError as exc:
+        raise PlanError(f"plan {path} cannot be read ({exc.strerror}); fix: check its permissions") from None
+    if len(raw) > MAX_PLAN_BYTES:
+        raise PlanError(f"plan {path} is over {MAX_PLAN_BYTES:,} bytes, far more than any plan needs; fix: check "
+                        "it is the plan file (the paper's plan is under 1 KB)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise PlanError(f"plan {path} is not UTF-8 text (byte {exc.start} is not); fix: give a {fmt.upper()} "
+                        "plan file, e.g. from `allo-usd plan --paper`") from None
+    try:
+        data = _parse(text, fmt)
+    except _AliasFound as exc:
+        raise PlanError(f"plan {path} uses a YAML alias ({exc}); a plan may not, since aliases can expand "
+                        "without bound; fix: write the value out where it is used") from None
+    except Exception as exc:  # tomllib.TOMLDecodeError, yaml.YAMLError, a date out of range, deep nesting
+        raise PlanError(f"{path} is not valid {fmt.upper()}: {_cut(str(exc))}; fix the syntax") from None
     if not isinstance(data, dict):
         raise PlanError(f"{path} holds no table of plan fields; fix: start from `allo-usd plan --paper`")
     return make_plan(data, str(path))
 
 
+class _AliasFound(Exception):
+    pass
+
+
+def _parse(text: str, fmt: str):
+    if fmt == "toml":
+        import tomllib
+
+        return tomllib.loads(text)
+    import yaml
+
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)   # libyaml when present: about 5x faster
+    depth = 0
+    for event in yaml.parse(text, Loader=loader):   # checked before anything is built
+        if isinstance(event, yaml.AliasEvent):
+            raise _AliasFound(f"*{_cut(event.anchor, 40)} at line {event.start_mark.line + 1}")
+        if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > MAX_DEPTH:   # libyaml's node builder recurses in C: far deeper, it crashes the process
+                raise ValueError(f"values nested over {MAX_DEPTH} deep at line {event.start_mark.line + 1}")
+        elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
+    return yaml.load(text, Loader=loader)
+
+
+def _cut(text: str, limit: int = MAX_LINE) -> str:
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def plan_data(plan: Plan) -> dict:
-    return plan.model_dump(mode="json", exclude_none=True)
+    """What a plan file records: the fields its author set, in every nested model (None is never written)."""
+    return plan.model_dump(mode="json", exclude_unset=True, exclude_none=True)
 
 
 def save_plan(plan: Plan, path: Path) -> Path:

@@ -9,20 +9,41 @@ outside the seeds the plan records. `paper_plan()` is the ALLO paper's Table II.
 
 from __future__ import annotations
 
-from datetime import date, datetime, timedelta, timezone
+import reprlib
+from datetime import date, datetime, time, timedelta, timezone
 from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from allo_usd.assets.importer import SUPPORTED_EXTENSIONS, UNIT_SCALES, UP_AXIS_ROTATIONS
 from allo_usd.core.errors import PlanError
 from allo_usd.core.limits import resolution_problem
 from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES, PRESETS, EffectFlags, QualitySettings
 
 DEPTH_COUNT = 5  # allo_usd.scene.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
 N_POSES = 50
-STATION_UNITS = ("m", "cm", "mm", "in", "ft", "auto")
-STATION_SUFFIXES = (".glb", ".gltf", ".obj", ".stl", ".usd", ".usda", ".usdc")
+STATION_UNITS = ("auto", *UNIT_SCALES)
+STATION_UP_AXES = ("auto", *UP_AXIS_ROTATIONS)
+STATION_SUFFIXES = tuple(SUPPORTED_EXTENSIONS)   # what the importer reads (a USD station is not imported)
+# A plan expands to at most this many scenes, and draws subsets from grids of at most this many
+# (seed, day, pose) triples: counted arithmetically when the plan is validated, before anything is
+# enumerated (the paper's plan has 51,409 scenes).
+MAX_PLAN_SCENES = 10_000_000
+
+
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = _REPR.maxlong = 80
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 6
+_REPR.maxlevel = 3
+
+
+def _short(value) -> str:
+    """repr(value), cut to about 80 characters (a hostile plan's value can be megabytes)."""
+    try:
+        return _REPR.repr(value)
+    except ValueError:   # an int past sys.get_int_max_str_digits()
+        return f"<{type(value).__name__} too long to show>"
 
 
 class _Model(BaseModel):
@@ -30,7 +51,7 @@ class _Model(BaseModel):
 
 
 class Dates(_Model):
-    """Epochs at 00:00 UTC: `start`, `start + step_days`, ... (`days` of them)."""
+    """Epochs at 00:00 UTC: `start`, `start + step_days`, ... (`days` of them), all inside DE421."""
 
     start: date = Field(date(2030, 1, 1), description="First epoch's date (00:00 UTC).")
     days: int = Field(365, ge=1, description="Number of epochs.")
@@ -42,14 +63,27 @@ class Dates(_Model):
 
     @model_validator(mode="after")
     def _inside_de421(self):
-        from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
-
-        lo, hi = (datetime.fromisoformat(s) for s in (DE421_START_UTC, DE421_END_UTC))
-        first, last = self.epochs()[0], self.epochs()[-1]
-        if first < lo or last > hi:
-            raise ValueError(f"epochs {first:%Y-%m-%d} .. {last:%Y-%m-%d} leave the DE421 ephemeris "
-                             f"({lo:%Y-%m-%d} .. {hi:%Y-%m-%d} UTC); fix: choose a start date and days inside it")
+        # In whole days (ordinals), before any datetime is made: a last epoch past year 9999 or a
+        # billion days is refused by arithmetic, not by an OverflowError or a billion datetimes.
+        first_ok, last_ok = de421_dates()
+        first = self.start.toordinal()
+        last = first + (self.days - 1) * self.step_days
+        if first < first_ok.toordinal() or last > last_ok.toordinal():
+            past = last > date.max.toordinal()
+            end = f"{self.start} + {last - first:,} days" if past else date.fromordinal(last).isoformat()
+            raise ValueError(f"epochs {self.start} .. {end} (start + (days - 1) x step_days) leave the DE421 "
+                             f"ephemeris, which covers {first_ok} .. {last_ok}; fix: choose dates.start, dates.days "
+                             f"and dates.step_days so every epoch falls inside it")
         return self
+
+
+def de421_dates() -> tuple[date, date]:
+    """The first and last dates whose 00:00 UTC lies inside DE421 (allo_usd.sky.ephemeris_range)."""
+    from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
+
+    lo, hi = (datetime.fromisoformat(s) for s in (DE421_START_UTC, DE421_END_UTC))
+    first = lo.date() if lo.time() == time() else lo.date() + timedelta(days=1)
+    return first, hi.date()
 
 
 class Poses(_Model):
@@ -63,7 +97,7 @@ class Poses(_Model):
     def _range(cls, v: list[int]) -> list[int]:
         bad = [p for p in v if not 1 <= p <= N_POSES]
         if bad:
-            raise ValueError(f"pose numbers {bad} are outside 1..{N_POSES}; fix: use base poses 1..{N_POSES}")
+            raise ValueError(f"pose numbers {_short(bad)} are outside 1..{N_POSES}; fix: use base poses 1..{N_POSES}")
         if len(set(v)) != len(v):
             raise ValueError("a pose is listed twice; fix: list each pose once")
         return sorted(v)
@@ -98,10 +132,10 @@ class AnomalyChoice(_Model):
         from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
         if self.id not in ANOMALY_VARIANTS:
-            raise ValueError(f"unknown anomaly id {self.id!r}; fix: use one of {', '.join(ANOMALY_VARIANTS)}")
+            raise ValueError(f"unknown anomaly id {_short(self.id)}; fix: use one of {', '.join(ANOMALY_VARIANTS)}")
         bad = [v for v in self.variants or () if v not in ANOMALY_VARIANTS[self.id]]
         if bad:
-            raise ValueError(f"anomaly {self.id!r} has no variant {bad}; fix: use one of "
+            raise ValueError(f"anomaly {self.id!r} has no variant {_short(bad)}; fix: use one of "
                              f"{', '.join(ANOMALY_VARIANTS[self.id])}")
         return self
 
@@ -133,7 +167,8 @@ class Anomalies(_Model):
     @classmethod
     def _depths(cls, v: list[int]) -> list[int]:
         if not v or any(not 0 <= d < DEPTH_COUNT for d in v) or len(set(v)) != len(v):
-            raise ValueError(f"depths {v} must be distinct indices in 0..{DEPTH_COUNT - 1}; fix: e.g. [0, 1, 2, 3, 4]")
+            raise ValueError(f"depths {_short(v)} must be distinct indices in 0..{DEPTH_COUNT - 1}; "
+                             "fix: e.g. [0, 1, 2, 3, 4]")
         return sorted(v)
 
     @field_validator("assets")
@@ -168,10 +203,13 @@ class Effects(_Model):
 
 
 class Quality(_Model):
-    """Render quality. A `preset` named in allo_usd.plan.settings (draft, preview, final, paper) fills every
-    field the plan leaves out; any other name is a label and the fields keep their defaults."""
+    """Render quality. `preset` (one of allo_usd.plan.settings.PRESETS) fills every quality field the
+    plan leaves out; a field the plan sets wins. The model remembers which fields were set
+    (`model_fields_set`), and a written plan records only those, so editing the preset of a written
+    plan changes every field it did not set."""
 
-    preset: str = Field("preview", min_length=1, description="draft, preview, final, paper, or a label of your own.")
+    preset: Literal[tuple(PRESETS)] = Field(
+        "preview", description="The render preset that fills the fields left out: " + ", ".join(PRESETS) + ".")
     resolution: tuple[int, int] = Field((1920, 1080), description="Width, height in pixels.")
     samples: int = Field(QualitySettings.samples, description="Path-tracing samples per pixel, 1..65536.")
     denoise: bool = QualitySettings.denoise
@@ -180,13 +218,18 @@ class Quality(_Model):
     max_bounces: int = Field(QualitySettings.max_bounces, ge=0, le=1024)
     adaptive_threshold: float = Field(QualitySettings.adaptive_threshold, ge=0.0, le=1.0)
 
-    @model_validator(mode="before")
+    @model_validator(mode="wrap")
     @classmethod
-    def _fill_from_preset(cls, data):
-        if isinstance(data, dict):
-            preset = PRESETS.get(data.get("preset", "preview"), {})
-            data = {**preset, **data}
-        return data
+    def _fill_from_preset(cls, data, handler):
+        """The preset's values under the given ones; afterwards only the given fields count as set."""
+        if not isinstance(data, dict):
+            return handler(data)
+        preset = data.get("preset", "preview")
+        fill = PRESETS.get(preset, {}) if isinstance(preset, str) else {}   # an unknown name fails as a Literal
+        given = {k for k in data if k in cls.model_fields}
+        quality = handler({**fill, **data})
+        object.__setattr__(quality, "__pydantic_fields_set__", given)   # what save_plan writes
+        return quality
 
     @field_validator("resolution")
     @classmethod
@@ -205,16 +248,30 @@ class Quality(_Model):
 
 
 class Station(_Model):
-    """'procedural' (the built-in station) or the path of a model the base stage was built from."""
+    """'procedural' (the built-in station) or the path of a glTF/OBJ/STL model the base stage is built from.
+
+    The model's orientation and units come from the file or from these fields, never from its name:
+    'auto' is what the format says (glTF: +Y up and metres by specification; OBJ: Y up by convention;
+    STL: Z up) and, for units, the size heuristic of allo_usd.assets.importer. A file that breaks its
+    format's rule (NASA's ISS_2016.glb is in inches with +Z nadir) needs `units` and `up_axis` given."""
 
     source: str = "procedural"
-    units: Literal["m", "cm", "mm", "in", "ft", "auto"] = "auto"
+    units: Literal[STATION_UNITS] = Field("auto", description="The model's length unit: "
+                                          + ", ".join(STATION_UNITS) + ".")
+    up_axis: Literal[STATION_UP_AXES] = Field(
+        "auto", description="The model axis that points up (zenith): " + ", ".join(STATION_UP_AXES)
+                            + "; 'auto' is the format's own (glTF, OBJ: y; STL: z).")
+
+    @field_validator("up_axis", mode="before")
+    @classmethod
+    def _axis(cls, v):
+        return v.strip().lower().lstrip("+") if isinstance(v, str) else v   # "Y", "+Z" -> "y", "z"
 
     @field_validator("source")
     @classmethod
     def _source(cls, v):
-        if v != "procedural" and not v.lower().endswith(STATION_SUFFIXES):
-            raise ValueError(f"station source {v!r} is neither 'procedural' nor a model file; fix: use "
+        if (v != "procedural" and not v.lower().endswith(STATION_SUFFIXES)) or "\0" in v:
+            raise ValueError(f"station source {_short(v)} is neither 'procedural' nor a model file; fix: use "
                              f"'procedural' or a path ending in {', '.join(STATION_SUFFIXES)}")
         return v
 
@@ -222,7 +279,7 @@ class Station(_Model):
 class Plan(_Model):
     """A whole dataset: every field has a default, so `Plan(name="x")` is a valid (full-grid) plan."""
 
-    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_.-]+$")
     dates: Dates = Field(default_factory=Dates)
     perilune_epoch: datetime = Field(datetime(2030, 1, 1, tzinfo=timezone.utc),
                                      description="UTC instant of the orbit's perilune passage.")
@@ -240,24 +297,45 @@ class Plan(_Model):
     def _aware(cls, v: datetime):
         if v.tzinfo is None:
             raise ValueError("perilune_epoch has no timezone; fix: write it in UTC, e.g. 2030-01-01T00:00:00Z")
-        return v.astimezone(timezone.utc)
+        try:
+            return v.astimezone(timezone.utc)
+        except OverflowError:   # 9999-12-31T23:00-05:00 is past the calendar's end in UTC
+            raise ValueError(f"perilune_epoch {v.isoformat()} is outside the calendar in UTC; fix: write a UTC "
+                             "instant, e.g. 2030-01-01T00:00:00Z") from None
 
     @field_validator("seeds")
     @classmethod
     def _seeds(cls, v: list[int]):
         if not v or len(set(v)) != len(v) or any(s < 0 for s in v):
-            raise ValueError(f"seeds {v} must be a non-empty list of distinct non-negative integers; "
+            raise ValueError(f"seeds {_short(v)} must be a non-empty list of distinct non-negative integers; "
                              "fix: e.g. [2030, 2031]")
+        return v
+
+    @field_validator("base_stage")
+    @classmethod
+    def _path(cls, v: str):
+        if "\0" in v or not v:
+            raise ValueError(f"base_stage {_short(v)} is not a file path; fix: e.g. stages/base.usda")
         return v
 
     @model_validator(mode="after")
     def _counts_fit(self):
         grid = grid_sizes(self)
+        for name in ("normal_train", "normal_test"):
+            if grid[name] > MAX_PLAN_SCENES:
+                raise ValueError(f"the {name} grid (days x seeds x poses) holds {grid[name]:,} scenes, above the "
+                                 f"{MAX_PLAN_SCENES:,} a plan may draw from; fix: fewer days, seeds or poses, or "
+                                 "split the dataset into several plans")
         for name, n in (("normal_train", self.counts.normal_train), ("normal_test", self.counts.normal_test),
                         ("anomalous_test", self.counts.anomalous_test)):
             if n is not None and n > grid[name]:
                 raise ValueError(f"counts.{name}={n} exceeds the {grid[name]} scenes the days, poses, seeds "
                                  f"(and depths) allow; fix: lower it or add days/poses/seeds")
+        n = sum(planned_sizes(self).values())
+        if n > MAX_PLAN_SCENES:
+            raise ValueError(f"the plan expands to {n:,} scenes, above the {MAX_PLAN_SCENES:,} one plan may hold; "
+                             "fix: set counts, or fewer days, seeds, poses or depths, or split the dataset into "
+                             "several plans")
         return self
 
     def resolve_base_stage(self) -> Path:
@@ -272,9 +350,17 @@ class Plan(_Model):
 
 
 def grid_sizes(plan: Plan) -> dict[str, int]:
+    """The scenes of each kind the plan's days, poses, seeds (and depths) allow."""
     n = plan.dates.days * len(plan.seeds)
     return {"normal_train": n * len(plan.poses.train), "normal_test": n * len(plan.poses.test),
             "anomalous_test": n * len(plan.poses.test) * len(plan.anomalies.depths) if plan.anomalies.assets else 0}
+
+
+def planned_sizes(plan: Plan) -> dict[str, int]:
+    """The scenes of each kind `enumerate_scenes` gives, by arithmetic: the count, or the full grid
+    (a validated plan's counts never exceed its grid)."""
+    grid = grid_sizes(plan)
+    return {name: n if (n := getattr(plan.counts, name)) is not None else grid[name] for name in grid}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -306,4 +392,4 @@ def demo_plan() -> Plan:
     """A tiny plan for trying the pipeline: 2 days, 2 train poses, 1 test pose, 1 anomaly, 5 depths."""
     return Plan(name="demo", dates=Dates(days=2), poses=Poses(train=[1, 2], test=[41]),
                 anomalies=Anomalies(assets=[AnomalyChoice(id="power_drill")]),
-                quality=Quality(preset="demo", resolution=(480, 270), samples=32))
+                quality=Quality(preset="demo", resolution=(480, 270)))

@@ -3,8 +3,9 @@ docs/bench_accuracy.md (scripts/bench_accuracy.py).
 
 `denoise_prefilter` / `denoise_quality` are Cycles' OIDN `denoising_prefilter` ('NONE', 'FAST',
 'ACCURATE') and `denoising_quality` ('FAST', 'BALANCED', 'HIGH'), recorded in each layer as
-`allo:render:denoisePrefilter` / `allo:render:denoiseQuality`. A plan's `quality.preset` fills
-the fields the plan leaves out (allo_usd.plan.model.Quality).
+`allo:render:denoisePrefilter` / `allo:render:denoiseQuality`. A plan's `quality.preset` must
+name one of PRESETS; it fills the fields the plan leaves out, and a written plan records only
+the fields its author set (allo_usd.plan.model.Quality, allo_usd.plan.io.save_plan).
 """
 
 from __future__ import annotations
@@ -83,6 +84,10 @@ PRESETS: dict[str, dict] = {
     # The paper's setting: 256 spp, OIDN with Blender's defaults, Blender's default bounces.
     "paper": dict(samples=256, adaptive_threshold=0.0, denoise=True, max_bounces=12,
                   denoise_prefilter="ACCURATE", denoise_quality="HIGH"),
+    # The demo's setting (allo_usd.plan.model.demo_plan, `allo-usd demo`): 32 spp, no adaptive
+    # sampling, the default denoiser; quick at the demo's 480x270.
+    "demo": dict(samples=32, adaptive_threshold=0.0, denoise=True, max_bounces=8,
+                 denoise_prefilter="FAST", denoise_quality="BALANCED"),
 }
 
 _SPEC_FIELDS = {f.name for f in fields(RenderSpec)}

@@ -36,7 +36,7 @@ from collections import Counter, deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from itertools import groupby
+from itertools import groupby, islice
 from pathlib import Path
 
 from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_path, write_composed_scene,
@@ -44,7 +44,8 @@ from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_p
 from allo_usd.core.files import atomic_directory, write_text_atomic
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
 from allo_usd.plan.model import Plan
-from allo_usd.plan.enumeration import SceneKey, anomaly_quotas, enumerate_scenes, reserve_cap, reserve_group
+from allo_usd.plan.enumeration import (SceneKey, anomaly_quotas, enumerate_scenes, iter_scenes, reserve_cap,
+                                       reserve_group)
 from allo_usd.plan.io import save_plan
 from allo_usd.plan.settings import EffectsSpec, RenderSpec, quality_of
 
@@ -509,7 +510,8 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
                         "model, or 'procedural'")
     from allo_usd.core.files import sha256_file
 
-    made_from = {"source": source.name, "sha256": sha256_file(source), "units": plan.station.units}
+    made_from = {"source": source.name, "sha256": sha256_file(source), "units": plan.station.units,
+                 "up_axis": plan.station.up_axis}
     marker = base.parent / STATION_MARKER
     if base.is_file():
         recorded = json.loads(marker.read_text()) if marker.is_file() else None
@@ -520,7 +522,7 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
         from allo_usd.usd.build_stage import build_base_stage
 
         with atomic_directory(base.parent) as tmp:  # replaces an incomplete build of an older version
-            build_base_stage(tmp, str(source), plan.station.units)
+            build_base_stage(tmp, str(source), plan.station.units, plan.station.up_axis)
             (tmp / STATION_MARKER).write_text(json.dumps(made_from, indent=1, sort_keys=True) + "\n")
     return plan.model_copy(update={"base_stage": str(base.resolve())})
 
@@ -744,7 +746,9 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     The tree remembers its plan: authoring another plan into it is refused (PlanError naming the
     fields that differ) unless `replace`, which first removes the tree's layers; the same plan,
     with any `limit`, resumes. One author run at a time per tree (`TREE_LOCK`)."""
-    keys = enumerate_scenes(plan)[: limit if limit is not None else None]
+    if limit is not None and limit < 0:
+        raise PlanError(f"limit {limit} is negative; fix: give the number of scenes to author, 0 or more")
+    keys = list(islice(iter_scenes(plan), limit))   # lazily: --limit N builds N scenes, not the plan
     with open_tree(plan, out_dir, replace) as ctx:
         return _author_tree(ctx, keys, progress, workers)
 

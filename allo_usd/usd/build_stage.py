@@ -18,10 +18,14 @@ SURFACE_CANDIDATES = 200
 _NOT_FIXTURES = ("solar", "radiator")
 
 
-def station_and_fixtures(source: str | None, units: str = "auto"):
+def station_and_fixtures(source: str | None, units: str = "auto", up_axis: str = "auto"):
     """(station Asset, candidate camera positions, provenance note) for 'procedural'/None or a
     model path. Candidates: the procedural station's exterior fixture points plus samples 1-2.5 m
-    off its modules and truss; for an imported model, samples 1-2.5 m off its whole surface."""
+    off its modules and truss; for an imported model, samples 1-2.5 m off its whole surface.
+
+    A model's orientation and units are the file's own (its format's rule, see
+    allo_usd.assets.importer) or the `up_axis` / `units` given (a plan's [station], the `--up-axis`
+    / `--units` options); never inferred from its file name, so a renamed copy imports the same."""
     from allo_usd.assets.mesh import Asset
     from allo_usd.scene.rig import fixtures_from_mesh
 
@@ -34,22 +38,23 @@ def station_and_fixtures(source: str | None, units: str = "auto"):
         samples = fixtures_from_mesh(*core.triangle_soup(), count=SURFACE_CANDIDATES)
         return (station, np.concatenate([station_fixture_points(), samples]),
                 "Procedural ISS-like station (allo_usd.assets.station).")
-    from allo_usd.assets.importer import ISS_2016_ROTATION, import_mesh_report
+    from allo_usd.assets.importer import import_mesh_report
 
-    rotation = ISS_2016_ROTATION if Path(source).name == "ISS_2016.glb" else None
-    report = import_mesh_report(source, units=units, name="Station", rotation=rotation)
+    report = import_mesh_report(source, units=units, up_axis=up_axis, name="Station")
     pts, tris = report.asset.triangle_soup()
     return report.asset, fixtures_from_mesh(pts, tris, count=SURFACE_CANDIDATES, weight="triangle"), (
-        f"Imported from {Path(source).name} (unit {report.unit}, {report.triangles} triangles).")
+        f"Imported from {Path(source).name} (unit {report.unit}, up axis {report.source_up_axis}, "
+        f"{report.triangles} triangles).")
 
 
-def build_base_stage(out: Path, station_source: str | None = None, units: str = "auto") -> Path:
+def build_base_stage(out: Path, station_source: str | None = None, units: str = "auto",
+                     up_axis: str = "auto") -> Path:
     """Write `out/base.usda` and every asset it references; returns the base stage path."""
     from allo_usd.assets.anomalies import ANOMALY_VARIANTS, build_anomaly
     from allo_usd.assets.bodies import build_bodies
     from allo_usd.scene.rig import base_poses
 
-    station, fixtures, doc = station_and_fixtures(station_source, units)
+    station, fixtures, doc = station_and_fixtures(station_source, units, up_axis)
     poses = base_poses(fixtures, *station.triangle_soup())
     anomalies = {name: {v: build_anomaly(name, v) for v in variants} for name, variants in ANOMALY_VARIANTS.items()}
     return write_base_stage(out, station, build_bodies(), anomalies, poses, station_doc=doc)
