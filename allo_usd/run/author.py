@@ -44,7 +44,7 @@ from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_p
 from allo_usd.core.files import atomic_directory, write_text_atomic
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
 from allo_usd.plan.model import Plan
-from allo_usd.plan.enumeration import (SceneKey, anomaly_quotas, enumerate_scenes, iter_scenes, reserve_cap,
+from allo_usd.plan.enumeration import (SceneKey, anomaly_quotas, iter_scenes, reserve_cap,
                                        reserve_group)
 from allo_usd.plan.io import save_plan
 from allo_usd.plan.settings import EffectsSpec, RenderSpec, quality_of
@@ -950,12 +950,16 @@ def author_scene(plan: Plan, scene_id: str, out_dir: Path, replace: bool = False
     the random draws match; only this scene's layer is written). Raises PlacementError if the
     placement check skips it (authoring the plan would top it up from a reserve group). Like `author`,
     it refuses a tree made from another plan unless `replace`."""
-    keys = enumerate_scenes(plan)
-    key = next((k for k in keys if k.scene_id == scene_id), None)
+    key, sample, example = None, [], None
+    for _, group in groupby(iter_scenes(plan), key=lambda k: (k.sample_id, k.split)):  # lazily, one sample at a time
+        sample = list(group)
+        example = example or sample[0].scene_id
+        key = next((k for k in sample if k.scene_id == scene_id), None)
+        if key is not None:
+            break
     if key is None:
         raise PlanError(f"plan {plan.name!r} has no scene {scene_id!r}; fix: pick an id from "
-                        "allo_usd.enumerate_scenes(plan) (e.g. " + keys[0].scene_id + ")")
-    sample = [k for k in keys if k.sample_id == key.sample_id and k.split == key.split]
+                        f"allo_usd.enumerate_scenes(plan) (e.g. {example})")
     out_dir = Path(out_dir)
     with open_tree(plan, out_dir, replace) as ctx:
         ensure_sky_layer(ctx, key.day)
