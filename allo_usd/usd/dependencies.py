@@ -235,9 +235,5 @@ def walk(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> Walk:
     return result
 
 
-def clear_cache() -> None:
-    _NAMED.clear()
-
-
-__all__ = ["walk", "check_root", "Walk", "stat_key", "clear_cache", "tf_message", "MAX_LAYER_BYTES", "MAX_ASSET_BYTES",
+__all__ = ["walk", "check_root", "Walk", "stat_key", "tf_message", "MAX_LAYER_BYTES", "MAX_ASSET_BYTES",
            "LAYER_EXTENSIONS"]
