@@ -11,6 +11,7 @@ import pytest
 from pxr import Gf, Sdf, Vt
 
 from allo_usd.core.errors import LayerError
+from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX
 from allo_usd.usd import read
 from allo_usd.usd.read import read_scene
 from allo_usd.usd.scene_layer import write_scene_layer
@@ -371,8 +372,8 @@ def test_reader_bounds_lie_within_blenders_hard_limits():
     inside_of(cycles, "adaptive_threshold", read.RENDER_ADAPTIVE)
     inside_of(cycles, "film_exposure", read.RENDER_EXPOSURE)
     inside_of(render, "threads", (1, read.RENDER_THREADS[1]))  # 0 is AUTO, not a thread count
-    inside_of(render, "resolution_x", (read.MIN_SIDE_PX, 8192))
-    inside_of(render, "resolution_y", (read.MIN_SIDE_PX, 8192))
+    inside_of(render, "resolution_x", (MIN_SIDE_PX, MAX_SIDE_PX))
+    inside_of(render, "resolution_y", (MIN_SIDE_PX, MAX_SIDE_PX))
     mat = bpy.data.materials.new("bounds")
     try:
         bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from pxr import Gf, Sdf
 
 from allo_usd.core.errors import LayerError
+from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX
 from allo_usd.usd import read as R
 from allo_usd.usd.description import SceneDescription
 from allo_usd.usd.read import read_scene
@@ -159,7 +160,7 @@ def assert_within_bounds(desc: SceneDescription) -> None:
         assert all(_inside(x, (0.0, R.MAX_COLOUR)) for x in mat.base_color)
         assert all(_inside(x, (0.0, R.MAX_LIGHT)) for x in mat.emissive_color)
     r = desc.render
-    assert all(R.MIN_SIDE_PX <= side <= 8192 for side in r.resolution)
+    assert all(MIN_SIDE_PX <= side <= MAX_SIDE_PX for side in r.resolution)
     assert _inside(r.samples, R.RENDER_SAMPLES) and _inside(r.seed, R.RENDER_SEED)
     assert _inside(r.threads, R.RENDER_THREADS) and _inside(r.max_bounces, R.RENDER_BOUNCES)
     assert _inside(r.adaptive_threshold, R.RENDER_ADAPTIVE) and 0 < r.exposure <= R.RENDER_EXPOSURE[1]

@@ -20,7 +20,8 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock, ensure_output_dir, is_regular_file
-from allo_usd.run.manifest import MANIFEST, append_jsonl, clean_stale, compact_manifest, is_done, load_manifest
+from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, clean_stale, compact_manifest, is_done,
+                                   load_manifest)
 from allo_usd.run.worker import worker_main, render_task
 from allo_usd.usd.safety import ENV_ROOTS
 
@@ -122,6 +123,7 @@ def find_layers(source: str | Path | list) -> list[Path]:
             raise AlloError(f"two layers share the name {p.stem!r} ({stems[p.stem]}, {p}); outputs are named "
                             "after the layer, so rename one")
         stems[p.stem] = p
+    check_output_names(layers)  # no output name of one layer may be another's (allo_usd.run.manifest)
     return layers
 
 

@@ -1,8 +1,9 @@
 """One render job: a scene layer in, its files out (PNG, EXR, mask, metadata).
 
 The unit of work for local pools and Dask alike. Outputs are written atomically and the
-metadata JSON goes last, so its presence (naming the layer's sha256) marks a finished scene and
-re-runs skip it (allo_usd.run.manifest.is_done).
+metadata JSON goes last, so its presence (naming the render's identity: the checksums of every
+file the composition read, and the versions that affect pixels) marks a finished scene and
+re-runs skip it while that identity holds (allo_usd.run.manifest.is_done).
 """
 
 from __future__ import annotations
@@ -12,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd import __version__
-from allo_usd.core.files import sha256_file
 from allo_usd.output.writers import write_exr, write_json, write_mask_png, write_rgb_exr, write_rgb_png
-from allo_usd.run.manifest import is_done, output_paths
+from allo_usd.run.manifest import (check_output_names, file_sha256, input_hashes, is_done, output_paths,
+                                   render_identity, render_versions)
 
 
 def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -48,11 +49,16 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     import dataclasses
     import json
 
+    from allo_usd.usd.dependencies import walk
     from allo_usd.usd.read import read_scene
 
+    check_output_names([layer])
     if not force and save_blend is None and is_done(layer, out_dir):
         return json.loads(output_paths(layer, out_dir)["meta"].read_text())
+    read = walk(layer)  # checked before USD opens a file; kept open so read_scene parses no layer twice
+    inputs = input_hashes(layer, read.files)  # before the read: an edit meanwhile re-renders next time
     desc = read_scene(layer)
+    del read
     if threads is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, threads=int(threads)))
     result = _render(desc, workdir, session, save_blend)
@@ -68,7 +74,10 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     counts = np.bincount(result.mask.ravel(), minlength=3)
     meta = {
         "layer": str(Path(layer).resolve()),
-        "layer_sha256": sha256_file(layer),
+        "layer_sha256": file_sha256(layer),
+        "identity": render_identity(inputs),
+        "inputs": inputs,
+        "versions": render_versions(),
         "package_version": __version__,
         "render_seconds": round(result.seconds, 3),
         "resolution": list(desc.render.resolution),

@@ -1,25 +1,77 @@
 """What a rendered scene leaves behind and when it counts as done: one rule for `allo-usd render
-LAYER`, the dispatcher's resume and the demo, so they never disagree about what to skip."""
+LAYER`, the dispatcher's resume and the demo, so they never disagree about what to skip.
+
+**Output names.** A layer STEM writes STEM.png, STEM.exr, STEM_mask.png, STEM_depth.exr and
+STEM.json. They are collision-free by construction: a stem ending in a reserved suffix (`_mask`,
+`_depth`, in any case) is refused, and so are two stems of one run equal up to case (file
+systems that ignore case). Then no name of one layer can be a name of another
+(tests/test_render_identity.py checks every pair).
+
+**Identity.** A render's identity is the SHA-256 of a canonical JSON of its inputs and of the
+versions that affect pixels: every file its composition read (allo_usd.usd.dependencies.walk:
+each layer of the stack, the referenced assets, the textures), as {path relative to the layer's
+directory: sha256}, and allo-usd's, bpy's and usd-core's versions (read from package metadata:
+the parent never imports bpy). The render's JSON records "identity", "inputs" and "versions";
+the manifest row records "identity". A scene is done only while the identity recomputed from the
+recorded inputs' current bytes matches: the recorded inputs are the complete list of what the
+render read, so if none of their bytes changed, a new walk would read the same files. File
+checksums are cached per process by (real path, mtime_ns, size, inode), so the shared sky, pose
+and base files of a tree are hashed once per resume check, not once per scene.
+"""
 
 from __future__ import annotations
 
 import errno
+import functools
+import hashlib
 import json
 import os
 import shutil
+import stat
 from pathlib import Path
 
-from allo_usd.core.errors import DiskFullError
-from allo_usd.core.files import DISK_FULL_ERRNOS, atomic_path, sha256_file, temp_name_re
+from allo_usd import __version__
+from allo_usd.core.errors import DiskFullError, LayerError
+from allo_usd.core.files import DISK_FULL_ERRNOS, atomic_path, relpath, sha256_file, temp_name_re
 from allo_usd.usd.read import layer_outputs
 
 MANIFEST = "manifest.jsonl"
 WORKDIR = ".allo-tmp"  # Blender's render files, one directory per worker pid
+RESERVED_SUFFIXES = ("_mask", "_depth")  # what output_paths appends to a stem
+
+
+def _stem_problem(layer: Path) -> str | None:
+    low = Path(layer).stem.lower()
+    suffix = next((s for s in RESERVED_SUFFIXES if low.endswith(s)), None)
+    if suffix is None:
+        return None
+    return (f"{layer}: a layer named ...{suffix} (in any case) is refused, since its outputs could take the "
+            f"names of a layer {Path(layer).stem[:-len(suffix)]}.usda's {suffix[1:]} (outputs are STEM.png, "
+            f"STEM.exr, STEM_mask.png, STEM_depth.exr, STEM.json); rename the layer so that its name does not end "
+            f"in {' or '.join(RESERVED_SUFFIXES)}")
+
+
+def check_output_names(layers) -> None:
+    """Refuse, before anything renders, layers whose output names could collide: a stem ending in a
+    reserved suffix, or two stems equal up to case (one output directory takes them all)."""
+    seen: dict[str, Path] = {}
+    for layer in layers:
+        problem = _stem_problem(Path(layer))
+        if problem:
+            raise LayerError(problem)
+        low = Path(layer).stem.lower()
+        if low in seen and seen[low] != Path(layer):
+            raise LayerError(f"layers {seen[low]} and {layer} have names that differ only in case; their outputs "
+                             "would overwrite each other on a file system that ignores case: rename one")
+        seen[low] = Path(layer)
 
 
 def output_paths(layer: Path, out_dir: Path, outputs: tuple[str, ...] | None = None) -> dict[str, Path]:
     """Files one scene produces, by the render vars it orders (PNG + EXR for color, the class mask,
-    a float32 depth EXR), plus the metadata JSON."""
+    a float32 depth EXR), plus the metadata JSON. A stem with a reserved suffix is a LayerError."""
+    problem = _stem_problem(Path(layer))
+    if problem:
+        raise LayerError(problem)
     stem = Path(layer).stem
     out_dir = Path(out_dir)
     outputs = layer_outputs(layer) if outputs is None else outputs
@@ -33,35 +85,145 @@ def output_paths(layer: Path, out_dir: Path, outputs: tuple[str, ...] | None = N
     return paths
 
 
+# ---------------------------------------------------------------- identity
+
+_SHA256: dict[tuple, str] = {}
+_SHA256_BOUND = 1 << 20  # entries (~200 B each); a paper plan's resume needs ~100,000
+
+
+def file_sha256(path: str | Path) -> str | None:
+    """SHA-256 of a regular file, cached per process by (path, mtime_ns, size, inode, device); None
+    for a missing or non-regular file (never opened: a FIFO or a device would block or never end).
+    One os.stat per call (it follows symbolic links: a link pointed elsewhere changes the inode)."""
+    path = os.path.abspath(path)
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        return None
+    key = (path, st.st_mtime_ns, st.st_size, st.st_ino, st.st_dev)
+    digest = _SHA256.get(key)
+    if digest is None:
+        if len(_SHA256) >= _SHA256_BOUND:
+            _SHA256.clear()
+        try:
+            digest = _SHA256[key] = sha256_file(Path(path))
+        except OSError:
+            return None
+    return digest
+
+
+@functools.cache
+def render_versions() -> dict[str, str]:
+    """The package versions that affect pixels (from package metadata: importing bpy is not needed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "not installed"
+
+    return {"allo_usd": __version__, "bpy": installed("bpy"), "usd-core": installed("usd-core")}
+
+
+def render_identity(inputs: dict[str, str], versions: dict[str, str] | None = None) -> str:
+    """SHA-256 of the canonical JSON of a render's inputs ({relative path: sha256}) and versions."""
+    record = {"inputs": inputs, "versions": render_versions() if versions is None else versions}
+    return hashlib.sha256(json.dumps(record, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def input_hashes(layer: Path, files) -> dict[str, str]:
+    """{path relative to the layer's directory: sha256} of the files a render of `layer` reads
+    (allo_usd.usd.dependencies.walk), checksummed before the render reads them: a file changed
+    meanwhile is recorded with its old checksum, so the next run renders it again."""
+    here = Path(layer).parent
+    out = {}
+    for f in files:
+        digest = file_sha256(f)
+        if digest is None:
+            raise LayerError(f"{layer}: {f} vanished or stopped being a regular file while it was read; re-run")
+        out[relpath(Path(f), here)] = digest
+    return out
+
+
+def current_identity(layer: Path, inputs) -> str | None:
+    """The identity of a new render of `layer` whose recorded `inputs` still hold: recomputed from
+    those files' current bytes. None if the record is unusable (not a mapping, or not naming the
+    layer itself) or an input is missing or not a regular file."""
+    if not isinstance(inputs, dict) or not inputs:
+        return None
+    here = os.path.realpath(Path(layer).parent)  # input_hashes wrote paths relative to it, links resolved
+    now, paths = {}, set()
+    for rel in inputs:
+        path = os.path.normpath(os.path.join(here, str(rel)))
+        digest = file_sha256(path)
+        if digest is None:
+            return None
+        now[rel] = digest
+        paths.add(path)
+    if os.path.realpath(layer) not in paths:
+        return None
+    return render_identity(now)
+
+
+def _meta(path: Path) -> dict:
+    try:
+        meta = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return meta if isinstance(meta, dict) else {}
+
+
+def _plain_layer(layer: Path) -> bool:
+    """The layer is a regular file inside its roots: safe to read for its output names (a FIFO
+    or device would block the resume check; allo_usd.usd.dependencies)."""
+    from allo_usd.usd.dependencies import check_root
+
+    try:
+        check_root(layer)
+    except LayerError:
+        return False
+    return True
+
+
 def is_done(layer: Path, out_dir: Path, manifest: dict[str, dict] | None = None) -> bool:
-    """True when `out_dir` holds every output of `layer` rendered from its current bytes.
+    """True when `out_dir` holds every output of `layer` rendered from the current bytes of
+    everything its composition read, with the current package versions (its identity).
 
     With a `manifest` (scene name -> row, from load_manifest: a dispatch run) the scene must have
-    a row there, and every output's checksum must match it. Without one (a single layer, the demo)
-    every output must exist and the metadata JSON, written last, must name the layer's sha256:
-    a changed layer (another resolution, say) is rendered again."""
+    a row there, and every output's checksum and the identity must match it. Without one (a
+    single layer, the demo) every output must exist and the identity recomputed from the inputs
+    its metadata JSON (written last) records must match the one recorded there."""
     if manifest is not None:
         return is_verified(manifest.get(Path(layer).stem), layer, out_dir)
+    if not _plain_layer(layer):
+        return False  # the render says what is wrong with it
     paths = output_paths(layer, out_dir)
     if not all(p.is_file() for p in paths.values()):
         return False
-    try:
-        recorded = json.loads(paths["meta"].read_text()).get("layer_sha256")
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-        return False
-    return recorded == sha256_file(layer)
+    meta = _meta(paths["meta"])
+    identity = meta.get("identity")
+    return bool(identity) and current_identity(layer, meta.get("inputs")) == identity
 
 
 def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
-    """The manifest row matches the current layer and every output exists with its checksum."""
-    if not row or row.get("layer_sha256") != sha256_file(layer):
+    """The manifest row matches the current layer, every output exists with its checksum, and the
+    identity recomputed from the inputs the (verified) metadata JSON records is the row's. The
+    layer's bytes are compared first, by a checksum that opens regular files only: a layer is read
+    for its output names only when it holds the bytes a worker rendered (and so checked)."""
+    if not isinstance(row, dict) or not row.get("identity") or row.get("layer_sha256") != file_sha256(layer):
         return False
     files = row.get("files") or {}
-    expected = {p.name for p in output_paths(layer, out_dir).values()}
-    if set(files) != expected:
+    paths = output_paths(layer, out_dir)
+    if set(files) != {p.name for p in paths.values()}:
         return False
-    return all((Path(out_dir) / name).is_file() and sha256_file(Path(out_dir) / name) == digest
-               for name, digest in files.items())
+    if not all((Path(out_dir) / name).is_file() and file_sha256(Path(out_dir) / name) == digest
+               for name, digest in files.items()):
+        return False
+    meta = _meta(paths["meta"])
+    return meta.get("identity") == row["identity"] and current_identity(layer, meta.get("inputs")) == row["identity"]
 
 
 # ---------------------------------------------------------------- manifest.jsonl

@@ -73,6 +73,7 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
         return error("disk_full", full, prefix=False) if full is not None else error("error", exc)
     files = {p.name: sha256_file(p) for p in output_paths(layer_p, out_p).values()}
     return {"status": "ok", "scene": scene, "layer": str(layer_p.resolve()), "layer_sha256": meta["layer_sha256"],
+            "identity": meta["identity"],  # what the render read and the versions (allo_usd.run.manifest)
             "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", scene),
             "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}",
             "full_build": bool(_SESSION.last.full_build),

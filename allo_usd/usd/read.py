@@ -18,7 +18,7 @@ from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
 from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, MaterialDesc, MeshDesc, RenderDesc,
                                       SceneDescription, SpotDesc, SunDesc)
 from allo_usd.core.errors import LayerError
-from allo_usd.core.limits import MIN_SIDE_PX, resolution_problem
+from allo_usd.core.limits import resolution_problem
 from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
 
 
@@ -63,34 +63,36 @@ PNG_END = b"IEND\xaeB`\x82"       # the last chunk of every complete PNG
 
 
 def _tf_message(exc) -> str:
-    """The last line of a Tf error, safe against bytes that are not UTF-8 (garbage layers)."""
-    try:
-        text = str(exc)
-    except UnicodeDecodeError:
-        return "the file holds bytes that are not UTF-8"
-    lines = text.strip().splitlines()
-    return lines[-1].strip() if lines else type(exc).__name__
+    """The telling line of a Tf error: a parse error keeps USD's FILE:LINE:COL (allo_usd.usd.dependencies)."""
+    from allo_usd.usd.dependencies import tf_message
+
+    return tf_message(exc)
 
 
 def open_stage(layer_path: str | Path):
     """Open a scene layer as a stage, turning every USD failure into a LayerError with a fix.
 
-    The stage must compose without errors (every sublayer, reference and payload resolves) and
-    every file it uses must lie under the allowed roots (allo_usd.usd.safety).
+    Before USD opens anything, every file the composition reads is checked (allowed roots,
+    regular file, size, layer extension: allo_usd.usd.dependencies.walk); the stage must then
+    compose without errors, and the composed stage is checked against the roots again
+    (allo_usd.usd.safety.check_stage, a second line of defence).
     """
     from pxr import Tf, Usd, UsdGeom
 
+    from allo_usd.usd.dependencies import walk
     from allo_usd.usd.safety import check_stage
 
     schema.register()
     path = Path(layer_path)
-    if not path.is_file():
+    if not path.exists():
         raise LayerError(f"scene layer {path} does not exist; check the path")
+    opened = walk(path)  # its Sdf layers stay open until the stage holds them: USD parses each once
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
         raise LayerError(f"{path} is not a readable USD layer ({_tf_message(exc)}); "
                          "re-author it with `allo-usd author` or restore it from the plan") from None
+    del opened
     if stage is None:
         raise LayerError(f"{path} could not be opened as a USD stage; re-author it")
     errors = stage.GetCompositionErrors()

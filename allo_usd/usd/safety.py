@@ -5,15 +5,19 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
 
 - the project's `stages/` directory (the shipped base stage and assets);
 - the directory of the layer being opened (a scene layer and its neighbours);
-- the nearest enclosing directory holding a `plan.toml` (the top of an authored plan's tree,
-  whose shared day and pose layers sit beside the scene folders);
+- the authored tree the layer belongs to: the nearest enclosing directory holding a `plan.toml`,
+  but only for a layer inside that tree's `scenes/` folder (allo_usd.usd.compose: OUT/plan.toml
+  beside OUT/scenes/, OUT/sky/, OUT/poses/, OUT/stages/). A `plan.toml` in some ancestor of an
+  unrelated layer (~/plan.toml over ~/Downloads/x.usda) makes no root: that would open ~ to it;
 - the directories named in the environment variable `ALLO_ASSET_ROOTS` (os.pathsep-separated).
   The dispatcher sets it to the directories of the layers it renders and the plan's output
   directory, so worker processes inherit the same rule.
 
 Paths are compared after resolving symbolic links, so a link inside a root that points outside
-it is rejected too. Blender never auto-runs scripts (`blender.build.reset`), so a layer can
-only ever bring data, never code.
+it is rejected too. allo_usd.usd.dependencies applies these roots (and the file-type and size
+rules) to every file before USD opens it; `check_stage` checks the composed stage again after.
+Blender never auto-runs scripts (`blender.build.reset`), so a layer can only ever bring data,
+never code.
 """
 
 from __future__ import annotations
@@ -27,17 +31,21 @@ from allo_usd.core.paths import STAGES
 ENV_ROOTS = "ALLO_ASSET_ROOTS"
 
 
-def _plan_root(start: Path) -> Path | None:
-    for d in (Path(os.path.realpath(start)), *Path(os.path.realpath(start)).parents):
-        if (d / "plan.toml").is_file():
+def _plan_root(layer_path: Path) -> Path | None:
+    """The top of the authored tree whose `scenes/` folder holds the layer, if any."""
+    from allo_usd.usd.compose import SCENE_DIR
+
+    real = Path(os.path.realpath(layer_path))
+    for d in real.parents:
+        if (d / "plan.toml").is_file() and (d / SCENE_DIR) in real.parents:
             return d
     return None
 
 
 def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> tuple[Path, ...]:
     roots = [STAGES, Path(layer_path).parent, *extra]
-    plan_root = _plan_root(Path(layer_path).parent)
-    if plan_root is not None:  # a plan's output tree (author_plan writes plan.toml at its top)
+    plan_root = _plan_root(Path(layer_path))
+    if plan_root is not None:  # a plan's output tree (open_tree writes plan.toml at its top)
         roots.append(plan_root)
     roots += [Path(p) for p in os.environ.get(ENV_ROOTS, "").split(os.pathsep) if p]
     out = []
@@ -48,12 +56,12 @@ def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) ->
     return tuple(out)
 
 
-def _inside(path: str, roots: tuple[Path, ...]) -> bool:
+def inside(path: str, roots: tuple[Path, ...]) -> bool:
     real = Path(os.path.realpath(path))
     return any(real == r or r in real.parents for r in roots)
 
 
-def _reject(what: str, path: str, layer_path, roots) -> None:
+def reject(what: str, path: str, layer_path, roots) -> None:
     raise LayerError(f"{layer_path}: {what} {path} resolves outside the allowed roots "
                      f"({', '.join(map(str, roots))}); move the file under one of them or add its directory "
                      f"to {ENV_ROOTS}")
@@ -68,8 +76,8 @@ def check_stage(stage, layer_path: str | Path, extra: tuple[str | Path, ...] = (
         if layer.anonymous:
             continue
         real = layer.realPath
-        if real and not _inside(real, roots):
-            _reject("layer", real, layer_path, roots)
+        if real and not inside(real, roots):
+            reject("layer", real, layer_path, roots)
     asset_types = (Sdf.ValueTypeNames.Asset, Sdf.ValueTypeNames.AssetArray)
     for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
         for attr in prim.GetAttributes():
@@ -80,7 +88,7 @@ def check_stage(stage, layer_path: str | Path, extra: tuple[str | Path, ...] = (
                 if asset is None:
                     continue
                 resolved = asset.resolvedPath
-                if resolved and not _inside(resolved, roots):
-                    _reject(f"asset {attr.GetPath()} =", resolved, layer_path, roots)
-                elif not resolved and asset.path and os.path.isabs(asset.path) and not _inside(asset.path, roots):
-                    _reject(f"asset {attr.GetPath()} =", asset.path, layer_path, roots)
+                if resolved and not inside(resolved, roots):
+                    reject(f"asset {attr.GetPath()} =", resolved, layer_path, roots)
+                elif not resolved and asset.path and os.path.isabs(asset.path) and not inside(asset.path, roots):
+                    reject(f"asset {attr.GetPath()} =", asset.path, layer_path, roots)
