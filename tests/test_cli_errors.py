@@ -18,7 +18,6 @@ from allo_usd.cli import _os_error_line
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import ensure_output_dir, ensure_output_file
 
-from test_dispatch import small_tmpfs  # noqa: F401 - a fixture: a 1 MiB tmpfs
 
 ROOT = Path(__file__).resolve().parents[1]
 

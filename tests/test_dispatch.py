@@ -441,26 +441,6 @@ def test_full_disk_stops_cleanly(tiny_base, tmp_path):
     check_outputs(out, layers)
 
 
-@pytest.fixture
-def small_tmpfs(tmp_path):
-    """A 1 MiB tmpfs (a real file system that fills up); skipped where mounting is not permitted.
-    Always unmounted, lazily if a process still holds it."""
-    mnt = tmp_path / "tmpfs"
-    mnt.mkdir()
-    try:
-        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m,mode=0755", "tmpfs", str(mnt)],
-                           capture_output=True, text=True)
-    except FileNotFoundError:
-        pytest.skip("no `mount` command here: cannot make a small tmpfs to fill")
-    if r.returncode != 0:
-        pytest.skip(f"mounting a tmpfs is not permitted here (needs root or CAP_SYS_ADMIN): {r.stderr.strip()}")
-    try:
-        yield mnt
-    finally:
-        if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
-            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
-
-
 def _fill(path: Path, leave: int) -> Path:
     """A ballast file that leaves `leave` bytes free on the file system holding `path`."""
     ballast = path / "ballast"

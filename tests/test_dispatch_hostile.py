@@ -7,7 +7,6 @@ from __future__ import annotations
 import functools
 import json
 import os
-import signal
 import subprocess
 import sys
 import textwrap
@@ -21,7 +20,6 @@ from allo_usd.usd.scene_layer import write_scene_layer
 
 import hooks
 from helpers import make_spec
-from test_dispatch import small_tmpfs  # noqa: F401 - a fixture: a 1 MiB tmpfs
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-c", "from allo_usd.cli import main; main()", "render"]
@@ -101,7 +99,7 @@ def hang_or_note(markers: Path, hang, scene: str) -> None:
 
 @pytest.mark.render
 def test_a_scene_past_its_time_limit_is_killed_retried_then_failed(tiny_base, tmp_path):
-    layers = make_layers(tiny_base, tmp_path / "layers", 3)
+    make_layers(tiny_base, tmp_path / "layers", 3)
     out, markers = tmp_path / "out", tmp_path / "markers"
     markers.mkdir()
     summary = dispatch(tmp_path / "layers", out, workers=2, retries=1, progress=False, timeout=25,

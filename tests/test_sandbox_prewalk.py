@@ -163,7 +163,7 @@ def test_a_plan_toml_makes_a_root_only_for_its_own_scenes(tmp_path, monkeypatch)
     photo.parent.mkdir()
     photo.write_bytes(b"\x89PNG")
     layer = home / "Downloads" / "x.usda"
-    layer.write_text(f'#usda 1.0\nover "World"\n{{\n    asset inputs:file = @../Private/photo.png@\n}}\n')
+    layer.write_text('#usda 1.0\nover "World"\n{\n    asset inputs:file = @../Private/photo.png@\n}\n')
     assert home.resolve() not in allowed_roots(layer)
     with pytest.raises(LayerError, match="photo.png resolves outside the allowed roots"):
         walk(layer)
