@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import sys
 from pathlib import Path
 
 import typer
@@ -201,12 +202,12 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
     ensure_output_dir(out)
     import warnings
 
-    from allo_usd.output.dataset import assemble, read_manifest
+    from allo_usd.output.dataset import RefusedRenders, assemble, read_manifest
 
     with warnings.catch_warnings(record=True) as notes:
         warnings.simplefilter("always")
         try:
-            manifest = assemble(render_dirs, out, link=not copy, category=category, progress=True)
+            manifest = assemble(render_dirs, out, link=not copy, category=category, progress=sys.stderr.isatty())
         except KeyboardInterrupt as exc:
             _notes(notes)
             typer.echo(f"interrupted: {exc or 'before any file was placed; re-run the same command'}", err=True)
@@ -217,6 +218,8 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
               (("train", "good"), ("test", "good"), ("test", "anomaly"))}
     typer.echo(f"{out / category}: " + ", ".join(f"{s}/{k} {n}" for (s, k), n in counts.items())
                + f"; manifest {manifest}")
+    if any(issubclass(w.category, RefusedRenders) for w in notes):
+        raise SystemExit(1)  # like `render` with failures: the rest is assembled, the refused ones are named
 
 
 def _notes(caught) -> None:
@@ -324,11 +327,18 @@ _INTERRUPTED = ("interrupted (Ctrl-C): finished outputs are kept, temporaries re
                 "go on")
 
 
+def one_line(message: str) -> str:
+    """A message of several lines (a plan's list of problems) as one line: one error, one line."""
+    lines = [line.strip() for line in message.splitlines() if line.strip()]
+    return " ".join(line if i == len(lines) - 1 or line.endswith(":") else line.rstrip(";") + ";"
+                    for i, line in enumerate(lines))
+
+
 def main() -> None:
     try:
         app()
     except AlloError as exc:
-        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        typer.secho(f"error: {one_line(str(exc))}", fg=typer.colors.RED, err=True)
         raise SystemExit(2) from None
     except KeyboardInterrupt:
         typer.echo(_INTERRUPTED, err=True)

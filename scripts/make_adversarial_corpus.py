@@ -44,6 +44,7 @@ TIMEOUT = "fails as timeout"                  # one row in failed.jsonl naming t
 FAILS = "fails as layer error or timeout"     # either of the two, never a hang nor a retried crash
 CLI_ERROR = "cli exit 2 one line"             # exit status 2, stderr one line "error: ..."
 CLI_OK_OR_ERROR = "exit 0 or cli exit 2 one line"
+CLI_REFUSED = "cli exit 1, one note line naming the refused record"  # the rest assembled, like render's failures
 RENDERS = "renders"                           # outputs byte-identical to a clean run
 REFUSED_OR_DISTINCT = "refused, or renders with distinct outputs"
 RERENDERED = "re-rendered, not skipped"
@@ -387,11 +388,11 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     plan("alias_bomb", "name: bomb\n" + "\n".join(levels) + "\nseeds: *j\n", "YAML billion laughs", suffix=".yaml")
     plan("binary", bytes((i * 131 + 7) % 256 for i in range(2048)), "binary bytes named .toml")
     plan("far_start", good.replace('start = "2030-01-01"', 'start = "9999-12-31"'), "start 9999-12-31")
-    plan("days_1e9", good.replace("days = 1\n", "days = 1000000000\n"), "days 1e9")
-    plan("step_1e11", good.replace("days = 1\n", "days = 2\n").replace("step_days = 1", "step_days = 100000000000"),
+    plan("days_1e9", good.replace("\ndays = 1\n", "\ndays = 1000000000\n"), "days 1e9")
+    plan("step_1e11", good.replace("\ndays = 1\n", "\ndays = 2\n").replace("step_days = 1", "step_days = 100000000000"),
          "step_days 1e11")
     plan("unknown_preset", good.replace('preset = "draft"', 'preset = "ultra-mega"'), "an unknown quality preset")
-    huge = (good.replace('start = "2030-01-01"', 'start = "1900-01-01"').replace("days = 1\n", "days = 50000\n")
+    huge = (good.replace('start = "2030-01-01"', 'start = "1900-01-01"').replace("\ndays = 1\n", "\ndays = 50000\n")
             .replace("seeds = [1]", "seeds = [" + ", ".join(map(str, range(400))) + "]")
             .replace("train = [1]\ntest = []", "train = [" + ", ".join(map(str, range(1, 41))) + "]\n"
                      "test = [" + ", ".join(map(str, range(41, 51))) + "]")
@@ -418,7 +419,7 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
         d = ds / name
         d.mkdir()
         _render_record(d, "r0", scene, files)
-        w.add(f"dataset_{name}", "dataset", CLI_ERROR, "dataset", (d,),
+        w.add(f"dataset_{name}", "dataset", CLI_REFUSED, "dataset", (d,),
               ("dataset", str(d), "--out", str(out / "dataset_out" / name)),
               f"a render JSON with {'split ../../escaped' if scene else 'file names /etc/hostname'}")
 
@@ -437,7 +438,8 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
 
     usdc = cli / "good.usdc"
     Sdf.Layer.FindOrOpen(str(good0)).Export(str(usdc))
-    w.add("cli_usdc", "cli", CLI_ERROR, "cli", (usdc,), ("render", str(usdc), "--out", str(out / "cli_out" / "usdc")),
+    w.add("cli_usdc", "cli", CLI_OK_OR_ERROR, "cli", (usdc,),
+          ("render", str(usdc), "--out", str(out / "cli_out" / "usdc")),
           "render of a .usdc layer")
     return w.cases
 

@@ -60,9 +60,8 @@ def test_scan_never_opens_fifos_or_devices_and_reads_a_bounded_prefix(tiny_base,
         found = _scan_in_child(root, tmp_path)
     except subprocess.TimeoutExpired:
         pytest.fail("the layer scan blocked (a FIFO named p.usda, or /dev/zero read whole)")
-    assert found["layers"] == ["h0.usda"]
-    assert sorted(w.split(" is not a regular file")[0] for w in found["warnings"]) == [
-        str(root / "p.usda"), str(root / "z.usda")]
+    # kept unopened, for dispatch to record as failed layers (tests/test_adversarial.py renders that)
+    assert found["layers"] == ["h0.usda", "p.usda", "z.usda"] and not found["warnings"]
     assert found["maxrss_kb"] < 1_000_000  # not a 2 GB read
 
 

@@ -108,6 +108,10 @@ def place(src: Path, dst: Path, link: bool = True) -> str:
     return "copy"
 
 
+class RefusedRenders(UserWarning):
+    """Render records refused as untrustworthy (left out of the dataset; `allo-usd dataset` exits 1)."""
+
+
 def scan(render_dirs, progress: bool = False) -> list[tuple[Path, dict]]:
     """(json path, metadata) of every finished scene in the render directories, by name."""
     from tqdm import tqdm
@@ -477,7 +481,7 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
     _one_resolution(sizes, rows, category, out)
     if refused:
         warnings.warn(f"{len(refused)} render(s) refused and left out, their JSON contradicting itself or naming "
-                      f"files outside its render directory: {'; '.join(refused[:5])}", stacklevel=3)
+                      f"files outside its render directory: {'; '.join(refused[:5])}", RefusedRenders, stacklevel=3)
     if left_out:
         warnings.warn(f"{len(left_out)} scene(s) left out (anomalous in the train split, or anomaly not visible): "
                       f"{', '.join(left_out[:10])}", stacklevel=3)

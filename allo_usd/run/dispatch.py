@@ -12,18 +12,18 @@ import os
 import signal
 import sys
 import time
-import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
-from allo_usd.core.files import RunLock, ensure_output_dir, is_regular_file
+from allo_usd.core.files import RunLock, ensure_output_dir
 from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, clean_stale, compact_manifest, is_done,
                                    load_manifest)
 from allo_usd.run.worker import worker_main, render_task
 from allo_usd.usd.safety import ENV_ROOTS
+from allo_usd.usd.sniff import refusal
 
 Hook = Callable[[str], None]
 
@@ -70,7 +70,8 @@ def _scene_layers_under(root: Path) -> list[Path]:
     """Every scene layer (.usda, .usdc, .usd) below `root`, recursively, skipping hidden
     directories; in an authored plan's tree (plan.toml beside scenes/) only scenes/ is searched:
     sky/, poses/ and stages/ hold shared sublayers, and a paper plan has ~39,000 pose layers not
-    worth opening. A layer name that is not a regular file is left out with a warning."""
+    worth opening. A layer name that is not a regular file (a FIFO, a device) is kept unopened: the
+    dispatcher records it as a failed layer."""
     from allo_usd.usd.compose import SCENE_DIR
     from allo_usd.usd.sniff import LAYER_SUFFIXES
 
@@ -82,15 +83,8 @@ def _scene_layers_under(root: Path) -> list[Path]:
         else:
             dirnames[:] = [d for d in dirnames if not d.startswith(".")]
         found += [here / f for f in filenames if f.lower().endswith(LAYER_SUFFIXES) and not f.startswith(".")]
-    layers = []
-    for p in sorted(found):
-        kind = _is_scene_layer(p)
-        if kind is None:
-            warnings.warn(f"{p} is not a regular file (a FIFO, device, socket or broken link); left out of the "
-                          "render: replace it by a layer file or remove it", UserWarning, stacklevel=2)
-        elif kind:
-            layers.append(p)
-    return layers
+    # A name that is not a regular file is kept (never opened): dispatch records it in failed.jsonl.
+    return [p for p in sorted(found) if _is_scene_layer(p) is not False]
 
 
 def find_layers(source: str | Path | list) -> list[Path]:
@@ -113,10 +107,10 @@ def find_layers(source: str | Path | list) -> list[Path]:
             layers = [source]
         else:
             raise AlloError(f"{source} is neither a layer nor a directory of layers; check the path")
-    for p in layers:
-        if not is_regular_file(p):
-            raise AlloError(f"{p} is not a regular file (a FIFO, a device, a socket or missing); pass a scene "
-                            "layer file (.usda, .usdc or .usd)")
+    for p in ([] if isinstance(source, Path) and source.is_dir() else layers):  # named by the caller
+        why = refusal(p)
+        if why:
+            raise AlloError(why)
     stems: dict[str, Path] = {}
     for p in layers:
         if p.stem in stems:
@@ -475,7 +469,8 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         raise AlloError(f"timeout={timeout}: pass seconds > 0, or 0 for the default limit from each layer's size")
     layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
     ensure_output_dir(out_dir, "output directory")
-    roots = sorted({str(p.resolve().parent) for p in layers} | {str(Path(r).resolve()) for r in extra_roots})
+    # a layer's own folder (not its link target's: a link to /etc/passwd must not make /etc a root)
+    roots = sorted({os.path.realpath(p.parent) for p in layers} | {str(Path(r).resolve()) for r in extra_roots})
     prior = os.environ.get(ENV_ROOTS, "")
     env = {ENV_ROOTS: os.pathsep.join([*roots, *([prior] if prior else [])])}
     summary = Summary()
@@ -484,13 +479,18 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         (out_dir / FAILED).unlink(missing_ok=True)  # failures of this run only; earlier ones are retried
         compact_manifest(out_dir)
         done = load_manifest(out_dir)
-        tasks = []
+        tasks, unusable = [], []
         for layer in layers:
-            if is_done(layer, out_dir, done):
+            why = refusal(layer)
+            if why:  # found by the scan: never opened, recorded as failed
+                unusable.append((_Task(layer), why))
+            elif is_done(layer, out_dir, done):
                 summary.skipped.append(layer.stem)
             else:
                 tasks.append(_Task(layer))
-        run = _Run(out_dir, len(tasks), retries, progress, summary)
+        run = _Run(out_dir, len(tasks) + len(unusable), retries, progress, summary)
+        for task, why in unusable:
+            run.fail(task, "layer", why)
         try:
             if tasks and scheduler is not None:
                 _run_dask(tasks, out_dir, scheduler, threads, run, env, before_render, timeout)

@@ -5,10 +5,11 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
 
 - the project's `stages/` directory (the shipped base stage and assets);
 - the directory of the layer being opened (a scene layer and its neighbours);
-- the authored tree the layer belongs to: the nearest enclosing directory holding a `plan.toml`,
-  but only for a layer inside that tree's `scenes/` folder (allo_usd.usd.compose: OUT/plan.toml
-  beside OUT/scenes/, OUT/sky/, OUT/poses/, OUT/stages/). A `plan.toml` in some ancestor of an
-  unrelated layer (~/plan.toml over ~/Downloads/x.usda) makes no root: that would open ~ to it;
+- the authored tree the layer belongs to: for a layer inside the `scenes/` folder of the nearest
+  enclosing directory holding a `plan.toml` (allo_usd.usd.compose: OUT/plan.toml beside
+  OUT/scenes/, OUT/sky/, OUT/poses/, OUT/stages/), those four authored folders, and nothing else
+  of OUT. A `plan.toml` in some ancestor of an unrelated layer (~/plan.toml over
+  ~/Downloads/x.usda) makes no root: that would open ~ to it;
 - the directories named in the environment variable `ALLO_ASSET_ROOTS` (os.pathsep-separated).
   The dispatcher sets it to the directories of the layers it renders and the plan's output
   directory, so worker processes inherit the same rule.
@@ -45,8 +46,10 @@ def _plan_root(layer_path: Path) -> Path | None:
 def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> tuple[Path, ...]:
     roots = [STAGES, Path(layer_path).parent, *extra]
     plan_root = _plan_root(Path(layer_path))
-    if plan_root is not None:  # a plan's output tree (open_tree writes plan.toml at its top)
-        roots.append(plan_root)
+    if plan_root is not None:  # a plan's output tree (open_tree writes plan.toml at its top): its authored folders
+        from allo_usd.usd.compose import POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR
+
+        roots += [plan_root / d for d in (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR)]
     roots += [Path(p) for p in os.environ.get(ENV_ROOTS, "").split(os.pathsep) if p]
     out = []
     for r in roots:

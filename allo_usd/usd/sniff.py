@@ -23,13 +23,43 @@ PXR_MODULES = ("Tf", "Gf", "Vt", "Sdf", "Plug", "Kind", "Usd", "UsdGeom", "UsdLu
                "UsdShade", "UsdUtils")
 
 
+def refusal(path: Path) -> str | None:
+    """Why `path` must not be opened at all (None when it may be read): not a regular file (a FIFO
+    would block, a device never ends), above the layer size bound, or a link that resolves outside
+    the layer's own folder and the allowed roots (allo_usd.usd.safety: /etc/passwd linked in as
+    x.usda is never read, not even its first bytes). Checked with os.stat and realpath only."""
+    import os
+    import stat
+
+    from allo_usd.usd.dependencies import MAX_LAYER_BYTES
+    from allo_usd.usd.safety import allowed_roots, inside
+
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        return f"{path} cannot be read ({exc.strerror}); restore it or remove it"
+    if not stat.S_ISREG(st.st_mode):
+        return (f"{path} is not a regular file (a FIFO, a device, a socket or a directory), so it was not opened; "
+                "replace it by a layer file or remove it")
+    if st.st_size > MAX_LAYER_BYTES:
+        return (f"{path} holds {st.st_size:,} bytes, above the {MAX_LAYER_BYTES:,} allowed for a layer (a scene "
+                "layer is a few KB), so it was not opened; re-author it or remove it")
+    roots = allowed_roots(path)
+    if not inside(str(path), roots):
+        return (f"{path} resolves to {os.path.realpath(path)}, outside its folder and the allowed roots, so it was "
+                "not opened; copy the layer into the folder instead of linking it, or add its directory to "
+                "ALLO_ASSET_ROOTS")
+    return None
+
+
 def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
     """True for a scene layer (customLayerData.allo.sceneId), False for a shared sublayer; None
-    when `path` is not a regular file (a FIFO, a device: never opened for reading). A file that
+    when `path` must not be opened (`refusal`: a FIFO, a device, a link outside). A file that
     is neither USD text nor crate is True, so the reader reports it instead of hiding it. Reads
     at most HEAD_BYTES of a text layer; a crate layer's customLayerData is read by Sdf, which
     maps the file and reads only the fields it needs."""
-    head = read_head(path, HEAD_BYTES) if head is None else head
+    if head is None:
+        head = None if refusal(path) else read_head(path, HEAD_BYTES)
     if head is None:
         return None
     if head.startswith(TEXT_MAGIC):
@@ -49,6 +79,8 @@ def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
 def render_cost(path: Path) -> tuple[int, int] | None:
     """(pixels, samples) the scene layer itself orders on its render settings, read from the layer
     alone (no sublayer opened), or None when it does not say (or cannot be read)."""
+    if refusal(path):
+        return None
     load_pxr()
     from pxr import Sdf, Tf
 
