@@ -164,7 +164,7 @@ def test_cli_dataset_copies_when_asked(renders, tmp_path):
     result = CliRunner().invoke(app, ["dataset", str(renders), "--out", str(out), "--category", "gateway", "--copy"])
     assert result.exit_code == 0, result.output
     assert "train/good 2, test/good 1, test/anomaly 1" in result.output
-    assert "assembling gateway: 100%" in result.output and "4/4 [" in result.output  # the progress bar
+    assert "assembling gateway" not in result.output  # progress bars only on a terminal (not a pipe or a log)
     image = out / "gateway/train/good/000000_d000_p01.png"
     assert image.is_file() and not os.path.samefile(image, renders / "d000_p01.png")
     with open(out / "manifest.csv", newline="") as f:

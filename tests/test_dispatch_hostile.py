@@ -61,7 +61,7 @@ def test_scan_never_opens_fifos_or_devices_and_reads_a_bounded_prefix(tiny_base,
     except subprocess.TimeoutExpired:
         pytest.fail("the layer scan blocked (a FIFO named p.usda, or /dev/zero read whole)")
     # kept unopened, for dispatch to record as failed layers (tests/test_adversarial.py renders that)
-    assert found["layers"] == ["h0.usda", "p.usda", "z.usda"] and not found["warnings"]
+    assert found["layers"] == ["h0.usda", "p.usda", "sparse.usda", "z.usda"] and not found["warnings"]
     assert found["maxrss_kb"] < 1_000_000  # not a 2 GB read
 
 

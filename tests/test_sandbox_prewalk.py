@@ -87,7 +87,7 @@ def test_oversized_sublayer_is_refused_unread(layer, capfd):
     with open(big, "wb") as f:  # sparse: no disk used, but a reader would allocate all of it
         f.truncate(MAX_LAYER_BYTES + 1)
     add_sublayer(layer, "./big.usda")
-    refused(layer, rf"big.usda holds {MAX_LAYER_BYTES + 1} bytes, over the 256 MiB limit for a layer", capfd)
+    refused(layer, rf"big.usda holds {MAX_LAYER_BYTES + 1:,} bytes, over the 256 MiB allowed", capfd)
 
 
 def test_non_layer_file_as_sublayer_is_refused(layer, capfd):
@@ -105,7 +105,7 @@ def test_fifo_inside_the_roots_is_refused_without_opening_it(layer):
             f"try:\n    read_scene({str(layer)!r})\nexcept LayerError as e:\n    print(e)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                        env={**os.environ, ENV_ROOTS: os.environ[ENV_ROOTS]})
-    assert "pipe.usda is not a regular file (a directory, FIFO or device)" in r.stdout, r.stdout + r.stderr
+    assert "pipe.usda is not a regular file (a directory, FIFO, device or socket)" in r.stdout, r.stdout + r.stderr
 
 
 def test_a_cached_walk_still_checks_a_file_that_changed(layer, tmp_path, capfd):
@@ -171,5 +171,14 @@ def test_a_plan_toml_makes_a_root_only_for_its_own_scenes(tmp_path, monkeypatch)
     scene = tree / "scenes" / "train" / "normal" / "a.usda"
     scene.parent.mkdir(parents=True)
     (tree / "plan.toml").write_text("")
-    assert tree.resolve() in allowed_roots(scene)
-    assert tree.resolve() not in allowed_roots(tree / "sky" / "d000.usda")
+    roots = allowed_roots(scene)
+    assert all((tree / d).resolve() in roots for d in ("scenes", "sky", "poses", "stages"))
+    assert tree.resolve() not in roots  # only its authored folders: not tree/private/secret.usda
+    secret = tree / "private" / "secret.usda"
+    secret.parent.mkdir()
+    secret.write_text("#usda 1.0\n")
+    scene.write_text('#usda 1.0\n(\n    subLayers = [@../../../private/secret.usda@]\n)\n')
+    with pytest.raises(LayerError, match="secret.usda resolves outside the allowed roots"):
+        walk(scene)
+    sky_roots = allowed_roots(tree / "sky" / "d000.usda")  # not in scenes/: its own folder only
+    assert tree.resolve() not in sky_roots and (tree / "scenes").resolve() not in sky_roots

@@ -170,6 +170,22 @@ class RunLock:
         os.close(self.fd)
 
 
+def file_problem(path: str | Path, limit: int) -> str | None:
+    """Why `path` may not be read as a bounded regular file, or None if it may: missing or
+    unreadable, not a regular file (a FIFO would block its reader, a device never ends), or more
+    than `limit` bytes. Uses os.stat only (symlinks followed): nothing is opened. The text follows
+    the path in a message ("PATH is not a regular file ..."); the caller adds the fix."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror})"
+    if not stat.S_ISREG(st.st_mode):
+        return "is not a regular file (a directory, FIFO, device or socket)"
+    if st.st_size > limit:
+        return f"holds {st.st_size:,} bytes, over the {limit >> 20:,} MiB allowed"
+    return None
+
+
 def read_head(path: Path, limit: int = 16384) -> bytes | None:
     """At most `limit` bytes from the start of a regular file (symlinks followed); None for
     anything else (a FIFO, a device, a socket, a directory), which is never opened for reading

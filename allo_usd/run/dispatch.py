@@ -31,7 +31,7 @@ FAILED = "failed.jsonl"
 # The default time limit of one scene (per attempt; dispatch(timeout=None), `render --timeout 0`):
 # TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * pixels * samples of the layer's own render settings.
 # The base covers a worker's first Blender scene build, the denoiser and the writes; the per
-# pixel-sample cost is ~3.5x what one Cycles thread took on this (loaded) machine (docs/reliability_dispatch.md).
+# pixel-sample cost is ~3.5x what one Cycles thread took on this (loaded) machine (docs/reliability.md, section 5).
 TIMEOUT_BASE_S = 120.0
 TIMEOUT_S_PER_PIXEL_SAMPLE = 5e-5
 TIMEOUT_FALLBACK_COST = 1920 * 1080 * 256  # a layer that names no resolution or samples: the paper's full render
@@ -107,10 +107,7 @@ def find_layers(source: str | Path | list) -> list[Path]:
             layers = [source]
         else:
             raise AlloError(f"{source} is neither a layer nor a directory of layers; check the path")
-    for p in ([] if isinstance(source, Path) and source.is_dir() else layers):  # named by the caller
-        why = refusal(p)
-        if why:
-            raise AlloError(why)
+
     stems: dict[str, Path] = {}
     for p in layers:
         if p.stem in stems:
@@ -118,6 +115,10 @@ def find_layers(source: str | Path | list) -> list[Path]:
                             "after the layer, so rename one")
         stems[p.stem] = p
     check_output_names(layers)  # no output name of one layer may be another's (allo_usd.run.manifest)
+    for p in ([] if isinstance(source, Path) and source.is_dir() else layers):  # named by the caller
+        why = refusal(p)
+        if why:
+            raise AlloError(why)
     return layers
 
 

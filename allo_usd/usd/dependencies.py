@@ -35,12 +35,12 @@ from __future__ import annotations
 
 import os
 import re
-import stat
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from allo_usd.core.errors import LayerError
+from allo_usd.core.files import file_problem
 from allo_usd.usd.safety import allowed_roots, inside, reject
 
 MAX_LAYER_BYTES = 256 << 20   # a scene layer is < 4 KB; the base stage's largest .usdc is a few MB
@@ -83,19 +83,10 @@ def _check(kind: str, what: str, path: str, layer_path, roots) -> str:
     real = os.path.realpath(path)
     if not inside(real, roots):
         reject(what, path, layer_path, roots)
-    try:
-        st = os.stat(real)
-    except OSError as exc:
-        raise LayerError(f"{layer_path}: {what} {path} cannot be read ({exc.strerror}); restore the file or fix "
-                         "the path in the layer") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise LayerError(f"{layer_path}: {what} {path} is not a regular file (a directory, FIFO or device); a layer "
-                         "may only use regular files: replace it with one or remove the path from the layer")
-    limit = MAX_LAYER_BYTES if kind == LAYER else MAX_ASSET_BYTES
-    if st.st_size > limit:
-        raise LayerError(f"{layer_path}: {what} {path} holds {st.st_size} bytes, over the {limit >> 20} MiB limit "
-                         f"for a{'' if kind == LAYER else 'n'} {kind} (allo_usd.usd.dependencies); use a smaller "
-                         "file")
+    problem = file_problem(real, MAX_LAYER_BYTES if kind == LAYER else MAX_ASSET_BYTES)
+    if problem:
+        raise LayerError(f"{layer_path}: {what} {path} {problem}; a layer may only use bounded regular files: fix the "
+                         "layer (restore the file, point it at another, or remove the path)")
     if kind == LAYER and os.path.splitext(path)[1].lower() not in LAYER_EXTENSIONS:
         raise LayerError(f"{layer_path}: {what} {path} is not a USD layer (its name must end in "
                          f"{', '.join(LAYER_EXTENSIONS)}); point the layer at a USD file")

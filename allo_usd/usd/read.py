@@ -18,6 +18,7 @@ from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
 from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, MaterialDesc, MeshDesc, RenderDesc,
                                       SceneDescription, SpotDesc, SunDesc)
 from allo_usd.core.errors import LayerError
+from allo_usd.core.files import file_problem
 from allo_usd.core.limits import resolution_problem
 from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
 
@@ -26,7 +27,7 @@ from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
 MAX_POSITION_M = 1e12          # any prim, from the station at the origin (the Sun is ~1.5e11 m away)
 MAX_CAMERA_DISTANCE_M = 1e4    # the camera, from the station (ALLO cameras sit within ~70 m of it)
 
-# What the reader lets through to Blender (docs/reliability_reader.md, "Reader bounds"). Each range lies
+# What the reader lets through to Blender (docs/reliability.md, section 2). Each range lies
 # inside the hard limits of the bpy RNA property the value ends in, so Blender never clamps a value the
 # layer records: tests/test_reader_bounds.py reads those limits from bpy and checks every one.
 LENS_MM = (1.0, 100_000.0)        # Camera.lens (Blender's hard minimum is 1 mm)
@@ -323,22 +324,15 @@ def check_texture_file(path: str, where) -> None:
     """A texture must be a regular file of at most MAX_TEXTURE_BYTES that starts with a known image
     signature (a complete PNG also ends with its IEND chunk), or Blender renders it magenta or black and
     only logs an error. `where` names the attribute that points at it."""
-    import stat
-
-    try:
-        st = os.stat(path)
-    except OSError as exc:
-        raise LayerError(f"texture {path} ({where}) cannot be read ({exc.strerror}); restore the file or fix "
-                         "the layer's path to it") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise LayerError(f"texture {path} ({where}) is not a regular file; point it at an image file (fix the layer)")
-    if st.st_size > MAX_TEXTURE_BYTES:
-        raise LayerError(f"texture {path} ({where}) is {st.st_size / 2 ** 20:,.0f} MiB, above the "
-                         f"{MAX_TEXTURE_BYTES >> 20} MiB allowed; use a smaller image (fix the asset)")
+    problem = file_problem(path, MAX_TEXTURE_BYTES)
+    if problem:
+        raise LayerError(f"texture {path} ({where}) {problem}; point it at an image file (fix the layer) or restore "
+                         "the asset's texture")
+    size = os.stat(path).st_size
     try:
         with open(path, "rb") as f:
             head = f.read(16)
-            f.seek(max(0, st.st_size - 16))
+            f.seek(max(0, size - 16))
             tail = f.read()
     except OSError as exc:
         raise LayerError(f"texture {path} ({where}) cannot be read ({exc.strerror}); restore the file") from None

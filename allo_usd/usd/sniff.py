@@ -11,7 +11,7 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
-from allo_usd.core.files import read_head
+from allo_usd.core.files import file_problem, read_head
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 
@@ -29,21 +29,13 @@ def refusal(path: Path) -> str | None:
     the layer's own folder and the allowed roots (allo_usd.usd.safety: /etc/passwd linked in as
     x.usda is never read, not even its first bytes). Checked with os.stat and realpath only."""
     import os
-    import stat
 
     from allo_usd.usd.dependencies import MAX_LAYER_BYTES
     from allo_usd.usd.safety import allowed_roots, inside
 
-    try:
-        st = os.stat(path)
-    except OSError as exc:
-        return f"{path} cannot be read ({exc.strerror}); restore it or remove it"
-    if not stat.S_ISREG(st.st_mode):
-        return (f"{path} is not a regular file (a FIFO, a device, a socket or a directory), so it was not opened; "
-                "replace it by a layer file or remove it")
-    if st.st_size > MAX_LAYER_BYTES:
-        return (f"{path} holds {st.st_size:,} bytes, above the {MAX_LAYER_BYTES:,} allowed for a layer (a scene "
-                "layer is a few KB), so it was not opened; re-author it or remove it")
+    problem = file_problem(path, MAX_LAYER_BYTES)
+    if problem:
+        return f"{path} {problem}, so it was not opened; replace it by a scene layer file or remove it"
     roots = allowed_roots(path)
     if not inside(str(path), roots):
         return (f"{path} resolves to {os.path.realpath(path)}, outside its folder and the allowed roots, so it was "
