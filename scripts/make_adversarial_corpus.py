@@ -247,6 +247,12 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
               note=f"sublayer: a symlink to {links[name]}", forbidden=hostile)
     w.bad(pool, "sub_abs_environ", "sandbox", LAYER_ERROR, lambda t: with_sublayer(t, "/proc/self/environ"),
           note="sublayer /proc/self/environ by absolute path", forbidden=(Path("/proc/self/environ"),))
+    w.bad(pool, "sub_expression", "sandbox", LAYER_ERROR,  # USD evaluates it at open: the walk must refuse it
+          lambda t: _sub(SUBLAYERS, lambda m: '    expressionVariables = {\n        string D = "../outside"\n    }\n'
+                         + m.group(1) + '        @`"${D}/secret.usda"`@,\n', t),
+          note="a sublayer path expression that evaluates outside the roots", forbidden=(secret,))
+    w.bad(pool, "tex_expression", "sandbox", LAYER_ERROR, lambda t: moon_texture(t, '`"../outside/tex.png"`'),
+          note="a texture path expression that evaluates outside the roots", forbidden=(outside_tex,))
     w.bad(pool, "tex_outside", "sandbox", LAYER_ERROR, lambda t: moon_texture(t, "../outside/tex.png"),
           note="a texture outside the roots", forbidden=(outside_tex,))
     variant = ('    def Xform "Evil" (\n        variants = {{\n            string pick = "a"\n        }}\n'

@@ -55,6 +55,26 @@ def test_outside_sublayer_is_refused_before_usd_reads_it(layer, tmp_path, capfd)
     assert message.startswith(str(layer))
 
 
+@pytest.mark.parametrize("how", ["sublayer", "reference", "texture"])
+def test_path_expressions_are_refused_before_usd_evaluates_them(layer, tmp_path, capfd, how):
+    """USD evaluates `"${D}/secret.usda"` when it opens the stage, after any check of the text:
+    the walk refuses variable expressions in every kind of path."""
+    secret = tmp_path / "outside" / "secret.usda"
+    secret.parent.mkdir()
+    secret.write_text(SECRET_LAYER)
+    text = layer.read_text().replace("subLayers = [", 'expressionVariables = {\n        string D = "../outside"\n'
+                                     "    }\n    subLayers = [", 1)
+    expression = '`"${D}/secret.usda"`'
+    if how == "sublayer":
+        text = text.replace("subLayers = [", f"subLayers = [\n        @{expression}@,", 1)
+    elif how == "reference":
+        text += f'\nover "Hidden" (\n    references = @{expression}@\n)\n{{\n}}\n'
+    else:
+        text += f'\nover "Hidden"\n{{\n    asset inputs:file = @{expression}@\n}}\n'
+    layer.write_text(text)
+    refused(layer, "is a variable expression, which allo-usd does not follow", capfd)
+
+
 @pytest.mark.parametrize("target", ["/etc/passwd", "/proc/self/environ", "/dev/zero"])
 def test_symlinks_to_system_files_are_refused(layer, target, capfd):
     (layer.parent / "link.usda").symlink_to(target)

@@ -152,6 +152,10 @@ def _named(layer, layer_path) -> tuple[_Named, ...]:
     from pxr import Sdf
 
     def named(kind: str, what: str, raw: str) -> _Named:
+        if raw.startswith("`"):  # a variable expression: the stage would evaluate it, the walk cannot check it
+            raise LayerError(f"{layer_path}: {what} {raw} in {layer.identifier} is a variable expression, which "
+                             "allo-usd does not follow (its value is only known to the stage that opens it); write "
+                             "the path itself")
         identifier = layer.ComputeAbsolutePath(raw)
         if "[" in identifier and identifier.endswith("]"):
             raise LayerError(f"{layer_path}: {what} {raw} in {layer.identifier} is inside a package (.usdz); "
