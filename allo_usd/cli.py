@@ -90,13 +90,15 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
 def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: Path | None) -> None:
     """One layer in this process, under the same output lock as a directory render; a full disk
     (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is a DiskFullError."""
-    from allo_usd.core.files import RunLock, is_regular_file
+    from allo_usd.core.files import RunLock
     from allo_usd.run.dispatch import LOCK
     from allo_usd.run.job import render_layer
     from allo_usd.run.worker import disk_full_error, output_to
+    from allo_usd.usd.sniff import refusal
 
-    if not is_regular_file(layer):
-        raise AlloError(f"{layer} is not a regular file (a FIFO, a device or a socket); pass a scene layer file")
+    why = refusal(layer)  # the rule find_layers applies to a layer named on the command line
+    if why:
+        raise AlloError(why)
     with RunLock(out, LOCK, "render"):
         try:
             with output_to(out / "logs" / "render.log"):  # Blender's own prints

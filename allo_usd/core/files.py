@@ -212,14 +212,6 @@ def read_head(path: Path, limit: int = 16384) -> bytes | None:
         os.close(fd)
 
 
-def is_regular_file(path: Path) -> bool:
-    """A regular file (symlinks followed), not a FIFO, device or socket that reading could block on."""
-    try:
-        return stat.S_ISREG(os.stat(path).st_mode)
-    except OSError:
-        return False
-
-
 def _nearest_existing(path: Path) -> Path:
     for p in (path, *path.parents):
         if os.path.lexists(p):

@@ -34,6 +34,7 @@ from allo_usd import __version__
 from allo_usd.core.errors import DiskFullError, LayerError
 from allo_usd.core.files import DISK_FULL_ERRNOS, atomic_path, relpath, sha256_file, temp_name_re
 from allo_usd.usd.read import layer_outputs
+from allo_usd.usd.sniff import refusal
 
 MANIFEST = "manifest.jsonl"
 WORKDIR = ".allo-tmp"  # Blender's render files, one directory per worker pid
@@ -176,18 +177,6 @@ def _meta(path: Path) -> dict:
     return meta if isinstance(meta, dict) else {}
 
 
-def _plain_layer(layer: Path) -> bool:
-    """The layer is a regular file inside its roots: safe to read for its output names (a FIFO
-    or device would block the resume check; allo_usd.usd.dependencies)."""
-    from allo_usd.usd.dependencies import check_root
-
-    try:
-        check_root(layer)
-    except LayerError:
-        return False
-    return True
-
-
 def is_done(layer: Path, out_dir: Path, manifest: dict[str, dict] | None = None) -> bool:
     """True when `out_dir` holds every output of `layer` rendered from the current bytes of
     everything its composition read, with the current package versions (its identity).
@@ -198,7 +187,7 @@ def is_done(layer: Path, out_dir: Path, manifest: dict[str, dict] | None = None)
     its metadata JSON (written last) records must match the one recorded there."""
     if manifest is not None:
         return is_verified(manifest.get(Path(layer).stem), layer, out_dir)
-    if not _plain_layer(layer):
+    if refusal(layer):  # not safe to read for its output names (a FIFO or device would block the check)
         return False  # the render says what is wrong with it
     paths = output_paths(layer, out_dir)
     if not all(p.is_file() for p in paths.values()):

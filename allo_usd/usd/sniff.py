@@ -11,7 +11,7 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
-from allo_usd.core.files import file_problem, read_head
+from allo_usd.core.files import read_head
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 
@@ -24,23 +24,18 @@ PXR_MODULES = ("Tf", "Gf", "Vt", "Sdf", "Plug", "Kind", "Usd", "UsdGeom", "UsdLu
 
 
 def refusal(path: Path) -> str | None:
-    """Why `path` must not be opened at all (None when it may be read): not a regular file (a FIFO
-    would block, a device never ends), above the layer size bound, or a link that resolves outside
-    the layer's own folder and the allowed roots (allo_usd.usd.safety: /etc/passwd linked in as
-    x.usda is never read, not even its first bytes). Checked with os.stat and realpath only."""
-    import os
+    """Why `path` must not be opened at all, or None when it may be read: the dependency walk's
+    rule for a scene layer (allo_usd.usd.dependencies.check_root: inside its roots after realpath,
+    so /etc/passwd linked in as x.usda is never read, not even its first bytes; a regular file, as
+    a FIFO would block and a device never ends; within the layer size bound; a layer extension).
+    Checked with os.stat and realpath only."""
+    from allo_usd.core.errors import LayerError
+    from allo_usd.usd.dependencies import check_root
 
-    from allo_usd.usd.dependencies import MAX_LAYER_BYTES
-    from allo_usd.usd.safety import allowed_roots, inside
-
-    problem = file_problem(path, MAX_LAYER_BYTES)
-    if problem:
-        return f"{path} {problem}, so it was not opened; replace it by a scene layer file or remove it"
-    roots = allowed_roots(path)
-    if not inside(str(path), roots):
-        return (f"{path} resolves to {os.path.realpath(path)}, outside its folder and the allowed roots, so it was "
-                "not opened; copy the layer into the folder instead of linking it, or add its directory to "
-                "ALLO_ASSET_ROOTS")
+    try:
+        check_root(path)
+    except LayerError as exc:
+        return str(exc)
     return None
 
 
