@@ -54,6 +54,7 @@ from allo_usd.scene.placement import check
 from allo_usd.scene.placement import sphere_pixels
 from allo_usd.scene.raycast import RayScene, pixel_rays
 from allo_usd.core.constants import EXPOSURE
+from allo_usd.core.paths import BASE_STAGE
 from allo_usd.usd.read import scene_inputs
 from allo_usd.scene.resolve import SceneInputs, build_spec, resolve_camera, resolve_placements
 from allo_usd.sky.ephemeris import default_epochs
@@ -192,7 +193,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help="scenes to time the 20-sample render on (default 6; about a minute each at 1080p)")
     ap.add_argument("--reps", type=int, default=5, help="timed check calls per scene, after a warm-up (default 5)")
     ap.add_argument("--seed", type=int, default=2030, help="draw and plan seed (default 2030)")
-    ap.add_argument("--base-stage", type=Path, default=ROOT / "stages" / "base.usda")
+    ap.add_argument("--base-stage", type=Path, default=BASE_STAGE)
     ap.add_argument("--resolution", default=f"{W}x{H}", help="WIDTHxHEIGHT of checks and renders (default 1920x1080)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args(argv)

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from allo_usd.cli import _os_error_line
+from allo_usd.core.paths import BASE_STAGE
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import ensure_output_dir, ensure_output_file
 
@@ -54,7 +55,7 @@ def commands(out: Path, tmp_path: Path) -> dict[str, list]:
     mesh = tmp_path / "m.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     return {"render DIR": ["render", layers, "--out", out],
-            "render LAYER": ["render", ROOT / "stages" / "base.usda", "--out", out],
+            "render LAYER": ["render", BASE_STAGE, "--out", out],
             "render PLAN": ["render", tmp_path / "plan.toml", "--out", out],
             "dataset": ["dataset", tmp_path, "--out", out],
             "author": ["author", tmp_path / "plan.toml", "--out", out],

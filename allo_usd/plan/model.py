@@ -290,7 +290,7 @@ class Plan(_Model):
     quality: Quality = Field(default_factory=Quality)
     seeds: list[int] = Field(default_factory=lambda: [2030], description="One pipeline run per seed.")
     station: Station = Field(default_factory=Station)
-    base_stage: str = Field("stages/base.usda", description="Relative to the working directory or the repo.")
+    base_stage: str = Field("stages/base.usda", description="Relative to the working directory, else to the installed package (stages/base.usda is the shipped base stage).")
 
     @field_validator("perilune_epoch")
     @classmethod
@@ -339,10 +339,10 @@ class Plan(_Model):
         return self
 
     def resolve_base_stage(self) -> Path:
-        from allo_usd.core.paths import ROOT
+        from allo_usd.core.paths import PACKAGE
 
         p = Path(self.base_stage)
-        for cand in (p, ROOT / p):
+        for cand in (p, PACKAGE / p):
             if cand.is_file():
                 return cand.resolve()
         raise PlanError(f"base_stage: {self.base_stage} does not exist; fix: run scripts/make_base_stage.py "
