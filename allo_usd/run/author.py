@@ -552,7 +552,7 @@ class Authored:
 TREE_PLAN = "plan.toml"            # the plan a tree was authored from (its record, and its root for usd.safety)
 TREE_LOCK = ".allo-author.lock"    # one author run at a time per tree (core.files.RunLock)
 # What authoring writes at the top of a tree (plan.toml aside): `replace` removes exactly these.
-TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "counts.csv", "skipped.csv", "reserves.csv")
+TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "schema", "counts.csv", "skipped.csv", "reserves.csv")
 _TRASH = re.compile(r"^\.replaced\.[a-z0-9_]{8}$")   # a replace's trash (mkdtemp), left if the run was killed
 # Plan fields the tree checks by content, not by name: the base stage's path and the station's
 # source (stages/ must be a byte copy of the plan's stage, or built from the same model file).
@@ -697,7 +697,7 @@ def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
     and the sky of every plan day. `author` and `author_scene` start here."""
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
-    from allo_usd.usd.compose import tree_base_stage
+    from allo_usd.usd.compose import copy_schema, tree_base_stage
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -723,6 +723,7 @@ def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
             if not had_stages:    # the copy this run made from a broken stage: do not keep it
                 shutil.rmtree(stages, ignore_errors=True)
             raise _broken_stage(source, exc, stages if had_stages else None) from None
+        copy_schema(out_dir)   # for other USD tools (allo_usd.usd.compose); this process uses the package's
         if not same:
             save_plan(given, out_dir / TREE_PLAN)
         yield ctx

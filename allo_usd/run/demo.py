@@ -5,6 +5,7 @@ The demo authors exactly as a plan does (allo_usd.usd.compose), into a self-cont
     OUT/layers/NAME.usda            scene layers (only their own opinions, under 4 KB)
     OUT/layers/sky/, poses/         the shared day and camera-sample layers they stack
     OUT/layers/stages/              the tree's own byte copy of the base stage and its assets
+    OUT/layers/schema/              the Allo*API schemas' plugin, for PXR_PLUGINPATH_NAME
     OUT/renders/                    PNG, EXR, mask and JSON per scene
     OUT/contact_sheet.png
     OUT/logs/demo.log               what Blender printed while rendering
@@ -111,11 +112,13 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
+    from allo_usd.usd.compose import copy_schema
 
     out_dir = Path(out_dir)
     tree = out_dir / "layers"
     tree.mkdir(parents=True, exist_ok=True)
     stage = copy_base_stage(base_stage, tree)
+    copy_schema(tree)
     orbit = Orbit()
     sky = compute_sky(default_epochs(), orbit)
     inputs = scene_inputs(stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))

@@ -7,13 +7,17 @@ camera sample decides is written once and reused:
     OUT/sky/dDDD.usda                          sun light, bodies, eclipse state, epoch (per day)
     OUT/poses/sSEED/dDDD_pPP[_ASSET-VARIANT].usda  camera transform, offsets, attempts (per sample)
     OUT/scenes/SPLIT/KIND/SCENE_ID.usda        subLayers = [its pose layer, its sky layer, base]
+    OUT/schema/plugInfo.json, generatedSchema.usda  the Allo*API schemas' codeless plugin
 
 A scene layer adds only its own opinions (identity and seed, anomaly, effects, render settings),
 so it stays under 4 KB, and the five depths of one anomaly placement share one pose layer. Every
 layer carries defaultPrim, upAxis and metersPerUnit. The tree is self-contained: it holds its
 own byte copy of the base stage and its assets (`copy_base_stage`), and every sublayer and
 reference is a relative path that stays inside the tree. So the same plan gives the same bytes
-wherever it is authored, and a copied or moved tree opens in any USD tool as it is.
+wherever it is authored, and a copied or moved tree opens in any USD tool as it is. A tool
+that should also see the Allo*API schemas applied (their fallbacks, `HasAPI`) points USD at the
+tree's plugin, `PXR_PLUGINPATH_NAME=OUT/schema` (`copy_schema`): its paths are relative to its
+own folder, so it moves with the tree. It is not a composition input (no layer names it).
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from allo_usd.scene.spec import CameraSpec, SceneSpec, SunSpec
 from allo_usd.usd.scene_layer import (anomaly_asset_path, check_base_stage, pose_prims, scene_custom, scene_prims,
                                       sky_prims, validate_spec, write_layer)
 
-SKY_DIR, POSE_DIR, SCENE_DIR, STAGE_DIR = "sky", "poses", "scenes", "stages"
+SKY_DIR, POSE_DIR, SCENE_DIR, STAGE_DIR, SCHEMA_DIR = "sky", "poses", "scenes", "stages", "schema"
 
 
 def tree_base_stage(out_dir: Path) -> Path:
@@ -62,29 +66,49 @@ def base_stage_files(base_stage: Path) -> list[str]:
 
 def copy_base_stage(base_stage: Path, out_dir: Path) -> Path:
     """Give the tree under `out_dir` its own byte copy of `base_stage` and the files it uses, at
-    `out_dir/stages` (copied to a temporary directory, then renamed: a killed copy leaves nothing
-    under the final name). An existing copy is kept if it matches the source byte for byte; one
-    that differs is an error, since the tree's layers were authored over it."""
-    from allo_usd.core.errors import LayerError
-
+    `out_dir/stages` (`_copy_into_tree`)."""
     base_stage = check_base_stage(base_stage).resolve()
     dest = tree_base_stage(out_dir)
     if dest.is_file() and os.path.samefile(dest, base_stage):
         return dest  # the plan already names the tree's own copy
-    files = base_stage_files(base_stage)
-    if dest.parent.exists():
-        differ = [f for f in files if not (dest.parent / f).is_file()
-                  or not filecmp.cmp(base_stage.parent / f, dest.parent / f, shallow=False)]
+    _copy_into_tree(base_stage.parent, base_stage_files(base_stage), dest.parent, out_dir)
+    return dest
+
+
+def tree_schema(out_dir: Path) -> Path:
+    """The folder of a tree's copy of the schema plugin (what PXR_PLUGINPATH_NAME names)."""
+    return Path(out_dir) / SCHEMA_DIR
+
+
+def copy_schema(out_dir: Path) -> Path:
+    """Give the tree under `out_dir` a byte copy of the codeless schema plugin (plugInfo.json and
+    generatedSchema.usda, allo_usd.usd.schema.PLUGIN) at `out_dir/schema`, so that plain usd-core
+    with `PXR_PLUGINPATH_NAME=out_dir/schema` applies the Allo*API schemas (`_copy_into_tree`)."""
+    from allo_usd.usd.schema import PLUGIN, PLUGIN_FILES
+
+    dest = tree_schema(out_dir)
+    _copy_into_tree(PLUGIN, list(PLUGIN_FILES), dest, out_dir)
+    return dest
+
+
+def _copy_into_tree(src: Path, files: list[str], dest: Path, out_dir: Path) -> None:
+    """Copy `files` (relative to `src`) to `dest` (copied to a temporary directory, then renamed: a
+    killed copy leaves nothing under the final name). An existing copy is kept if it matches the
+    source byte for byte; one that differs is an error, since the tree's layers were authored with it."""
+    from allo_usd.core.errors import LayerError
+
+    if dest.exists():
+        differ = [f for f in files if not (dest / f).is_file()
+                  or not filecmp.cmp(src / f, dest / f, shallow=False)]
         if differ:
-            raise LayerError(f"{dest.parent} is not a copy of {base_stage.parent} ({len(differ)} files differ, "
-                             f"e.g. {differ[0]}); the layers under {out_dir} were authored over that copy. "
+            raise LayerError(f"{dest} is not a copy of {src} ({len(differ)} files differ, "
+                             f"e.g. {differ[0]}); the layers under {out_dir} were authored with that copy. "
                              "Fix: author into a new directory, or delete the old tree")
-        return dest
-    with atomic_directory(dest.parent) as tmp:
+        return
+    with atomic_directory(dest) as tmp:
         for f in files:
             (tmp / f).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(base_stage.parent / f, tmp / f)
-    return dest
+            shutil.copyfile(src / f, tmp / f)
 
 
 def sky_layer_path(out_dir: Path, day: int) -> Path:

@@ -13,19 +13,23 @@ from allo_usd.core.paths import SCHEMAS
 from allo_usd.usd.attributes import BY_SCHEMA
 
 API_SCHEMAS = tuple(BY_SCHEMA)
+# The codeless schema plugin: a resource plugin whose paths are relative to its own folder, so a
+# byte copy of these files anywhere (an authored tree's schema/, allo_usd.usd.compose) works as is.
+PLUGIN = SCHEMAS / "alloUsd"
+PLUGIN_FILES = ("generatedSchema.usda", "plugInfo.json")
 
 
 @lru_cache(maxsize=1)
 def register() -> None:
     from pxr import Plug, Usd
 
-    Plug.Registry().RegisterPlugins(str(SCHEMAS / "alloUsd"))
+    Plug.Registry().RegisterPlugins(str(PLUGIN))
     reg = Usd.SchemaRegistry()
     missing = [n for n in API_SCHEMAS if reg.FindAppliedAPIPrimDefinition(n) is None]
     if missing:
         raise AlloError(f"the allo-usd schema did not register {missing}: USD reads schema plugins once, "
                         "when the first stage is opened, so call allo_usd.usd.schema.register() before any other "
-                        f"use of pxr.Usd in this process (and check {SCHEMAS / 'alloUsd'} is intact)")
+                        f"use of pxr.Usd in this process (and check {PLUGIN} is intact)")
 
 
 def apply(prim, name: str) -> None:
