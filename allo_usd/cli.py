@@ -16,6 +16,14 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 asset_app = typer.Typer(no_args_is_help=True, help="Convert real meshes into USD assets.")
 app.add_typer(asset_app, name="asset")
 
+TREE_HELP = ("An authored tree (the OUT of `allo-usd author`) whose scenes/, sky/, poses/ and stages/ your layer may "
+             "read, for a layer of your own outside the tree that sublayers one of its scene layers (repeatable; "
+             "nothing else of OUT is granted). ALLO_ASSET_ROOTS lists further allowed directories.")
+
+
+def _tree_option():
+    return typer.Option(None, "--tree", metavar="OUT", help=TREE_HELP, show_default=False)
+
 
 @app.command()
 def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
@@ -23,18 +31,23 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                               "(.toml/.yaml)."),
            out: Path = typer.Option(Path("out/render"), "--out", help="Output directory."),
            force: bool = typer.Option(False, help="Re-render a single layer even if its outputs exist."),
-           workers: int = typer.Option(0, "--workers",
-                                       help="Local worker processes (default: the cores this process may use)."),
-           scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address (tcp://host:8786)."),
-           threads: int = typer.Option(0, "--threads", help="Cycles threads per worker (default: cores // workers)."),
+           workers: int = typer.Option(0, "--workers", show_default=False,
+                                       help="Local worker processes. Default (or 0): one per core this process may "
+                                            "use; a single layer without --workers renders in this process."),
+           scheduler: str = typer.Option(None, "--scheduler", show_default=False,
+                                         help="Dask scheduler address (tcp://host:8786). Default: a local pool."),
+           threads: int = typer.Option(0, "--threads", show_default=False,
+                                       help="Cycles threads per worker. Default (or 0): the usable cores // workers "
+                                            "(a single layer: all of them)."),
            retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed or timed out."),
-           timeout: float = typer.Option(0, "--timeout", metavar="SECONDS",
+           timeout: float = typer.Option(0, "--timeout", metavar="SECONDS", show_default=False,
                                          help="Time limit of one scene on a worker, after which the worker is killed "
-                                              "and the scene retried (0: 120 s + 5e-5 s per pixel x sample of the "
-                                              "layer)."),
-           save_blend: Path = typer.Option(None, "--save-blend", metavar="FILE",
+                                              "and the scene retried. Default (or 0): 120 s + 5e-5 s per pixel x "
+                                              "sample of the layer."),
+           save_blend: Path = typer.Option(None, "--save-blend", metavar="FILE", show_default=False,
                                            help="A single layer only: also save the Blender scene it builds as "
-                                                "FILE (.blend), to open what Blender got.")):
+                                                "FILE (.blend), to open what Blender got."),
+           trees: list[Path] = _tree_option()):
     """Render scene layers: RGB PNG, linear EXR, 3-class mask PNG and a metadata JSON per scene.
 
     One layer renders in this process. A directory renders all its scene layers (searched
@@ -43,7 +56,17 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
     output to OUT/logs/. A plan is authored into OUT/layers first, then rendered into OUT/renders.
     With --save-blend FILE a single layer is rendered (even if done) and its Blender scene saved.
     Each scene on a worker has a time limit (--timeout); past it the scene is retried, then failed.
+    A layer reads only files in its own folder, the package's stages/ and, for a scene layer of an
+    authored tree, that tree's authored folders; --tree OUT grants a tree to a layer of your own.
     """
+    from allo_usd.usd.safety import trees_granted
+
+    with trees_granted(trees or ()):
+        _render(source, out, force, workers, scheduler, threads, retries, timeout, save_blend)
+
+
+def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str | None, threads: int, retries: int,
+            timeout: float, save_blend: Path | None) -> None:
     import warnings
 
     from allo_usd.usd.sniff import LAYER_SUFFIXES
@@ -114,8 +137,11 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
 
 
 @app.command()
-def demo(out: Path = typer.Option(Path("out/demo"), "--out"),
-         width: int = 480, height: int = 270, samples: int = 32):
+def demo(out: Path = typer.Option(Path("out/demo"), "--out",
+                                  help="Output directory: the plan, its layers, the renders and the contact sheet."),
+         width: int = typer.Option(480, help="Image width in pixels."),
+         height: int = typer.Option(270, help="Image height in pixels."),
+         samples: int = typer.Option(32, help="Cycles samples per pixel.")):
     """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet."""
     from allo_usd.run.demo import run_demo
 
@@ -130,7 +156,9 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out"),
 
 
 @app.command()
-def sky(out: Path = typer.Option(Path("out/sky"), "--out"), year: int = 2030, days: int = 365):
+def sky(out: Path = typer.Option(Path("out/sky"), "--out", help="Output directory for SKY_YEAR.csv and .png."),
+        year: int = typer.Option(2030, help="The year whose 1 January (00:00 UTC) starts the table."),
+        days: int = typer.Option(365, help="Days in the table, one row per day at 00:00 UTC.")):
     """Write a year's sky table (CSV) and plot (PNG): distance, irradiance, eclipses, angular sizes."""
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
@@ -166,25 +194,32 @@ def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ or STL fil
 
 
 @app.command()
-def inspect(layer: Path = typer.Argument(..., help="Scene layer (.usda)."),
-            as_json: bool = typer.Option(False, "--json", help="Print JSON instead of text.")):
+def inspect(layer: Path = typer.Argument(..., help="Scene layer (.usda, .usdc or .usd)."),
+            as_json: bool = typer.Option(False, "--json", help="Print JSON instead of text."),
+            trees: list[Path] = _tree_option()):
     """Describe a scene from its USD layer alone: identity, seed, sky, camera, anomaly, render, layer stack."""
     import json
 
     from allo_usd.usd.inspect import describe, format_description
+    from allo_usd.usd.safety import trees_granted
 
-    d = describe(layer)
+    with trees_granted(trees or ()):
+        d = describe(layer)
     typer.echo(json.dumps(d, indent=2) if as_json else format_description(d))
 
 
 @app.command()
-def diff(a: Path = typer.Argument(..., help="First scene layer."), b: Path = typer.Argument(..., help="Second."),
-         full: bool = typer.Option(False, help="Compare every prim, not only those the non-shared layers touch.")):
+def diff(a: Path = typer.Argument(..., help="First scene layer."),
+         b: Path = typer.Argument(..., help="Second scene layer."),
+         full: bool = typer.Option(False, help="Compare every prim, not only those the non-shared layers touch."),
+         trees: list[Path] = _tree_option()):
     """List composed values that differ between two scene layers (exit 1 if any differ, like diff)."""
     from allo_usd.usd.inspect import diff as diff_layers
     from allo_usd.usd.inspect import format_diff
+    from allo_usd.usd.safety import trees_granted
 
-    rows = diff_layers(a, b, full=full)
+    with trees_granted(trees or ()):
+        rows = diff_layers(a, b, full=full)
     typer.echo(format_diff(rows))
     if rows:
         raise typer.Exit(1)
@@ -253,9 +288,11 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
 @app.command()
 def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml)."),
            out: Path = typer.Option(Path("out/dataset"), "--out", help="Output directory for the layers."),
-           limit: int = typer.Option(None, "--limit", help="Author only the first N scenes of the plan "
-                                     "(and the reserve scenes that top up their skipped depths)."),
-           workers: int = typer.Option(None, "--workers", help="Processes (default: 2 for large plans)."),
+           limit: int = typer.Option(None, "--limit", show_default=False,
+                                     help="Author only the first N scenes of the plan (and the reserve scenes that "
+                                          "top up their skipped depths). Default: every scene."),
+           workers: int = typer.Option(None, "--workers", show_default=False,
+                                       help="Processes. Default: 2 for large plans, else 1."),
            replace: bool = typer.Option(False, "--replace", help="OUT was authored from another plan: delete "
                                         "its layers (scenes/, sky/, poses/, stages/, the CSVs) and author this one."),
            progress: bool = typer.Option(True, help="Show a progress bar.")):
@@ -295,8 +332,32 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
 _PXR_COMMANDS = {"render", "inspect", "diff", "demo", "author", "asset"}
 
 
+def version_line() -> str:
+    """`allo-usd X (bpy Y, usd-core Z)`: the installed distributions' versions, from package metadata
+    (allo_usd.run.manifest.render_versions: bpy is not imported)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from allo_usd.run.manifest import render_versions
+
+    versions = render_versions()
+    try:
+        mine = version("allo-usd")
+    except PackageNotFoundError:
+        mine = f"{versions['allo_usd']} (not installed: run from a source checkout)"
+    return f"allo-usd {mine} (bpy {versions['bpy']}, usd-core {versions['usd-core']})"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(version_line())
+        raise typer.Exit()
+
+
 @app.callback()
-def _before_command(ctx: typer.Context) -> None:
+def _before_command(ctx: typer.Context,
+                    version: bool = typer.Option(False, "--version", is_eager=True, callback=_print_version,
+                                                 help="Print the versions of allo-usd, bpy and usd-core, and exit.")
+                    ) -> None:
     # pxr's module loader swallows a Ctrl-C that lands while it loads (allo_usd.usd.sniff.load_pxr)
     if ctx.invoked_subcommand in _PXR_COMMANDS:
         from allo_usd.usd.sniff import load_pxr

@@ -22,7 +22,7 @@ from allo_usd.core.files import RunLock, ensure_output_dir
 from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, clean_stale, compact_manifest, is_done,
                                    load_manifest)
 from allo_usd.run.worker import worker_main, render_task
-from allo_usd.usd.safety import ENV_ROOTS
+from allo_usd.usd.safety import ENV_ROOTS, tree_roots
 from allo_usd.usd.sniff import refusal
 
 Hook = Callable[[str], None]
@@ -451,7 +451,7 @@ def _restart_worker(client, address: str) -> None:
 
 def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
              retries: int = 2, progress: bool | None = None, extra_roots: tuple = (),
-             before_render: Hook | None = None, timeout: float | None = None) -> Summary:
+             before_render: Hook | None = None, timeout: float | None = None, trees: tuple = ()) -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
 
     `workers` local processes (default: the cores this process may use) with `threads` Cycles
@@ -461,6 +461,9 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     called in the worker before each render (a picklable function; tests inject faults with it).
     `timeout` is the limit of one attempt in seconds (None or 0: time_limit's formula per layer);
     an attempt past it is killed and retried like a crash, then recorded with kind "timeout".
+    `trees` are authored trees (the OUT of `allo-usd author`) whose four authored folders the
+    layers may also read, as `render --tree OUT` grants them (allo_usd.usd.safety.tree_roots: a
+    LayerError for a folder that is not an authored tree); `extra_roots` are further directories.
     """
     t0 = time.perf_counter()
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
@@ -468,6 +471,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         raise AlloError(f"workers={workers}: pass a number of worker processes >= 1 (or 0 for one per core)")
     if timeout is not None and timeout < 0:
         raise AlloError(f"timeout={timeout}: pass seconds > 0, or 0 for the default limit from each layer's size")
+    extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
     layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
     ensure_output_dir(out_dir, "output directory")
     # a layer's own folder (not its link target's: a link to /etc/passwd must not make /etc a root)
@@ -520,8 +524,8 @@ def author_and_dispatch(plan_path: Path, out_dir: Path, **kwargs) -> Summary:
 
     layers_dir = Path(out_dir) / "layers"
     layers = author_plan(load_plan(Path(plan_path)), layers_dir)
-    return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", extra_roots=(Path(out_dir),),
-                    **kwargs)
+    # the tree's authored folders, not all of OUT (OUT/renders and whatever else lies there)
+    return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", trees=(layers_dir,), **kwargs)
 
 
 __all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "core_sets", "usable_cores"]

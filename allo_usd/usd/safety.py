@@ -12,7 +12,13 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
   ~/Downloads/x.usda) makes no root: that would open ~ to it;
 - the directories named in the environment variable `ALLO_ASSET_ROOTS` (os.pathsep-separated).
   The dispatcher sets it to the directories of the layers it renders and the plan's output
-  directory, so worker processes inherit the same rule.
+  directory, so worker processes inherit the same rule;
+- the trees a user names (`allo-usd render/inspect/diff LAYER --tree OUT`, `trees_granted`): for
+  a layer of one's own outside a tree that sublayers a tree's scene layer. Each must be an
+  authored tree (`OUT/plan.toml` or `OUT/stages/base.usda`), and grants what a tree grants its
+  own scene layers: its four authored folders, each of which must lie inside OUT after symbolic
+  links are resolved, and nothing else of OUT (not OUT/private/). They reach the process's
+  `ALLO_ASSET_ROOTS`, so render workers inherit them.
 
 Paths are compared after resolving symbolic links, so a link inside a root that points outside
 it is rejected too. allo_usd.usd.dependencies applies these roots (and the file-type and size
@@ -24,12 +30,78 @@ never code.
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from pathlib import Path
 
 from allo_usd.core.errors import LayerError
 from allo_usd.core.paths import STAGES
 
 ENV_ROOTS = "ALLO_ASSET_ROOTS"
+
+
+def _tree_folders(tree: Path) -> tuple[Path, ...]:
+    """The authored folders of a tree (OUT/scenes, sky, poses, stages): all a tree grants."""
+    from allo_usd.usd.compose import POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR
+
+    return tuple(tree / d for d in (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR))
+
+
+def is_authored_tree(path: str | Path) -> bool:
+    """A folder `allo-usd author` wrote: it holds plan.toml or stages/base.usda (regular files)."""
+    from allo_usd.usd.compose import STAGE_DIR
+
+    path = Path(path)
+    return (path / "plan.toml").is_file() or (path / STAGE_DIR / "base.usda").is_file()
+
+
+def tree_roots(tree: str | Path, option: str = "--tree") -> tuple[Path, ...]:
+    """The roots that naming `tree` grants (its four authored folders, real paths), or a LayerError
+    when `tree` is not an authored tree or one of its folders links outside it."""
+    real = Path(os.path.realpath(tree))
+    if not real.is_dir():
+        raise LayerError(f"{option} {tree} is not a directory; pass the folder `allo-usd author` wrote (OUT, which "
+                         "holds plan.toml, scenes/, sky/, poses/ and stages/)")
+    if not is_authored_tree(real):
+        raise LayerError(f"{option} {tree} is not an authored tree (it holds neither plan.toml nor stages/base.usda); "
+                         "pass the folder `allo-usd author` wrote (OUT, not a folder inside it), or add the "
+                         f"directory your layer needs to {ENV_ROOTS}")
+    roots = []
+    for folder in _tree_folders(real):
+        target = Path(os.path.realpath(folder))
+        if target != folder:
+            raise LayerError(f"{option} {tree}: {folder} is a symbolic link to {target}; a tree grants only its own "
+                             f"folders: replace the link with the folder's files, or add {target} to {ENV_ROOTS}")
+        roots.append(target)
+    return tuple(roots)
+
+
+@contextmanager
+def trees_granted(trees, option: str = "--tree"):
+    """For the block, also allow the authored folders of each tree in `trees` (tree_roots), in this
+    process and in the render workers it starts (they inherit ALLO_ASSET_ROOTS). Every tree is
+    checked before anything is granted."""
+    roots = [str(r) for t in trees for r in tree_roots(t, option)]
+    if not roots:
+        yield
+        return
+    prior = os.environ.get(ENV_ROOTS)
+    os.environ[ENV_ROOTS] = os.pathsep.join([*roots, *([prior] if prior else [])])
+    try:
+        yield
+    finally:
+        if prior is None:
+            os.environ.pop(ENV_ROOTS, None)
+        else:
+            os.environ[ENV_ROOTS] = prior
+
+
+def _tree_of(path: str | Path) -> Path | None:
+    """The authored tree whose authored folders hold `path` (after realpath), if any."""
+    real = Path(os.path.realpath(path))
+    for d in real.parents:
+        if is_authored_tree(d) and any(f in real.parents for f in _tree_folders(d)):
+            return d
+    return None
 
 
 def _plan_root(layer_path: Path) -> Path | None:
@@ -47,9 +119,7 @@ def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) ->
     roots = [STAGES, Path(layer_path).parent, *extra]
     plan_root = _plan_root(Path(layer_path))
     if plan_root is not None:  # a plan's output tree (open_tree writes plan.toml at its top): its authored folders
-        from allo_usd.usd.compose import POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR
-
-        roots += [plan_root / d for d in (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR)]
+        roots += _tree_folders(plan_root)
     roots += [Path(p) for p in os.environ.get(ENV_ROOTS, "").split(os.pathsep) if p]
     out = []
     for r in roots:
@@ -65,9 +135,13 @@ def inside(path: str, roots: tuple[Path, ...]) -> bool:
 
 
 def reject(what: str, path: str, layer_path, roots) -> None:
+    tree = _tree_of(path)
+    fix = (f"it belongs to the authored tree {tree}: name that tree with `--tree {tree}` (allo-usd render, inspect, "
+           f"diff), or add the folder that holds the file to {ENV_ROOTS}" if tree is not None else
+           f"move the file under one of them, name its authored tree with `--tree OUT`, or add its directory to "
+           f"{ENV_ROOTS}")
     raise LayerError(f"{layer_path}: {what} {path} resolves outside the allowed roots "
-                     f"({', '.join(map(str, roots))}); move the file under one of them or add its directory "
-                     f"to {ENV_ROOTS}")
+                     f"({', '.join(map(str, roots))}); {fix}")
 
 
 def check_stage(stage, layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> None:
