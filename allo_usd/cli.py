@@ -11,9 +11,9 @@ import typer
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import ensure_output_dir, ensure_output_file
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
                   help="Author, record and render the ALLO lunar-orbit anomaly dataset as USD layers.")
-asset_app = typer.Typer(no_args_is_help=True, help="Convert real meshes into USD assets.")
+asset_app = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown", help="Convert real meshes into USD assets.")
 app.add_typer(asset_app, name="asset")
 
 TREE_HELP = ("An authored tree (the OUT of `allo-usd author`) whose scenes/, sky/, poses/ and stages/ your layer may "
