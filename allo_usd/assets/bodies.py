@@ -1,8 +1,10 @@
 """Moon, Earth and Sun as unit spheres with procedural equirectangular textures.
 
 The sky module places them at true scale (scale = body radius, translate = true position),
-so one unit sphere per body serves every day. The Sun's sphere emits nothing and is fully
-transparent (UsdPreviewSurface opacity 0): the Sun is the station's UsdLux DistantLight, whose
+so one unit sphere per body serves every day. The Sun's sphere emits nothing and is cut out
+everywhere (UsdPreviewSurface opacity 0 under opacityThreshold 0.5: no renderer draws it, and it is
+not refractive glass, which opacity 0 with threshold 0 may be): the Sun is the station's UsdLux
+DistantLight, whose
 angular diameter and irradiance draw the disc (radiance SUN_RADIANCE at 1 AU) and light the scene
 once, in any renderer. The sphere is there so that the disc's pixels carry class 1 in the mask.
 
@@ -187,5 +189,5 @@ def build_bodies() -> dict[str, Asset]:
                   (Material("EarthSurface", (1.0, 1.0, 1.0), 0.0, 1.0, base_color_texture="earth_albedo", ior=1.0),),
                   {"earth_albedo": earth_texture()})
     sun = Asset("Sun", (uv_sphere("Surface", 1.0, "Photosphere", segments=48, rings=24),),
-                (Material("Photosphere", (0.0, 0.0, 0.0), 0.0, 1.0, opacity=0.0),))
+                (Material("Photosphere", (0.0, 0.0, 0.0), 0.0, 1.0, opacity=0.0, opacity_threshold=0.5),))
     return {"Moon": moon, "Earth": earth, "Sun": sun}

@@ -40,7 +40,7 @@ SPOT_OFFSET_M = (0.25, -0.12, 0.0)  # beside the lens, in the camera frame
 
 DEFAULT_RESOLUTION = (1920, 1080)
 
-# Sun lamps (docs/physics.md sections 5, 7, 12): DistantLights with inputs:normalize = true, so that, as
+# Sun lamps (docs/physics.md sections 5, 7, 10): DistantLights with inputs:normalize = true, so that, as
 # UsdLux defines it, inputs:intensity is the irradiance at normal incidence (W/m^2; the project is
 # radiometric) and inputs:angle the Sun's angular diameter. The station's lamp lights everything. On an
 # eclipse day (the station's, the Earth's and the Moon's lit fractions differ) the day's layer links

@@ -394,6 +394,10 @@ def read_material(material) -> MaterialDesc:
     emissive = _colour(_input(surface, "emissiveColor", (0.0, 0.0, 0.0))[0], where("emissiveColor"), MAX_LIGHT)
     ior = _number(_input(surface, "ior", 1.5)[0], where("ior"), lo=IOR[0], hi=IOR[1])
     opacity = _number(_input(surface, "opacity", 1.0)[0], where("opacity"), lo=UNIT_INTERVAL[0], hi=UNIT_INTERVAL[1])
+    threshold = _number(_input(surface, "opacityThreshold", 0.0)[0], where("opacityThreshold"), lo=UNIT_INTERVAL[0],
+                        hi=UNIT_INTERVAL[1])
+    if threshold > 0:  # UsdPreviewSurface: drawn only where opacity >= opacityThreshold (a cut-out mask)
+        opacity = 1.0 if opacity >= threshold else 0.0
     return MaterialDesc(path, color, metallic, roughness, texture, emissive, ior, opacity)
 
 
