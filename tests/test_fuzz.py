@@ -84,7 +84,7 @@ INVALID = {
     "sun_nan": lambda t, rng: _sub(r"float inputs:intensity = \S+",
                                    f"float inputs:intensity = {rng.choice(BAD_NUMBERS)}")(t, rng),
     "exposure_nan": lambda t, rng: _sub(r"float exposure = \S+",
-                                        f"float exposure = {rng.choice(BAD_NUMBERS + ['0', '-1'])}")(t, rng),
+                                        f"float exposure = {rng.choice(BAD_NUMBERS + ['1e3', '-1e3'])}")(t, rng),
     # missing files
     "missing_sublayer": _sub(r"@([^@]*)base\.usda@", r"@\1gone.usda@"),
     "missing_reference": _sub(r"@([^@]*)anomalies/Crate\.usda@", r"@\1anomalies/Gone.usda@"),
