@@ -296,7 +296,8 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     w.bad(pool, "mesh_nan_points", "malformed", LAYER_ERROR,
           lambda t: in_world(t, mesh("Bad", "[(0, 0, 0), (nan, 0, 0), (0, 1, 0)]", "[3]", "[0, 1, 2]")))
     w.bad(pool, "quat_zero", "malformed", LAYER_ERROR,
-          lambda t: _sub(r"(over \"Camera\"\n    \{\n        quatd xformOp:orient = )\([^)]*\)", r"\1(0, 0, 0, 0)", t))
+          lambda t: _sub(r"(over \"Camera\"\n    \{\n(?:        [^\n]*\n)*?        quatd xformOp:orient = )\([^)]*\)",
+                         r"\1(0, 0, 0, 0)", t))
 
     # ---- extreme values
     w.bad(pool, "clip_nan", "extreme", LAYER_ERROR, lambda t: in_camera(t, "        float2 clippingRange = (nan, nan)\n"))

@@ -66,7 +66,8 @@ def test_demo_composes_like_a_plan_inside_its_own_tree(demo_dir, tmp_path, monke
         subs = list(layer.subLayerPaths)
         assert subs[0].startswith("./poses/s2030/") and subs[1].startswith("./sky/d"), subs
         assert subs[2] == "./stages/base.usda"
-        assert layer.GetPrimAtPath("/World/Camera") is None
+        camera = layer.GetPrimAtPath("/World/Camera")  # only the image's exposure (UsdGeom.Camera), not the pose
+        assert camera is None or set(camera.attributes.keys()) == {"exposure"}
     assert (tree / "stages" / "base.usda").read_bytes() == (STAGES / "base.usda").read_bytes()
     moved = tmp_path / "x" / "y" / "layers"
     shutil.copytree(tree, moved)

@@ -44,23 +44,24 @@ def test_eclipsed_station_is_lit_by_the_inspection_light_and_body_shine_only(tin
     assert dark.rgb.max() == 0.0  # and without body shine, nothing
 
 
-def test_station_sun_never_lights_the_bodies(tiny_base, tmp_path):
-    """Toggle the station's sun (lit, umbra, and three times too bright): the Moon looks the same, since
-    only its own lamp lights it (light linking); the station changes."""
+def test_station_sun_never_lights_the_bodies_on_an_eclipse_day(tiny_base, tmp_path):
+    """Toggle the station's eclipse (lit, umbra, half lit): the Moon looks the same, since on an eclipse
+    day only its own lamp lights it (light linking), and on a normal day the one lamp is the same Sun;
+    the station changes."""
     pos = np.array([0.0, 0.0, -5.0])  # under the station, looking straight down at the Moon
     cam = replace(make_spec().camera, position=tuple(pos), rotation=look_at(pos, pos + [0.0, 0.0, -1.0]))
     spec = replace(make_spec(resolution=(64, 36), samples=4), camera=cam, effects=EffectsSpec(inspection_light=False))
     suns = {"lit": spec.sun, "umbra": replace(spec.sun, irradiance=0.0, lit_fraction=0.0, eclipse_state="umbra"),
-            "bright": replace(spec.sun, irradiance=3 * 1361.0)}
+            "half": replace(spec.sun, irradiance=0.5 * 1361.0, lit_fraction=0.5, eclipse_state="penumbra")}
     moon = {name: _render(replace(spec, sun=s), tiny_base, tmp_path / f"moon_{name}.usda").rgb
             for name, s in suns.items()}
     assert moon["lit"].mean() > 0.01  # the Moon's near side is sunlit and fills the frame
     np.testing.assert_allclose(moon["umbra"], moon["lit"], rtol=1e-5, atol=0)
-    np.testing.assert_allclose(moon["bright"], moon["lit"], rtol=1e-5, atol=0)
+    np.testing.assert_allclose(moon["half"], moon["lit"], rtol=1e-5, atol=0)
     station = {name: _render(replace(make_spec(resolution=(64, 36), samples=4), sun=s), tiny_base,
                              tmp_path / f"station_{name}.usda") for name, s in suns.items()}
     lit_station = station["lit"].rgb[station["lit"].mask == 1].mean()
-    assert station["bright"].rgb[station["lit"].mask == 1].mean() == pytest.approx(3 * lit_station, rel=0.02)
+    assert station["half"].rgb[station["lit"].mask == 1].mean() == pytest.approx(0.5 * lit_station, rel=0.02)
     assert station["umbra"].rgb[station["lit"].mask == 1].mean() < 0.05 * lit_station
 
 

@@ -28,6 +28,11 @@ class Material:
     # UsdPreviewSurface `ior` (default 1.5): the dielectric specular layer. 1.0 removes it, leaving
     # a purely diffuse (Lambertian) surface whose reflectance is exactly its base colour.
     ior: float = 1.5
+    # UsdPreviewSurface `opacity` (default 1) and `opacityThreshold` (default 0): with a threshold above 0
+    # the surface is drawn only where opacity reaches it (a cut-out, not refractive glass), so opacity 0
+    # and threshold 0.5 make a surface that no renderer draws (the Sun's sphere, a mask label only).
+    opacity: float = 1.0
+    opacity_threshold: float = 0.0
 
 
 @dataclass(frozen=True)
