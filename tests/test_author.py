@@ -135,10 +135,20 @@ def test_bad_body_lamp_writes_nothing(tiny_base, tmp_path):
 
 
 def test_inspect_shows_every_sun_lamp_and_what_it_lights(tiny_base, tmp_path):
+    from dataclasses import replace
+
     from allo_usd.usd.inspect import describe, format_description
 
+    # A normal day (every lit fraction 1): one normalised lamp lights everything, no light linking.
     d = describe(write_scene_layer(make_spec(), tmp_path / "s.usda", tiny_base))
-    assert d["sun"]["path"] == "/World/Sky/SunLight"
+    assert d["sun"]["path"] == "/World/Sky/SunLight" and d["sun"]["normalize"] is True
+    assert d["sun"]["light_link"] == {"include_root": True, "includes": [], "excludes": []}
+    assert d["body_suns"] == [] and "lights all" in format_description(d)
+    # An eclipse day (the station half lit, the bodies fully): the three linked lamps.
+    spec = make_spec()
+    eclipse = replace(spec, sun=replace(spec.sun, irradiance=680.5, lit_fraction=0.5, eclipse_state="penumbra",
+                                        eclipse_body="moon"))
+    d = describe(write_scene_layer(eclipse, tmp_path / "e.usda", tiny_base))
     assert d["sun"]["light_link"] == {"include_root": True, "includes": [],
                                       "excludes": ["/World/Sky/Earth", "/World/Sky/Moon"]}
     assert [(s["path"], s["light_link"]["includes"], s["lit_fraction"]) for s in d["body_suns"]] == [

@@ -70,7 +70,7 @@ INVALID = {
     "resolution_type": _sub(r"uniform int2 resolution = \(\d+, \d+\)", 'uniform string resolution = "big"'),
     "intensity_type": _sub(r"float inputs:intensity = \S+", 'string inputs:intensity = "bright"'),
     "translate_type": _sub(r"double3 xformOp:translate = \(15, 8, 5\)", 'string xformOp:translate = "here"'),
-    "exposure_type": _sub(r"float allo:render:exposure = \S+", "bool allo:render:exposure = 1"),
+    "exposure_type": _sub(r"float exposure = \S+", "bool exposure = 1"),
     "orient_type": _sub(r"quatd xformOp:orient = \(1, 0, 0, 0\)", "int xformOp:orient = 3"),
     # non-finite transforms and values
     "camera_nan": lambda t, rng: _sub(r"double3 xformOp:translate = \(15, 8, 5\)",
@@ -83,8 +83,8 @@ INVALID = {
                                      f"double3 xformOp:scale = (1, {rng.choice(BAD_NUMBERS)}, 1)")(t, rng),
     "sun_nan": lambda t, rng: _sub(r"float inputs:intensity = \S+",
                                    f"float inputs:intensity = {rng.choice(BAD_NUMBERS)}")(t, rng),
-    "exposure_nan": lambda t, rng: _sub(r"float allo:render:exposure = \S+",
-                                        f"float allo:render:exposure = {rng.choice(BAD_NUMBERS + ['0', '-1'])}")(t, rng),
+    "exposure_nan": lambda t, rng: _sub(r"float exposure = \S+",
+                                        f"float exposure = {rng.choice(BAD_NUMBERS + ['0', '-1'])}")(t, rng),
     # missing files
     "missing_sublayer": _sub(r"@([^@]*)base\.usda@", r"@\1gone.usda@"),
     "missing_reference": _sub(r"@([^@]*)anomalies/Crate\.usda@", r"@\1anomalies/Gone.usda@"),

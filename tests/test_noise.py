@@ -157,7 +157,8 @@ def test_layer_carries_every_sensor_parameter(tiny_base, tmp_path):
     assert authored["allo:effects:sensor:exposureTime"] == pytest.approx(exposure_time_for(sensor, EXPOSURE))
     assert authored["allo:effects:sensor:readNoise"] == 4.5 and authored["allo:effects:sensor:fNumber"] == 2.8
     desc = read_scene(layer)
-    assert desc.effects.sensor == sensor.resolved(EXPOSURE)
+    assert desc.render.exposure == pytest.approx(EXPOSURE, rel=1e-6)  # the camera's EV, stored as a float
+    assert desc.effects.sensor == sensor.resolved(desc.render.exposure)
 
     from test_validation import validation_errors
 

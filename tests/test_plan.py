@@ -120,7 +120,9 @@ def test_tiny_plan_layout_and_sizes(authored):
         subs = list(layer.subLayerPaths)
         assert subs[0].startswith("../../../poses/s2030/") and subs[1].startswith("../../../sky/d00"), subs
         assert subs[2] == "../../../stages/base.usda", subs  # the tree's own copy, never the repo's
-        assert layer.GetPrimAtPath("/World/Camera") is None and layer.GetPrimAtPath("/World/Sky") is None
+        camera = layer.GetPrimAtPath("/World/Camera")  # only the image's exposure (UsdGeom.Camera), not the pose
+        assert camera is None or set(camera.attributes.keys()) == {"exposure"}
+        assert layer.GetPrimAtPath("/World/Sky") is None
         anomaly = layer.GetPrimAtPath("/World/Anomaly")
         if anomaly is not None:
             ref, = anomaly.referenceList.prependedItems

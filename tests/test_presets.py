@@ -143,5 +143,5 @@ def test_quality_and_effects_are_declared_once():
     assert Effects().model_dump() == {f.name: getattr(EffectFlags(), f.name) for f in fields(EffectFlags)}
     # every field has its allo: attribute, and the render/effects attributes record nothing else
     render_fields = {a.field for a in A.RENDER_QUALITY}
-    assert quality <= render_fields and render_fields - quality == {"preset", "seed", "exposure", "threads"}
+    assert quality <= render_fields and render_fields - quality == {"preset", "seed", "threads"}
     assert {a.field for a in A.EFFECT_FLAGS} == flags

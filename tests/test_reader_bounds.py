@@ -71,6 +71,18 @@ def test_camera_clipping_range_is_finite_ordered_and_within_blender(layer, clip)
     refused(layer, f"{CAMERA}.clippingRange")
 
 
+@pytest.mark.parametrize("name,value,needle", [
+    ("exposure", float("nan"), "exposure"), ("exposure", float("inf"), "exposure"), ("exposure", 100.0, "exposure"),
+    ("exposure", 40.0, "linear exposure scale"), ("exposure:fStop", 0.0, "exposure:fStop"),
+    ("exposure:iso", -100.0, "exposure:iso"), ("exposure:time", float("nan"), "exposure:time"),
+    ("exposure:responsivity", 0.0, "exposure:responsivity"), ("exposure:fStop", 1e-7, "linear exposure scale")])
+def test_camera_exposure_is_finite_positive_and_within_film_exposure(layer, name, value, needle):
+    """The film exposure comes from UsdGeom.Camera's exposure attributes: each is bounded, and so is
+    the linear scale they make (Cycles film_exposure takes 0..2^32)."""
+    override(layer, CAMERA, name, T.Float, value)
+    refused(layer, f"{CAMERA}", needle)
+
+
 @pytest.mark.parametrize("name,value", [("focalLength", 1e-30), ("focalLength", 1e30), ("focalLength", 0.005),
                                         ("horizontalAperture", 1e-30), ("verticalAperture", 1e30)])
 def test_camera_lens_values_within_blenders_limits(layer, name, value):
@@ -316,7 +328,7 @@ def test_missing_or_wrong_default_prim_is_a_layer_error(layer, default):
 
 @pytest.mark.parametrize("name,type_name,value", [
     ("allo:render:seed", T.Int, -1), ("allo:render:seed", T.Int64, 2 ** 31),
-    ("allo:render:threads", T.Int, 2000), ("allo:render:exposure", T.Float, 1e10),
+    ("allo:render:threads", T.Int, 2000),
 ])
 def test_render_settings_within_blenders_limits(layer, name, type_name, value):
     override(layer, SETTINGS, name, type_name, value)

@@ -53,7 +53,7 @@ TARGETS = [
     (MOON_SURFACE, "inputs:roughness", "scalar"),
     (SETTINGS, "allo:render:samples", "int"), (SETTINGS, "allo:render:seed", "int"),
     (SETTINGS, "allo:render:threads", "int"), (SETTINGS, "allo:render:maxBounces", "int"),
-    (SETTINGS, "allo:render:adaptiveThreshold", "scalar"), (SETTINGS, "allo:render:exposure", "scalar"),
+    (SETTINGS, "allo:render:adaptiveThreshold", "scalar"), (CAMERA, "exposure", "scalar"),
     (SETTINGS, "resolution", "int_pair"),
     (SETTINGS, "allo:effects:sensor:fullWell", "scalar"), (SETTINGS, "allo:effects:sensor:bitDepth", "int"),
     (SETTINGS, "allo:effects:sensor:quantumEfficiency", "scalar"),

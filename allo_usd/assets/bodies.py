@@ -1,9 +1,10 @@
 """Moon, Earth and Sun as unit spheres with procedural equirectangular textures.
 
 The sky module places them at true scale (scale = body radius, translate = true position),
-so one unit sphere per body serves every day. The Sun's disc is an emitter of constant radiance
-(radiance does not fall with distance; its solid angle does), so its value lives in the asset,
-not in each scene.
+so one unit sphere per body serves every day. The Sun's sphere emits nothing and is fully
+transparent (UsdPreviewSurface opacity 0): the Sun is the station's UsdLux DistantLight, whose
+angular diameter and irradiance draw the disc (radiance SUN_RADIANCE at 1 AU) and light the scene
+once, in any renderer. The sphere is there so that the disc's pixels carry class 1 in the mask.
 
 Albedo convention: BOND albedo, area-weighted, for both bodies (docs/physics.md section 5: Moon
 0.11, Earth 0.306). Both bodies are Lambertian (UsdPreviewSurface `ior = 1`: no specular layer),
@@ -37,7 +38,8 @@ from allo_usd.core.constants import AU_M, SOLAR_CONSTANT, SUN_RADIUS_M
 from allo_usd.assets.mesh import Asset, Material
 from allo_usd.assets.primitives import uv_sphere
 
-# Radiance of the solar disc: irradiance / solid angle = E / (pi sin^2 theta) at 1 AU.
+# Radiance of the solar disc: irradiance / solid angle = E / (pi sin^2 theta) at 1 AU (what the
+# DistantLight's disc has: UsdLux's size factor of a normalised DistantLight, read.distant_size_factor).
 SUN_RADIANCE = SOLAR_CONSTANT / (np.pi * (SUN_RADIUS_M / AU_M) ** 2)
 
 MOON_ALBEDO = 0.11    # Bond albedo (geometric: 0.12)
@@ -184,8 +186,6 @@ def build_bodies() -> dict[str, Asset]:
     earth = Asset("Earth", (uv_sphere("Surface", 1.0, "EarthSurface", segments=128, rings=64),),
                   (Material("EarthSurface", (1.0, 1.0, 1.0), 0.0, 1.0, base_color_texture="earth_albedo", ior=1.0),),
                   {"earth_albedo": earth_texture()})
-    sun_color = np.array([1.0, 0.97, 0.92])
     sun = Asset("Sun", (uv_sphere("Surface", 1.0, "Photosphere", segments=48, rings=24),),
-                (Material("Photosphere", (0.0, 0.0, 0.0), 0.0, 1.0,
-                          emissive_color=tuple(float(c) for c in sun_color * SUN_RADIANCE)),))
+                (Material("Photosphere", (0.0, 0.0, 0.0), 0.0, 1.0, opacity=0.0),))
     return {"Moon": moon, "Earth": earth, "Sun": sun}

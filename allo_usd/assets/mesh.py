@@ -28,6 +28,8 @@ class Material:
     # UsdPreviewSurface `ior` (default 1.5): the dielectric specular layer. 1.0 removes it, leaving
     # a purely diffuse (Lambertian) surface whose reflectance is exactly its base colour.
     ior: float = 1.5
+    # UsdPreviewSurface `opacity` (default 1): 0 is fully transparent (the Sun's sphere, a mask label only).
+    opacity: float = 1.0
 
 
 @dataclass(frozen=True)

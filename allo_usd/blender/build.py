@@ -100,6 +100,7 @@ def set_principled(bsdf, desc: MaterialDesc) -> None:
     assign(inputs["Metallic"], "default_value", desc.metallic, f"{where} metallic")
     assign(inputs["Roughness"], "default_value", desc.roughness, f"{where} roughness")
     assign(inputs["IOR"], "default_value", desc.ior, f"{where} ior")  # 1.0: no specular layer, a Lambertian surface
+    assign(inputs["Alpha"], "default_value", desc.opacity, f"{where} opacity")  # 0: fully transparent (the Sun's sphere)
 
 
 def build_material(desc: MaterialDesc):
@@ -187,6 +188,7 @@ def set_sun(obj, desc: SunDesc) -> None:
 
     light = obj.data
     assign(light, "energy", desc.irradiance, f"{desc.path} irradiance")  # Cycles sun strength is irradiance, W/m^2
+    obj.visible_camera = desc.camera_visible  # Cycles draws the disc (angle, radiance irradiance / its solid angle)
     assign(light, "angle", math.radians(desc.angle_deg), f"{desc.path} angle (radians)")
     assign(light, "color", desc.color, f"{desc.path} color")
     m = np.eye(4)
@@ -218,7 +220,9 @@ def build_sun(desc: SunDesc):
 
 
 def spot_power_w(desc: SpotDesc) -> float:
-    """Radiant power of a sphere of radius r with surface radiance L: 4 pi^2 r^2 L."""
+    """Radiant power of a sphere of radius r with surface radiance L: 4 pi^2 r^2 L (area 4 pi r^2 times
+    the pi L a Lambertian surface emits per unit area). L is UsdLux's un-normalised SphereLight intensity
+    (the reader divides a normalised one by the area first), and Blender's point/spot power is this."""
     return 4.0 * math.pi ** 2 * desc.radius ** 2 * desc.intensity
 
 
@@ -284,6 +288,7 @@ def configure_render(render: RenderDesc) -> None:
     layer = scene.view_layers[0]
     layer.use_pass_combined = True
     layer.use_pass_object_index = True
+    layer.pass_alpha_threshold = 0.0  # every surface writes the index, the transparent Sun sphere too (class 1)
     layer.use_pass_z = "depth" in render.outputs
 
 

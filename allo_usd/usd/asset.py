@@ -73,6 +73,8 @@ def write_geometry(asset: Asset, usdc_path: Path, root: str, texture_dir: str = 
         shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(mat.roughness))
         if mat.ior != 1.5:  # the UsdPreviewSurface default; authored only where it differs
             shader.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(float(mat.ior))
+        if mat.opacity != 1.0:  # the UsdPreviewSurface default; authored only where it differs
+            shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(float(mat.opacity))
         if any(mat.emissive_color):
             shader.CreateInput("emissiveColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*map(float, mat.emissive_color)))
         diffuse = shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd.core.constants import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM
+from allo_usd.core.constants import EXPOSURE, FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM
 from allo_usd.core.geometry import matrix_to_quat
 from allo_usd.assets.mesh import Asset
 from allo_usd.usd import schema
@@ -29,8 +29,9 @@ H_APERTURE = SENSOR_WIDTH_MM / 100.0
 V_APERTURE = SENSOR_HEIGHT_MM / 100.0
 CLIPPING_RANGE = (0.05, 1.0e12)  # far plane beyond the Sun at 1.5e11 m (scheme C, true scale)
 
-# Inspection light: a 5 cm sphere emitting radiance L (UsdLux intensity, nits-like), shaped to a
-# 35-degree half-angle cone. Its radiant power is 4 pi^2 r^2 L (see blender/build.py).
+# Inspection light: a 5 cm sphere emitting radiance L (UsdLux: an un-normalised SphereLight's intensity is
+# the radiance of its surface; this project is radiometric, so W/m^2/sr), shaped to a 35-degree half-angle
+# cone. Its radiant power is 4 pi^2 r^2 L (see blender/build.py).
 SPOT_RADIUS_M = 0.05
 SPOT_INTENSITY = 20_000.0
 SPOT_CONE_DEG = 35.0
@@ -39,9 +40,12 @@ SPOT_OFFSET_M = (0.25, -0.12, 0.0)  # beside the lens, in the camera frame
 
 DEFAULT_RESOLUTION = (1920, 1080)
 
-# Sun lamps (UsdLux light linking, docs/physics.md sections 5, 7): the station's lamp carries the station's
-# eclipse and lights everything but the Earth and the Moon; each of those has a lamp of its own that
-# lights only it, with the Sun as seen from its centre and its own eclipse.
+# Sun lamps (docs/physics.md sections 5, 7, 12): DistantLights with inputs:normalize = true, so that, as
+# UsdLux defines it, inputs:intensity is the irradiance at normal incidence (W/m^2; the project is
+# radiometric) and inputs:angle the Sun's angular diameter. The station's lamp lights everything. On an
+# eclipse day (the station's, the Earth's and the Moon's lit fractions differ) the day's layer links
+# light: the station's lamp then excludes the Earth and the Moon, and each of those gets a lamp of its
+# own (inactive here) that lights only it, with the Sun as seen from its centre and its own eclipse.
 LIT_BODIES = tuple(name.capitalize() for name in sky.LIT_BODIES)  # prim names of the bodies with a lamp
 
 
@@ -61,6 +65,11 @@ def gf_quatd(rotation):
 
     q = matrix_to_quat(np.asarray(rotation, dtype=np.float64))
     return Gf.Quatd(float(q[0]), Gf.Vec3d(*map(float, q[1:])))
+
+
+def camera_ev(film_exposure: float) -> float:
+    """A linear film exposure as UsdGeom.Camera `exposure` (EV, log2), rounded to the float it is stored as."""
+    return float(np.float32(np.log2(film_exposure)))
 
 
 def define_camera(stage, path: str):
@@ -122,11 +131,13 @@ def define_world(stage) -> None:
 
 
 def _define_sun(stage, path: str, doc: str):
-    """A sun DistantLight at 1 AU, unposed; returns its light-link collection."""
+    """A sun DistantLight at 1 AU, unposed, intensity = irradiance (normalised); returns its light-link
+    collection."""
     from pxr import Gf, UsdLux
 
     lamp = UsdLux.DistantLight.Define(stage, path)
     lamp.CreateIntensityAttr(SOLAR_CONSTANT)
+    lamp.CreateNormalizeAttr(True)
     lamp.CreateAngleAttr(0.533)
     lamp.CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
     schema.apply(lamp.GetPrim(), "AlloEclipseAPI")
@@ -142,14 +153,16 @@ def define_sky(stage, bodies: dict[str, Asset]) -> None:
     sky_prim = UsdGeom.Xform.Define(stage, layout.SKY).GetPrim()
     Usd.ModelAPI(sky_prim).SetKind(Kind.Tokens.group)
     lit_bodies = [name for name in LIT_BODIES if name in bodies]
-    link = _define_sun(stage, STATION_SUN, "The Sun as the station sees it, times the station's lit fraction (off "
-                       "in umbra). Lights everything but the Earth and the Moon, which have lamps of their own.")
-    link.CreateExcludesRel().SetTargets([Sdf.Path(layout.body_path(name)) for name in lit_bodies])
+    _define_sun(stage, STATION_SUN, "The Sun as the station sees it, times the station's lit fraction (off in "
+                "umbra); intensity is the irradiance (normalize), angle the Sun's angular diameter. Lights "
+                "everything, except on an eclipse day, when the Earth and the Moon have lamps of their own.")
     for name in lit_bodies:
         link = _define_sun(stage, body_sun_path(name), f"The Sun as the {name} sees it, times the {name}'s own "
-                           f"lit fraction (off in total eclipse). Lights only the {name}.")
+                           f"lit fraction (off in total eclipse). Lights only the {name}; active only on an "
+                           "eclipse day, when the lit fractions differ.")
         link.CreateIncludeRootAttr(False)
         link.CreateIncludesRel().SetTargets([Sdf.Path(layout.body_path(name))])
+        link.GetPrim().SetActive(False)
     default_body_pos = {"Sun": (1.495978707e11, 0, 0), "Earth": (0, 3.844e8, 0), "Moon": (0, 0, -7.0e7)}
     default_body_radius = {"Sun": SUN_RADIUS_M, "Earth": EARTH_RADIUS_M, "Moon": MOON_RADIUS_M}
     for name in bodies:
@@ -158,8 +171,10 @@ def define_sky(stage, bodies: dict[str, Asset]) -> None:
         xf = UsdGeom.Xformable(prim)
         xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*default_body_pos[name]))
         xf.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*[default_body_radius[name]] * 3))
-        # The Sun's disc is seen but lights nothing (the DistantLights do); Moon and Earth cast no
-        # shadow on the lamps' rays, since each lamp's intensity already holds its eclipse.
+        # The Sun's sphere is fully transparent (its material's opacity is 0): the station's DistantLight
+        # draws the disc and lights the scene, the sphere only labels the disc's pixels in the class mask
+        # (and here is seen by camera rays only). Moon and Earth cast no shadow on the lamps' rays, since
+        # each lamp's intensity already holds its eclipse.
         schema.apply(prim, "AlloRayVisibilityAPI")
         prim.GetAttribute(A.RAY_VISIBILITY.name).Set("cameraOnly" if name == "Sun" else "noShadow")
 
@@ -183,6 +198,7 @@ def define_render_camera(stage, first: CameraPose) -> None:
     from pxr import Gf, UsdLux
 
     camera = define_camera(stage, layout.CAMERA)
+    camera.CreateExposureAttr(camera_ev(EXPOSURE))  # the linear film exposure is 2^exposure (fStop 1, time 1, iso 100)
     set_pose(camera.GetPrim(), first.position, first.rotation)
     spot = UsdLux.SphereLight.Define(stage, layout.INSPECTION_LIGHT)
     spot.CreateRadiusAttr(SPOT_RADIUS_M)
@@ -196,7 +212,8 @@ def define_render_camera(stage, first: CameraPose) -> None:
 
 # Render vars: prim name -> (source, data type, doc). The base product orders Color and ClassMask.
 RENDER_VARS = {
-    "Color": ("color", "color3f", f"Linear scene-referred radiance times {A.RENDER_EXPOSURE.name}."),
+    "Color": ("color", "color3f", "Linear scene-referred radiance (W/m^2/sr) times the camera's linear exposure "
+              "scale (UsdGeom.Camera exposure attributes)."),
     "ClassMask": (CLASS_MASK_SOURCE, "uchar", "0 background, 1 station and celestial bodies, 2 anomaly."),
     "Depth": ("depth", "float", "Camera distance in metres; written only when a product orders it."),
 }

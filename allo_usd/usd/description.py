@@ -39,6 +39,7 @@ class MaterialDesc:
     base_color_texture: str | None = None      # absolute, resolved file path
     emissive_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
     ior: float = 1.5                           # UsdPreviewSurface ior; 1.0 = no specular layer
+    opacity: float = 1.0                       # UsdPreviewSurface opacity; 0 = fully transparent (the Sun's sphere)
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,18 +63,21 @@ class LightLink:
 @dataclass(frozen=True)
 class SunDesc:
     direction: tuple[float, float, float]  # unit, towards the Sun
-    irradiance: float                      # W/m^2 (> 0: a lamp at 0 is left out of the description)
-    angle_deg: float
+    irradiance: float                      # W/m^2 at normal incidence, as UsdLux defines it (inputs:normalize
+                                           # honoured); > 0: a lamp at 0 is left out of the description
+    angle_deg: float                       # angular diameter
     color: tuple[float, float, float]
     path: str = STATION_SUN                # the UsdLux.DistantLight prim
     link: LightLink | None = None          # None: lights every mesh
+    camera_visible: bool = False           # its disc is drawn in camera rays (a lamp not restricted to named
+                                           # objects: the Sun itself, not a body's own lamp)
 
 
 @dataclass(frozen=True, eq=False)
 class SpotDesc:
     matrix: np.ndarray
     radius: float
-    intensity: float                       # surface radiance, UsdLux units
+    intensity: float                       # surface radiance, W/m^2/sr (UsdLux intensity, normalize honoured)
     color: tuple[float, float, float]
     cone_angle_deg: float                  # half angle
     softness: float
@@ -87,7 +91,7 @@ class RenderDesc(QualitySettings):
     resolution: tuple[int, int]
     preset: str
     seed: int
-    exposure: float
+    exposure: float                        # linear film exposure: the camera's UsdGeom exposure scale
     threads: int
     outputs: tuple[str, ...]               # RenderVar source names ordered by the product
 

@@ -32,7 +32,7 @@ from allo_usd.core.errors import LayerError
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
-from allo_usd.usd.read import world_matrix, open_stage
+from allo_usd.usd.read import camera_exposure, distant_size_factor, world_matrix, open_stage
 
 ROOTS = (layout.WORLD, layout.RENDER)
 ABSENT = "<absent>"
@@ -157,7 +157,7 @@ def describe(layer: str | Path) -> dict:
     sp = stage.GetPrimAtPath(settings_path)
     r = lambda attr, default=None: _attr(sp, attr.name, default)  # noqa: E731
     render = {"settings": settings_path, "resolution": _attr(sp, "resolution"), "preset": r(A.RENDER_PRESET),
-              "samples": r(A.RENDER_SAMPLES), "seed": r(A.RENDER_SEED), "exposure": r(A.RENDER_EXPOSURE),
+              "samples": r(A.RENDER_SAMPLES), "seed": r(A.RENDER_SEED),
               "denoise": r(A.RENDER_DENOISE), "max_bounces": r(A.RENDER_MAX_BOUNCES),
               "adaptive_threshold": r(A.RENDER_ADAPTIVE_THRESHOLD),
               "denoise_prefilter": r(A.RENDER_DENOISE_PREFILTER), "denoise_quality": r(A.RENDER_DENOISE_QUALITY)}
@@ -169,7 +169,12 @@ def describe(layer: str | Path) -> dict:
         m = world_matrix(cache, prim)
         d = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z: +Z points at the Sun
         link = UsdLux.LightAPI(prim).GetLightLinkCollectionAPI()
-        return {"path": str(prim.GetPath()), "irradiance": _attr(prim, "inputs:intensity"),
+        normalize = bool(_attr(prim, "inputs:normalize", False))
+        intensity, angle = _attr(prim, "inputs:intensity", 50000.0), _attr(prim, "inputs:angle", 0.53)
+        exposure = _attr(prim, "inputs:exposure", 0.0)
+        emission = intensity * 2.0 ** exposure  # UsdLux: with normalize, this is the irradiance itself
+        return {"path": str(prim.GetPath()), "intensity": intensity, "exposure": exposure, "normalize": normalize,
+                "irradiance": emission if normalize else emission * distant_size_factor(angle),
                 "irradiance_unoccluded": _attr(prim, A.IRRADIANCE_UNOCCLUDED.name),
                 "lit_fraction": _attr(prim, A.LIT_FRACTION.name),
                 "eclipse_state": _attr(prim, A.ECLIPSE_STATE.name), "eclipse_body": _attr(prim, A.ECLIPSE_BODY.name),
@@ -189,9 +194,18 @@ def describe(layer: str | Path) -> dict:
     cam_prim = stage.GetPrimAtPath(targets[0]) if targets else stage.GetPrimAtPath(layout.CAMERA)
     if cam_prim:
         m = world_matrix(cache, cam_prim)
+        scale, values = camera_exposure(cam_prim)
+        lens = UsdGeom.Camera(cam_prim)
+        mm = lambda attr: None if attr.Get() is None else float(attr.Get()) * 100.0  # noqa: E731 (tenths of a metre)
         camera = {"path": str(cam_prim.GetPath()), "position": tuple(map(float, m[:3, 3])),
                   "orientation_wxyz": tuple(map(float, matrix_to_quat(m[:3, :3]))),
-                  "forward": tuple(map(float, -m[:3, 2])), "up": tuple(map(float, m[:3, 1]))}
+                  "forward": tuple(map(float, -m[:3, 2])), "up": tuple(map(float, m[:3, 1])),
+                  "focal_length_mm": mm(lens.GetFocalLengthAttr()),
+                  "sensor_mm": (mm(lens.GetHorizontalApertureAttr()), mm(lens.GetVerticalApertureAttr())),
+                  "exposure": {"ev": values["exposure"], "f_stop": values["exposure:fStop"],
+                               "time_s": values["exposure:time"], "iso": values["exposure:iso"],
+                               "responsivity": values["exposure:responsivity"], "linear_scale": scale}}
+        render["exposure"] = scale  # the film exposure the renderer applies (the camera's linear scale)
 
     root = stage.GetRootLayer()
     start = Path(root.realPath).parent if root.realPath else Path.cwd()
@@ -236,9 +250,15 @@ def format_description(d: dict) -> str:
                  f"orientation(wxyz) {_fmt(cam.get('orientation_wxyz'))}  forward {_fmt(cam.get('forward'))}")
     lines.append(f"         perturbation {cp['convention']}  offset {_fmt(cp['offset_position'])} m  "
                  f"rot {_fmt(cp['offset_rotation'])}  attempts {cp['attempts']}")
+    if cam.get("exposure"):
+        e, sensor = cam["exposure"], cam["sensor_mm"]
+        lines.append(f"lens     focal length {_fmt(cam['focal_length_mm'])} mm  aperture {_fmt(sensor[0])} x "
+                     f"{_fmt(sensor[1])} mm  exposure {_fmt(e['ev'])} EV (f/{_fmt(e['f_stop'])}, {_fmt(e['time_s'])} s, "
+                     f"ISO {_fmt(e['iso'])}, responsivity {_fmt(e['responsivity'])}) = linear x{_fmt(e['linear_scale'])}")
     for s in ([d["sun"]] if d["sun"] else []) + d.get("body_suns", []):
         name = "sun" if s is d["sun"] else s["path"].rsplit("/", 1)[-1]
-        lines.append(f"{name:<8} {_fmt(s['irradiance'])} W/m2 (unoccluded {_fmt(s['irradiance_unoccluded'])}, lit "
+        lines.append(f"{name:<8} {_fmt(s['irradiance'])} W/m2 (intensity {_fmt(s['intensity'])}, normalize "
+                     f"{s['normalize']}; unoccluded {_fmt(s['irradiance_unoccluded'])}, lit "
                      f"{_fmt(s['lit_fraction'])})  eclipse {s['eclipse_state']}/{s['eclipse_body']}  "
                      f"direction {_fmt(s['direction'])}  lights {_lights(s['light_link'])}")
     an = d["anomaly"]
@@ -248,7 +268,7 @@ def format_description(d: dict) -> str:
     r = d["render"]
     res = r["resolution"] or ("?", "?")
     lines.append(f"render   {res[0]}x{res[1]}  {r['samples']} spp  preset {r['preset']}  seed {r['seed']}  "
-                 f"exposure {_fmt(r['exposure'])}  denoise {r['denoise']}")
+                 f"denoise {r['denoise']}")
     lines.append("effects  " + "  ".join(f"{k}={v}" for k, v in d["effects"].items()))
     if d.get("sensor"):
         lines.append("sensor   " + "  ".join(f"{k}={_fmt(v)}" for k, v in sorted(d["sensor"].items())))

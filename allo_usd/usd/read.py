@@ -49,7 +49,9 @@ RENDER_BOUNCES = (0, 1024)        # Cycles max_bounces
 RENDER_ADAPTIVE = (0.0, 1.0)      # Cycles adaptive_threshold
 RENDER_SEED = (0, 2 ** 31 - 1)    # Cycles seed (hard 0..2^31-1; plans author seed % 2^31)
 RENDER_THREADS = (0, 1024)        # RenderSettings.threads (1..1024; 0 = one per core)
-RENDER_EXPOSURE = (0.0, 2.0 ** 32)  # Cycles film_exposure (> 0)
+RENDER_EXPOSURE = (0.0, 2.0 ** 32)  # Cycles film_exposure (> 0): the camera's linear exposure scale
+CAMERA_EV = (-64.0, 64.0)         # UsdGeom.Camera exposure (EV, log2), like a light's inputs:exposure
+CAMERA_EXPOSURE_FACTOR = (1e-9, 1e9)  # exposure:fStop, :time, :iso, :responsivity (each > 0)
 # Size of what the reader takes in at all, checked before the expensive work.
 MAX_DEPTH = 128                   # prim nesting depth (/World/Station/Geom/Truss is 4; the real stage reaches 6)
 MAX_PRIMS = 200_000               # prims traversed (the real base stage composes ~180)
@@ -391,7 +393,8 @@ def read_material(material) -> MaterialDesc:
                         hi=UNIT_INTERVAL[1])
     emissive = _colour(_input(surface, "emissiveColor", (0.0, 0.0, 0.0))[0], where("emissiveColor"), MAX_LIGHT)
     ior = _number(_input(surface, "ior", 1.5)[0], where("ior"), lo=IOR[0], hi=IOR[1])
-    return MaterialDesc(path, color, metallic, roughness, texture, emissive, ior)
+    opacity = _number(_input(surface, "opacity", 1.0)[0], where("opacity"), lo=UNIT_INTERVAL[0], hi=UNIT_INTERVAL[1])
+    return MaterialDesc(path, color, metallic, roughness, texture, emissive, ior, opacity)
 
 
 def _mesh_array(attr, what: str, kind: str, width: int | None, limit: int) -> np.ndarray:
@@ -550,6 +553,37 @@ def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
     return CameraDesc(m, focal, width, height, (near, far), str(where))
 
 
+# UsdGeom.Camera exposure attributes: (attribute getter name, fallback, bounds). The fallbacks are the
+# schema's (usd-core 26), so a camera with none authored has a linear exposure scale of 1.
+CAMERA_EXPOSURE_ATTRS = (("GetExposureAttr", 0.0, CAMERA_EV), ("GetExposureFStopAttr", 1.0, CAMERA_EXPOSURE_FACTOR),
+                         ("GetExposureTimeAttr", 1.0, CAMERA_EXPOSURE_FACTOR),
+                         ("GetExposureIsoAttr", 100.0, CAMERA_EXPOSURE_FACTOR),
+                         ("GetExposureResponsivityAttr", 1.0, CAMERA_EXPOSURE_FACTOR))
+
+
+def camera_exposure(prim) -> tuple[float, dict]:
+    """The camera's linear exposure scale as UsdGeom.Camera defines it (ComputeLinearExposureScale):
+    (exposure:time x exposure:iso / 100 / exposure:fStop^2) x 2^exposure x exposure:responsivity, each
+    attribute bounded; returns (scale, {attribute name: value}). The scale multiplies scene radiance
+    into the film (Cycles film_exposure)."""
+    from pxr import UsdGeom
+
+    cam = UsdGeom.Camera(prim)
+    where = prim.GetPath()
+    values = {}
+    for getter, fallback, (lo, hi) in CAMERA_EXPOSURE_ATTRS:
+        attr = getattr(cam, getter)()
+        value = attr.Get() if attr else None
+        values[attr.GetName()] = _number(fallback if value is None else value, f"{where}.{attr.GetName()}", lo=lo, hi=hi)
+    ev, f_stop, time, iso, responsivity = values.values()
+    scale = time * iso / 100.0 / f_stop ** 2 * 2.0 ** ev * responsivity
+    if not RENDER_EXPOSURE[0] < scale <= RENDER_EXPOSURE[1]:
+        raise LayerError(f"{where}: the exposure attributes ({', '.join(f'{k}={v:g}' for k, v in values.items())}) give "
+                         f"a linear exposure scale of {scale:.3g}, outside {_range(*RENDER_EXPOSURE)} (exclusive of 0); "
+                         "fix the layer: the scale is time x iso/100 / fStop^2 x 2^exposure x responsivity")
+    return scale, values
+
+
 def read_light_link(prim, mesh_paths) -> LightLink | None:
     """The meshes a light lights, from its UsdLux `collection:lightLink` membership: None when it
     lights every mesh, else the shorter list (the meshes it skips, or the only ones it lights)."""
@@ -565,7 +599,8 @@ def read_light_link(prim, mesh_paths) -> LightLink | None:
 
 
 def _intensity(light, where) -> float:
-    """inputs:intensity x 2^inputs:exposure, non-negative and at most MAX_LIGHT."""
+    """inputs:intensity x 2^inputs:exposure (UsdLux: an un-normalised light's emitted radiance), non-negative
+    and at most MAX_LIGHT."""
     intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0, hi=MAX_LIGHT)
     exposure_attr = light.GetExposureAttr().Get()
     exposure = _number(0.0 if exposure_attr is None else exposure_attr, f"{where}.inputs:exposure", lo=-64, hi=64)
@@ -576,10 +611,40 @@ def _intensity(light, where) -> float:
     return value
 
 
+def _normalize(light, where) -> bool:
+    value = light.GetNormalizeAttr().Get()
+    if value is None:
+        return False  # the schema's fallback
+    if not isinstance(value, bool):
+        raise LayerError(f"{where}.inputs:normalize must be a bool, got {value!r}; fix the layer")
+    return value
+
+
+def distant_size_factor(angle_deg: float) -> float:
+    """UsdLux's size factor of a DistantLight (the OpenUSD usdLux documentation, "Normalizing Distant
+    Lights"): the cosine-weighted solid angle of its disc, pi sin^2(theta) with theta half the angular
+    diameter (pi (2 - sin^2 theta) beyond a hemisphere; 1 for a zero angle). An un-normalised light's
+    illuminance at normal incidence is its radiance (intensity) times this; a normalised light's
+    intensity is that illuminance itself."""
+    theta = np.radians(angle_deg) / 2.0
+    if theta == 0.0:
+        return 1.0
+    s2 = float(np.sin(theta)) ** 2
+    return float(np.pi * (s2 if theta <= np.pi / 2 else 2.0 - s2))
+
+
+def sun_irradiance(intensity: float, angle_deg: float, normalize: bool) -> float:
+    """The irradiance (W/m^2, at normal incidence) a DistantLight means under UsdLux: with normalize,
+    intensity x 2^exposure itself; without, that radiance times the disc's size factor."""
+    return intensity if normalize else intensity * distant_size_factor(angle_deg)
+
+
 def read_sun(prim, cache, mesh_paths=None, checked: set | None = None) -> SunDesc | None:
-    """A UsdLux.DistantLight as a sun lamp; None when it is off (intensity 0: umbra, or a total eclipse
-    of the body it lights) or lights none of `mesh_paths` (when given, its light linking is resolved
-    against them)."""
+    """A UsdLux.DistantLight as a sun lamp, its irradiance as the spec defines it (inputs:normalize
+    honoured); None when it is off (intensity 0: umbra, or a total eclipse of the body it lights) or
+    lights none of `mesh_paths` (when given, its light linking is resolved against them). A lamp whose
+    light link names only some objects (a body's own lamp) is not drawn in camera rays; any other is
+    (the Sun's disc, as a renderer that draws a DistantLight's angular extent shows it)."""
     from pxr import UsdLux
 
     light = UsdLux.DistantLight(prim)
@@ -594,8 +659,9 @@ def read_sun(prim, cache, mesh_paths=None, checked: set | None = None) -> SunDes
     direction = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z, so +Z points at the Sun
     angle = _number(light.GetAngleAttr().Get(), f"{where}.inputs:angle", lo=SUN_ANGLE_DEG[0], hi=SUN_ANGLE_DEG[1],
                     unit="degrees", why=" (Blender's SunLight.angle)")
-    return SunDesc(tuple(direction), intensity, angle, _colour(light.GetColorAttr().Get(), f"{where}.inputs:color"),
-                   str(where), link)
+    irradiance = sun_irradiance(intensity, angle, _normalize(light, where))
+    return SunDesc(tuple(direction), irradiance, angle, _colour(light.GetColorAttr().Get(), f"{where}.inputs:color"),
+                   str(where), link, camera_visible=link is None or link.exclude)
 
 
 def read_spot(prim, cache, checked: set | None = None) -> SpotDesc:
@@ -612,11 +678,16 @@ def read_spot(prim, cache, checked: set | None = None) -> SpotDesc:
     intensity = _intensity(light, where)
     radius = _number(light.GetRadiusAttr().Get(), f"{where}.inputs:radius", lo=SPOT_RADIUS_M[0], hi=SPOT_RADIUS_M[1],
                      unit="m")
+    matrix = world_matrix(cache, prim, checked=checked)
+    if _normalize(light, where):  # UsdLux: radiance = intensity / the sphere's world-space surface area
+        world_radius = radius * float(np.prod(np.linalg.svd(matrix[:3, :3], compute_uv=False)) ** (1.0 / 3.0))
+        area = 4.0 * np.pi * world_radius ** 2
+        intensity = intensity / area if area > 0 else intensity
     cone = _number(cone, f"{where}.inputs:shaping:cone:angle", lo=SPOT_CONE_DEG[0], hi=SPOT_CONE_DEG[1],
                    unit="degrees", why=" (a half angle: Blender's spot cone is 1..180 degrees in all)")
     softness = _number(0.0 if softness is None else softness, f"{where}.inputs:shaping:cone:softness",
                        lo=SPOT_SOFTNESS[0], hi=SPOT_SOFTNESS[1])
-    return SpotDesc(world_matrix(cache, prim, checked=checked), radius, intensity,
+    return SpotDesc(matrix, radius, intensity,
                     _colour(light.GetColorAttr().Get(), f"{where}.inputs:color"), cone, softness, str(where))
 
 
@@ -626,7 +697,8 @@ def _get(prim, name, default=None):
     return default if value is None else value
 
 
-def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
+def read_render(settings_prim, exposure: float = 1.0) -> tuple[RenderDesc, EffectsDesc]:
+    """The render settings prim; `exposure` is the camera's linear exposure scale (camera_exposure)."""
     from pxr import Gf, UsdRender
 
     settings = UsdRender.Settings(settings_prim)
@@ -658,9 +730,6 @@ def read_render(settings_prim) -> tuple[RenderDesc, EffectsDesc]:
         for var_path in product.GetOrderedVarsRel().GetForwardedTargets():
             var = UsdRender.Var(settings_prim.GetStage().GetPrimAtPath(var_path))
             outputs.append(str(var.GetSourceNameAttr().Get()))
-    exposure = num(A.RENDER_EXPOSURE.name, 1.0, bounds=RENDER_EXPOSURE)
-    if not exposure > 0:
-        raise LayerError(f"{A.RENDER_EXPOSURE.name} must be a positive number, got {exposure}; fix the layer")
     render = RenderDesc(resolution=(w, h), preset=str(_get(settings_prim, A.RENDER_PRESET.name, "preview")),
                         samples=samples,
                         adaptive_threshold=num(A.RENDER_ADAPTIVE_THRESHOLD.name, 0.0, bounds=RENDER_ADAPTIVE),
@@ -771,10 +840,10 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
     if not settings_prim:
         raise LayerError(f"{layer_path}: no render settings at {settings_path}; the base stage sublayer is "
                          "missing or broken (check subLayers)")
-    render, effects = read_render(settings_prim)
     cam_targets = UsdRender.Settings(settings_prim).GetCameraRel().GetForwardedTargets()
     if not cam_targets or not stage.GetPrimAtPath(cam_targets[0]).IsA(UsdGeom.Camera):
         raise LayerError(f"{layer_path}: render settings name no camera; set {settings_path}.camera")
+    render, effects = read_render(settings_prim, camera_exposure(stage.GetPrimAtPath(cam_targets[0]))[0])
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     checked: set = set()  # prims whose xformOps are checked (world_matrix)
     camera = read_camera(stage.GetPrimAtPath(cam_targets[0]), cache, checked)

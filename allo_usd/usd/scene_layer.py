@@ -1,10 +1,11 @@
 """Write one scene as a small USD layer over the base stage.
 
 A scene's opinions fall into three groups, each built here as plain data (`Prim` lists):
-- `sky_prims`: what the day decides (the sun lamps of the station and of each body, true-scale
-  bodies, eclipse states, epoch);
+- `sky_prims`: what the day decides (the station's sun lamp, and on an eclipse day each body's
+  own lamp with the light linking; true-scale bodies, eclipse states, epoch);
 - `pose_prims`: what the perturbed camera sample decides (camera transform, offsets, attempts);
-- `scene_prims`: what only this image decides (identity and seed, anomaly, effects, render).
+- `scene_prims`: what only this image decides (identity and seed, anomaly, effects, render, and
+  the camera's exposure).
 
 `write_scene_layer` writes all three into one self-contained layer over the base stage;
 `author.compose` writes the first two once as shared layers and stacks them under a scene layer
@@ -29,7 +30,7 @@ from allo_usd.core.limits import resolution_problem
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
-from allo_usd.usd.base_stage import LIT_BODIES, gf_quatd
+from allo_usd.usd.base_stage import LIT_BODIES, camera_ev, gf_quatd
 from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.core.files import relpath, write_text_atomic
 
@@ -68,8 +69,11 @@ def validate_spec(spec: SceneSpec) -> None:
     if spec.anomaly is not None:
         check_finite("anomaly position", spec.anomaly.position)
         check_finite("anomaly rotation", spec.anomaly.rotation)
+    check_finite("render exposure", (spec.render.exposure,))
+    if not 0 < spec.render.exposure <= 2.0 ** 32:
+        raise LayerError(f"render exposure must be in (0, 2^32] (a linear film exposure), got {spec.render.exposure}")
     if spec.effects.sensor_noise:
-        sensor_attrs(spec.effects.sensor, spec.render.exposure)  # raises on parameters out of range
+        sensor_attrs(spec.effects.sensor, film_exposure(spec.render.exposure))  # raises on parameters out of range
     w, h = spec.render.resolution
     problem = resolution_problem(w, h)
     if problem:
@@ -107,9 +111,15 @@ def body_light(body: BodySpec, sun: SunSpec) -> SunSpec:
                    sun.distance_m)
 
 
-def sun_prim(path: str, sun: SunSpec) -> Prim:
-    """A sun lamp's opinions: direction, irradiance (lit fraction included), angle and eclipse state."""
-    return Prim(path, {
+def film_exposure(exposure: float) -> float:
+    """The linear film exposure a reader gets back from the camera's authored `exposure` (EV as a float)."""
+    return 2.0 ** camera_ev(exposure)
+
+
+def sun_prim(path: str, sun: SunSpec, **kw) -> Prim:
+    """A sun lamp's opinions: direction, irradiance (lit fraction included; the base stage authors
+    inputs:normalize = true, so intensity is irradiance), angle and eclipse state."""
+    return Prim(path, **kw, attrs={
         "xformOp:orient": ("quatd", gf_quatd(rotation_towards(sun.direction))),
         "inputs:intensity": ("float", float(sun.irradiance)),
         "inputs:angle": ("float", float(sun.angular_diameter_deg)),
@@ -119,13 +129,25 @@ def sun_prim(path: str, sun: SunSpec) -> Prim:
                      (A.SUN_DISTANCE, float(sun.distance_m)))})
 
 
+def eclipse_day(sun: SunSpec, bodies: dict) -> bool:
+    """Whether the day needs light linking: the station's lit fraction and a lit body's differ (an
+    eclipse of the station, of the Moon, or of the Earth's face). On any other day one lamp lights all."""
+    return any(abs(body_light(bodies[name], sun).lit_fraction - sun.lit_fraction) > 1e-12
+               for name in LIT_BODIES if name in bodies)
+
+
 def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: dict) -> list[Prim]:
-    """The day's opinions: epoch, the station's sun lamp, each body's position and (Earth, Moon) its
-    own sun lamp."""
+    """The day's opinions: epoch, the station's sun lamp and each body's position. On an eclipse day
+    (eclipse_day) also the light linking: the station's lamp excludes the lit bodies, each of which
+    gets its own active lamp (the Sun from its centre, its own lit fraction)."""
+    lit = [name for name in LIT_BODIES if name in bodies]
+    linked = eclipse_day(sun, bodies)
+    excludes = {"collection:lightLink:excludes": [layout.body_path(name) for name in lit]} if linked else {}
     out = [Prim(layout.WORLD, A.opinions((A.EPOCH, epoch), (A.PERILUNE_EPOCH, perilune_epoch), (A.DAY, int(day))),
                 api=("AlloSceneAPI",)),
-           sun_prim(STATION_SUN, sun)]
-    out += [sun_prim(body_sun_path(name), body_light(bodies[name], sun)) for name in LIT_BODIES if name in bodies]
+           sun_prim(STATION_SUN, sun, rels=excludes)]
+    if linked:
+        out += [sun_prim(body_sun_path(name), body_light(bodies[name], sun), active=True) for name in lit]
     for name, body in bodies.items():
         out.append(Prim(layout.body_path(name), {"xformOp:translate": ("double3", _vec3d(body.position)),
                                                "xformOp:scale": ("double3", _vec3d([body.radius] * 3))}))
@@ -170,6 +192,8 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
     out = [Prim(layout.WORLD, A.opinions((A.SCENE_ID, spec.scene_id), (A.SPLIT, spec.split), (A.VARIANT, spec.variant),
                                          (A.SEED, int(spec.seed)), (A.SEED_PATH, spec.seed_path)),
                 api=("AlloSceneAPI",))]
+    # The film exposure as UsdGeom.Camera defines it: 2^exposure (fStop, time, iso, responsivity at fallbacks).
+    out.append(Prim(layout.CAMERA, {"exposure": ("float", camera_ev(spec.render.exposure))}))
     if not spec.effects.inspection_light:
         out.append(Prim(layout.INSPECTION_LIGHT, active=False))
     if spec.anomaly is not None:
@@ -180,11 +204,11 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
         **A.opinions((A.RENDER_PRESET, r.preset), (A.RENDER_SAMPLES, int(r.samples)),
                      (A.RENDER_ADAPTIVE_THRESHOLD, float(r.adaptive_threshold)), (A.RENDER_DENOISE, bool(r.denoise)),
                      (A.RENDER_MAX_BOUNCES, int(r.max_bounces)), (A.RENDER_SEED, int(r.seed)),
-                     (A.RENDER_EXPOSURE, float(r.exposure)), (A.RENDER_THREADS, int(r.threads)),
+                     (A.RENDER_THREADS, int(r.threads)),
                      (A.RENDER_DENOISE_PREFILTER, r.denoise_prefilter), (A.RENDER_DENOISE_QUALITY, r.denoise_quality),
                      (A.EFFECTS_SENSOR_NOISE, bool(e.sensor_noise)), (A.EFFECTS_GLARE, bool(e.glare)),
                      (A.EFFECTS_INSPECTION_LIGHT, bool(e.inspection_light)), (A.EFFECTS_BODY_SHINE, bool(e.body_shine))),
-        **(sensor_attrs(e.sensor, r.exposure) if e.sensor_noise else {})}))
+        **(sensor_attrs(e.sensor, film_exposure(r.exposure)) if e.sensor_noise else {})}))
     if r.depth or r.mask_only:  # the base product orders color and class mask; change only if asked
         ordered = ([] if r.mask_only else [layout.render_var("Color")]) + [layout.render_var("ClassMask")]
         ordered += [layout.render_var("Depth")] if r.depth else []
