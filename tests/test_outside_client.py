@@ -50,7 +50,8 @@ def normal_day(tmp_path_factory):
     bench = _bench()
     work = tmp_path_factory.mktemp("outside_client")
     layer = bench.demo_layer(work / "layers", day=0, pose=3, resolution=SIZE, samples=SAMPLES)
-    return bench.compare(layer, work / "renders")
+    undone, as_imported = bench.compare_all(layer, work / "renders", (tuple(bench.DEPARTURES), ()))
+    return {**undone, "as_imported": as_imported}
 
 
 def test_imported_camera_sees_the_projects_view(normal_day):
@@ -69,3 +70,12 @@ def test_imported_station_is_as_bright_as_the_projects_render(normal_day):
     assert r["exposure_scale"] == pytest.approx(r["project_exposure"], rel=1e-6), (
         "the standard camera exposure (UsdGeom.Camera ComputeLinearExposureScale) must be the render's exposure", r)
     assert np.isfinite(r["ratio"]) and 0.9 <= r["ratio"] <= 1.1, {k: v for k, v in r.items()}
+
+
+def test_the_named_departure_is_the_whole_difference(normal_day):
+    """As imported (nothing undone), the station is brighter by the importer's DistantLight factor 4
+    and by nothing else: the README names this departure, and this test fails the day Blender's
+    importer follows UsdLux (then drop the undo and this factor)."""
+    raw = normal_day["as_imported"]
+    assert raw["station_pixels"] == normal_day["station_pixels"]
+    assert raw["ratio"] / normal_day["ratio"] == pytest.approx(4.0, rel=0.05), (raw["ratio"], normal_day["ratio"])
