@@ -169,9 +169,17 @@ def test_default_epochs():
 def test_directions_are_unit_and_moon_is_down(year):
     for b in BODIES:
         np.testing.assert_allclose(np.linalg.norm(year.direction[b], axis=1), 1.0, atol=1e-14)
+        np.testing.assert_allclose(np.linalg.norm(year.geometric_direction[b], axis=1), 1.0, atol=1e-14)
         assert np.all(year.angular_radius_rad[b] > 0)
-    np.testing.assert_allclose(year.direction["moon"], np.tile([0.0, 0.0, -1.0], (len(year), 1)), atol=1e-12)
-    np.testing.assert_allclose(year.distance_m["moon"], year.station_moon_distance_m, rtol=1e-15)
+    # The Moon's geometric centre is straight down; the light-time distance differs from the geometric
+    # one by at most the Moon's barycentric speed (< 31 km/s) times the light time (d / c).
+    np.testing.assert_allclose(year.geometric_direction["moon"], np.tile([0.0, 0.0, -1.0], (len(year), 1)), atol=1e-12)
+    d = year.station_moon_distance_m
+    assert np.all(np.abs(year.distance_m["moon"] - d) <= 31e3 * d / E.SPEED_OF_LIGHT_M_S)
+    # Apparent and geometric directions differ by light time and aberration (~1e-4 rad at most: v/c).
+    for b, lo, hi in (("sun", 9e-5, 1.1e-4), ("earth", 1e-6, 1e-5), ("moon", 1e-6, 1e-5)):
+        diff = angle_between(year.direction[b], year.geometric_direction[b])
+        assert lo < diff.max() < hi, (b, diff.max())
 
 
 def test_sky_is_read_only_and_at_gives_plain_values(year):
@@ -240,14 +248,18 @@ def test_umbra_day_gives_zero_irradiance(year):
 
 
 def test_each_body_sees_its_own_sun(year):
-    """The body lamps' Sun: direction and distance from the body's centre (an identity in the station
-    frame), irradiance 1361 (1 AU / d)^2, and a lit fraction of 1 outside eclipses."""
-    sun = year.direction["sun"] * year.distance_m["sun"][:, None]
+    """The body lamps' Sun: the apparent direction and light-time distance from the body's centre
+    (skyfield's observe().apparent() from that centre, in the station frame), irradiance
+    1361 (1 AU / d)^2, and a lit fraction of 1 outside eclipses."""
+    eph = E.load_de421()
+    t = E.time_from_utc([datetime.fromisoformat(x.replace("Z", "+00:00")) for x in year.epochs])
     for b in S.LIT_BODIES:
-        v = sun - year.direction[b] * year.distance_m[b][:, None]
-        d = np.linalg.norm(v, axis=1)
+        with E.quiet_expiry():
+            seen = getattr(eph, b).at(t).observe(eph.sun)
+            v = np.einsum("nij,nj->ni", year.icrf_to_station, seen.apparent().position.m.T)
+            d = np.linalg.norm(seen.position.m.T, axis=1)
         np.testing.assert_allclose(year.body_sun_distance_m[b], d, rtol=1e-12)
-        assert angle_between(year.body_sun_direction[b], v).max() < 1e-12
+        assert angle_between(year.body_sun_direction[b], v).max() < 1e-10
         np.testing.assert_allclose(year.body_sun_irradiance_w_m2[b], 1361.0 * (C.AU_M / d) ** 2, rtol=1e-12)
         # A different Sun from the station's: the parallax is the body's distance over 1 AU at most.
         parallax = angle_between(year.body_sun_direction[b], year.direction["sun"])

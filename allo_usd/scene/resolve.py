@@ -89,7 +89,8 @@ def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
                            float(b["distance_m"]), float(b["lit_fraction"]), str(b["state"]),
                            str(b["eclipse_body"] or "none"))
              for name, b in body_sun_light(at).items()}
-    bodies = {name.capitalize(): BodySpec(tuple(map(float, pos)), float(radius), lamps.get(name))
+    bodies = {name.capitalize(): BodySpec(tuple(map(float, pos)), float(radius), lamps.get(name),
+                                          tuple(map(float, at.geometric_direction[name])))
               for name, (pos, radius) in body_placement(at).items()}
     return sun, bodies
 

@@ -33,6 +33,9 @@ class BodySpec:
     # The lamp that lights only this body (Earth, Moon): the Sun seen from the body's centre, times
     # the body's own lit fraction. None: the author lights it with the station sun, unoccluded.
     light: SunSpec | None = None
+    # Unit vector to the body's geometric (no light time, no aberration) centre, station frame, for the
+    # record; `position` is along the apparent direction (docs/physics.md section 11). None: not recorded.
+    geometric_direction: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)

@@ -3,10 +3,9 @@
 Ephemeris
     JPL DE421 from the ``skyfield-data`` package, opened offline
     (``Loader(skyfield_data.get_skyfield_data_path())``, ``load.timescale(builtin=True)``).
-    Positions are **geometric** (``body.at(t)``: no light time, no aberration; the apparent
-    direction differs by at most ~20 arcsec = 1e-4 rad, about 0.13 px at the centre of a
-    1920-wide 25 mm / 36 mm frame). All epochs are computed in ONE vectorised skyfield call per
-    body (Sun, Earth, Moon; barycentric, ICRF axes). Valid range: DE421's 1899-07-29 .. 2053-10-09
+    Barycentric geometric states (``body.at(t)``, ICRF axes) are computed in ONE vectorised
+    skyfield call per body (Sun, Earth, Moon); :func:`apparent_vectors` turns them into what an
+    observer sees (light time and aberration, docs/physics.md section 11). Valid range: DE421's 1899-07-29 .. 2053-10-09
     (TDB); epochs outside raise :class:`~allo_usd.core.errors.EphemerisRangeError` before skyfield is
     asked for a position.
 
@@ -30,6 +29,8 @@ from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
 from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 
 _EXPIRED_WARNING = r".*finals2000A\.all has expired.*"
+SPEED_OF_LIGHT_M_S = 299_792_458.0  # exact (SI definition of the metre)
+_LIGHT_TIME_ITERATIONS = 3  # each gains a factor v/c ~ 1e-4: 3 leave < 1e-12 of the light time
 ISO_FORMAT = "%Y-%m-%dT%H:%M:%SZ"
 
 
@@ -196,3 +197,49 @@ def finite_number(name: str, value: float) -> float:
     if not math.isfinite(v):
         raise SkyInputError(f"{name} must be finite, got {value!r}")
     return v
+
+
+# ---------------------------------------------------------------------------------------------
+# Apparent places (docs/physics.md section 11)
+
+
+def light_time_vectors(geometric, target_velocity) -> tuple[np.ndarray, np.ndarray]:
+    """(retarded vector, light time s): the target where it was when the light now arriving left it.
+
+    ``geometric`` (N, 3) m is target(t) - observer(t), ``target_velocity`` (N, 3) m/s the target's
+    barycentric velocity. Solves tau = |geometric - tau v| / c by fixed-point iteration, moving the
+    target back along its velocity: the acceleration term 0.5 a tau^2 is under 0.03 m for the Sun
+    (tau ~ 500 s) and under 1 cm for the Earth and the Moon.
+    """
+    g = np.asarray(geometric, dtype=np.float64)
+    v = np.asarray(target_velocity, dtype=np.float64)
+    tau = np.linalg.norm(g, axis=-1) / SPEED_OF_LIGHT_M_S
+    for _ in range(_LIGHT_TIME_ITERATIONS):
+        tau = np.linalg.norm(g - tau[..., None] * v, axis=-1) / SPEED_OF_LIGHT_M_S
+    return g - tau[..., None] * v, tau
+
+
+def aberrate(retarded, observer_velocity) -> np.ndarray:
+    """Unit apparent directions: the retarded vectors (N, 3) seen by an observer moving at
+    ``observer_velocity`` (N, 3) m/s (barycentric). Special-relativistic aberration in the form
+    skyfield and NOVAS use (``add_aberration``)."""
+    p = np.asarray(retarded, dtype=np.float64)
+    v = np.asarray(observer_velocity, dtype=np.float64)
+    dist = np.linalg.norm(p, axis=-1)
+    beta_vec = v / SPEED_OF_LIGHT_M_S
+    beta = np.linalg.norm(beta_vec, axis=-1)
+    cosd = np.einsum("...i,...i->...", p, beta_vec) / (dist * np.where(beta > 0.0, beta, 1.0))
+    gamma_inv = np.sqrt(1.0 - beta * beta)
+    pb = beta * cosd
+    q = (1.0 + pb / (1.0 + gamma_inv)) * dist
+    out = gamma_inv[..., None] * p + q[..., None] * beta_vec
+    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def apparent_vectors(geometric, target_velocity, observer_velocity) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(unit apparent direction, retarded vector, light time s) of targets seen by a moving observer:
+    light time (:func:`light_time_vectors`), then aberration (:func:`aberrate`). Gravitational
+    deflection is left out: the Sun bends the light of the Earth and the Moon by under 1e-10 rad
+    here, and its own not at all (docs/physics.md section 11)."""
+    retarded, tau = light_time_vectors(geometric, target_velocity)
+    return aberrate(retarded, observer_velocity), retarded, tau

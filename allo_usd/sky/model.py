@@ -8,8 +8,8 @@ The pieces live beside it: ephemeris (DE421, epochs), orbit (the station's ellip
 
 Station frame (fixed convention; "LVLH-like", relative to the Moon)
     +Z = unit(station - Moon) (zenith, away from the Moon), +X = the station's velocity
-    relative to the Moon in ICRF, orthogonalised against Z, +Y = Z x X. The Moon is therefore
-    always toward -Z. The velocity is the analytic derivative of station - Moon: Kepler rate
+    relative to the Moon in ICRF, orthogonalised against Z, +Y = Z x X. The Moon's geometric
+    centre is therefore always toward -Z (its apparent one within ~1e-5 rad). The velocity is the analytic derivative of station - Moon: Kepler rate
     plus the rotation of the Earth-Moon frame (x from the ephemeris position and velocity; z
     from h_dot = r x a with a = the Sun's tidal acceleration, which is what turns the Moon's
     orbit normal; tests compare it with a central finite difference). Near apolune the speed
@@ -17,8 +17,16 @@ Station frame (fixed convention; "LVLH-like", relative to the Moon)
     ``Sky.icrf_to_station[i] @ v_icrf`` gives a vector in the station frame; its rows are the
     station X, Y, Z axes in ICRF.
 
+Apparent directions (docs/physics.md section 11)
+    The bodies and the sun lamps are placed where a camera on the station sees them: light time
+    (the body where it was when the light now arriving left it) plus aberration from the station's
+    barycentric velocity (the Moon's + the orbit model's velocity relative to the Moon). Distances
+    are the light-time distances. The geometric directions are kept alongside for the record.
+    The station's eclipse uses the light-time vectors of the Sun and the occluder.
+
 Rendering placement (docs/physics.md section 4, scheme C)
-    True scale, station at the origin of the station frame: body centre = direction * distance.
+    True scale, station at the origin of the station frame: body centre = apparent direction *
+    light-time distance.
     Casting the centres to float32 (Blender) moves the direction seen from a camera within 100 m
     of the origin by at most ~4e-8 rad (Sun, Earth) and the angular radius by ~1e-7 relative;
     tests hold it to 1e-5 rad and 1e-4.
@@ -54,8 +62,8 @@ from allo_usd.core.errors import EpochError, SkyInputError
 from allo_usd.core.geometry import angle_between, rowdot, unit_rows
 from allo_usd.sky.eclipse import (ECLIPSE_STATES, LIT, SHADOW_BODIES, UMBRA, lit_two_occluders, body_lit_fraction,
                                   classify_eclipse)
-from allo_usd.sky.ephemeris import (as_utc, check_range, load_de421, iso_utc, quiet_expiry, time_from_utc,
-                                    _translate_range_error)
+from allo_usd.sky.ephemeris import (apparent_vectors, as_utc, check_range, light_time_vectors, load_de421, iso_utc,
+                                    quiet_expiry, time_from_utc, _translate_range_error)
 from allo_usd.sky.orbit import Orbit
 
 # ---------------------------------------------------------------------------------------------
@@ -76,38 +84,42 @@ _BODY_NAMES = np.array(("",) + SHADOW_BODIES)  # 0 -> '', 1 -> moon, 2 -> earth
 def sky_geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarray]:
     """Everything for the (already range-checked) skyfield Time array ``t`` (the sunlight on the
     Earth and the Moon only with ``body_light``; eclipse scans of the station skip it)."""
-    p_sun, (p_earth, v_earth), (p_moon, v_moon), tp = _ephemeris_states(t, orbit)
+    (p_sun, v_sun), (p_earth, v_earth), (p_moon, v_moon), tp = _ephemeris_states(t, orbit)
     frame = _earth_moon_frame(p_sun, p_earth, v_earth, p_moon, v_moon)
     dt_s = ((np.atleast_1d(t.whole) - tp.whole) + (np.atleast_1d(t.tt_fraction) - tp.tt_fraction)) * SECONDS_PER_DAY
     rel, vel = _station_state(orbit, dt_s, *frame)
     icrf_to_station = _station_frame(rel, vel)
 
-    vectors = {"sun": (p_sun - p_moon) - rel, "earth": (p_earth - p_moon) - rel, "moon": -rel}
+    geometric = {"sun": (p_sun - p_moon) - rel, "earth": (p_earth - p_moon) - rel, "moon": -rel}
+    velocity = {"sun": v_sun, "earth": v_earth, "moon": v_moon}
     out: dict[str, np.ndarray] = {
         "station_icrf_m": p_moon + rel,
         "station_rel_moon_icrf_m": rel,
         "station_vel_rel_moon_icrf_m_s": vel,
+        "station_vel_icrf_m_s": v_moon + vel,
         "icrf_to_station": icrf_to_station,
         "station_moon_distance_m": np.linalg.norm(rel, axis=1),
         "seconds_since_perilune": dt_s,
     }
-    out.update(_bodies_seen(vectors, icrf_to_station))
+    seen, retarded = _bodies_seen(geometric, velocity, v_moon + vel, icrf_to_station)
+    out.update(seen)
     if body_light:  # the Sun as each body sees it, for the lamp that lights only that body
-        out.update(_sunlight_on_bodies(p_sun, {"earth": p_earth, "moon": p_moon}, icrf_to_station))
-    out.update(_station_eclipse(vectors, out))
+        out.update(_sunlight_on_bodies((p_sun, v_sun), {"earth": (p_earth, v_earth), "moon": (p_moon, v_moon)},
+                                       icrf_to_station))
+    out.update(_station_eclipse(retarded, out))
     return out
 
 
 def _ephemeris_states(t, orbit: Orbit):
-    """Barycentric ICRF positions (m) of the Sun, Earth and Moon, the Earth's and the Moon's with
-    velocities (m/s), and the perilune epoch as a skyfield Time."""
+    """Barycentric ICRF positions (m) and velocities (m/s) of the Sun, the Earth and the Moon,
+    and the perilune epoch as a skyfield Time."""
     e = load_de421()
     with quiet_expiry(), _translate_range_error():
         sun = e.sun.at(t)
         earth = e.earth.at(t)
         moon = e.moon.at(t)
         tp = e.ts.from_datetime(orbit.perilune_epoch)
-    return (sun.position.m.T, (earth.position.m.T, earth.velocity.m_per_s.T),
+    return ((sun.position.m.T, sun.velocity.m_per_s.T), (earth.position.m.T, earth.velocity.m_per_s.T),
             (moon.position.m.T, moon.velocity.m_per_s.T), tp)
 
 
@@ -148,36 +160,51 @@ def _station_frame(rel, vel) -> np.ndarray:
     return np.stack([xs, ys, zs], axis=1)
 
 
-def _bodies_seen(vectors: dict, icrf_to_station) -> dict[str, np.ndarray]:
-    """Distance, station-frame direction and angular radius of each body, and the Sun's irradiance."""
-    out = {}
-    for body, u in vectors.items():
-        d = np.linalg.norm(u, axis=1)
+def _bodies_seen(geometric: dict, velocity: dict, observer_velocity, icrf_to_station) -> tuple[dict, dict]:
+    """Each body as the station sees it (docs/physics.md section 11): the apparent direction (light
+    time and aberration) in the station frame, the light-time distance |body(t - tau) - station(t)|
+    (what sets the angular radius and the Sun's irradiance), the geometric direction for the record;
+    and the light-time (retarded) vectors in ICRF, for the eclipse."""
+    out, retarded = {}, {}
+    for body, g in geometric.items():
+        apparent, ret, _ = apparent_vectors(g, velocity[body], observer_velocity)
+        d = np.linalg.norm(ret, axis=1)
+        retarded[body] = ret
         out[f"distance_m.{body}"] = d
-        out[f"direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, u) / d[:, None]
+        out[f"direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, apparent)
+        out[f"geometric_direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, g) / np.linalg.norm(
+            g, axis=1)[:, None]
         out[f"angular_radius_rad.{body}"] = np.arcsin(BODY_RADIUS_M[body] / d)
     out["sun_irradiance_w_m2"] = SOLAR_CONSTANT * (AU_M / out["distance_m.sun"]) ** 2
-    return out
+    return out, retarded
 
 
-def _sunlight_on_bodies(p_sun, centres: dict, icrf_to_station) -> dict[str, np.ndarray]:
-    """The Sun as each of LIT_BODIES sees it from its centre, with its lit fraction under OCCLUDER."""
+def _sunlight_on_bodies(sun: tuple, centres: dict, icrf_to_station) -> dict[str, np.ndarray]:
+    """The Sun as each of LIT_BODIES sees it from its centre (apparent: light time and the body's own
+    aberration), with its lit fraction under OCCLUDER (light-time positions of the Sun and the
+    occluder as seen from the body)."""
     out = {}
+    p_sun, v_sun = sun
     for body in LIT_BODIES:
-        to_sun = p_sun - centres[body]
-        d = np.linalg.norm(to_sun, axis=1)
+        p_b, v_b = centres[body]
         occ = OCCLUDER[body]
+        p_o, v_o = centres[occ]
+        apparent, to_sun, _ = apparent_vectors(p_sun - p_b, v_sun, v_b)
+        to_occ, _ = light_time_vectors(p_o - p_b, v_o)
+        d = np.linalg.norm(to_sun, axis=1)
         out[f"body_sun_distance_m.{body}"] = d
-        out[f"body_sun_direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, to_sun) / d[:, None]
+        out[f"body_sun_direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, apparent)
         out[f"body_sun_irradiance_w_m2.{body}"] = SOLAR_CONSTANT * (AU_M / d) ** 2
         out[f"body_lit_fraction.{body}"] = body_lit_fraction(
-            p_sun, centres[body], BODY_RADIUS_M[body], centres[occ], BODY_RADIUS_M[occ])
+            p_b + to_sun, p_b, BODY_RADIUS_M[body], p_b + to_occ, BODY_RADIUS_M[occ])
     return out
 
 
 def _station_eclipse(vectors: dict, seen: dict) -> dict[str, np.ndarray]:
     """The station's eclipse by each of SHADOW_BODIES, and overall: the body leaving less light,
-    with the exact lit area when both cover part of the Sun."""
+    with the exact lit area when both cover part of the Sun. ``vectors`` are the light-time
+    (retarded) vectors: where the Sun and the occluder were when the light now arriving passed them;
+    aberration moves both discs together and leaves the overlap alone (docs/physics.md section 11)."""
     out = {}
     codes, lits = [], []
     sep_sun = {}
@@ -236,6 +263,7 @@ class SkyAt:
     station_rel_moon_icrf_m: tuple[float, float, float]
     icrf_to_station: tuple[tuple[float, float, float], ...]
     direction: dict[str, tuple[float, float, float]]
+    geometric_direction: dict[str, tuple[float, float, float]]
     distance_m: dict[str, float]
     angular_radius_rad: dict[str, float]
     sun_irradiance_w_m2: float
@@ -256,12 +284,15 @@ class Sky:
 
     ``station_icrf_m`` is barycentric (solar-system barycentre origin, ICRF axes);
     ``station_rel_moon_icrf_m`` is station - Moon in ICRF axes. ``direction[body]`` is the unit
-    vector from the station to the body centre in the STATION FRAME (see module doc), and
-    ``icrf_to_station[i] @ v_icrf`` maps ICRF vectors into it. Distances are centre to centre.
+    vector from the station to the body centre in the STATION FRAME (see module doc) as the
+    station sees it (apparent: light time and aberration, docs/physics.md section 11);
+    ``geometric_direction[body]`` is the same without them (body(t) - station(t)), for the record.
+    ``icrf_to_station[i] @ v_icrf`` maps ICRF vectors into the station frame. Distances are centre
+    to centre, light-time distances |body(t - tau) - station(t)|.
     ``sun_irradiance_w_m2`` is the unocculted 1361 (1 AU / d)^2; multiply by ``lit_fraction``
     (or use :func:`sun_light`) for the light that reaches the station.
     ``body_sun_*[body]`` and ``body_lit_fraction[body]`` (for :data:`LIT_BODIES`) are the Sun as
-    seen from that body's centre: direction body -> Sun in the station frame, distance, unocculted
+    seen from that body's centre: apparent direction body -> Sun in the station frame, distance, unocculted
     irradiance, and the share of it that reaches the body (:func:`body_sun_light`).
     """
 
@@ -271,6 +302,7 @@ class Sky:
     station_vel_rel_moon_icrf_m_s: np.ndarray
     icrf_to_station: np.ndarray
     direction: dict[str, np.ndarray]
+    geometric_direction: dict[str, np.ndarray]
     distance_m: dict[str, np.ndarray]
     angular_radius_rad: dict[str, np.ndarray]
     sun_irradiance_w_m2: np.ndarray
@@ -283,7 +315,7 @@ class Sky:
     body_sun_irradiance_w_m2: dict[str, np.ndarray]
     body_lit_fraction: dict[str, np.ndarray]
     orbit: Orbit = field(default_factory=Orbit)
-    positions: str = "geometric"
+    positions: str = "apparent"
     ephemeris: str = "de421.bsp"
 
     def __len__(self) -> int:
@@ -306,6 +338,7 @@ class Sky:
             station_rel_moon_icrf_m=vec(self.station_rel_moon_icrf_m),
             icrf_to_station=tuple(tuple(float(x) for x in row) for row in self.icrf_to_station[i]),
             direction={b: vec(self.direction[b]) for b in BODIES},
+            geometric_direction={b: vec(self.geometric_direction[b]) for b in BODIES},
             distance_m={b: float(self.distance_m[b][i]) for b in BODIES},
             angular_radius_rad={b: float(self.angular_radius_rad[b][i]) for b in BODIES},
             sun_irradiance_w_m2=float(self.sun_irradiance_w_m2[i]),
@@ -354,6 +387,7 @@ def compute_sky(epochs: Iterable[datetime], orbit: Orbit = Orbit()) -> Sky:
         station_vel_rel_moon_icrf_m_s=_readonly(g["station_vel_rel_moon_icrf_m_s"]),
         icrf_to_station=_readonly(g["icrf_to_station"]),
         direction={b: _readonly(g[f"direction.{b}"]) for b in BODIES},
+        geometric_direction={b: _readonly(g[f"geometric_direction.{b}"]) for b in BODIES},
         distance_m={b: _readonly(g[f"distance_m.{b}"]) for b in BODIES},
         angular_radius_rad={b: _readonly(g[f"angular_radius_rad.{b}"]) for b in BODIES},
         sun_irradiance_w_m2=_readonly(g["sun_irradiance_w_m2"]),
@@ -367,6 +401,28 @@ def compute_sky(epochs: Iterable[datetime], orbit: Orbit = Orbit()) -> Sky:
         body_lit_fraction={b: _readonly(g[f"body_lit_fraction.{b}"]) for b in LIT_BODIES},
         orbit=orbit,
     )
+
+
+def station_observer(orbit: Orbit = Orbit(), offset_station_m=(0.0, 0.0, 0.0)):
+    """The station (plus a fixed offset in the station frame, metres) as a skyfield observer, for
+    checking the layers independently: ``station_observer(orbit).at(t).observe(body).apparent()``.
+    Its barycentric position and velocity come from the orbit model (the velocity is the station's,
+    also for an offset point: the frame's rotation adds under 1 cm/s at 100 m)."""
+    from skyfield.vectorlib import VectorFunction
+
+    offset = np.asarray(offset_station_m, dtype=np.float64)
+    au_m, day_s = AU_M, SECONDS_PER_DAY
+
+    class Station(VectorFunction):
+        center, target = 0, -1_000_001  # barycentric; a made-up NAIF id
+        ephemeris = load_de421().eph
+
+        def _at(self, t):
+            g = sky_geometry(t, orbit, body_light=False)
+            p = g["station_icrf_m"] + np.einsum("nji,j->ni", g["icrf_to_station"], offset)
+            return (p / au_m).T, (g["station_vel_icrf_m_s"] / au_m * day_s).T, None, None
+
+    return Station()
 
 
 # ---------------------------------------------------------------------------------------------

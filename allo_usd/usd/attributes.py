@@ -52,6 +52,14 @@ RIG_POSES = f"{layout.RIG}/*"
     ("allo:seedPath", "string"), ("allo:perturbation", "string"), ("allo:cameraOffsetPosition", "double3"),
     ("allo:cameraOffsetRotation", "double3"), ("allo:cameraAttempts", "int"))
 
+# The sky's geometric record (AlloSceneAPI too): each body's geometric direction, beside the apparent
+# one its prim is placed at (docs/physics.md section 11). {body prim name: attribute}.
+GEOMETRIC_DIRECTION_SUN, GEOMETRIC_DIRECTION_EARTH, GEOMETRIC_DIRECTION_MOON = SKY_RECORD = _group(
+    "AlloSceneAPI", layout.WORLD, ("allo:geometricDirection:sun", "double3"),
+    ("allo:geometricDirection:earth", "double3"), ("allo:geometricDirection:moon", "double3"))
+GEOMETRIC_DIRECTION = {"Sun": GEOMETRIC_DIRECTION_SUN, "Earth": GEOMETRIC_DIRECTION_EARTH,
+                       "Moon": GEOMETRIC_DIRECTION_MOON}
+
 # ---------------------------------------------------------------- AlloEclipseAPI (sun lamps)
 LIT_FRACTION, ECLIPSE_STATE, ECLIPSE_BODY, IRRADIANCE_UNOCCLUDED, SUN_DISTANCE = ECLIPSE = _group(
     "AlloEclipseAPI", SUN_LAMPS,
@@ -116,7 +124,7 @@ POSE_INDEX, POSE_SPLIT = CAMERA_POSE = _group(
 
 # Every attribute, by API schema (schema order).
 BY_SCHEMA: dict[str, tuple[AlloAttribute, ...]] = {
-    "AlloSceneAPI": SCENE, "AlloEclipseAPI": ECLIPSE, "AlloRayVisibilityAPI": RAY,
+    "AlloSceneAPI": SCENE + SKY_RECORD, "AlloEclipseAPI": ECLIPSE, "AlloRayVisibilityAPI": RAY,
     "AlloRenderQualityAPI": RENDER_QUALITY, "AlloEffectsAPI": EFFECTS, "AlloAnomalyAPI": ANOMALY,
     "AlloCameraPoseAPI": CAMERA_POSE,
 }

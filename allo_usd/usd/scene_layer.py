@@ -66,6 +66,11 @@ def validate_spec(spec: SceneSpec) -> None:
             raise LayerError(f"{name} radius must be positive, got {body.radius}")
         if body.light is not None:
             _check_sun(f"{name}'s sun lamp", body.light)
+        if body.geometric_direction is not None:
+            check_finite(f"{name} geometric direction", body.geometric_direction)
+            if name not in A.GEOMETRIC_DIRECTION:
+                raise LayerError(f"body {name!r} has a geometric direction but the schema records one only for "
+                                 f"{', '.join(A.GEOMETRIC_DIRECTION)}; drop it or rename the body")
     if spec.anomaly is not None:
         check_finite("anomaly position", spec.anomaly.position)
         check_finite("anomaly rotation", spec.anomaly.rotation)
@@ -137,14 +142,17 @@ def eclipse_day(sun: SunSpec, bodies: dict) -> bool:
 
 
 def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: dict) -> list[Prim]:
-    """The day's opinions: epoch, the station's sun lamp and each body's position. On an eclipse day
+    """The day's opinions: epoch, the station's sun lamp and each body's position (apparent) with its
+    geometric direction for the record (docs/physics.md section 11). On an eclipse day
     (eclipse_day) also the light linking: the station's lamp excludes the lit bodies, each of which
     gets its own active lamp (the Sun from its centre, its own lit fraction)."""
     lit = [name for name in LIT_BODIES if name in bodies]
     linked = eclipse_day(sun, bodies)
     excludes = {"collection:lightLink:excludes": [layout.body_path(name) for name in lit]} if linked else {}
-    out = [Prim(layout.WORLD, A.opinions((A.EPOCH, epoch), (A.PERILUNE_EPOCH, perilune_epoch), (A.DAY, int(day))),
-                api=("AlloSceneAPI",)),
+    geometric = [(A.GEOMETRIC_DIRECTION[name], _vec3d(body.geometric_direction)) for name, body in bodies.items()
+                 if body.geometric_direction is not None]
+    out = [Prim(layout.WORLD, A.opinions((A.EPOCH, epoch), (A.PERILUNE_EPOCH, perilune_epoch), (A.DAY, int(day)),
+                                         *geometric), api=("AlloSceneAPI",)),
            sun_prim(STATION_SUN, sun, rels=excludes)]
     if linked:
         out += [sun_prim(body_sun_path(name), body_light(bodies[name], sun), active=True) for name in lit]
