@@ -1,6 +1,12 @@
-"""Benchmark allo_usd.sky.model and count the 2030 eclipses; writes docs/bench_sky.md and .png.
+"""Benchmark allo_usd.sky.model, count the 2030 eclipses and measure the authored sky layers'
+apparent directions against skyfield; writes docs/bench_sky.md and .png.
 
     .venv/bin/python scripts/bench_sky.py [--runs 30] [--phases 12] [--out docs]
+
+Apparent directions: the 365 sky layers of 2030 are authored (usd.compose.write_sky_layer), read
+back with pxr (each body's xformOp:translate, the station lamp's xformOp:orient), and the direction
+from cameras 0 and 100 m from the station is compared with skyfield's observe().apparent() from
+that camera (the station as a custom observer moving with the orbit model's barycentric velocity).
 
 Timings: best of ``--runs`` after a warm-up call (the first call, which opens DE421, is
 reported separately). Eclipses: every minute of 2030 is classified, then each contact is
@@ -54,6 +60,71 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+CAMERAS_M = np.vstack([np.zeros(3), 100.0 * np.eye(3), -100.0 * np.eye(3),
+                       100.0 / np.sqrt(3.0) * np.array([[x, y, z] for x in (1, -1) for y in (1, -1) for z in (1, -1)])])
+
+
+def apparent_errors(year) -> dict:
+    """Author the year's sky layers, read them back with pxr and compare with skyfield apparent()."""
+    from pxr import Usd
+
+    from allo_usd.core.geometry import angle_between
+    from allo_usd.scene.resolve import sun_and_bodies
+    from allo_usd.usd import attributes as A
+    from allo_usd.usd import layout
+    from allo_usd.usd.compose import write_sky_layer
+
+    n = len(year)
+    centre = {b: np.zeros((n, 3)) for b in S.BODIES}
+    recorded = {b: np.zeros((n, 3)) for b in S.BODIES}
+    lamp = np.zeros((n, 3))
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(n):
+            sun, bodies = sun_and_bodies(year, i)
+            path = write_sky_layer(Path(tmp) / f"d{i:03d}.usda", day=i, epoch=year.epochs[i],
+                                   perilune_epoch=E.iso_utc(year.orbit.perilune_epoch), sun=sun, bodies=bodies)
+            stage = Usd.Stage.Open(str(path))
+            world = stage.GetPrimAtPath(layout.WORLD)
+            for b in S.BODIES:
+                prim = stage.GetPrimAtPath(layout.body_path(b.capitalize()))
+                centre[b][i] = prim.GetAttribute("xformOp:translate").Get()
+                recorded[b][i] = world.GetAttribute(A.GEOMETRIC_DIRECTION[b.capitalize()].name).Get()
+            q = stage.GetPrimAtPath(layout.STATION_SUN).GetAttribute("xformOp:orient").Get()
+            w, (x, y, z) = q.GetReal(), q.GetImaginary()
+            lamp[i] = (2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y))  # the lamp's +Z
+    eph = E.load_de421()
+    t = E.time_from_utc([datetime.fromisoformat(x.replace("Z", "+00:00")) for x in year.epochs])
+    m = year.icrf_to_station
+    rows, worst, worst32, geometric_err, deflection, old = [], {}, {}, {}, {}, {}
+    with E.quiet_expiry():
+        for cam in CAMERAS_M:
+            station = S.station_observer(year.orbit, cam).at(t)
+            row = []
+            for b in S.BODIES:
+                target = getattr(eph, b)
+                seen = station.observe(target)
+                app = np.einsum("nij,jn->ni", m, seen.apparent().position.m)
+                no_defl = np.einsum("nij,jn->ni", m, seen.apparent(deflectors=()).position.m)
+                err = angle_between(centre[b] - cam, app)
+                c32 = centre[b].astype(np.float32).astype(np.float64) - cam.astype(np.float32).astype(np.float64)
+                err32 = angle_between(c32, app)
+                geo = np.einsum("nij,jn->ni", m, target.at(t).position.m - station.position.m)
+                old_err = angle_between(recorded[b] * year.distance_m[b][:, None] - cam, app)
+                if not cam.any():
+                    geometric_err[b] = float(angle_between(recorded[b], geo).max())
+                    sun_lamp_err = float(angle_between(lamp, app).max()) if b == "sun" else None
+                    if b == "sun":
+                        worst["sun lamp"] = sun_lamp_err
+                worst[b] = max(worst.get(b, 0.0), float(err.max()))
+                worst32[b] = max(worst32.get(b, 0.0), float(err32.max()))
+                deflection[b] = max(deflection.get(b, 0.0), float(angle_between(app, no_defl).max()))
+                old[b] = max(old.get(b, 0.0), float(old_err.max()))
+                row.append((float(err.max()), float(err32.max())))
+            rows.append((cam, row))
+    return {"rows": rows, "worst": worst, "worst32": worst32, "geometric": geometric_err,
+            "deflection": deflection, "old": old}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=30)
@@ -87,6 +158,10 @@ def main() -> int:
     timings.append(("eclipse_events 2030: 525,600 one-minute samples + bisection to 0.5 s",
                     (time.perf_counter() - t0) * 1e3))
 
+    t0 = time.perf_counter()
+    app = apparent_errors(year)
+    apparent_s = time.perf_counter() - t0
+
     moon = [ev for ev in events if ev.body == "moon"]
     earth = [ev for ev in events if ev.body == "earth"]
     states = np.asarray(year.eclipse_state)
@@ -113,8 +188,10 @@ def main() -> int:
         "",
         f"Generated by `scripts/bench_sky.py` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
-        f"numpy {np.__version__}, skyfield {skyfield.__version__}, jplephem {jplephem.__version__}. "
-        "DE421 from skyfield-data, geometric positions, one vectorised skyfield call per body.",
+        f"numpy {np.__version__}, skyfield {skyfield.__version__}, jplephem {jplephem.__version__}; "
+        f"load average {os.getloadavg()[0]:.1f} at the end (other work on the machine slows every timing). "
+        "DE421 from skyfield-data, one vectorised skyfield call per body; apparent directions (light time "
+        "and aberration) computed in numpy from those states.",
         "",
         f"**A year (365 epochs at 00:00 UTC) takes {year_ms:.2f} ms** (target: under 50 ms).",
         "",
@@ -122,6 +199,50 @@ def main() -> int:
         "|---|---|",
     ]
     lines += [f"| {name} | {ms:.3f} |" for name, ms in timings]
+    w = app["worst"]
+    lines += [
+        "",
+        "## Apparent directions in the authored layers (docs/physics.md section 11)",
+        "",
+        f"The {len(year)} sky layers of 2030 (00:00 UTC, default orbit) authored with `usd.compose.write_sky_layer` "
+        "and read back with pxr: each body's `xformOp:translate` (double) and the station lamp's `xformOp:orient`. "
+        f"From each of {len(CAMERAS_M)} cameras (the station origin, 100 m along each station axis both ways, and "
+        "the eight 100 m diagonals) the direction to each body centre is translate - camera, compared with "
+        "skyfield's `observe().apparent()` from that camera: the station as a skyfield `VectorFunction` observer "
+        "(the orbit model's barycentric position plus the fixed offset, moving at the station's barycentric "
+        "velocity), which applies light time, aberration and the gravitational deflection by the Sun, Jupiter "
+        "and Saturn. Both are taken to the station frame with `Sky.icrf_to_station`. "
+        f"Authoring and measuring took {apparent_s:.1f} s.",
+        "",
+        f"**Worst error over the year and all cameras: Sun {w['sun']:.1e} rad, Earth {w['earth']:.1e} rad, "
+        f"Moon {w['moon']:.1e} rad** (budget 1e-5 rad); the station's sun lamp {w['sun lamp']:.1e} rad.",
+        "",
+        "| camera offset (m, station frame) | Sun | Earth | Moon | Sun, float32 | Earth, float32 | Moon, float32 |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    lines += ["| (" + ", ".join(f"{c:.1f}" for c in cam) + ") | "
+              + " | ".join(f"{e:.1e}" for e, _ in row) + " | " + " | ".join(f"{e32:.1e}" for _, e32 in row) + " |"
+              for cam, row in app["rows"]]
+    lines += [
+        "",
+        "The float32 columns cast the translate and the camera to float32 first, as Blender stores them: the "
+        "ulp (16 km at 1 AU for the Sun, 32 m at the Earth) costs under 5e-8 rad. Parallax is no error source: the bodies sit at their true "
+        "light-time distance in the station frame, so a camera 100 m off the station (up to 3e-5 rad for the "
+        "Moon at perilune) sees them from where it is.",
+        "",
+        "| body | geometric placement (before) | gravitational deflection (left out) | recorded geometric direction vs skyfield geometric |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {b} | {app['old'][b]:.1e} | {app['deflection'][b]:.1e} | {app['geometric'][b]:.1e} |"
+              for b in S.BODIES]
+    lines += [
+        "",
+        "Deflection is below 1e-10 rad for every body: the Sun's own light is not bent toward the Sun (skyfield "
+        "skips a deflector within 1 arcsec of the line of sight), and the Earth's and the Moon's light passes "
+        "the Sun no closer than the observer does, so its bend is about 2 GM/(c^2 d) = 2e-8 rad times the small "
+        "angle between the body and the observer as seen from the Sun (<= 2.6e-3 rad): about 5e-11 rad, even on "
+        "2030-12-10 when the Earth stands next to the Sun in the station's sky.",
+    ]
     lines += [
         "",
         "## Eclipses in 2030 (default orbit: perilune epoch 2030-01-01T00:00Z)",
@@ -206,7 +327,8 @@ def main() -> int:
         ax2.set_yticks(yy, labels, fontsize=8)
         ax2.invert_yaxis()
         ax2.set_xlim(0, 1.35 * max(v.duration_s / 60 for v in events))
-        ax2.legend(fontsize=8, loc="lower right")
+        # below the axes, so that it covers no bar (inside, it hid the last pass)
+        ax2.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     ax2.set_xlabel("minutes")
     ax2.set_title(f"2030 shadow passes (1-min scan + bisection): {len(moon)} Moon, {len(earth)} Earth")
     png = args.out / "bench_sky.png"

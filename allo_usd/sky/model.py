@@ -1,7 +1,7 @@
 """Sky geometry for every scene: station orbit (NRHO approximation), Sun/Earth/Moon, eclipses.
 
 numpy + skyfield only (no pxr, no bpy), so it can be tested and benchmarked on its own.
-Numbers and conventions follow ``docs/physics.md`` sections 1-7.
+Numbers and conventions follow ``docs/physics.md`` sections 1-7 and 11.
 
 The pieces live beside it: ephemeris (DE421, epochs), orbit (the station's ellipse), eclipse
 (disc geometry) and events (eclipse search over a span); this module puts them together.
