@@ -229,7 +229,13 @@ def diff(a: Path = typer.Argument(..., help="First scene layer."),
 def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directories (NAME.json + files)."),
             out: Path = typer.Option(..., "--out", help="Dataset directory."),
             category: str = typer.Option("allo", help="MVTec category name."),
-            copy: bool = typer.Option(False, "--copy", help="Copy files instead of hard-linking them.")):
+            copy: bool = typer.Option(False, "--copy", help="Copy files instead of hard-linking them."),
+            defects: str = typer.Option("per-asset", "--defects", metavar="per-asset|merged",
+                                        help="Anomalous test images: `per-asset` puts each anomaly asset in its "
+                                             "own folder, test/ASSET/ with masks in ground_truth/ASSET/ (as MVTec "
+                                             "AD has one folder per defect type); `merged` puts them all in "
+                                             "test/anomaly/ and ground_truth/anomaly/. A re-run with the other "
+                                             "choice moves the files.")):
     """Assemble renders into an MVTec-AD-style tree, 3-class masks, a manifest and contact sheets.
 
     Re-runs add only new or re-rendered scenes. Ctrl-C stops after the scene in hand (exit 130);
@@ -238,23 +244,24 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
     note; no renders, or renders of different resolutions, stop the run (exit 2)."""
     ensure_output_dir(out)
     import warnings
+    from collections import Counter
 
     from allo_usd.output.dataset import RefusedRenders, assemble, read_manifest
 
     with warnings.catch_warnings(record=True) as notes:
         warnings.simplefilter("always")
         try:
-            manifest = assemble(render_dirs, out, link=not copy, category=category, progress=sys.stderr.isatty())
+            manifest = assemble(render_dirs, out, link=not copy, category=category, progress=sys.stderr.isatty(),
+                                defects=defects)
         except KeyboardInterrupt as exc:
             _notes(notes)
             typer.echo(f"interrupted: {exc or 'before any file was placed; re-run the same command'}", err=True)
             raise SystemExit(130) from None
     _notes(notes)
-    rows = [r for r in read_manifest(manifest) if r["category"] == category]
-    counts = {k: sum(1 for r in rows if (r["split"], r["kind"]) == k) for k in
-              (("train", "good"), ("test", "good"), ("test", "anomaly"))}
-    typer.echo(f"{out / category}: " + ", ".join(f"{s}/{k} {n}" for (s, k), n in counts.items())
-               + f"; manifest {manifest}")
+    folders = Counter("/".join(r["image"].split("/")[1:3]) for r in read_manifest(manifest)
+                      if r["category"] == category)   # SPLIT/FOLDER: train/good, test/good, test/<defect>
+    order = sorted(folders, key=lambda k: (k != "train/good", k != "test/good", k))
+    typer.echo(f"{out / category}: " + ", ".join(f"{k} {folders[k]}" for k in order) + f"; manifest {manifest}")
     if any(issubclass(w.category, RefusedRenders) for w in notes):
         raise SystemExit(1)  # like `render` with failures: the rest is assembled, the refused ones are named
 

@@ -27,7 +27,8 @@ from typer.testing import CliRunner
 
 from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.cli import app
-from allo_usd.output.dataset import AssemblyInterrupted, assemble, label_lines, read_manifest
+from allo_usd.output.contact import OUTLINE, label_lines
+from allo_usd.output.dataset import LOCK, AssemblyInterrupted, assemble, read_manifest
 from allo_usd.core.errors import AlloError
 from allo_usd.run.job import render_layer
 
@@ -95,16 +96,16 @@ def test_layout_is_what_mvtec_loaders_expect(renders, tmp_path):
     assert [Path(p).name for p in found["train"]] == ["000000_d000_p01.png", "000001_d001_p02.png"]
     assert [Path(p).name for p in found["test_good"]] == ["000002_d002_p41.png"]
     (image, mask), = found["pairs"]
-    assert Path(image).relative_to(cat).as_posix() == "test/anomaly/000003_d003_p41_crate_z0.png"
-    assert Path(mask).relative_to(cat).as_posix() == "ground_truth/anomaly/000003_d003_p41_crate_z0_mask.png"
+    assert Path(image).relative_to(cat).as_posix() == "test/Crate/000003_d003_p41_crate_z0.png"  # its asset's folder
+    assert Path(mask).relative_to(cat).as_posix() == "ground_truth/Crate/000003_d003_p41_crate_z0_mask.png"
     binary = np.asarray(Image.open(mask))
-    three = np.asarray(Image.open(out / "allo_masks/allo/test/anomaly/000003_d003_p41_crate_z0_mask.png"))
+    three = np.asarray(Image.open(out / "allo_masks/allo/test/Crate/000003_d003_p41_crate_z0_mask.png"))
     assert binary.dtype == np.uint8 and binary.shape == (36, 64) == Image.open(image).size[::-1]
     assert set(np.unique(binary)) == {0, 255}
     np.testing.assert_array_equal(binary == 255, three == 2)
     assert set(np.unique(three)) == {0, 1, 2}
     assert os.path.samefile(image, renders / "d003_p41_crate_z0.png")  # hard link, no copy
-    for split, kind, n in (("train", "good", 2), ("test", "good", 1), ("test", "anomaly", 1)):
+    for split, kind, n in (("train", "good", 2), ("test", "good", 1), ("test", "Crate", 1)):
         assert len(list((out / "allo_masks/allo" / split / kind).glob("*_mask.png"))) == n
     for split in ("train", "test"):
         assert Image.open(out / "contact_sheets" / f"allo_{split}.png").size[0] >= 64
@@ -121,7 +122,7 @@ def test_manifest_has_one_row_per_image_with_provenance(renders, tmp_path):
     assert a["depth_index"] == "0" and float(a["depth_offset"]) == 0.0
     meta = json.loads((renders / "d003_p41_crate_z0.json").read_text())
     assert meta["anomaly_fraction"] > 0 and float(a["anomaly_fraction"]) == pytest.approx(meta["anomaly_fraction"])
-    assert a["mask"].endswith("_mask.png") and a["allo_mask"].startswith("allo_masks/allo/test/anomaly/")
+    assert a["mask"].endswith("_mask.png") and a["allo_mask"].startswith("allo_masks/allo/test/Crate/")
     assert a["layer"] == meta["layer"] and a["epoch"] == "2030-01-01T00:00:00Z"
     assert a["seed_path"] == "1/0/1/14" and a["plan_seed"] == "1"  # which pipeline run (plan seed) made it
     for r in rows.values():
@@ -163,7 +164,7 @@ def test_cli_dataset_copies_when_asked(renders, tmp_path):
     out = tmp_path / "ds"
     result = CliRunner().invoke(app, ["dataset", str(renders), "--out", str(out), "--category", "gateway", "--copy"])
     assert result.exit_code == 0, result.output
-    assert "train/good 2, test/good 1, test/anomaly 1" in result.output
+    assert "train/good 2, test/good 1, test/Crate 1;" in result.output
     assert "assembling gateway" not in result.output  # progress bars only on a terminal (not a pipe or a log)
     image = out / "gateway/train/good/000000_d000_p01.png"
     assert image.is_file() and not os.path.samefile(image, renders / "d000_p01.png")
@@ -203,7 +204,7 @@ def test_mask_only_renders_are_left_out_with_a_note(renders, tiny_base, tmp_path
 def test_stale_temporaries_and_unlisted_images_are_removed(renders, tmp_path):
     out = tmp_path / "ds"
     assemble([renders], out)
-    gt = out / "allo/ground_truth/anomaly"
+    gt = out / "allo/ground_truth/Crate"
     stale = [gt / ".000003_d003_p41_crate_z0_mask.png.k2j_9x0a.png",  # write.atomic_path's, after SIGKILL
              out / "allo/train/good" / f".000000_d000_p01.png.{'ab' * 16}.tmp",  # place()'s
              out / ".manifest.csv.abcd1234.csv"]
@@ -231,12 +232,54 @@ def test_contact_sheet_labels_keep_the_whole_name(renders, tmp_path):
     assert all(draw.textlength(line) <= 160 for line in lines)
     assert label_lines("x" * 80, 60, draw) and "".join(label_lines("x" * 80, 60, draw)) == "x" * 80
     out = tmp_path / "ds"
-    long = fabricate(renders, "d003_p41_crate_z0", tmp_path / "long", name, split="test")
+    long = fabricate(renders, "d003_p41_crate_z0", tmp_path / "long", "_".join([name] * 4), split="test")
     assemble([renders, long], out)
     sheet = Image.open(out / "contact_sheets/allo_test.png")
     short = tmp_path / "short"
     assemble([renders], short)
-    assert sheet.height > Image.open(short / "contact_sheets/allo_test.png").height  # room for two lines
+    assert sheet.height > Image.open(short / "contact_sheets/allo_test.png").height  # room for more lines
+
+
+def magenta(image: Image.Image) -> np.ndarray:
+    return np.all(np.asarray(image.convert("RGB")) == OUTLINE, axis=-1)
+
+
+def test_contact_sheets_are_large_and_outline_each_anomaly(renders, tmp_path):
+    """One sheet per split; tiles at least 480 px wide (the 64x36 renders enlarged pixel for pixel),
+    each anomaly ringed in OUTLINE around its mask, nothing outlined on the train sheet; many
+    images make several sheets, and fewer on a re-run remove the pages no longer drawn."""
+    out = tmp_path / "ds"
+    assemble([renders], out)
+    train, test = (Image.open(out / f"contact_sheets/allo_{s}.png") for s in ("train", "test"))
+    assert train.width >= 2 * 480 and test.width >= 2 * 480  # two images a side, each at least 480 wide
+    assert not magenta(train).any()
+    ring = magenta(test)
+    assert ring.any()
+    # the anomaly's pixels lie inside the ring: the tile's enlarged mask matches the 3-class mask
+    three = np.asarray(Image.open(out / "allo_masks/allo/test/Crate/000003_d003_p41_crate_z0_mask.png")) == 2
+    ys, xs = np.nonzero(ring)
+    scale = 480 / 64
+    assert xs.max() - xs.min() >= (np.ptp(np.nonzero(three)[1]) + 1) * scale  # around the anomaly, scaled up
+    many = many_scenes(renders, tmp_path / "many", 14)
+    assemble([renders, many], out)
+    pages = sorted(p.name for p in (out / "contact_sheets").iterdir())
+    assert pages == ["allo_test.png", "allo_test_2.png", "allo_train.png"], pages  # 16 test images, 12 a sheet
+    assemble([renders, many], out, sheet_limit=10)
+    assert sorted(p.name for p in (out / "contact_sheets").iterdir()) == ["allo_test.png", "allo_train.png"]
+
+
+def test_manifest_is_relative_with_lf_lines_and_no_lock_is_left(renders, tmp_path):
+    out = tmp_path / "ds"
+    manifest = assemble([renders], out)
+    raw = manifest.read_bytes()
+    assert b"\r" not in raw and raw.endswith(b"\n") and raw.count(b"\n") == 1 + len(SCENES)
+    for r in read_manifest(manifest):
+        for key in ("image", "mask", "allo_mask"):
+            assert not r[key] or (not Path(r[key]).is_absolute() and (out / r[key]).is_file()), r[key]
+    assert not (out / LOCK).exists() and not [p for p in out.rglob(".*")]
+    moved = tmp_path / "elsewhere"
+    shutil.move(out, moved)   # relative paths: the tree moves as a whole
+    assert all((moved / r["image"]).is_file() for r in read_manifest(moved / "manifest.csv"))
 
 
 def test_ctrl_c_stops_after_the_scene_in_hand_and_a_rerun_completes(renders, tmp_path):
@@ -292,7 +335,7 @@ def test_an_interrupted_cli_run_never_leaves_unlisted_files(renders, tmp_path, s
     rows = read_manifest(out / "manifest.csv")
     assert len(rows) == 604 and sorted(int(r["index"]) for r in rows) == list(range(604))
     assert tree_files(out) == listed_files(out)
-    assert not [p for p in out.rglob(".*") if p.is_file() and p.name != ".allo-dataset.lock"]  # no temporaries
+    assert not [p for p in out.rglob(".*") if p.is_file()]  # no temporaries, and the re-run removed the lock file
     mvtec_pairs(out / "allo")
 
 

@@ -202,3 +202,20 @@ def test_suspicious_renders_are_flagged(tmp_path):
     assert "station_and_bodies = 0" in dark and "nothing_seen" in dark and "fine" not in dark
     black = next(n for n in notes if "all-black" in n)
     assert "black" in black and "fine" not in black and "nothing_seen" not in black
+
+
+def test_an_anomaly_asset_named_good_is_not_filed_as_normal(tmp_path):
+    """MVTec loaders read any folder named `good` as normal images: a defect folder may not be one."""
+    renders, out = tmp_path / "r", tmp_path / "ds"
+    fake_render(renders, "normal")
+    fake_render(renders, "odd", split="test", variant="anomaly", anomaly=50)
+    edit(renders / "odd.json", lambda m: m["scene"]["anomaly"].update(asset="good"))
+    line = one_error_line(cli(renders, "--out", out))
+    assert "named 'good'" in line and "--defects merged" in line, line
+    assert not (out / "allo").exists()   # refused before anything is placed
+    merged = tmp_path / "merged"
+    assert run([renders], merged, defects="merged") == []
+    assert placed(merged) == {"normal": "train/good", "odd": "test/anomaly"}
+    assert (merged / "allo/test/anomaly/000001_odd.png").is_file()
+    line = one_error_line(cli(renders, "--out", tmp_path / "x", "--defects", "one-each"))
+    assert "unknown defects layout 'one-each'" in line and "per-asset, merged" in line

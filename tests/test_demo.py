@@ -36,6 +36,30 @@ def test_demo_renders_two_normal_and_two_anomalous(demo_dir):
         assert m["scene"]["provenance"]["seed"] == m["scene"]["seed"]
     sheet = Image.open(demo_dir / "contact_sheet.png")
     assert sheet.size[0] > 128 and sheet.size[1] > 4 * 36
+    splits = sorted((m["scene"]["split"], m["scene"]["variant"]) for m in metas)
+    assert splits == [("test", "anomaly"), ("test", "anomaly"), ("test", "normal"), ("train", "normal")]
+
+
+def test_demo_dataset_has_every_mvtec_folder(demo_dir):
+    """The demo's dataset: train/good, a non-empty test/good, and one test/ and ground_truth/ folder
+    per anomaly asset, each image listed in the manifest; a re-run at another size starts it anew."""
+    from allo_usd.output.dataset import read_manifest
+    from allo_usd.run.demo import demo_dataset
+
+    cat = demo_dir / "dataset" / "allo"
+    folders = {f"{p.parent.name}/{p.name}": len(list(p.glob("*.png"))) for p in cat.glob("*/*")}
+    assert folders == {"train/good": 1, "test/good": 1, "test/power_drill": 1, "test/mli_blanket": 1,
+                       "ground_truth/power_drill": 1, "ground_truth/mli_blanket": 1}, folders
+    rows = read_manifest(demo_dir / "dataset" / "manifest.csv")
+    assert sorted(r["image"].split("/")[2] for r in rows) == ["good", "good", "mli_blanket", "power_drill"]
+    assert sorted((demo_dir / "dataset" / "contact_sheets").iterdir())
+    other = demo_dir / "other_size"
+    demo_dataset(demo_dir / "renders", other, (64, 36))
+    first = other / read_manifest(other / "manifest.csv")[0]["image"]
+    first.unlink()                                   # (a hard link to the render: not written into)
+    Image.new("RGB", (32, 18)).save(first)           # as if an earlier demo ran at 32x18
+    demo_dataset(demo_dir / "renders", other, (64, 36))   # assemble alone refuses to mix sizes
+    assert Image.open(first).size == (64, 36) and len(read_manifest(other / "manifest.csv")) == 4
 
 
 def test_every_demo_layer_validates(demo_dir):

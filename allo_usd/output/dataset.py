@@ -6,15 +6,20 @@ Output, under OUT:
 
     OUT/<category>/train/good/NNNNNN_NAME.png          normal training images
     OUT/<category>/test/good/NNNNNN_NAME.png           normal test images
-    OUT/<category>/test/anomaly/NNNNNN_NAME.png        anomalous test images
-    OUT/<category>/ground_truth/anomaly/NNNNNN_NAME_mask.png   binary 0/255, anomaly class only
-    OUT/allo_masks/<category>/<split>/<kind>/NNNNNN_NAME_mask.png   ALLO 3-class masks (0, 1, 2)
+    OUT/<category>/test/<defect>/NNNNNN_NAME.png       anomalous test images, one folder per defect
+    OUT/<category>/ground_truth/<defect>/NNNNNN_NAME_mask.png   binary 0/255, anomaly class only
+    OUT/allo_masks/<category>/<split>/<folder>/NNNNNN_NAME_mask.png   ALLO 3-class masks (0, 1, 2)
     OUT/manifest.csv (and manifest.parquet if pandas and pyarrow are installed)
-    OUT/contact_sheets/<category>_<split>.png
+    OUT/contact_sheets/<category>_<split>.png (then _2.png, ... ; allo_usd.output.contact)
+
+<defect> is the anomaly's asset (`defects="per-asset"`, the default: test/power_drill/, as
+MVTec AD has test/scratch/), or `anomaly` for every hazard (`defects="merged"`). A re-run with
+the other choice moves the files (same indices) and removes the emptied folders.
 
 Why these choices:
-- anomalib's MVTec and Folder loaders glob EVERY image under the category directory and pair
-  sorted anomalous images with sorted masks by position. So the category directory holds
+- anomalib's MVTec and Folder loaders glob EVERY image under the category directory, label an
+  image normal if its folder is `good` (so no defect folder may be called that), and pair
+  sorted anomalous images with sorted masks by position (tests/test_dataset_layout.py). So the category directory holds
   nothing but train/, test/ and ground_truth/ (the 3-class masks, sheets and manifest live
   beside it), and every file name starts with a unique fixed-width index: sorting images and
   masks then gives the same order whatever the scene names are (a bare `a.png`/`a_b.png` pair
@@ -43,6 +48,9 @@ Why these choices:
   anomalib's recursive glob would otherwise load as an image) and indexed images that no row
   lists. Ctrl-C stops after the scene in hand (a second Ctrl-C stops at once, still safely)
   and raises AssemblyInterrupted; manifest.parquet is rewritten when a run ends.
+- Manifest paths (image, mask, allo_mask) are relative to OUT, so the tree moves as a whole;
+  source and layer name the render record and scene layer it came from (absolute: they lie
+  outside OUT). Lines end in LF. The run's lock file (LOCK) is removed when the run ends.
 """
 
 from __future__ import annotations
@@ -64,12 +72,19 @@ from PIL import Image
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import RunLock, atomic_path, sha256_file
-from allo_usd.output.writers import mask_overlay, write_png
+from allo_usd.output.contact import read_pixels, split_sheets
+from allo_usd.output.writers import write_png
 
 LAYOUTS = ("mvtec",)
-COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "kind", "scene_id", "pose", "day",
-           "epoch", "anomaly_asset", "anomaly_variant", "depth_index", "depth_offset", "anomaly_fraction",
-           "seed", "plan_seed", "seed_path", "layer", "layer_sha256", "sha256", "source")
+DEFECTS = ("per-asset", "merged")   # one test/<asset>/ folder per anomaly asset, or one test/anomaly/
+MERGED = "anomaly"                  # the defect folder of every anomaly with defects="merged"
+NORMAL = "good"                     # the folder MVTec loaders read as normal
+# Manifest columns, in groups; a new group is a tuple here and a function in _row.
+FILE_COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "kind")
+SCENE_COLUMNS = ("scene_id", "pose", "day", "epoch", "anomaly_asset", "anomaly_variant", "depth_index",
+                 "depth_offset", "anomaly_fraction")
+PROVENANCE_COLUMNS = ("seed", "plan_seed", "seed_path", "layer", "layer_sha256", "sha256", "source")
+COLUMNS = FILE_COLUMNS + SCENE_COLUMNS + PROVENANCE_COLUMNS
 MANIFEST = "manifest.csv"
 FILE_KEYS = ("allo_mask", "mask", "image")  # placement order: the image, which loaders glob, comes last
 # Temporaries of core.files.atomic_path (mkstemp: .NAME.<8 chars>.SUFFIX) and of earlier place() (.NAME.<32 hex>.tmp).
@@ -151,7 +166,7 @@ def _write_csv(path: Path, rows) -> Path:
     rows = sorted(rows, key=lambda r: (r["category"], int(r["index"])))
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
+            w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n")
             w.writeheader()
             w.writerows(rows)
     return path
@@ -194,14 +209,8 @@ def remove_unlisted(out: Path, category: str, rows) -> list[str]:
     return gone
 
 
-def read_pixels(path: Path, mode: str | None = None) -> np.ndarray:
-    """An image file's pixels (the file closed again)."""
-    with Image.open(path) as im:
-        return np.asarray(im.convert(mode) if mode else im)
-
-
 SPLITS = ("train", "test")                     # a render's scene split, and the dataset's split folders
-VARIANTS = {"normal": "good", "anomaly": "anomaly"}   # a render's scene variant -> the dataset's kind folder
+VARIANTS = {"normal": "good", "anomaly": "anomaly"}   # a render's scene variant -> the row's kind
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")    # a scene name, the category: a plain file name
 TOKEN = re.compile(r"^[A-Za-z0-9_-]+$")               # an anomaly asset or variant
 
@@ -314,25 +323,48 @@ def _inside(out: Path, rel: str) -> Path:
     return path
 
 
-def _row(category, index, name, meta_path: Path, meta: dict, kind: str) -> dict:
-    """The manifest row of one scene (its files are placed by _place_row)."""
-    scene, src = meta["scene"], meta_path.parent
-    split = scene["split"]
+def folder(scene: dict, kind: str, defects: str) -> str:
+    """The folder of a scene's image under its split: `good` for a normal one, else its anomaly's
+    asset (defects="per-asset") or `anomaly` (defects="merged")."""
+    if kind != "anomaly":
+        return NORMAL
+    return MERGED if defects == "merged" else scene["anomaly"]["asset"]
+
+
+def file_columns(category: str, index: int, name: str, split: str, kind: str, where: str) -> dict:
+    """The row's identity and its files, relative to the dataset root: the image in
+    CATEGORY/SPLIT/WHERE/, its 0/255 mask (anomalies) in CATEGORY/ground_truth/WHERE/ under the
+    image's stem + `_mask` (MVTec AD's naming), its 3-class mask under allo_masks/."""
     stem = f"{index:06d}_{name}"
-    image = Path(category, split, kind, f"{stem}.png")
-    allo_mask = Path("allo_masks", category, split, kind, f"{stem}_mask.png")
-    mask = Path(category, "ground_truth", kind, f"{stem}_mask.png").as_posix() if kind == "anomaly" else ""
+    mask = f"{category}/ground_truth/{where}/{stem}_mask.png" if kind == "anomaly" else ""
+    return {"category": category, "index": index, "name": name, "image": f"{category}/{split}/{where}/{stem}.png",
+            "mask": mask, "allo_mask": f"allo_masks/{category}/{split}/{where}/{stem}_mask.png", "split": split,
+            "kind": kind}
+
+
+def scene_columns(name: str, meta: dict) -> dict:
+    """What the scene is: its pose, day and anomaly (from the render's JSON)."""
+    scene = meta["scene"]
     anomaly = scene.get("anomaly") or {}
-    seed_path = scene.get("seedPath", "")
-    return {"category": category, "index": index, "name": name, "image": image.as_posix(),
-            "mask": mask, "allo_mask": allo_mask.as_posix(), "split": split, "kind": kind,
-            "scene_id": scene.get("sceneId", name), "pose": scene.get("pose"), "day": scene.get("day"),
+    return {"scene_id": scene.get("sceneId", name), "pose": scene.get("pose"), "day": scene.get("day"),
             "epoch": scene.get("epoch"), "anomaly_asset": anomaly.get("asset", ""),
             "anomaly_variant": anomaly.get("assetVariant", ""), "depth_index": anomaly.get("depthIndex", ""),
-            "depth_offset": anomaly.get("depthOffset", ""), "anomaly_fraction": meta.get("anomaly_fraction", 0.0),
-            "seed": scene.get("seed"), "plan_seed": plan_seed(seed_path), "seed_path": seed_path,
+            "depth_offset": anomaly.get("depthOffset", ""), "anomaly_fraction": meta.get("anomaly_fraction", 0.0)}
+
+
+def provenance_columns(meta_path: Path, meta: dict) -> dict:
+    """Where the image came from: seeds, the scene layer, the render record, the image's hash."""
+    scene = meta["scene"]
+    seed_path = scene.get("seedPath", "")
+    return {"seed": scene.get("seed"), "plan_seed": plan_seed(seed_path), "seed_path": seed_path,
             "layer": meta.get("layer", ""), "layer_sha256": meta.get("layer_sha256", ""),
-            "sha256": sha256_file(src / meta["files"]["rgb"]), "source": str(meta_path.resolve())}
+            "sha256": sha256_file(meta_path.parent / meta["files"]["rgb"]), "source": str(meta_path.resolve())}
+
+
+def _row(category, index, name, meta_path: Path, meta: dict, kind: str, where: str) -> dict:
+    """The manifest row of one scene (its files are placed by _place_row)."""
+    return (file_columns(category, index, name, meta["scene"]["split"], kind, where)
+            | scene_columns(name, meta) | provenance_columns(meta_path, meta))
 
 
 def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> None:
@@ -345,11 +377,14 @@ def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) ->
     place(rgb_src, _inside(out, row["image"]), link)
 
 
-def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, out: Path) -> bool:
-    """A row whose source, layer and kind are the same and whose files are links to the render: skip
-    hashing again (job.py replaces outputs by rename, so a linked file never changes content)."""
-    if (old["source"], old["layer_sha256"], old["kind"], old["split"]) != (
-            str(meta_path.resolve()), meta.get("layer_sha256", ""), kind, meta["scene"]["split"]):
+def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> bool:
+    """A row whose source, layer, kind and folder are the same and whose files are links to the
+    render: skip hashing again (job.py replaces outputs by rename, so a linked file never changes
+    content). A row in another folder (the other `defects` choice) is placed again."""
+    split = meta["scene"]["split"]
+    if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (
+            str(meta_path.resolve()), meta.get("layer_sha256", ""), kind, split,
+            file_columns(old["category"], int(old["index"]), old["name"], split, kind, where)["image"]):
         return False
     src = meta_path.parent
     try:
@@ -397,20 +432,48 @@ def _stop_at_scene_boundary():
 LOCK = ".allo-dataset.lock"
 
 
+class _Lock(RunLock):
+    """RunLock on OUT/LOCK, whose file is removed when the run ends (no lock file is left behind).
+    A run that opened the file just before the holder removed it would lock a file no longer in
+    the directory, beside a third run locking a new one: so a lock counts only if the path still
+    names the locked file, else it is taken again."""
+
+    def __enter__(self):
+        for _ in range(8):
+            super().__enter__()
+            try:
+                if os.path.samestat(os.fstat(self.fd), os.stat(self.path)):
+                    return self
+            except FileNotFoundError:
+                pass
+            os.close(self.fd)
+        raise AlloError(f"could not lock {self.path}: other dataset runs keep starting and ending there; "
+                        "wait for them or use another --out")
+
+    def __exit__(self, *exc):
+        self.path.unlink(missing_ok=True)  # while still holding it
+        super().__exit__(*exc)
+
+
 def assemble(render_dirs, out_dir, layout: str = "mvtec", link: bool = True, category: str = "allo",
-             sheet_limit: int = 48, progress: bool = False, on_scene=None) -> Path:
+             sheet_limit: int = 48, progress: bool = False, on_scene=None, defects: str = "per-asset") -> Path:
     """Build (or update) the dataset tree under out_dir from render directories; returns the manifest.
 
-    `progress` shows bars (counts, ETA) for reading the renders and placing the scenes;
-    `on_scene(name)` is called after each scene's files are in place. Ctrl-C raises
-    AssemblyInterrupted once the manifest is final for what was placed. One run at a time per
-    out_dir (`LOCK`): a second would remove the first one's temporaries and unlisted images."""
+    `defects` is "per-asset" (test/<asset>/ and ground_truth/<asset>/, as MVTec AD has one
+    folder per defect type) or "merged" (every anomaly in test/anomaly/). `sheet_limit` caps the
+    images drawn on each split's contact sheets (sampled evenly). `progress` shows bars (counts,
+    ETA) for reading the renders and placing the scenes; `on_scene(name)` is called after each
+    scene's files are in place. Ctrl-C raises AssemblyInterrupted once the manifest is final for
+    what was placed. One run at a time per out_dir (`LOCK`): a second would remove the first
+    one's temporaries and unlisted images."""
+    if defects not in DEFECTS:
+        raise AlloError(f"unknown defects layout {defects!r}; choose one of {', '.join(DEFECTS)}")
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    with RunLock(out_dir, LOCK, "dataset"):
-        return _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene)
+    with _Lock(out_dir, LOCK, "dataset"):
+        return _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene, defects)
 
 
-def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene) -> Path:
+def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene, defects) -> Path:
     if layout not in LAYOUTS:
         raise AlloError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
     if not NAME.match(category or "") or category in ("allo_masks", "contact_sheets"):
@@ -420,7 +483,7 @@ def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progres
     out.mkdir(parents=True, exist_ok=True)
     manifest = out / MANIFEST
     rows = _clean_tree(out, manifest, category)
-    todo = _plan_rows(render_dirs, progress, rows, category, link, out)
+    todo = _plan_rows(render_dirs, progress, rows, category, link, out, defects)
     placed, stop_now = _place_all(todo, rows, manifest, out, category, link, progress, on_scene)
     if stop_now:
         write_manifest(manifest, list(rows.values()))
@@ -442,9 +505,11 @@ def _clean_tree(out: Path, manifest: Path, category: str) -> dict[tuple, dict]:
     return rows
 
 
-def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, link, out: Path) -> list[tuple]:
-    """(name, meta path, meta, kind, index) of each render to place: new scenes get the next free
-    indices, changed ones keep theirs, unchanged linked ones are skipped; the rest are reported.
+def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, link, out: Path,
+               defects: str) -> list[tuple]:
+    """(name, meta path, meta, kind, index, folder) of each render to place: new scenes get the
+    next free indices, changed or moved ones keep theirs, unchanged linked ones are skipped; the
+    rest are reported. An anomaly asset named like the normal folder stops the run.
     Render records that check_render refuses are left out with a warning; renders of another
     resolution than the rest (or than the category's images already in the tree) stop the run."""
     next_index = 1 + max((int(r["index"]) for r in rows.values() if r["category"] == category), default=-1)
@@ -467,17 +532,21 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
         if kind is None:
             left_out.append(name)
             continue
+        where = folder(meta["scene"], kind, defects)
+        if kind == "anomaly" and where.lower() == NORMAL:
+            raise AlloError(f"{meta_path}: its anomaly asset is named {where!r}, and MVTec loaders read a folder of "
+                            f"that name as normal images; fix: --defects merged, or rename the asset")
         sizes.setdefault(size, []).append(name)
         if meta["class_pixels"].get("station_and_bodies", 0) == 0:
             dark.append(name)
         old = rows.get((category, name))
-        if old and link and _unchanged(old, meta_path, meta, kind, out):
+        if old and link and _unchanged(old, meta_path, meta, kind, where, out):
             continue
         if all_black(source_file(meta_path.parent, meta["files"]["rgb"]), size):
             black.append(name)
         index = int(old["index"]) if old else next_index
         next_index += old is None
-        todo.append((name, meta_path, meta, kind, index))
+        todo.append((name, meta_path, meta, kind, index, where))
     _one_resolution(sizes, rows, category, out)
     if refused:
         warnings.warn(f"{len(refused)} render(s) refused and left out, their JSON contradicting itself or naming "
@@ -533,13 +602,13 @@ def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: 
             while i < len(todo) and not stop.is_set():
                 batch = todo[i:i + max(64, min(4096, len(rows) // 8))]  # amortised: O(log n) rewrites
                 i += len(batch)
-                new = [(t, _row(category, t[4], t[0], t[1], t[2], t[3])) for t in batch]
+                new = [(t, _row(category, t[4], t[0], t[1], t[2], t[3], t[5])) for t in batch]
                 for (name, *_), row in new:
                     key = (category, name)
                     ahead[key] = rows.get(key)
                     rows[key] = row
                 _write_csv(manifest, rows.values())  # before any of the batch's files exists
-                for (name, meta_path, meta, _, _), row in new:
+                for (name, meta_path, meta, *_), row in new:
                     if stop.is_set():
                         break
                     key = in_hand = (category, name)
@@ -579,50 +648,19 @@ def _finish(out: Path, manifest: Path, rows: dict[tuple, dict], category: str, s
             _remove_files(out, rows.pop(key))
     all_rows = list(rows.values())
     write_manifest(manifest, all_rows)
-    for split in ("train", "test"):
+    remove_empty_folders(out, category)
+    sheets = _inside(out, "contact_sheets")
+    for split in SPLITS:
         picked = [r for r in all_rows if r["category"] == category and r["split"] == split]
         if picked:
-            grid_sheet(out, picked, _inside(out, f"contact_sheets/{category}_{split}.png"), sheet_limit)
+            sheets.mkdir(exist_ok=True)
+            split_sheets(out, picked, sheets, category, split, sheet_limit)
 
 
-def label_lines(text: str, width: float, draw) -> list[str]:
-    """`text` in lines no wider than `width` pixels, broken after '_' or '-' where possible (a
-    part wider than a line is broken anywhere); joined, the lines give back the whole text."""
-    parts = [c for part in re.findall(r"[^_-]+[_-]?|[_-]", text)
-             for c in ([part] if draw.textlength(part) <= width else list(part))]
-    lines = [""]
-    for part in parts:
-        if lines[-1] and draw.textlength(lines[-1] + part) > width:
-            lines.append(part)
-        else:
-            lines[-1] += part
-    return lines
-
-
-def grid_sheet(out: Path, rows: list[dict], path: Path, limit: int = 48, thumb_w: int = 160, cols: int = 6) -> Path:
-    """A grid of thumbnails with mask overlays (blue station/bodies, red anomaly), anomalies first,
-    each under its whole scene name (wrapped)."""
-    from PIL import ImageDraw
-
-    rows = sorted(rows, key=lambda r: (r["kind"] != "anomaly", int(r["index"])))
-    if len(rows) > limit:  # an even sample keeps the sheet small for big datasets
-        rows = [rows[i] for i in np.linspace(0, len(rows) - 1, limit).round().astype(int)]
-    height, width = read_pixels(out / rows[0]["image"]).shape[:2]
-    thumb_h = max(1, round(thumb_w * height / width))
-    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    labels = [label_lines(r["name"], thumb_w, measure) for r in rows]
-    line_h = measure.textbbox((0, 0), "Ag_")[3] + 2
-    label_h, pad = line_h * max(map(len, labels)) + 2, 4
-    cols = min(cols, len(rows))
-    nrows = -(-len(rows) // cols)
-    sheet = Image.new("RGB", (cols * (thumb_w + pad) + pad, nrows * (thumb_h + label_h + pad) + pad), (24, 24, 24))
-    draw = ImageDraw.Draw(sheet)
-    for i, (r, lines) in enumerate(zip(rows, labels)):
-        x, y = pad + (i % cols) * (thumb_w + pad), pad + (i // cols) * (thumb_h + label_h + pad)
-        rgb, mask = read_pixels(out / r["image"], "RGB"), read_pixels(out / r["allo_mask"])
-        tile = Image.fromarray(mask_overlay(rgb, mask)).resize((thumb_w, thumb_h), Image.Resampling.NEAREST)
-        sheet.paste(tile, (x, y + label_h))
-        colour = (255, 120, 120) if r["kind"] == "anomaly" else (220, 220, 220)
-        for k, line in enumerate(lines):
-            draw.text((x, y + k * line_h), line, fill=colour)
-    return write_png(path, np.asarray(sheet))
+def remove_empty_folders(out: Path, category: str) -> None:
+    """Remove the category's emptied image folders (after a re-run with the other `defects`
+    choice, test/anomaly/ or test/<asset>/ is left empty; a Folder loader given it would fail)."""
+    for top in (out / category, out / "allo_masks" / category):
+        for d in sorted(top.glob("*/*"), reverse=True):
+            if d.is_dir() and not d.is_symlink() and not any(d.iterdir()):
+                d.rmdir()

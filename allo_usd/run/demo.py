@@ -1,5 +1,9 @@
 """The small real dataset `make run` renders: 2 normal and 2 anomalous scenes, plus a contact sheet.
 
+One normal scene has a training pose (1-40), the other normal and the two anomalous scenes test
+poses (41-50), so the assembled dataset has every folder an anomaly detector reads: train/good,
+test/good and one test/<defect>/ per anomaly asset.
+
 The demo authors exactly as a plan does (allo_usd.usd.compose), into a self-contained tree:
 
     OUT/layers/NAME.usda            scene layers (only their own opinions, under 4 KB)
@@ -8,6 +12,7 @@ The demo authors exactly as a plan does (allo_usd.usd.compose), into a self-cont
     OUT/layers/schema/              the Allo*API schemas' plugin, for PXR_PLUGINPATH_NAME
     OUT/renders/                    PNG, EXR, mask and JSON per scene
     OUT/contact_sheet.png
+    OUT/dataset/                    the renders as an MVTec AD tree (allo_usd.output.dataset)
     OUT/logs/demo.log               what Blender printed while rendering
 
 Every path in a layer is relative and stays inside OUT/layers, the directory a scene layer lies
@@ -33,9 +38,9 @@ from allo_usd.plan.settings import RenderSpec
 from allo_usd.scene.spec import SceneSpec
 from allo_usd.output.writers import linear_to_srgb8, mask_overlay, write_png
 
-DEMO_SCENES = (  # (day, pose, anomaly or None)
+DEMO_SCENES = (  # (day, pose, anomaly or None); poses 1-40 are the train split, 41-50 the test split
     (0, 3, None),
-    (120, 17, None),
+    (120, 44, None),
     (45, 42, ("power_drill", None)),
     (200, 47, ("mli_blanket", None)),
 )
@@ -99,9 +104,25 @@ def contact_sheet(rows: list[tuple[str, np.ndarray, np.ndarray]], path: Path) ->
     return path
 
 
+def demo_dataset(renders: Path, dataset: Path, resolution) -> Path:
+    """Assemble the demo renders into `dataset`; returns its manifest. A dataset holds one image
+    size, so one assembled at another resolution (an earlier run's) is removed and made anew."""
+    import shutil
+
+    from allo_usd.output.dataset import MANIFEST, assemble, read_manifest, read_pixels
+
+    rows = read_manifest(dataset / MANIFEST)
+    if rows:
+        first = dataset / rows[0]["image"]
+        if not first.is_file() or read_pixels(first).shape[1::-1] != tuple(resolution):
+            shutil.rmtree(dataset)
+    return assemble([renders], dataset)
+
+
 def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage: Path = BASE_STAGE,
              progress: bool = True) -> Path:
-    """Author, render and contact-sheet the demo scenes under `out_dir`; returns the sheet's path.
+    """Author, render and contact-sheet the demo scenes under `out_dir`, and assemble them into an
+    MVTec AD tree in `out_dir/dataset` (hard links); returns the sheet's path.
     A progress bar (counts and ETA) runs over the scenes; Ctrl-C raises KeyboardInterrupt between
     atomic file writes, so finished scenes are kept and a re-run renders only what is missing."""
     from tqdm import tqdm
@@ -137,4 +158,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
             mask = read_pixels(out_dir / "renders" / meta["files"]["mask"])
             rows.append((spec.scene_id, rgb, mask))
             bar.update(1)
+    manifest = demo_dataset(out_dir / "renders", out_dir / "dataset", resolution)
+    if progress:
+        tqdm.write(f"dataset: {manifest.parent / 'allo'} (train/good, test/good, test/<defect>), {manifest}")
     return contact_sheet(rows, out_dir / "contact_sheet.png")
