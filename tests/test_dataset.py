@@ -123,7 +123,11 @@ def test_manifest_has_one_row_per_image_with_provenance(renders, tmp_path):
     meta = json.loads((renders / "d003_p41_crate_z0.json").read_text())
     assert meta["anomaly_fraction"] > 0 and float(a["anomaly_fraction"]) == pytest.approx(meta["anomaly_fraction"])
     assert a["mask"].endswith("_mask.png") and a["allo_mask"].startswith("allo_masks/allo/test/Crate/")
-    assert a["layer"] == meta["layer"] and a["epoch"] == "2030-01-01T00:00:00Z"
+    assert a["epoch"] == "2030-01-01T00:00:00Z"
+    # layer and source are relative to the dataset root: no absolute path of this machine
+    assert not Path(a["layer"]).is_absolute() and not Path(a["source"]).is_absolute()
+    assert (out / a["layer"]).resolve() == Path(meta["layer"]).resolve()
+    assert (out / a["source"]).resolve() == (renders / "d003_p41_crate_z0.json").resolve()
     assert a["seed_path"] == "1/0/1/14" and a["plan_seed"] == "1"  # which pipeline run (plan seed) made it
     for r in rows.values():
         assert r["sha256"] == sha(out / r["image"])

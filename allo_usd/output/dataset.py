@@ -352,19 +352,26 @@ def scene_columns(name: str, meta: dict) -> dict:
             "depth_offset": anomaly.get("depthOffset", ""), "anomaly_fraction": meta.get("anomaly_fraction", 0.0)}
 
 
-def provenance_columns(meta_path: Path, meta: dict) -> dict:
-    """Where the image came from: seeds, the scene layer, the render record, the image's hash."""
+def from_root(path, out: Path) -> str:
+    """`path` relative to the dataset root `out` (symlinks resolved), so the manifest holds no
+    machine's absolute paths and stays right when the dataset and its renders move together."""
+    return os.path.relpath(Path(path).resolve(), Path(out).resolve()) if path else ""
+
+
+def provenance_columns(meta_path: Path, meta: dict, out: Path) -> dict:
+    """Where the image came from: seeds, the scene layer, the render record, the image's hash
+    (layer and source relative to the dataset root)."""
     scene = meta["scene"]
     seed_path = scene.get("seedPath", "")
     return {"seed": scene.get("seed"), "plan_seed": plan_seed(seed_path), "seed_path": seed_path,
-            "layer": meta.get("layer", ""), "layer_sha256": meta.get("layer_sha256", ""),
-            "sha256": sha256_file(meta_path.parent / meta["files"]["rgb"]), "source": str(meta_path.resolve())}
+            "layer": from_root(meta.get("layer", ""), out), "layer_sha256": meta.get("layer_sha256", ""),
+            "sha256": sha256_file(meta_path.parent / meta["files"]["rgb"]), "source": from_root(meta_path, out)}
 
 
-def _row(category, index, name, meta_path: Path, meta: dict, kind: str, where: str) -> dict:
+def _row(category, index, name, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> dict:
     """The manifest row of one scene (its files are placed by _place_row)."""
     return (file_columns(category, index, name, meta["scene"]["split"], kind, where)
-            | scene_columns(name, meta) | provenance_columns(meta_path, meta))
+            | scene_columns(name, meta) | provenance_columns(meta_path, meta, out))
 
 
 def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> None:
@@ -383,7 +390,7 @@ def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, ou
     content). A row in another folder (the other `defects` choice) is placed again."""
     split = meta["scene"]["split"]
     if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (
-            str(meta_path.resolve()), meta.get("layer_sha256", ""), kind, split,
+            from_root(meta_path, out), meta.get("layer_sha256", ""), kind, split,
             file_columns(old["category"], int(old["index"]), old["name"], split, kind, where)["image"]):
         return False
     src = meta_path.parent
@@ -602,7 +609,7 @@ def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: 
             while i < len(todo) and not stop.is_set():
                 batch = todo[i:i + max(64, min(4096, len(rows) // 8))]  # amortised: O(log n) rewrites
                 i += len(batch)
-                new = [(t, _row(category, t[4], t[0], t[1], t[2], t[3], t[5])) for t in batch]
+                new = [(t, _row(category, t[4], t[0], t[1], t[2], t[3], t[5], out)) for t in batch]
                 for (name, *_), row in new:
                     key = (category, name)
                     ahead[key] = rows.get(key)
