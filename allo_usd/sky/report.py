@@ -9,13 +9,13 @@ from __future__ import annotations
 import csv
 import math
 import os
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
 from allo_usd.core.errors import SkyInputError
 from allo_usd.core.files import atomic_path
+from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.sky.model import BODIES, Sky
 
 CSV_COLUMNS = (
@@ -66,7 +66,7 @@ def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    dates = [datetime.strptime(e, "%Y-%m-%dT%H:%M:%SZ") for e in sky.epochs]
+    dates = [parse_utc(e, "epoch") for e in sky.epochs]
     eclipsed = np.asarray(sky.eclipse_state) != "lit"
 
     fig = Figure(figsize=(11, 10), constrained_layout=True)
@@ -75,7 +75,7 @@ def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path
     o = sky.orbit
     fig.suptitle(
         f"Sky at the station, {sky.epochs[0][:10]} .. {sky.epochs[-1][:10]} ({len(sky)} epochs; "
-        f"NRHO approx, perilune {o.perilune_epoch:%Y-%m-%dT%H:%MZ}; DE421 {sky.positions})"
+        f"NRHO approx, perilune {format_utc(o.perilune_epoch)}; DE421 {sky.positions})"
     )
 
     ax = axes[0]
