@@ -191,3 +191,13 @@ def test_the_sky_table_records_exact_epochs(tmp_path):
     assert [parse_utc(r.split(",")[0]) for r in rows] == epochs
     assert rows[2].startswith("2030-01-03T00:00:00Z,")
 
+
+def test_the_in_shadow_marker_sits_at_the_effective_irradiance():
+    from allo_usd.sky.report import sky_figure
+
+    sky = compute_sky(["2030-09-26T00:00:00Z", "2030-09-27T00:00:00Z"])   # the second: in the Moon's umbra
+    assert list(sky.eclipse_state) == ["lit", "umbra"]
+    ax = sky_figure(sky).axes[1]
+    (marker,) = [ln for ln in ax.get_lines() if ln.get_label().startswith("in shadow")]
+    assert "effective" in marker.get_label()
+    assert list(marker.get_ydata()) == [float(sky.sun_irradiance_w_m2[1] * sky.lit_fraction[1])] == [0.0]
