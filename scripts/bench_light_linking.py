@@ -265,6 +265,7 @@ def demo_layer(tree: Path, day: int, pose: int = 3, resolution=(96, 54), samples
     the committed base stage) for `day` of 2030, no anomaly, denoising off (so means are unbiased)."""
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.core.paths import BASE_STAGE
+    from allo_usd.core.timefmt import format_utc
     from allo_usd.plan.settings import RenderSpec
     from allo_usd.run.demo import DEMO_SEED, write_demo_layer
     from allo_usd.scene.resolve import resolve_scene
@@ -279,7 +280,7 @@ def demo_layer(tree: Path, day: int, pose: int = 3, resolution=(96, 54), samples
     orbit = Orbit()
     if "sky" not in _SKY:
         _SKY["sky"] = compute_sky(default_epochs(), orbit)
-    inputs = scene_inputs(stage, _SKY["sky"], orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    inputs = scene_inputs(stage, _SKY["sky"], format_utc(orbit.perilune_epoch))
     render = RenderSpec(resolution=tuple(resolution), preset="demo", samples=samples, exposure=EXPOSURE, seed=1,
                         denoise=False)
     spec = resolve_scene(inputs, scene_id=f"d{day:03d}_p{pose:02d}", day=day, pose=pose, plan_seed=DEMO_SEED,

@@ -55,6 +55,7 @@ from allo_usd.scene.placement import sphere_pixels
 from allo_usd.scene.raycast import RayScene, pixel_rays
 from allo_usd.core.constants import EXPOSURE
 from allo_usd.core.paths import BASE_STAGE
+from allo_usd.core.timefmt import format_utc
 from allo_usd.usd.read import scene_inputs
 from allo_usd.scene.resolve import SceneInputs, build_spec, resolve_camera, resolve_placements
 from allo_usd.sky.ephemeris import default_epochs
@@ -218,7 +219,7 @@ def load_world(base_stage: Path) -> World:
     """Read the rig and build the station BVH once, timed, as authoring does per world."""
     orbit = Orbit()
     sky = compute_sky(default_epochs(), orbit)
-    world = scene_inputs(base_stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    world = scene_inputs(base_stage, sky, format_utc(orbit.perilune_epoch))
     t0 = time.perf_counter()
     _ = world.poses
     _ = world.station_scene

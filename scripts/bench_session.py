@@ -44,6 +44,7 @@ def author_layers(out: Path, resolution, samples, denoise) -> list[Path]:
     from allo_usd.core.errors import PlacementError
     from allo_usd.core.paths import BASE_STAGE
     from allo_usd.core.constants import EXPOSURE
+    from allo_usd.core.timefmt import format_utc
     from allo_usd.scene.resolve import resolve_scene
     from allo_usd.usd.read import scene_inputs
     from allo_usd.sky.ephemeris import default_epochs
@@ -53,7 +54,7 @@ def author_layers(out: Path, resolution, samples, denoise) -> list[Path]:
 
     orbit = Orbit()
     world = scene_inputs(Path(BASE_STAGE), compute_sky(default_epochs(), orbit),
-                  orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+                  format_utc(orbit.perilune_epoch))
     render = RenderSpec(resolution=tuple(resolution), preset="bench", samples=samples, denoise=denoise,
                         exposure=EXPOSURE, seed=1)
     names = sorted(ANOMALY_VARIANTS)
@@ -91,6 +92,7 @@ def distinct_layers(out: Path, n: int, resolution, samples: int, denoise: bool) 
     from allo_usd.core.errors import PlacementError
     from allo_usd.core.paths import BASE_STAGE
     from allo_usd.core.constants import EXPOSURE
+    from allo_usd.core.timefmt import format_utc
     from allo_usd.scene.resolve import resolve_scene
     from allo_usd.usd.read import scene_inputs
     from allo_usd.sky.ephemeris import default_epochs
@@ -100,7 +102,7 @@ def distinct_layers(out: Path, n: int, resolution, samples: int, denoise: bool) 
 
     orbit = Orbit()
     world = scene_inputs(Path(BASE_STAGE), compute_sky(default_epochs(), orbit),
-                  orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+                  format_utc(orbit.perilune_epoch))
     render = RenderSpec(resolution=tuple(resolution), preset="bench", samples=samples, denoise=denoise,
                         exposure=EXPOSURE, seed=1)
     choices = [(a, v) for a in sorted(ANOMALY_VARIANTS) for v in ANOMALY_VARIANTS[a]]

@@ -31,11 +31,20 @@ def test_catalogue_names_every_builder():
 
 
 def test_de421_range_constants_match_the_file():
+    """The UTC constants are the file's limits rounded inwards to the microsecond."""
+    import math
+    from datetime import datetime, timedelta, timezone
+
+    from allo_usd.core.timefmt import format_utc
     from allo_usd.sky import ephemeris_range as R
-    from allo_usd.sky.ephemeris import ISO_FORMAT, load_de421, quiet_expiry
+    from allo_usd.sky.ephemeris import load_de421, quiet_expiry
 
     e = load_de421()
     assert (e.start_tdb_jd, e.end_tdb_jd) == (R.DE421_START_TDB_JD, R.DE421_END_TDB_JD)
+    utc = []
     with quiet_expiry():
-        utc = (e.ts.tdb_jd(e.start_tdb_jd).utc_strftime(ISO_FORMAT), e.ts.tdb_jd(e.end_tdb_jd).utc_strftime(ISO_FORMAT))
-    assert utc == (R.DE421_START_UTC, R.DE421_END_UTC)
+        for jd, inwards in ((e.start_tdb_jd, math.ceil), (e.end_tdb_jd, math.floor)):
+            c = e.ts.tdb_jd(jd).utc
+            minute = datetime(*map(int, c[:5]), tzinfo=timezone.utc)
+            utc.append(format_utc(minute + timedelta(microseconds=inwards(c.second * 1e6))))
+    assert tuple(utc) == (R.DE421_START_UTC, R.DE421_END_UTC)

@@ -1,1 +1,1 @@
-"""What every layer shares: errors, package paths, rotations, physical constants, atomic files, mask labels, size limits, seeds, the sensor's parameters."""
+"""What every layer shares: errors, package paths, rotations, physical constants, atomic files, mask labels, size limits, seeds, the sensor's parameters, recorded times (ISO 8601 UTC to the microsecond)."""

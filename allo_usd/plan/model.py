@@ -14,11 +14,12 @@ from datetime import date, datetime, time, timedelta, timezone
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_validator, model_validator
 
 from allo_usd.assets.importer import SUPPORTED_EXTENSIONS, UNIT_SCALES, UP_AXIS_ROTATIONS
-from allo_usd.core.errors import PlanError
+from allo_usd.core.errors import EpochError, PlanError
 from allo_usd.core.limits import resolution_problem
+from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES, PRESETS, EffectFlags, QualitySettings
 
 DEPTH_COUNT = 5  # allo_usd.scene.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
@@ -291,6 +292,21 @@ class Plan(_Model):
     seeds: list[int] = Field(default_factory=lambda: [2030], description="One pipeline run per seed.")
     station: Station = Field(default_factory=Station)
     base_stage: str = Field("stages/base.usda", description="Relative to the working directory, else to the installed package (stages/base.usda is the shipped base stage).")
+
+    @field_validator("perilune_epoch", mode="before")
+    @classmethod
+    def _parse(cls, v):
+        """Text is read by the one parser of recorded times (allo_usd.core.timefmt)."""
+        if isinstance(v, str):
+            try:
+                return parse_utc(v, "perilune_epoch")
+            except EpochError as exc:
+                raise ValueError(str(exc)) from None
+        return v
+
+    @field_serializer("perilune_epoch")
+    def _record(self, v: datetime) -> str:
+        return format_utc(v)
 
     @field_validator("perilune_epoch")
     @classmethod

@@ -43,6 +43,7 @@ from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_p
                                   write_pose_layer, write_sky_layer)
 from allo_usd.core.files import atomic_directory, write_text_atomic
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
+from allo_usd.core.timefmt import format_utc
 from allo_usd.plan.model import Plan
 from allo_usd.plan.enumeration import (SceneKey, anomaly_quotas, iter_scenes, reserve_cap,
                                        reserve_group)
@@ -70,7 +71,7 @@ class AuthorContext:
 
         self.plan, self.out_dir, self.stop = plan, Path(out_dir), stop
         self.base_stage = plan.resolve_base_stage()
-        self.inputs = scene_inputs(self.base_stage, sky, plan.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+        self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch))
         q = plan.quality
         self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE, **quality_of(q))
         self.effects = EffectsSpec(**plan.effects.model_dump())

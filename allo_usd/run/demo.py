@@ -32,6 +32,7 @@ from allo_usd.usd.compose import (copy_base_stage, pose_layer_path, sky_layer_pa
 from allo_usd.core.errors import PlacementError
 from allo_usd.core.paths import BASE_STAGE
 from allo_usd.core.constants import EXPOSURE
+from allo_usd.core.timefmt import format_utc
 from allo_usd.scene.resolve import SceneInputs, resolve_scene
 from allo_usd.usd.read import scene_inputs
 from allo_usd.plan.settings import RenderSpec
@@ -142,7 +143,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     copy_schema(tree)
     orbit = Orbit()
     sky = compute_sky(default_epochs(), orbit)
-    inputs = scene_inputs(stage, sky, orbit.perilune_epoch.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    inputs = scene_inputs(stage, sky, format_utc(orbit.perilune_epoch))
     rows = []
     with tqdm(total=len(DEMO_SCENES), unit="scene", desc="demo", disable=not progress) as bar:
         for i in range(len(DEMO_SCENES)):

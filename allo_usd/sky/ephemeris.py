@@ -26,6 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
+from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 
 _EXPIRED_WARNING = r".*finals2000A\.all has expired.*"
@@ -101,13 +102,7 @@ def _range_text() -> str:
 def as_utc(value: object, what: str = "epoch") -> datetime:
     """One epoch as an aware UTC datetime. Naive datetimes are refused, never guessed."""
     if isinstance(value, str):
-        try:
-            parsed = datetime.fromisoformat(value)
-        except ValueError as exc:
-            raise EpochError(
-                f"{what} {value!r} is not an ISO 8601 date-time; write e.g. '2030-01-01T00:00:00Z'"
-            ) from exc
-        value = parsed
+        return parse_utc(value, what)
     if not isinstance(value, datetime):
         raise EpochError(
             f"{what} must be a timezone-aware datetime in UTC, got {type(value).__name__} {value!r}; "
@@ -122,7 +117,8 @@ def as_utc(value: object, what: str = "epoch") -> datetime:
 
 
 def iso_utc(dt: datetime) -> str:
-    return dt.strftime(ISO_FORMAT)
+    """The recorded text of an epoch, exact to the microsecond (allo_usd.core.timefmt)."""
+    return format_utc(dt)
 
 
 def default_epochs(year: int = 2030, days: int = 365) -> list[datetime]:

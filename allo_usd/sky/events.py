@@ -125,8 +125,8 @@ def eclipse_events(
             deepest = int(np.max(code[seg]))
             events.append(EclipseEvent(
                 body=body,
-                start=iso_utc(start + timedelta(seconds=float(t_start[k]))),
-                end=iso_utc(start + timedelta(seconds=float(t_end[k]))),
+                start=iso_utc((start + timedelta(seconds=float(t_start[k]))).replace(microsecond=0)),
+                end=iso_utc((start + timedelta(seconds=float(t_end[k]))).replace(microsecond=0)),
                 duration_s=float(t_end[k] - t_start[k]),
                 umbra_s=umbra_s,
                 min_lit_fraction=float(np.min(lit[seg])),

@@ -9,13 +9,13 @@ from __future__ import annotations
 import csv
 import math
 import os
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
 from allo_usd.core.errors import SkyInputError
 from allo_usd.core.files import atomic_path
+from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.sky.model import BODIES, Sky
 
 CSV_COLUMNS = (
@@ -63,10 +63,18 @@ def write_sky_csv(sky: Sky, csv_path: str | os.PathLike) -> Path:
 
 
 def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path:
+    path = Path(png_path)
+    with atomic_path(path) as tmp:
+        sky_figure(sky).savefig(tmp, format="png", dpi=dpi)
+    return path
+
+
+def sky_figure(sky: Sky):
+    """The plot's matplotlib Figure (on an Agg canvas): distance, irradiance, lit fraction, sizes."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    dates = [datetime.strptime(e, "%Y-%m-%dT%H:%M:%SZ") for e in sky.epochs]
+    dates = [parse_utc(e, "epoch") for e in sky.epochs]
     eclipsed = np.asarray(sky.eclipse_state) != "lit"
 
     fig = Figure(figsize=(11, 10), constrained_layout=True)
@@ -75,7 +83,7 @@ def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path
     o = sky.orbit
     fig.suptitle(
         f"Sky at the station, {sky.epochs[0][:10]} .. {sky.epochs[-1][:10]} ({len(sky)} epochs; "
-        f"NRHO approx, perilune {o.perilune_epoch:%Y-%m-%dT%H:%MZ}; DE421 {sky.positions})"
+        f"NRHO approx, perilune {format_utc(o.perilune_epoch)}; DE421 {sky.positions})"
     )
 
     ax = axes[0]
@@ -87,12 +95,16 @@ def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path
     ax = axes[1]
     irr = np.asarray(sky.sun_irradiance_w_m2)
     ax.plot(dates, irr, lw=1.0, label="unocculted 1361 (1 AU/d)^2")
-    if eclipsed.any():
+    if eclipsed.any():   # drawn where the light is: the effective irradiance, joined to the unocculted
         idx = np.flatnonzero(eclipsed)
-        ax.plot([dates[i] for i in idx], irr[idx], "rx", ms=6,
-                label="in shadow (effective = unocculted x lit fraction)")
+        effective = irr[idx] * np.asarray(sky.lit_fraction)[idx]
+        ax.vlines([dates[i] for i in idx], effective, irr[idx], colors="r", lw=0.6, ls=":")
+        ax.plot([dates[i] for i in idx], effective, "rx", ms=6,
+                label="in shadow: effective = unocculted x lit fraction")
+        for i, e in zip(idx, effective):
+            ax.annotate(f"{e:.0f}", (dates[i], e), fontsize=7, color="r", xytext=(4, 2), textcoords="offset points")
     ax.set_ylabel("Sun irradiance\n(W/m^2)")
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="center left", fontsize=8)   # clear of an in-shadow marker, which may sit at 0
 
     ax = axes[2]
     ax.plot(dates, sky.lit_fraction, ".", ms=3)
@@ -109,11 +121,7 @@ def write_sky_png(sky: Sky, png_path: str | os.PathLike, dpi: int = 110) -> Path
     ax.set_ylabel("angular diameter\n(deg)")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_xlabel("date (UTC)")
-
-    path = Path(png_path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi)
-    return path
+    return fig
 
 
 def write_sky_report(sky: Sky, csv_path: str | os.PathLike, png_path: str | os.PathLike) -> tuple[Path, Path]:
