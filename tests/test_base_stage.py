@@ -126,3 +126,30 @@ def test_station_and_anomaly_assets_exist():
         assert list(prim.GetVariantSets().GetVariantSet("variant").GetVariantNames()) == sorted(variants) or \
             set(prim.GetVariantSets().GetVariantSet("variant").GetVariantNames()) == set(variants)
         assert list(UsdSemantics.LabelsAPI(prim, "class").GetLabelsAttr().Get()) == ["anomaly"]
+
+
+def test_sun_lamps_and_disc_have_one_colour():
+    """The Sun's colour is SUN_COLOR everywhere it shows: every sun lamp (the station's and the bodies')
+    authors it, no sky layer overrides it, and the Sun's sphere adds none (it emits nothing and is cut out),
+    so the disc the station's lamp draws has the lamps' colour."""
+    from pxr import UsdShade
+
+    from allo_usd.core.constants import SUN_COLOR
+
+    schema.register()
+    stage = Usd.Stage.Open(str(BASE_STAGE))
+    lamps = [UsdLux.DistantLight(p) for p in stage.TraverseAll() if p.IsA(UsdLux.DistantLight)]
+    assert len(lamps) == 3
+    for lamp in lamps:
+        assert tuple(lamp.GetColorAttr().Get()) == SUN_COLOR, lamp.GetPath()
+        assert lamp.GetColorAttr().IsAuthored() and not lamp.GetEnableColorTemperatureAttr().Get()
+    golden = Path(__file__).parent / "golden"
+    for layer in sorted(golden.rglob("*.usda")):
+        assert "inputs:color" not in layer.read_text(), f"{layer} overrides a lamp's colour"
+    sun = Usd.Stage.Open(str(STAGES / "bodies" / "Sun.usda"))
+    shaders = [UsdShade.Shader(p) for p in sun.Traverse() if p.IsA(UsdShade.Shader)]
+    assert [s.GetIdAttr().Get() for s in shaders] == ["UsdPreviewSurface"]
+    surface = shaders[0]
+    assert surface.GetInput("opacity").Get() == 0.0 and surface.GetInput("opacityThreshold").Get() > 0.0
+    emissive = surface.GetInput("emissiveColor")
+    assert emissive is None or not emissive or tuple(emissive.Get()) == (0.0, 0.0, 0.0)

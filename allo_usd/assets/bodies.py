@@ -1,12 +1,15 @@
 """Moon, Earth and Sun as unit spheres with procedural equirectangular textures.
 
 The sky module places them at true scale (scale = body radius, translate = true position),
-so one unit sphere per body serves every day. The Sun's sphere emits nothing and is cut out
+so one unit sphere per body serves every day. "Unit" means the drawn outline: the mesh is a 192 x 96
+UV sphere whose vertices lie slightly outside radius 1 (by 1.3e-4, `body_sphere`), so that the polygon's
+outline has, on average around it, the true radius from any view (tests/test_silhouettes.py); vertices
+on the unit sphere would draw every body a little small. The Sun's sphere emits nothing and is cut out
 everywhere (UsdPreviewSurface opacity 0 under opacityThreshold 0.5: no renderer draws it, and it is
 not refractive glass, which opacity 0 with threshold 0 may be): the Sun is the station's UsdLux
-DistantLight, whose
-angular diameter and irradiance draw the disc (radiance SUN_RADIANCE at 1 AU) and light the scene
-once, in any renderer. The sphere is there so that the disc's pixels carry class 1 in the mask.
+DistantLight, whose angular diameter, irradiance and colour (SUN_COLOR) draw the disc (radiance
+SUN_RADIANCE at 1 AU) and light the scene once, in any renderer. The sphere is there so that the
+disc's pixels carry class 1 in the mask.
 
 Albedo convention: BOND albedo, area-weighted, for both bodies (docs/physics.md section 5: Moon
 0.11, Earth 0.306). Both bodies are Lambertian (UsdPreviewSurface `ior = 1`: no specular layer),
@@ -34,11 +37,13 @@ Lambertian prediction (tests/test_bodies.py).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from allo_usd.core.constants import AU_M, SOLAR_CONSTANT, SUN_RADIUS_M
-from allo_usd.assets.mesh import Asset, Material
-from allo_usd.assets.primitives import uv_sphere
+from allo_usd.assets.mesh import Asset, Material, MeshPart
+from allo_usd.assets.primitives import sphere_outline_scale, uv_sphere
 
 # Radiance of the solar disc: irradiance / solid angle = E / (pi sin^2 theta) at 1 AU (what the
 # DistantLight's disc has: UsdLux's size factor of a normalised DistantLight, read.distant_size_factor).
@@ -50,6 +55,9 @@ MOON_MARIA_FRACTION = 0.17   # of the surface area (about 31% of the near side, 
 EARTH_LAND_FRACTION = 0.29   # of the surface area
 EARTH_ICE_LATITUDE_DEG = 72.0
 EARTH_CLOUD_TOP = 0.8        # linear reflectance of thick cloud tops
+# The bodies' sphere: 192 x 96 keeps the mean outline within 9e-5 of the true disc from every view
+# (128 x 64 would leave 2e-4: seen over a pole the limb runs between two rings; sphere_outline_scale).
+BODY_SEGMENTS, BODY_RINGS = 192, 96
 
 
 def _fbm(h: int, w: int, seed: int, octaves: int = 6, base: int = 4) -> np.ndarray:
@@ -180,14 +188,23 @@ def earth_texture(h: int = 512, w: int = 1024) -> np.ndarray:
     return _normalised_srgb8(with_clouds(0.5 * (lo + hi)), EARTH_ALBEDO)
 
 
+def body_sphere(material: str, textured: bool = True) -> MeshPart:
+    """The unit sphere every body is drawn with: its outline, seen from any direction at any distance, has
+    the true mean radius to within 9e-5 (primitives.sphere_outline_scale; tests/test_silhouettes.py).
+    Untextured (the Sun's), it carries no UVs: they are most of the file's size."""
+    part = uv_sphere("Surface", sphere_outline_scale(BODY_SEGMENTS, BODY_RINGS), material,
+                     segments=BODY_SEGMENTS, rings=BODY_RINGS)
+    return part if textured else replace(part, uv=None)
+
+
 def build_bodies() -> dict[str, Asset]:
     """Unit spheres named Moon, Earth and Sun with their materials and textures."""
-    moon = Asset("Moon", (uv_sphere("Surface", 1.0, "Regolith", segments=128, rings=64),),
+    moon = Asset("Moon", (body_sphere("Regolith"),),
                  (Material("Regolith", (1.0, 1.0, 1.0), 0.0, 1.0, base_color_texture="moon_albedo", ior=1.0),),
                  {"moon_albedo": moon_texture()})
-    earth = Asset("Earth", (uv_sphere("Surface", 1.0, "EarthSurface", segments=128, rings=64),),
+    earth = Asset("Earth", (body_sphere("EarthSurface"),),
                   (Material("EarthSurface", (1.0, 1.0, 1.0), 0.0, 1.0, base_color_texture="earth_albedo", ior=1.0),),
                   {"earth_albedo": earth_texture()})
-    sun = Asset("Sun", (uv_sphere("Surface", 1.0, "Photosphere", segments=48, rings=24),),
+    sun = Asset("Sun", (body_sphere("Photosphere", textured=False),),
                 (Material("Photosphere", (0.0, 0.0, 0.0), 0.0, 1.0, opacity=0.0, opacity_threshold=0.5),))
     return {"Moon": moon, "Earth": earth, "Sun": sun}

@@ -6,6 +6,8 @@ by an optional 4x4 matrix (see `transform`); rotations are built in float64.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from allo_usd.assets.mesh import MeshPart
@@ -102,6 +104,32 @@ def cylinder_between(name: str, a, b, radius: float, material: str, segments: in
     axis = b - a
     return cylinder(name, radius, float(np.linalg.norm(axis)), material, segments,
                     transform(a, frame_from_z(axis)), caps)
+
+
+def sphere_outline_scale(segments: int, rings: int) -> float:
+    """Radius of a `uv_sphere` whose drawn outline has, on average around it, radius 1 to within x^2 / 3,
+    x = pi / segments, from any view at 1.87 radii or more (8.9e-5 relative angular radius at 192 segments).
+
+    A UV sphere with its vertices on the unit sphere draws an outline inside the unit circle. With
+    rings = segments / 2 (the same angular step, 2x, along a meridian and along the equator), the
+    outline's mean radius falls short of 1 by D x^2, D between 1/3 and 5/6 depending on the view:
+    - 1/3: the outline is an N-gon of the mesh's vertices (seen from far over a pole: the equator; from
+      the equator in a meridian's plane: that meridian), and an N-gon's mean radius over azimuth is
+      1 - x^2 / 3;
+    - up to 1/4 more seen from the equator midway between meridians (the two meridians beside the
+      limb, foreshortened by cos x across the line of sight: 1 - x^2 cos^2(azimuth) / 2, mean 1/4);
+    - up to 1/2 more seen over a pole from a distance at which the limb (a small circle parallel to
+      the rings) falls midway between two rings, whose projections then bound the outline.
+    Scaling the vertices by 1 + c x^2 makes the relative angular radius err by c x^2 T - D x^2 S, with
+    T = tan(b) / b and S = sin(b) cos(b) / b for the angular radius b: 1 far away, but T = 1.12 and
+    S = 0.80 for the Moon at the orbit's perilune (1.87 radii). c = 1/2 balances the far worst case
+    (1/2 - 5/6 = -1/3) against the near one (1.12 / 2 - 0.80 / 3 = +0.30); the middle of D's range, 7/12,
+    would leave +0.39 near perilune. tests/test_silhouettes.py measures the committed meshes.
+    """
+    if segments != 2 * rings:
+        raise ValueError(f"sphere_outline_scale needs segments = 2 x rings, got {segments} x {rings}")
+    x = math.pi / segments
+    return 1.0 + x * x / 2.0
 
 
 def uv_sphere(name: str, radius: float, material: str, segments: int = 32, rings: int = 16,

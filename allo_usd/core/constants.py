@@ -6,19 +6,34 @@ from __future__ import annotations
 import math
 
 
-SOLAR_CONSTANT = 1361.0  # W/m^2 at 1 AU
+SOLAR_CONSTANT = 1361.0  # W/m^2 at 1 AU: IAU 2015 Resolution B3, nominal total solar irradiance
 
 
 AU_M = 149_597_870_700.0
 
 
-SUN_RADIUS_M = 696_340e3
+# Radii (docs/physics.md, "Radii"): each body is a sphere of one radius, from a named source.
+# The Sun: IAU 2015 Resolution B3, nominal solar radius.
+SUN_RADIUS_M = 695_700e3
 
 
-EARTH_RADIUS_M = 6_371e3
+# The Earth: mean radius, IAU Working Group on Cartographic Coordinates and Rotational Elements
+# (WGCCRE) report 2009 (Archinal et al. 2011), kept in the 2015 report; not the IAU 2015 B3 nominal
+# equatorial radius 6,378.1 km: seen from near the Earth's equator plane (the station's sky) and as the
+# shadow's cross-section, the mean radius is within 5.6e-4 of the oblate Earth's mean outline, the
+# equatorial radius up to 1.7e-3 off.
+EARTH_RADIUS_M = 6_371.0084e3
 
 
+# The Moon: mean radius, WGCCRE reports 2009 and 2015.
 MOON_RADIUS_M = 1_737.4e3
+
+
+# Colour of the Sun's light (linear RGB, the lamps' inputs:color and so the disc they draw): white.
+# The lamps' intensity is the total solar irradiance and the albedos are Bond (bolometric) albedos, so
+# each channel carries the whole spectrum; the renderer's RGB is colour-neutral (docs/physics.md,
+# "Sun colour").
+SUN_COLOR = (1.0, 1.0, 1.0)
 
 
 GM_SUN_M3_S2 = 1.32712440041e20  # the Sun's gravitational parameter

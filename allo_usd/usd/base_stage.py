@@ -14,7 +14,7 @@ from allo_usd.core.constants import EXPOSURE, FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM,
 from allo_usd.core.geometry import matrix_to_quat
 from allo_usd.assets.mesh import Asset
 from allo_usd.usd import schema
-from allo_usd.core.constants import EARTH_RADIUS_M, MOON_RADIUS_M, SOLAR_CONSTANT, SUN_RADIUS_M
+from allo_usd.core.constants import EARTH_RADIUS_M, MOON_RADIUS_M, SOLAR_CONSTANT, SUN_COLOR, SUN_RADIUS_M
 from allo_usd.sky import model as sky
 from allo_usd.usd import attributes as A
 from allo_usd.usd.attributes import CLASS_MASK_SOURCE
@@ -139,7 +139,7 @@ def _define_sun(stage, path: str, doc: str):
     lamp.CreateIntensityAttr(SOLAR_CONSTANT)
     lamp.CreateNormalizeAttr(True)
     lamp.CreateAngleAttr(0.533)
-    lamp.CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
+    lamp.CreateColorAttr(Gf.Vec3f(*SUN_COLOR))  # the Sun's colour, once (docs/physics.md, Sun colour)
     schema.apply(lamp.GetPrim(), "AlloEclipseAPI")
     set_pose(lamp.GetPrim(), (0, 0, 0), np.eye(3))
     lamp.GetPrim().SetDocumentation(doc)
