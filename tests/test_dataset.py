@@ -134,6 +134,30 @@ def test_manifest_has_one_row_per_image_with_provenance(renders, tmp_path):
         assert r["sha256"] == sha(renders / f"{r['name']}.png")
     n = rows["d000_p01"]
     assert (n["split"], n["kind"], n["mask"], n["anomaly_asset"]) == ("train", "good", "", "")
+    # camera and annotation columns, flattened from the render JSON's `annotations` (output/annotations.py)
+    rec = meta["annotations"]
+    assert (a["width"], a["height"]) == ("64", "36") and float(a["cx"]) == 31.5 and float(a["cy"]) == 17.5
+    assert float(a["fx"]) == rec["camera"]["K_px"][0][0] == float(a["fy"])
+    assert json.loads(a["world_to_cam_opencv"]) == rec["camera"]["world_to_cam_opencv"]
+    assert json.loads(a["cam_to_world_usd"]) == rec["camera"]["cam_to_world_usd"]
+    assert [int(a[f"bbox_{k}"]) for k in ("x_min", "y_min", "x_max", "y_max")] == rec["anomaly"]["bbox_xyxy_px"]
+    assert int(a["anomaly_pixels"]) == meta["class_pixels"]["anomaly"] and float(a["anomaly_distance_m"]) > 0
+    assert a["sun_in_view"] in ("True", "False") and n["fx"] == a["fx"]
+    assert n["bbox_x_min"] == n["anomaly_pixels"] == n["anomaly_distance_m"] == ""
+
+
+def test_rows_from_before_the_camera_columns_are_filled_in(renders, tmp_path):
+    out = tmp_path / "ds"
+    manifest = assemble([renders], out)
+    with open(manifest, newline="") as f:
+        old = list(csv.DictReader(f))
+    keep = [c for c in old[0] if c not in ("fx", "fy", "cx", "cy", "bbox_x_min", "K_px")]
+    with open(manifest, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keep, extrasaction="ignore", lineterminator="\n")
+        w.writeheader()
+        w.writerows(old)
+    rows = read_manifest(assemble([renders], out))
+    assert all(r["fx"] and r["K_px"] for r in rows)
 
 
 def test_rerun_is_idempotent_and_adds_new_scenes(renders, tmp_path):

@@ -72,6 +72,7 @@ from PIL import Image
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import RunLock, atomic_path, sha256_file
+from allo_usd.output.annotations import ANNOTATION_COLUMNS, CAMERA_COLUMNS, annotation_columns
 from allo_usd.output.contact import read_pixels, split_sheets
 from allo_usd.output.writers import write_png
 
@@ -84,7 +85,9 @@ FILE_COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "spli
 SCENE_COLUMNS = ("scene_id", "pose", "day", "epoch", "anomaly_asset", "anomaly_variant", "depth_index",
                  "depth_offset", "anomaly_fraction")
 PROVENANCE_COLUMNS = ("seed", "plan_seed", "seed_path", "layer", "layer_sha256", "sha256", "source")
-COLUMNS = FILE_COLUMNS + SCENE_COLUMNS + PROVENANCE_COLUMNS
+# CAMERA_COLUMNS and ANNOTATION_COLUMNS (K, pose, clipping; anomaly box and place, pixel counts, bodies
+# in view) are defined beside the JSON block they flatten: allo_usd.output.annotations.
+COLUMNS = FILE_COLUMNS + SCENE_COLUMNS + CAMERA_COLUMNS + ANNOTATION_COLUMNS + PROVENANCE_COLUMNS
 MANIFEST = "manifest.csv"
 FILE_KEYS = ("allo_mask", "mask", "image")  # placement order: the image, which loaders glob, comes last
 # Temporaries of core.files.atomic_path (mkstemp: .NAME.<8 chars>.SUFFIX) and of earlier place() (.NAME.<32 hex>.tmp).
@@ -371,7 +374,7 @@ def provenance_columns(meta_path: Path, meta: dict, out: Path) -> dict:
 def _row(category, index, name, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> dict:
     """The manifest row of one scene (its files are placed by _place_row)."""
     return (file_columns(category, index, name, meta["scene"]["split"], kind, where)
-            | scene_columns(name, meta) | provenance_columns(meta_path, meta, out))
+            | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out))
 
 
 def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> None:
@@ -389,6 +392,8 @@ def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, ou
     render: skip hashing again (job.py replaces outputs by rename, so a linked file never changes
     content). A row in another folder (the other `defects` choice) is placed again."""
     split = meta["scene"]["split"]
+    if isinstance(meta.get("annotations"), dict) and not old.get("fx"):
+        return False  # a row from before the camera/annotation columns: fill them in
     if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (
             from_root(meta_path, out), meta.get("layer_sha256", ""), kind, split,
             file_columns(old["category"], int(old["index"]), old["name"], split, kind, where)["image"]):

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd import __version__
+from allo_usd.output.annotations import image_annotations
 from allo_usd.output.writers import write_exr, write_json, write_mask_png, write_rgb_exr, write_rgb_png
 from allo_usd.run.manifest import (check_output_names, file_sha256, input_hashes, is_done, output_paths,
                                    render_identity, render_versions)
@@ -87,6 +88,8 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         "scene": desc.meta,
         "effects": effects,
         "files": {k: p.name for k, p in paths.items()},
+        # K, pose, clipping, the anomaly's box and place, the bodies in view (conventions: output/annotations.py)
+        "annotations": image_annotations(desc, result.mask),
     }
     write_json(paths["meta"], meta)
     return meta
