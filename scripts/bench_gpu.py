@@ -123,7 +123,7 @@ def report(rows: list[dict], out: Path, meta: dict) -> None:
     lines = ["# GPU rendering: time per preset (scripts/bench_gpu.py)", "",
              f"Scene `{meta['layer']}`; Blender {meta['blender']['version']} ({meta['blender']['build_hash']}); "
              f"CPU {meta['cpu']}, {meta['cores']} cores usable, load average {meta['load']} (1 min, at the end: "
-             "other processes shared the cores, so CPU seconds are upper bounds); "
+             "other processes may share the cores, so the seconds are upper bounds); "
              f"{meta['date']}.", ""]
     if gpu is None:
         lines += [f"**No GPU found**: Cycles lists no OptiX, CUDA, HIP, oneAPI or Metal device on this machine "

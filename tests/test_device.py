@@ -82,7 +82,7 @@ def test_an_unknown_device_names_the_choices(bad):
 
 def test_plan_render_device_validates_and_round_trips(tmp_path):
     assert Plan(name="x").render.device == "auto"
-    for bad in ("tpu", 3, None, "optix"):
+    for bad in ("tpu", 3, None, "optix", "CPU", " gpu"):
         with pytest.raises(PlanError, match=r"render\.device: device .* is not a render device; fix: use one of "
                                             r"auto, cpu, gpu"):
             make_plan({"name": "x", "render": {"device": bad}})
@@ -90,7 +90,7 @@ def test_plan_render_device_validates_and_round_trips(tmp_path):
         make_plan({"name": "x", "render": {"threads": 2}})
     for suffix in (".toml", ".yaml"):
         p = tmp_path / f"plan{suffix}"
-        save_plan(make_plan({"name": "x", "render": {"device": "CPU"}}), p)
+        save_plan(make_plan({"name": "x", "render": {"device": "cpu"}}), p)
         assert load_plan(p).render == Render(device="cpu")
         save_plan(Plan(name="x"), p)
         assert "device" not in p.read_text()   # a default left out stays out
@@ -238,3 +238,23 @@ def test_a_bad_device_on_the_command_line_is_one_line(layer, tmp_path):
         r = cli(*args, "--device", "tpu")
         assert r.returncode == 2 and r.stderr.strip().splitlines() == [
             "error: --device 'tpu' is not a render device; fix: use one of auto, cpu, gpu"], r.stderr
+
+
+@pytest.mark.render
+def test_a_plans_device_is_used_and_the_command_line_wins(tmp_path):
+    """`render PLAN` renders on the plan's render.device; --device overrides it, on the same tree."""
+    from allo_usd.core.paths import BASE_STAGE
+
+    plan = make_plan({"name": "dev", "dates": {"days": 1}, "poses": {"train": [1], "test": [41]},
+                      "counts": {"normal_train": 1, "normal_test": 0, "anomalous_test": 0},
+                      "quality": {"resolution": [64, 36], "samples": 2}, "base_stage": str(BASE_STAGE),
+                      "render": {"device": "gpu"}})
+    save_plan(plan, tmp_path / "plan.toml")
+    r = cli("render", tmp_path / "plan.toml", "--out", tmp_path / "out")
+    if r.returncode == 0:
+        pytest.skip("this machine has a GPU Cycles can use")
+    assert r.returncode == 2 and "--device gpu: Cycles finds no GPU" in r.stderr, r.stderr
+    r = cli("render", tmp_path / "plan.toml", "--out", tmp_path / "out", "--device", "cpu")
+    assert r.returncode == 0 and "1 rendered" in r.stdout and NOTICE not in r.stderr, (r.stdout, r.stderr)
+    meta = [json.loads(p.read_text()) for p in (tmp_path / "out" / "renders").glob("*.json")]
+    assert [m["device"]["requested"] for m in meta] == ["cpu"]

@@ -260,9 +260,9 @@ class Render(_Model):
     @field_validator("device", mode="before")
     @classmethod
     def _device(cls, v):
-        if not isinstance(v, str) or v.strip().lower() not in DEVICES:
+        if v not in DEVICES:   # exactly as the schema's enum says
             raise ValueError(f"device {_short(v)} is not a render device; fix: use one of {', '.join(DEVICES)}")
-        return v.strip().lower()
+        return v
 
 
 class Station(_Model):
