@@ -17,6 +17,8 @@ from allo_usd.core.sensor import SensorParams
 
 DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_prefilter
 DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_quality
+# The render device (allo_usd.blender.device): a run-time choice, recorded in each render's JSON, never in a layer.
+DEVICES = ("auto", "cpu", "gpu")
 
 
 # The one declaration of the quality settings and the effect switches. RenderSpec / EffectsSpec (a
