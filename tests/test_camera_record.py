@@ -268,4 +268,7 @@ def test_manifest_columns_flatten_the_record_and_leave_missing_keys_empty():
     empty = annotation_columns({"annotations": {"camera": {"K_px": [["x"]], "width": float("nan")},
                                                 "anomaly": None, "in_view": "yes"}})
     assert all(v == "" for v in empty.values()), empty
+    odd = annotation_columns({"annotations": {"camera": [1], "anomaly": [2], "in_view": {"sun": "yes"}},
+                              "station_fraction": 10 ** 400, "bodies": {"sun": {"pixels": 2.5}}})
+    assert all(v == "" for v in odd.values()), odd
     assert all(v == "" for v in annotation_columns({}).values())

@@ -155,9 +155,11 @@ ANNOTATION_COLUMNS = ("bbox_x_min", "bbox_y_min", "bbox_x_max", "bbox_y_max", "a
 
 def _num(value, integer: bool = False):
     """A finite number from a JSON value, else "" (the record is not trusted)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or integer and not isinstance(value, int):
         return ""
-    return int(value) if integer else float(value)
+    if isinstance(value, int):
+        return value if integer else (float(value) if abs(value) < 1e300 else "")
+    return value if math.isfinite(value) else ""
 
 
 def _matrix(value, n: int) -> str:
@@ -174,10 +176,14 @@ def _get(d, *keys):
     return d
 
 
+def _dict(value) -> dict:
+    return value if isinstance(value, dict) else {}
+
+
 def annotation_columns(meta: dict) -> dict:
     """The CAMERA_COLUMNS and ANNOTATION_COLUMNS of a render record; "" where it records nothing."""
-    cam = _get(meta, "annotations", "camera") or {}
-    k = cam.get("K_px") if isinstance(cam, dict) else None
+    cam = _dict(_get(meta, "annotations", "camera"))
+    k = cam.get("K_px")
     k_ok = _matrix(k, 3) != ""
     row = {"width": _num(cam.get("width"), True), "height": _num(cam.get("height"), True),
            "fx": k[0][0] if k_ok else "", "fy": k[1][1] if k_ok else "", "cx": k[0][2] if k_ok else "",
@@ -186,15 +192,15 @@ def annotation_columns(meta: dict) -> dict:
            "clip_near": _num(cam.get("clip_near_m")), "clip_far": _num(cam.get("clip_far_m")),
            "K_px": _matrix(k, 3), "cam_to_world_usd": _matrix(cam.get("cam_to_world_usd"), 4),
            "world_to_cam_opencv": _matrix(cam.get("world_to_cam_opencv"), 4)}
-    anomaly = _get(meta, "annotations", "anomaly") or {}
-    bbox = anomaly.get("bbox_xyxy_px") if isinstance(anomaly, dict) else None
+    anomaly = _dict(_get(meta, "annotations", "anomaly"))
+    bbox = anomaly.get("bbox_xyxy_px")
     bbox = bbox if isinstance(bbox, list) and len(bbox) == 4 else [None] * 4
-    centre = anomaly.get("center_cam_opencv_m") if isinstance(anomaly, dict) else None
+    centre = anomaly.get("center_cam_opencv_m")
     centre = centre if isinstance(centre, list) and len(centre) == 3 else [None] * 3
     row |= {f"bbox_{k}": _num(v, True) for k, v in zip(("x_min", "y_min", "x_max", "y_max"), bbox)}
-    row |= {"anomaly_pixels": _num(anomaly.get("pixels"), True) if anomaly else "",
+    row |= {"anomaly_pixels": _num(anomaly.get("pixels"), True),
             "anomaly_cam_x": _num(centre[0]), "anomaly_cam_y": _num(centre[1]), "anomaly_cam_z": _num(centre[2]),
-            "anomaly_distance_m": _num(anomaly.get("distance_m")) if anomaly else "",
+            "anomaly_distance_m": _num(anomaly.get("distance_m")),
             "station_fraction": _num(meta.get("station_fraction"))}
     for body in BODIES:
         row[f"{body}_pixels"] = _num(_get(meta, "bodies", body, "pixels"), True)
