@@ -517,13 +517,17 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     return summary
 
 
-def author_and_dispatch(plan_path: Path, out_dir: Path, **kwargs) -> Summary:
-    """A plan file: author its layers into OUT/layers, then render them into OUT/renders."""
+def author_and_dispatch(plan_path: Path, out_dir: Path, passes: tuple[str, ...] | None = None, **kwargs) -> Summary:
+    """A plan file: author its layers into OUT/layers (with `passes` instead of the plan's quality.passes,
+    when given), then render them into OUT/renders."""
     from allo_usd.plan.io import load_plan
     from allo_usd.run.author import author_plan
 
     layers_dir = Path(out_dir) / "layers"
-    layers = author_plan(load_plan(Path(plan_path)), layers_dir)
+    plan = load_plan(Path(plan_path))
+    if passes is not None:
+        plan = plan.model_copy(update={"quality": plan.quality.model_copy(update={"passes": list(passes)})})
+    layers = author_plan(plan, layers_dir)
     # the tree's authored folders, not all of OUT (OUT/renders and whatever else lies there)
     return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", trees=(layers_dir,), **kwargs)
 
