@@ -26,6 +26,24 @@ def _tree_option():
     return typer.Option(None, "--tree", metavar="OUT", help=TREE_HELP, show_default=False)
 
 
+DEVICE_HELP = ("The Cycles device: auto (a GPU when Cycles finds one: OptiX, CUDA, HIP, oneAPI or Metal; else the CPU, "
+               "with a one-line note), cpu (never looks for a GPU) or gpu (an error when there is none). Not part of "
+               "the layer; each render's JSON records the device used.")
+
+
+def _device_option(default: str | None, more: str = ""):
+    return typer.Option(default, "--device", metavar="auto|cpu|gpu", help=DEVICE_HELP + more,
+                        show_default=default is not None)
+
+
+def _show_device_notes() -> None:
+    """The device notices this process's renders printed into their log, once each, on stderr."""
+    from allo_usd.blender.device import noticed
+
+    for text in noticed():
+        typer.echo(f"note: {text}", err=True)
+
+
 @app.command()
 def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                          help="A scene layer (.usda, .usdc or .usd), a directory of them, or a plan "
@@ -48,11 +66,12 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
            save_blend: Path = typer.Option(None, "--save-blend", metavar="FILE", show_default=False,
                                            help="A single layer only: also save the Blender scene it builds as "
                                                 "FILE (.blend), to open what Blender got."),
+           trees: list[Path] = _tree_option(),
+           device: str = _device_option(None, " Default: a plan's render.device, else auto."),
            passes: str = typer.Option(None, "--passes", metavar="P1,P2", show_default=False,
                                       help="The passes to write this run, replacing what the layers order: a comma "
                                            "list of " + ", ".join(PASSES) + ". A single layer records them in its "
-                                           "JSON; a plan's layers are authored with them."),
-           trees: list[Path] = _tree_option()):
+                                           "JSON; a plan's layers are authored with them.")):
     """Render scene layers: per scene the passes its layer orders (default RGB PNG, linear EXR, 3-class
     mask PNG; README, Passes) and a metadata JSON.
 
@@ -64,19 +83,24 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
     Each scene on a worker has a time limit (--timeout); past it the scene is retried, then failed.
     A layer reads only files in its own folder, the package's stages/ and, for a scene layer of an
     authored tree, that tree's authored folders; --tree OUT grants a tree to a layer of your own.
+    --device picks the Cycles device (auto, cpu, gpu); the JSON of each render records it.
     """
     from allo_usd.usd.safety import trees_granted
 
     with trees_granted(trees or ()):
-        _render(source, out, force, workers, scheduler, threads, retries, timeout, save_blend,
+        _render(source, out, force, workers, scheduler, threads, retries, timeout, save_blend, device,
                 None if passes is None else canonical_passes([p.strip() for p in passes.split(",") if p.strip()]))
 
 
 def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str | None, threads: int, retries: int,
-            timeout: float, save_blend: Path | None, passes: tuple[str, ...] | None = None) -> None:
+            timeout: float, save_blend: Path | None, device: str | None = None,
+            passes: tuple[str, ...] | None = None) -> None:
     import warnings
 
+    from allo_usd.blender.device import check_device
     from allo_usd.usd.sniff import LAYER_SUFFIXES
+
+    device = None if device is None else check_device(device)
 
     for name, value in (("--workers", workers), ("--threads", threads), ("--retries", retries),
                         ("--timeout", timeout)):
@@ -97,7 +121,7 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
                         "quality.passes in the plan and author the layers again")
     ensure_output_dir(out)
     if single:
-        _render_one(source, out, force, threads, save_blend, passes)
+        _render_one(source, out, force, threads, save_blend, device or "auto", passes)
         return
     from allo_usd.run.dispatch import author_and_dispatch, dispatch
 
@@ -106,9 +130,9 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
     with warnings.catch_warnings(record=True) as notes:
         warnings.simplefilter("always")
         if source.is_dir() or is_layer:
-            summary = dispatch(source, out, **kwargs)
+            summary = dispatch(source, out, device=device or "auto", **kwargs)
         else:
-            summary = author_and_dispatch(source, out, passes=passes, **kwargs)
+            summary = author_and_dispatch(source, out, device=device, passes=passes, **kwargs)
     _notes(notes)
     typer.echo(f"{source} -> {out}: {summary}")
     for row in summary.failed:
@@ -121,7 +145,7 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
         raise SystemExit(1)
 
 
-def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: Path | None,
+def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: Path | None, device: str,
                 passes: tuple[str, ...] | None = None) -> None:
     """One layer in this process, under the same output lock as a directory render; a full disk
     (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is a DiskFullError."""
@@ -138,12 +162,13 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
         try:
             with output_to(out / "logs" / "render.log"):  # Blender's own prints
                 meta = render_layer(layer, out, force=force, threads=threads or None, save_blend=save_blend,
-                                    passes=passes)
+                                    device=device, passes=passes)
         except (OSError, RuntimeError) as exc:
             full = disk_full_error(exc, out)
             if full is None:
                 raise
             raise full from None
+    _show_device_notes()
     typer.echo(f"{layer} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
     if save_blend is not None:
         typer.echo(f"Blender scene saved as {save_blend}")
@@ -154,17 +179,22 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out",
                                   help="Output directory: the plan, its layers, the renders and the contact sheet."),
          width: int = typer.Option(480, help="Image width in pixels."),
          height: int = typer.Option(270, help="Image height in pixels."),
-         samples: int = typer.Option(32, help="Cycles samples per pixel.")):
+         samples: int = typer.Option(32, help="Cycles samples per pixel."),
+         device: str = _device_option("auto")):
     """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet."""
+    from allo_usd.blender.device import check_device
     from allo_usd.run.demo import run_demo
 
+    device = check_device(device)
     ensure_output_dir(out)
     try:
-        sheet = run_demo(out, (width, height), samples)
+        sheet = run_demo(out, (width, height), samples, device=device)
     except KeyboardInterrupt:
         typer.echo(f"interrupted: finished scenes are kept under {out}; re-run the same command to render the "
                    "rest", err=True)
         raise SystemExit(130) from None
+    finally:
+        _show_device_notes()
     typer.echo(f"contact sheet: {sheet}")
 
 

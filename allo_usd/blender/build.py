@@ -240,11 +240,15 @@ def build_spot(desc: SpotDesc):
     return obj
 
 
-def configure_render(render: RenderDesc) -> None:
+def configure_render(render: RenderDesc, device=None) -> None:
+    """The layer's render settings, on `device` (an allo_usd.blender.device.Device; None: the CPU),
+    which is not part of the layer."""
+    from allo_usd.blender.device import activate
+
     bpy = _bpy()
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
+    activate(device)   # after every factory reset: it resets the Cycles preferences too
     assign(scene.render, "resolution_x", render.resolution[0], "render resolution width")
     assign(scene.render, "resolution_y", render.resolution[1], "render resolution height")
     scene.render.resolution_percentage = 100
@@ -316,8 +320,8 @@ def set_object_ids(desc: SceneDescription) -> None:
         objects[path].pass_index = i
 
 
-def build_scene(desc: SceneDescription) -> None:
-    """Build `desc` into a fresh Blender scene."""
+def build_scene(desc: SceneDescription, device=None) -> None:
+    """Build `desc` into a fresh Blender scene that renders on `device` (None: the CPU)."""
     reset()
     mats = {key: build_material(m) for key, m in desc.materials.items()}
     for mesh in desc.meshes:
@@ -327,7 +331,7 @@ def build_scene(desc: SceneDescription) -> None:
         build_sun(sun)
     if desc.spot is not None:
         build_spot(desc.spot)
-    configure_render(desc.render)
+    configure_render(desc.render, device)
     set_object_ids(desc)
     from allo_usd.blender.compositor import build_glare, no_compositor
 

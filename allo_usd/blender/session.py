@@ -9,7 +9,8 @@ applied:
   place; a lamp that goes off is removed with its receiver collection, and one whose light
   linking or linked meshes changed is rebuilt);
 - the inspection spot light (on/off, transform, power, cone);
-- render settings (resolution, samples, seed, exposure, threads, denoise, ...);
+- render settings (resolution, samples, seed, exposure, threads, denoise, ...) and the render
+  device (allo_usd.blender.device: not in the description, passed to `render`/`apply`);
 - the compositor (glare on/off);
 - materials whose values changed (patched in place, or rebuilt when the node graph differs);
 - meshes that came, went or changed geometry (the anomaly in/out or changing asset/variant):
@@ -112,30 +113,32 @@ class Session:
         self._objects: dict[str, object] = {}                   # mesh prim path -> Blender object
         self._materials: dict[str, object] = {}                 # material key -> Blender material
         self._token = f"{id(self):x}-{time.monotonic_ns():x}"
+        self.device = None   # the allo_usd.blender.device.Device the scene renders on (None: the CPU)
 
     # ---------------------------------------------------------------- public
 
-    def render(self, desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
-        self.apply(desc)
+    def render(self, desc: SceneDescription, workdir: Path | None = None, device=None) -> RenderResult:
+        self.apply(desc, device)
         try:
             return render_current(desc, workdir)
         except BaseException:
             self.invalidate()
             raise
 
-    def apply(self, desc: SceneDescription) -> ApplyStats:
-        """Make the Blender scene show `desc`; returns what was done (also in `self.last`)."""
+    def apply(self, desc: SceneDescription, device=None) -> ApplyStats:
+        """Make the Blender scene show `desc`, rendering on `device` (an allo_usd.blender.device.Device;
+        None: the CPU); returns what was done (also in `self.last`)."""
         t0 = time.perf_counter()
         try:
             if self.desc is None or not self._alive() or not self._patchable(desc):
-                stats = self._full_build(desc)
+                stats = self._full_build(desc, device)
             else:
-                stats = self._patch(desc)
+                stats = self._patch(desc, device)
                 build.set_object_ids(desc)  # ids follow the set of mesh paths (build.object_ids)
         except BaseException:
             self.invalidate()
             raise
-        self.desc = desc
+        self.desc, self.device = desc, device
         current = {m.path for m in desc.meshes}
         self._digests = {p: v for p, v in self._digests.items() if p in current}  # hold no old arrays
         stats.seconds = time.perf_counter() - t0
@@ -185,10 +188,10 @@ class Session:
 
     # ---------------------------------------------------------------- from scratch
 
-    def _full_build(self, desc: SceneDescription) -> ApplyStats:
+    def _full_build(self, desc: SceneDescription, device) -> ApplyStats:
         import bpy
 
-        build.build_scene(desc)
+        build.build_scene(desc, device)
         self.full_builds += 1
         bpy.context.scene[_TOKEN] = self._token  # a custom property: Cycles never reads it
         objs = {o.name: o for o in bpy.context.scene.collection.objects}
@@ -200,7 +203,7 @@ class Session:
 
     # ---------------------------------------------------------------- incremental
 
-    def _patch(self, desc: SceneDescription) -> ApplyStats:
+    def _patch(self, desc: SceneDescription, device) -> ApplyStats:
         stats = ApplyStats()
         prev = self.desc
         removed = [m.path for m in prev.meshes if m.path not in self._kept]
@@ -209,7 +212,7 @@ class Session:
         self._build_materials(prev, desc, patch_mats, stats)
         self._build_meshes(prev, desc, added, stats)
         self._patch_view(prev, desc, added, stats)
-        self._patch_output(prev, desc, stats)
+        self._patch_output(prev, desc, device, stats)
         stats.reordered = self._reorder(desc)
         return stats
 
@@ -287,11 +290,16 @@ class Session:
             self._patch_spot(desc)
             stats.changed.append("spot")
 
-    def _patch_output(self, prev: SceneDescription, desc: SceneDescription, stats: ApplyStats) -> None:
-        """Step 5: render settings and compositor, reconfigured only when they differ."""
+    def _patch_output(self, prev: SceneDescription, desc: SceneDescription, device, stats: ApplyStats) -> None:
+        """Step 5: render settings, device and compositor, reconfigured only when they differ."""
         if prev.render != desc.render or prev.effects.body_shine != desc.effects.body_shine:
-            build.configure_render(desc.render)
+            build.configure_render(desc.render, device)
             stats.changed.append("render")
+        elif device != self.device:
+            from allo_usd.blender.device import activate
+
+            activate(device)
+            stats.changed.append("device")
         if prev.effects.glare != desc.effects.glare:
             from allo_usd.blender.compositor import build_glare, no_compositor
 

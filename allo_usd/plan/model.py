@@ -20,8 +20,8 @@ from allo_usd.assets.importer import SUPPORTED_EXTENSIONS, UNIT_SCALES, UP_AXIS_
 from allo_usd.core.errors import EpochError, PlanError
 from allo_usd.core.limits import resolution_problem
 from allo_usd.core.timefmt import format_utc, parse_utc
-from allo_usd.plan.settings import (DEFAULT_PASSES, DENOISE_PREFILTERS, DENOISE_QUALITIES, PASSES, PRESETS, EffectFlags,
-                                    QualitySettings, passes_problem)
+from allo_usd.plan.settings import (DEFAULT_PASSES, DENOISE_PREFILTERS, DENOISE_QUALITIES, DEVICES, PASSES, PRESETS,
+                                    EffectFlags, QualitySettings, passes_problem)
 
 DEPTH_COUNT = 5  # allo_usd.scene.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
 N_POSES = 50
@@ -261,6 +261,24 @@ class Quality(_Model):
         return v
 
 
+class Render(_Model):
+    """How this plan's scenes are rendered, not what they show: never written into a layer (a scene
+    rendered on another device means the same), so a tree's plan comparison leaves it out
+    (allo_usd.run.author.UNCOMPARED) and `render --device` overrides it for a run."""
+
+    device: str = Field("auto", description="The Cycles device: auto (a GPU when Cycles finds one, else the CPU "
+                                            "with a one-line notice), cpu (never probes for a GPU), gpu (fails "
+                                            "when there is none).",
+                        json_schema_extra={"enum": list(DEVICES)})
+
+    @field_validator("device", mode="before")
+    @classmethod
+    def _device(cls, v):
+        if v not in DEVICES:   # exactly as the schema's enum says
+            raise ValueError(f"device {_short(v)} is not a render device; fix: use one of {', '.join(DEVICES)}")
+        return v
+
+
 class Station(_Model):
     """'procedural' (the built-in station) or the path of a glTF/OBJ/STL model the base stage is built from.
 
@@ -302,6 +320,7 @@ class Plan(_Model):
     counts: Counts = Field(default_factory=Counts)
     effects: Effects = Field(default_factory=Effects)
     quality: Quality = Field(default_factory=Quality)
+    render: Render = Field(default_factory=Render)
     seeds: list[int] = Field(default_factory=lambda: [2030], description="One pipeline run per seed.")
     station: Station = Field(default_factory=Station)
     base_stage: str = Field("stages/base.usda", description="Relative to the working directory, else to the installed package (stages/base.usda is the shipped base stage).")

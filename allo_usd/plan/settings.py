@@ -17,6 +17,8 @@ from allo_usd.core.sensor import SensorParams
 
 DENOISE_PREFILTERS = ("NONE", "FAST", "ACCURATE")   # Cycles' OIDN denoising_prefilter
 DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_quality
+# The render device (allo_usd.blender.device): a run-time choice, recorded in each render's JSON, never in a layer.
+DEVICES = ("auto", "cpu", "gpu")
 
 # Render passes: a plan's quality.passes or `allo-usd render --passes` names them; each is one UsdRender.Var
 # of the layer's image product (allo_usd.usd.base_stage.RENDER_VARS), written as one file:

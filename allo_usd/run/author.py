@@ -558,7 +558,9 @@ TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "schema", "counts.csv", "ski
 _TRASH = re.compile(r"^\.replaced\.[a-z0-9_]{8}$")   # a replace's trash (mkdtemp), left if the run was killed
 # Plan fields the tree checks by content, not by name: the base stage's path and the station's
 # source (stages/ must be a byte copy of the plan's stage, or built from the same model file).
-UNCOMPARED = {"base_stage", "station"}
+# `render.device` is not compared at all: it says how to render, not what (plan.model.Render);
+# any other field of `render` is compared like the rest.
+UNCOMPARED = {"base_stage": True, "station": True, "render": {"device"}}
 
 
 @contextmanager

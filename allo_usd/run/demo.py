@@ -121,11 +121,12 @@ def demo_dataset(renders: Path, dataset: Path, resolution) -> Path:
 
 
 def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage: Path = BASE_STAGE,
-             progress: bool = True) -> Path:
+             progress: bool = True, device: str = "auto") -> Path:
     """Author, render and contact-sheet the demo scenes under `out_dir`, and assemble them into an
     MVTec AD tree in `out_dir/dataset` (hard links); returns the sheet's path.
     A progress bar (counts and ETA) runs over the scenes; Ctrl-C raises KeyboardInterrupt between
-    atomic file writes, so finished scenes are kept and a re-run renders only what is missing."""
+    atomic file writes, so finished scenes are kept and a re-run renders only what is missing.
+    `device` is the Cycles device (allo_usd.blender.device: auto, cpu, gpu)."""
     from tqdm import tqdm
 
     from allo_usd.output.dataset import read_pixels
@@ -152,7 +153,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
             with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
                 # skipped when done for these very layer bytes (allo_usd.run.manifest.is_done); a
                 # changed layer, e.g. another resolution, renders again
-                meta = render_layer(layer, out_dir / "renders")
+                meta = render_layer(layer, out_dir / "renders", device=device)
             bar.write(f"{spec.scene_id}: {meta['render_seconds']:.1f} s, anomaly {meta['anomaly_fraction']:.3%}, "
                       f"sun {spec.sun.eclipse_state}")
             rgb = read_pixels(out_dir / "renders" / meta["files"]["rgb"])

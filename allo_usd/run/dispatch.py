@@ -47,6 +47,7 @@ class Summary:
     failed: list[dict] = field(default_factory=list)
     interrupted: bool = False
     seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)  # workers' one-line notices (a GPU-less `auto`), each once
 
     def __str__(self) -> str:
         s = (f"{len(self.rendered)} rendered, {len(self.skipped)} skipped (already done), "
@@ -209,7 +210,8 @@ class _Run:
                         file=sys.stderr)
 
     def ok(self, task: _Task, result: dict) -> None:
-        row = {k: v for k, v in result.items() if k != "status"}
+        row = {k: v for k, v in result.items() if k not in ("status", "device_notice")}
+        self.note(result.get("device_notice"))
         row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         append_jsonl(self.out_dir / MANIFEST, row)
         self.summary.rendered.append(task.scene)
@@ -225,6 +227,12 @@ class _Run:
         finally:
             self._tick()
 
+    def note(self, text: str | None) -> None:
+        """Show a worker's notice once per run (every worker of an `auto` run without a GPU sends it)."""
+        if text and text not in self.summary.notes:
+            self.summary.notes.append(text)
+            self.bar.write(f"note: {text}", file=sys.stderr)
+
     def retry_or_fail(self, task: _Task, kind: str, reason: str) -> bool:
         """True if the task should run again."""
         task.reasons.append(reason)
@@ -235,7 +243,8 @@ class _Run:
 
     def settle(self, task: _Task, result: dict) -> bool:
         """Record a worker's result; True if the task should run again. A bad layer is never
-        retried; a full disk stops the run (DiskFullError); other errors retry up to the limit."""
+        retried; a full disk stops the run (DiskFullError), and so does a device the worker's machine
+        does not have (`--device gpu` without a GPU: DeviceError); other errors retry up to the limit."""
         if result["status"] == "ok":
             self.ok(task, result)
             return False
@@ -248,6 +257,11 @@ class _Run:
             except DiskFullError:
                 pass  # failed.jsonl cannot grow on a full disk; the exception below says it all
             raise DiskFullError(result["message"])
+        if result["kind"] == "device":
+            from allo_usd.blender.device import DeviceError
+
+            self.fail(task, "device", result["message"])
+            raise DeviceError(result["message"])
         return self.retry_or_fail(task, "error", result["message"])
 
     def _tick(self) -> None:
@@ -259,7 +273,7 @@ class _Run:
 
 
 def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict,
-               before_render: Hook | None = None, timeout: float | None = None) -> None:
+               before_render: Hook | None = None, timeout: float | None = None, device: str = "auto") -> None:
     import multiprocessing
     from multiprocessing.connection import wait
 
@@ -284,7 +298,7 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                         w.task.limit = time_limit(w.task.layer, timeout)
                     w.sent, w.started = time.monotonic(), None
                     w.conn.send({"layer": str(w.task.layer), "out_dir": str(out_dir), "threads": threads,
-                                 "roots": env.get(ENV_ROOTS, "")})
+                                 "roots": env.get(ENV_ROOTS, ""), "device": device})
             busy = [w for w in pool if w.task]
             wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=1.0)
             for i, w in enumerate(pool):
@@ -360,7 +374,7 @@ def _hold_one_death_per_attempt(client, hold: bool) -> bool:
 
 
 def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict,
-              before_render: Hook | None = None, timeout: float | None = None) -> None:
+              before_render: Hook | None = None, timeout: float | None = None, device: str = "auto") -> None:
     """The tasks on a Dask cluster. Each attempt's clock starts when the scheduler first lists it
     as processing on a worker; past its limit the future is cancelled, the worker restarted (the
     stuck thread holds that process's bpy lock) and the attempt counted as a timeout."""
@@ -378,7 +392,7 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
             task.attempts += 1
             if task.limit is None:
                 task.limit = time_limit(task.layer, timeout)
-            fut = client.submit(render_task, str(task.layer), str(out_dir), threads, roots, before_render,
+            fut = client.submit(render_task, str(task.layer), str(out_dir), threads, roots, before_render, device,
                                 pure=False, retries=0,
                                 key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
             futures[fut] = task
@@ -451,7 +465,8 @@ def _restart_worker(client, address: str) -> None:
 
 def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
              retries: int = 2, progress: bool | None = None, extra_roots: tuple = (),
-             before_render: Hook | None = None, timeout: float | None = None, trees: tuple = ()) -> Summary:
+             before_render: Hook | None = None, timeout: float | None = None, trees: tuple = (),
+             device: str = "auto") -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
 
     `workers` local processes (default: the cores this process may use) with `threads` Cycles
@@ -464,8 +479,14 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     `trees` are authored trees (the OUT of `allo-usd author`) whose four authored folders the
     layers may also read, as `render --tree OUT` grants them (allo_usd.usd.safety.tree_roots: a
     LayerError for a folder that is not an authored tree); `extra_roots` are further directories.
+    `device` is the Cycles device of every worker: 'auto' (a GPU when Cycles finds one, else the CPU
+    with a notice, in Summary.notes and shown once), 'cpu' or 'gpu' (a machine without a GPU stops
+    the run with DeviceError); see allo_usd.blender.device.
     """
+    from allo_usd.blender.device import check_device
+
     t0 = time.perf_counter()
+    device = check_device(device)
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
     if workers is not None and workers < 0:
         raise AlloError(f"workers={workers}: pass a number of worker processes >= 1 (or 0 for one per core)")
@@ -498,12 +519,12 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
             run.fail(task, "layer", why)
         try:
             if tasks and scheduler is not None:
-                _run_dask(tasks, out_dir, scheduler, threads, run, env, before_render, timeout)
+                _run_dask(tasks, out_dir, scheduler, threads, run, env, before_render, timeout, device)
             elif tasks:
                 cores = usable_cores()
                 n = max(1, workers or cores)
                 _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env, before_render,
-                           timeout)
+                           timeout, device)
         except KeyboardInterrupt:
             summary.interrupted = True
         finally:
@@ -517,9 +538,10 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     return summary
 
 
-def author_and_dispatch(plan_path: Path, out_dir: Path, passes: tuple[str, ...] | None = None, **kwargs) -> Summary:
+def author_and_dispatch(plan_path: Path, out_dir: Path, device: str | None = None,
+                        passes: tuple[str, ...] | None = None, **kwargs) -> Summary:
     """A plan file: author its layers into OUT/layers (with `passes` instead of the plan's quality.passes,
-    when given), then render them into OUT/renders."""
+    when given), then render them into OUT/renders on `device` (None: the plan's render.device)."""
     from allo_usd.plan.io import load_plan
     from allo_usd.run.author import author_plan
 
@@ -527,6 +549,7 @@ def author_and_dispatch(plan_path: Path, out_dir: Path, passes: tuple[str, ...] 
     plan = load_plan(Path(plan_path))
     if passes is not None:
         plan = plan.model_copy(update={"quality": plan.quality.model_copy(update={"passes": list(passes)})})
+    kwargs["device"] = device or plan.render.device
     layers = author_plan(plan, layers_dir)
     # the tree's authored folders, not all of OUT (OUT/renders and whatever else lies there)
     return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", trees=(layers_dir,), **kwargs)

@@ -4,6 +4,10 @@ The unit of work for local pools and Dask alike. Outputs are written atomically 
 metadata JSON goes last, so its presence (naming the render's identity: the checksums of every
 file the composition read, and the versions that affect pixels) marks a finished scene and
 re-runs skip it while that identity holds (allo_usd.run.manifest.is_done).
+
+The JSON also records what rendered (`device`: the device asked for and used, the GPU backend and
+names or the CPU model, and Blender's version and build, allo_usd.blender.device.record). The
+device is not part of the identity: it changes noise, not meaning (README "GPU rendering").
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ def object_pixels(ids: np.ndarray, objects: tuple[str, ...]) -> dict:
 
 def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
                  workdir: Path | None = None, session=None, save_blend: Path | None = None,
-                 passes: tuple[str, ...] | None = None) -> dict:
+                 device: str = "auto", passes: tuple[str, ...] | None = None) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON).
 
     `threads` overrides the layer's allo:render:threads for this process only (the layer is not
@@ -63,6 +67,8 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     allo_usd.blender.session.Session) keeps the Blender scene warm and applies only what differs
     from its previous scene; the files are byte-identical to a from-scratch build. `save_blend`
     also saves the built Blender scene there as a .blend (before rendering), to open what Blender got.
+    `device` is 'auto', 'cpu' or 'gpu' (allo_usd.blender.device.select: probed once per process; 'gpu'
+    without a GPU is a DeviceError before the layer is read).
     `passes` (allo_usd.plan.settings.PASSES) replaces the passes the layer orders for this run: the JSON
     records both ("passes" written, "layer_passes"), and a render with other passes than its layer's
     is never skipped as done.
@@ -73,7 +79,10 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     from allo_usd.usd.dependencies import walk
     from allo_usd.usd.read import read_scene
 
+    from allo_usd.blender.device import check_device, record, select
+
     check_output_names([layer])
+    device = check_device(device)
     passes = None if passes is None else canonical_passes(passes)
     if passes is not None and passes == layer_outputs(layer):
         passes = None  # what the layer orders anyway
@@ -81,6 +90,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         meta = json.loads(output_paths(layer, out_dir)["meta"].read_text())
         if meta.get("passes", meta.get("layer_passes")) == meta.get("layer_passes"):  # not an override's render
             return meta
+    used = select(device)
     read = walk(layer)  # checked before USD opens a file; kept open so read_scene parses no layer twice
     inputs = input_hashes(layer, read.files)  # before the read: an edit meanwhile re-renders next time
     desc = read_scene(layer)
@@ -90,7 +100,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     layer_passes = desc.render.outputs
     if passes is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, outputs=passes))
-    result = _render(desc, workdir, session, save_blend)
+    result = _render(desc, workdir, session, save_blend, used)
     paths = output_paths(layer, out_dir, desc.render.outputs)
     effects = {}
     if "rgb" in paths or "exr" in paths:
@@ -115,6 +125,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         "inputs": inputs,
         "versions": render_versions(),
         "package_version": __version__,
+        "device": record(used),
         "render_seconds": round(result.seconds, 3),
         "resolution": list(desc.render.resolution),
         "class_pixels": {"background": int(counts[0]), "station_and_bodies": int(counts[1]),
@@ -131,21 +142,21 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     return meta
 
 
-def _render(desc, workdir: Path | None, session, save_blend: Path | None):
-    from allo_usd.blender.render import render_scene
-
-    if save_blend is None:
-        return render_scene(desc, workdir) if session is None else session.render(desc, workdir)
+def _render(desc, workdir: Path | None, session, save_blend: Path | None, device):
     from allo_usd.blender.build import build_scene
-    from allo_usd.blender.debug import save_blend as save
     from allo_usd.blender.render import render_current
 
+    if save_blend is None and session is not None:
+        return session.render(desc, workdir, device)
     try:
         if session is None:
-            build_scene(desc)
+            build_scene(desc, device)
         else:
-            session.apply(desc)
-        save(save_blend)
+            session.apply(desc, device)
+        if save_blend is not None:
+            from allo_usd.blender.debug import save_blend as save
+
+            save(save_blend)
         return render_current(desc, workdir)
     except BaseException:
         if session is not None:

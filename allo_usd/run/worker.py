@@ -26,21 +26,23 @@ _SESSION = None  # this process's warm Blender session (allo_usd.blender.session
 
 
 def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str = "",
-                before_render: Callable[[str], None] | None = None) -> dict:
-    """Render one layer (forced: the parent decided it is not done) and checksum its outputs.
+                before_render: Callable[[str], None] | None = None, device: str = "auto") -> dict:
+    """Render one layer (forced: the parent decided it is not done) on `device` ('auto', 'cpu',
+    'gpu': probed once per process, allo_usd.blender.device) and checksum its outputs.
 
-    Never raises for a bad layer or a full disk: returns {"status": "error", "kind": ...} so
-    the parent can tell them apart from a crash, which it sees as a dead worker instead. Safe to
+    Never raises for a bad layer, a full disk or a missing GPU: returns {"status": "error", "kind":
+    ...} ("layer", "disk_full", "device", "error") so the parent can tell them apart from a crash,
+    which it sees as a dead worker instead. Safe to
     call from several threads of one process (a Dask worker with --nthreads > 1): they take turns.
     `before_render(scene_name)`, if given, is called first, inside the lock (tests inject faults
     with it; it must be picklable: a module-level function or a partial of one).
     """
     with _BPY_LOCK:
-        return _render_task(layer, out_dir, threads, roots, before_render)
+        return _render_task(layer, out_dir, threads, roots, before_render, device)
 
 
 def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
-                 before_render: Callable[[str], None] | None) -> dict:
+                 before_render: Callable[[str], None] | None, device: str = "auto") -> dict:
     global _SESSION
     _fix_bpy_path()
     from allo_usd.run.job import render_layer
@@ -61,12 +63,17 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
             from allo_usd.blender.session import Session
 
             _SESSION = Session()  # one Blender scene per process, patched from scene to scene
-        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=render_workdir(out_p), session=_SESSION)
+        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=render_workdir(out_p), session=_SESSION,
+                            device=device)
     except DiskFullError as exc:
         return error("disk_full", exc, prefix=False)
     except RenderFailedError as exc:  # not the layer's fault: retried
         return error("error", exc)
     except AlloError as exc:
+        from allo_usd.blender.device import DeviceError
+
+        if isinstance(exc, DeviceError):  # this machine cannot render as asked: the run stops
+            return error("device", exc, prefix=False)
         return error("layer", exc)
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which retries it unless the disk is full
         full = disk_full_error(exc, out_p)
@@ -77,6 +84,8 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
             "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", scene),
             "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}",
             "full_build": bool(_SESSION.last.full_build),
+            "device": {k: meta["device"][k] for k in ("used", "backend", "gpus", "cpu_model")},
+            "device_notice": meta["device"].get("notice"),  # the dispatcher shows it once per run
             "cores": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
 
 
