@@ -10,6 +10,7 @@ import typer
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import ensure_output_dir, ensure_output_file
+from allo_usd.plan.settings import PASSES, canonical_passes
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
                   help="Author, record and render the ALLO lunar-orbit anomaly dataset as USD layers.")
@@ -66,8 +67,13 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                            help="A single layer only: also save the Blender scene it builds as "
                                                 "FILE (.blend), to open what Blender got."),
            trees: list[Path] = _tree_option(),
-           device: str = _device_option(None, " Default: a plan's render.device, else auto.")):
-    """Render scene layers: RGB PNG, linear EXR, 3-class mask PNG and a metadata JSON per scene.
+           device: str = _device_option(None, " Default: a plan's render.device, else auto."),
+           passes: str = typer.Option(None, "--passes", metavar="P1,P2", show_default=False,
+                                      help="The passes to write this run, replacing what the layers order: a comma "
+                                           "list of " + ", ".join(PASSES) + ". A single layer records them in its "
+                                           "JSON; a plan's layers are authored with them.")):
+    """Render scene layers: per scene the passes its layer orders (default RGB PNG, linear EXR, 3-class
+    mask PNG; README, Passes) and a metadata JSON.
 
     One layer renders in this process. A directory renders all its scene layers (searched
     recursively; an authored plan's scenes/) on a local pool (--workers) or a Dask cluster
@@ -82,11 +88,13 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
     from allo_usd.usd.safety import trees_granted
 
     with trees_granted(trees or ()):
-        _render(source, out, force, workers, scheduler, threads, retries, timeout, save_blend, device)
+        _render(source, out, force, workers, scheduler, threads, retries, timeout, save_blend, device,
+                None if passes is None else canonical_passes([p.strip() for p in passes.split(",") if p.strip()]))
 
 
 def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str | None, threads: int, retries: int,
-            timeout: float, save_blend: Path | None, device: str | None = None) -> None:
+            timeout: float, save_blend: Path | None, device: str | None = None,
+            passes: tuple[str, ...] | None = None) -> None:
     import warnings
 
     from allo_usd.blender.device import check_device
@@ -107,9 +115,13 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
     if not (source.is_dir() or is_layer or (source.is_file() and suffix in (".toml", ".yaml", ".yml"))):
         raise AlloError(f"{source} does not exist or is not a layer (.usda, .usdc, .usd), a directory of layers or "
                         "a plan (.toml/.yaml); check the path")
+    if passes is not None and (source.is_dir() or (is_layer and not single)):
+        raise AlloError("--passes overrides the passes of a single layer (rendered in this process) or of a plan's "
+                        "layers; a directory's layers record their own: render a plan with --passes, or set "
+                        "quality.passes in the plan and author the layers again")
     ensure_output_dir(out)
     if single:
-        _render_one(source, out, force, threads, save_blend, device or "auto")
+        _render_one(source, out, force, threads, save_blend, device or "auto", passes)
         return
     from allo_usd.run.dispatch import author_and_dispatch, dispatch
 
@@ -120,7 +132,7 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
         if source.is_dir() or is_layer:
             summary = dispatch(source, out, device=device or "auto", **kwargs)
         else:
-            summary = author_and_dispatch(source, out, device=device, **kwargs)
+            summary = author_and_dispatch(source, out, device=device, passes=passes, **kwargs)
     _notes(notes)
     typer.echo(f"{source} -> {out}: {summary}")
     for row in summary.failed:
@@ -133,7 +145,8 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
         raise SystemExit(1)
 
 
-def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: Path | None, device: str) -> None:
+def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: Path | None, device: str,
+                passes: tuple[str, ...] | None = None) -> None:
     """One layer in this process, under the same output lock as a directory render; a full disk
     (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is a DiskFullError."""
     from allo_usd.core.files import RunLock
@@ -149,7 +162,7 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
         try:
             with output_to(out / "logs" / "render.log"):  # Blender's own prints
                 meta = render_layer(layer, out, force=force, threads=threads or None, save_blend=save_blend,
-                                    device=device)
+                                    device=device, passes=passes)
         except (OSError, RuntimeError) as exc:
             full = disk_full_error(exc, out)
             if full is None:

@@ -7,7 +7,7 @@ resolved at the render resolution (default 1920x1080, the paper's) with ``allo_u
 (``resolve_camera`` + ``resolve_placements``, as authoring does: candidates screened at 480 px wide,
 then every depth confirmed at the render resolution, whose fraction ``AnomalySpec.predicted_area_fraction``
 records). The initial depth of each group is authored as a USD layer, read back and rendered by
-Cycles as a mask-only render (``RenderSpec.mask_only``: 1 sample, no bounces, no denoising; the same
+Cycles as a mask-only render (``RenderSpec.passes = ("mask",)``: 1 sample, no bounces, no denoising; the same
 object-index mask as a full render) at the same resolution; the anomaly mask (object index 2) is
 counted and compared with the prediction. A placement passes when |predicted - rendered| <= 2% of the
 rendered area, or <= 50 px (small objects). Draws for which no placement is found (PlacementError)
@@ -593,7 +593,7 @@ def main(argv=None) -> int:
     load_start = os.getloadavg()[0]
     world = load_world(args.base_stage)
     render1 = RenderSpec(resolution=(W, H), preset="bench", samples=1, exposure=EXPOSURE, denoise=False,
-                         mask_only=True)
+                         passes=("mask",))
     render20 = RenderSpec(resolution=(W, H), preset="bench", samples=20, exposure=EXPOSURE, denoise=False)
     assets = sorted(ANOMALY_VARIANTS)
     with tempfile.TemporaryDirectory(prefix="bench-placement-") as tmp:

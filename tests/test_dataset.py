@@ -220,7 +220,7 @@ def many_scenes(renders: Path, dst: Path, n: int) -> Path:
 
 def test_mask_only_renders_are_left_out_with_a_note(renders, tiny_base, tmp_path):
     spec = make_spec(scene_id="masks", day=5, seed=15)
-    spec = replace(spec, split="test", pose=41, render=replace(spec.render, mask_only=True))
+    spec = replace(spec, split="test", pose=41, render=replace(spec.render, passes=("mask",)))
     masks = tmp_path / "mask_renders"
     meta = render_layer(write_scene_layer(spec, tmp_path / "layers" / "masks.usda", tiny_base), masks)
     assert "rgb" not in meta["files"] and (masks / meta["files"]["mask"]).is_file()  # a real mask-only render

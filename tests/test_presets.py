@@ -132,7 +132,7 @@ def test_quality_and_effects_are_declared_once():
     from allo_usd.usd.description import EffectsDesc, RenderDesc
 
     quality, flags = set(QUALITY_FIELDS), set(EFFECT_FLAGS)
-    assert set(Quality.model_fields) == quality | {"preset", "resolution"}
+    assert set(Quality.model_fields) == quality | {"preset", "resolution", "passes"}
     assert set(Effects.model_fields) == flags
     assert issubclass(RenderSpec, QualitySettings) and issubclass(RenderDesc, QualitySettings)
     assert issubclass(EffectsSpec, EffectFlags) and issubclass(EffectsDesc, EffectFlags)

@@ -33,7 +33,7 @@ def test_reader_describes_the_scene(tiny_base, tmp_path):
     assert desc.sun.irradiance == pytest.approx(1361.0)
     np.testing.assert_allclose(desc.sun.direction, spec.sun.direction, atol=1e-7)
     assert desc.render.resolution == (64, 36) and desc.render.exposure == pytest.approx(EXPOSURE)
-    assert desc.render.outputs == ("color", "allo:classMask")
+    assert desc.render.outputs == ("rgb", "exr", "mask")
     assert desc.meta["seed"] == 7 and desc.meta["anomaly"]["assetVariant"] == "blue"
     blue = desc.materials[by_path["/World/Anomaly/Geom/Body"].material]
     assert blue.base_color[2] > blue.base_color[0]

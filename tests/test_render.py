@@ -147,9 +147,9 @@ def test_depth_and_mask_only_outputs(tiny_base, tmp_path, rendered):
     from allo_usd.usd.read import layer_outputs
 
     base = make_spec(anomaly=True)
-    with_depth = replace(base, render=replace(base.render, depth=True))
+    with_depth = replace(base, render=replace(base.render, passes=("rgb", "exr", "mask", "depth")))
     layer = write_scene_layer(with_depth, tmp_path / "depth.usda", tiny_base)
-    assert layer_outputs(layer) == ("color", "allo:classMask", "depth")
+    assert layer_outputs(layer) == ("rgb", "exr", "mask", "depth")
     meta = render_layer(layer, tmp_path / "out")
     with OpenEXR.File(str(tmp_path / "out" / meta["files"]["depth"]), separate_channels=True) as f:
         z = f.channels()["Z"].pixels
@@ -159,9 +159,9 @@ def test_depth_and_mask_only_outputs(tiny_base, tmp_path, rendered):
     assert 5.0 < np.median(station_z) < 40.0  # metres from the camera 19 m from the station centre
     assert z[mask == 2].max() < np.median(station_z)  # the anomaly floats in front of the station
 
-    mask_only = replace(base, render=replace(base.render, mask_only=True))
+    mask_only = replace(base, render=replace(base.render, passes=("mask",)))
     layer = write_scene_layer(mask_only, tmp_path / "maskonly.usda", tiny_base)
-    assert layer_outputs(layer) == ("allo:classMask",)
+    assert layer_outputs(layer) == ("mask",)
     meta = render_layer(layer, tmp_path / "out")
     assert set(meta["files"]) == {"mask", "meta"}
     assert not (tmp_path / "out" / "maskonly.png").exists()

@@ -25,6 +25,7 @@ import math
 import numpy as np
 
 from allo_usd.core.errors import LayerError
+from allo_usd.plan.settings import COLOR_PASSES
 from allo_usd.usd.description import (CameraDesc, MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc,
                                       SunDesc)
 
@@ -150,7 +151,6 @@ def build_mesh(desc: MeshDesc, material):
     me.materials.append(material)
     obj = bpy.data.objects.new(desc.path, me)
     place(obj, desc.matrix)
-    obj.pass_index = desc.class_id
     if desc.ray_visibility == "cameraOnly":  # the Sun's disc: seen, but neither shadowing nor lighting
         obj.visible_diffuse = obj.visible_glossy = obj.visible_shadow = False
         obj.visible_transmission = obj.visible_volume_scatter = False
@@ -253,7 +253,7 @@ def configure_render(render: RenderDesc, device=None) -> None:
     assign(scene.render, "resolution_y", render.resolution[1], "render resolution height")
     scene.render.resolution_percentage = 100
     scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
-    mask_only = "color" not in render.outputs
+    mask_only = not set(COLOR_PASSES) & set(render.outputs)   # no colour: the first hit is all we need
     assign(scene.cycles, "samples", 1 if mask_only else render.samples, "render samples")  # the mask: sample 0
     scene.cycles.use_adaptive_sampling = render.adaptive_threshold > 0 and not mask_only
     if render.adaptive_threshold > 0:
@@ -294,6 +294,30 @@ def configure_render(render: RenderDesc, device=None) -> None:
     layer.use_pass_object_index = True
     layer.pass_alpha_threshold = 0.0  # every surface writes the index, the transparent Sun sphere too (class 1)
     layer.use_pass_z = "depth" in render.outputs
+    layer.use_pass_normal = "normal" in render.outputs
+
+
+# Object ids: every mesh object's pass_index is its id, 1 + the index of its prim path among the
+# scene's sorted mesh paths (0 is the background), so one object index pass gives the instance mask,
+# the class mask (through each id's class) and per-object pixel counts. Stable: a function of the
+# scene's mesh paths only. Blender's pass_index is at most MAX_OBJECT_ID.
+MAX_OBJECT_ID = 32767
+
+
+def object_ids(desc: SceneDescription) -> tuple[tuple[str, int], ...]:
+    """(prim path, class id) of object id 1, 2, ... (the scene's mesh prims in sorted path order)."""
+    table = tuple(sorted((m.path, m.class_id) for m in desc.meshes))
+    if len(table) > MAX_OBJECT_ID:
+        raise LayerError(f"{desc.layer} has {len(table)} mesh prims; the object index pass numbers at most "
+                         f"{MAX_OBJECT_ID}: merge meshes (fix the layer)")
+    return table
+
+
+def set_object_ids(desc: SceneDescription) -> None:
+    """Every mesh object's pass_index is its object id (object_ids)."""
+    objects = _bpy().context.scene.collection.objects
+    for i, (path, _) in enumerate(object_ids(desc), start=1):
+        objects[path].pass_index = i
 
 
 def build_scene(desc: SceneDescription, device=None) -> None:
@@ -308,6 +332,7 @@ def build_scene(desc: SceneDescription, device=None) -> None:
     if desc.spot is not None:
         build_spot(desc.spot)
     configure_render(desc.render, device)
+    set_object_ids(desc)
     from allo_usd.blender.compositor import build_glare, no_compositor
 
     if desc.effects.glare:

@@ -21,7 +21,7 @@ import numpy as np
 
 from allo_usd.usd.description import SceneDescription
 from allo_usd.core.errors import DiskFullError, RenderFailedError
-from allo_usd.blender.build import build_scene
+from allo_usd.blender.build import build_scene, object_ids
 
 MIN_FREE_BYTES = 1 << 20  # after a failed render, less free than this on the temp device means "disk full"
 
@@ -32,6 +32,9 @@ class RenderResult:
     mask: np.ndarray         # (H, W) uint8: 0 background, 1 station and bodies, 2 anomaly
     depth: np.ndarray | None  # (H, W) float32 metres, when the layer asks for it
     seconds: float
+    ids: np.ndarray | None = None      # (H, W) uint16 object id (build.object_ids), 0 background
+    objects: tuple[str, ...] = ()      # prim path of object id 1, 2, ...
+    normal: np.ndarray | None = None   # (H, W, 3) float32 world-space normal, when the layer asks for it
 
 
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
@@ -125,9 +128,17 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
         if index is None:
             raise unreadable_render_file(out, desc.layer, f"has no object index pass (channels: {sorted(ch)})")
     rgb = np.stack([r, g, b], axis=-1).astype(np.float32)  # EXR rows run top-down, like PNG
-    mask = np.rint(index).astype(np.uint8)
+    table = object_ids(desc)
+    classes = np.array([0] + [c for _, c in table], dtype=np.uint8)   # object id -> class id
+    ids = np.clip(np.rint(index), 0, len(table)).astype(np.uint16)
     depth = _find(ch, "Depth.Z", "Depth.V") if "depth" in desc.render.outputs else None
-    return RenderResult(rgb, mask, depth, seconds)
+    normal = None
+    if "normal" in desc.render.outputs:
+        nx, ny, nz = (_find(ch, f"Normal.{c}") for c in "XYZ")
+        if nx is None:
+            raise unreadable_render_file(out, desc.layer, f"has no normal pass (channels: {sorted(ch)})")
+        normal = np.stack([nx, ny, nz], axis=-1).astype(np.float32)
+    return RenderResult(rgb, classes[ids], depth, seconds, ids=ids, objects=tuple(p for p, _ in table), normal=normal)
 
 
 def render_scene(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:

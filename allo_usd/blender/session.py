@@ -134,6 +134,7 @@ class Session:
                 stats = self._full_build(desc, device)
             else:
                 stats = self._patch(desc, device)
+                build.set_object_ids(desc)  # ids follow the set of mesh paths (build.object_ids)
         except BaseException:
             self.invalidate()
             raise
@@ -336,8 +337,6 @@ class Session:
     def _patch_mesh(self, obj, old: MeshDesc, new: MeshDesc) -> None:
         if not _eq(old.matrix, new.matrix):
             build.place(obj, new.matrix)
-        if old.class_id != new.class_id:
-            obj.pass_index = new.class_id
         if old.ray_visibility != new.ray_visibility:
             for attr in ("visible_camera", "visible_diffuse", "visible_glossy", "visible_shadow",
                          "visible_transmission", "visible_volume_scatter"):

@@ -1,4 +1,5 @@
-"""Write render arrays to files, atomically: PNG (8-bit sRGB), linear EXR (half), masks.
+"""Write render arrays to files, atomically: PNG (8-bit sRGB), linear EXR (half), float32 EXR (depth,
+normals), masks (uint8 classes, uint16 object ids).
 
 Every file goes to a temporary name in its target directory and is renamed into place, so a
 crash or a full disk never leaves a truncated output under a final name.
@@ -40,6 +41,13 @@ def write_mask_png(path: Path, mask: np.ndarray) -> Path:
     if mask.dtype != np.uint8 or mask.ndim != 2:
         raise AlloError(f"mask must be a 2-D uint8 array, got {mask.dtype} {mask.shape}")
     return write_png(path, mask)
+
+
+def write_instance_png(path: Path, ids: np.ndarray) -> Path:
+    """Single-channel 16-bit object-id mask (0 background)."""
+    if ids.dtype != np.uint16 or ids.ndim != 2:
+        raise AlloError(f"instance mask must be a 2-D uint16 array, got {ids.dtype} {ids.shape}")
+    return write_png(path, ids)
 
 
 def write_exr(path: Path, channels: dict[str, np.ndarray], half: bool = True, attributes: dict | None = None) -> Path:

@@ -20,7 +20,8 @@ from allo_usd.assets.importer import SUPPORTED_EXTENSIONS, UNIT_SCALES, UP_AXIS_
 from allo_usd.core.errors import EpochError, PlanError
 from allo_usd.core.limits import resolution_problem
 from allo_usd.core.timefmt import format_utc, parse_utc
-from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES, DEVICES, PRESETS, EffectFlags, QualitySettings
+from allo_usd.plan.settings import (DEFAULT_PASSES, DENOISE_PREFILTERS, DENOISE_QUALITIES, DEVICES, PASSES, PRESETS,
+                                    EffectFlags, QualitySettings, passes_problem)
 
 DEPTH_COUNT = 5  # allo_usd.scene.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
 N_POSES = 50
@@ -218,6 +219,18 @@ class Quality(_Model):
     denoise_quality: Literal[DENOISE_QUALITIES] = QualitySettings.denoise_quality
     max_bounces: int = Field(QualitySettings.max_bounces, ge=0, le=1024)
     adaptive_threshold: float = Field(QualitySettings.adaptive_threshold, ge=0.0, le=1.0)
+    passes: list[str] = Field(list(DEFAULT_PASSES), json_schema_extra={"items": {"enum": list(PASSES)}},
+                              description="The files each scene writes, recorded in its layer as UsdRender vars: "
+                                          + ", ".join(PASSES) + " (README, Passes); `render --passes` overrides "
+                                          "them for a run. Without rgb and exr a scene renders 1 sample.")
+
+    @field_validator("passes")
+    @classmethod
+    def _passes(cls, v):
+        problem = passes_problem(v)
+        if problem:
+            raise ValueError(f"{problem}; fix: e.g. passes = [\"rgb\", \"exr\", \"mask\", \"depth\"]")
+        return [p for p in PASSES if p in v]
 
     @model_validator(mode="wrap")
     @classmethod

@@ -20,6 +20,38 @@ DENOISE_QUALITIES = ("FAST", "BALANCED", "HIGH")     # Cycles' OIDN denoising_qu
 # The render device (allo_usd.blender.device): a run-time choice, recorded in each render's JSON, never in a layer.
 DEVICES = ("auto", "cpu", "gpu")
 
+# Render passes: a plan's quality.passes or `allo-usd render --passes` names them; each is one UsdRender.Var
+# of the layer's image product (allo_usd.usd.base_stage.RENDER_VARS), written as one file:
+# rgb STEM.png (8-bit sRGB), exr STEM.exr (linear, half), mask STEM_mask.png (uint8 class 0/1/2),
+# depth STEM_depth.exr (float32 metres along the view axis), normal STEM_normal.exr (float32 world-space
+# unit normals X, Y, Z), instance STEM_instance.png (uint16 object id, 0 background; the id -> prim table
+# is in the render's JSON). Without rgb and exr the render is mask-like: 1 sample, no bounces.
+PASSES = ("rgb", "exr", "mask", "depth", "normal", "instance")
+DEFAULT_PASSES = ("rgb", "exr", "mask")
+COLOR_PASSES = ("rgb", "exr")
+
+
+def passes_problem(passes) -> str | None:
+    """What is wrong with a list of pass names (None: nothing); the message names the valid passes."""
+    if isinstance(passes, str) or not all(isinstance(p, str) for p in passes or ()):
+        return f"passes must be a list of names, got {passes!r}; choose from {', '.join(PASSES)}"
+    bad = [p for p in passes if p not in PASSES]
+    if bad:
+        return f"unknown render pass(es) {', '.join(map(repr, bad))}; choose from {', '.join(PASSES)}"
+    if not passes:
+        return f"no render pass chosen; choose one or more of {', '.join(PASSES)}"
+    if len(set(passes)) != len(passes):
+        return f"render passes {', '.join(passes)} name one pass twice; name each once"
+    return None
+
+
+def canonical_passes(passes) -> tuple[str, ...]:
+    """Passes in PASSES order (a layer's product orders them so); raises AlloError for bad names."""
+    problem = passes_problem(passes)
+    if problem:
+        raise AlloError(problem)
+    return tuple(p for p in PASSES if p in passes)
+
 
 # The one declaration of the quality settings and the effect switches. RenderSpec / EffectsSpec (a
 # scene's request), allo_usd.usd.description.RenderDesc / EffectsDesc (what a layer holds) inherit
@@ -65,8 +97,7 @@ class RenderSpec(QualitySettings):
     seed: int = 0
     exposure: float = 1.0
     threads: int = 0
-    depth: bool = False          # also write camera depth (metres, float32 EXR)
-    mask_only: bool = False      # only the class mask: one sample, no lights, no path tracing
+    passes: tuple[str, ...] = DEFAULT_PASSES   # PASSES, in that order; no rgb/exr: 1 sample, no bounces
 
 
 @dataclass(frozen=True)

@@ -73,7 +73,8 @@ class AuthorContext:
         self.base_stage = plan.resolve_base_stage()
         self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch))
         q = plan.quality
-        self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE, **quality_of(q))
+        self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE,
+                                 passes=tuple(q.passes), **quality_of(q))
         self.effects = EffectsSpec(**plan.effects.model_dump())
         self._sky_cache: dict[int, tuple] = {}
         self._sun_and_bodies = sun_and_bodies

@@ -538,14 +538,17 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     return summary
 
 
-def author_and_dispatch(plan_path: Path, out_dir: Path, device: str | None = None, **kwargs) -> Summary:
-    """A plan file: author its layers into OUT/layers, then render them into OUT/renders on `device`
-    (None: the plan's render.device)."""
+def author_and_dispatch(plan_path: Path, out_dir: Path, device: str | None = None,
+                        passes: tuple[str, ...] | None = None, **kwargs) -> Summary:
+    """A plan file: author its layers into OUT/layers (with `passes` instead of the plan's quality.passes,
+    when given), then render them into OUT/renders on `device` (None: the plan's render.device)."""
     from allo_usd.plan.io import load_plan
     from allo_usd.run.author import author_plan
 
     layers_dir = Path(out_dir) / "layers"
     plan = load_plan(Path(plan_path))
+    if passes is not None:
+        plan = plan.model_copy(update={"quality": plan.quality.model_copy(update={"passes": list(passes)})})
     kwargs["device"] = device or plan.render.device
     layers = author_plan(plan, layers_dir)
     # the tree's authored folders, not all of OUT (OUT/renders and whatever else lies there)

@@ -18,9 +18,12 @@ import numpy as np
 
 from allo_usd import __version__
 from allo_usd.output.annotations import image_annotations
-from allo_usd.output.writers import write_exr, write_json, write_mask_png, write_rgb_exr, write_rgb_png
+from allo_usd.output.writers import (write_exr, write_instance_png, write_json, write_mask_png, write_rgb_exr,
+                                    write_rgb_png)
+from allo_usd.plan.settings import canonical_passes
 from allo_usd.run.manifest import (check_output_names, file_sha256, input_hashes, is_done, output_paths,
                                    render_identity, render_versions)
+from allo_usd.usd.read import layer_outputs
 
 
 def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -40,9 +43,23 @@ def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:
     return rgb, applied
 
 
+def object_pixels(ids: np.ndarray, objects: tuple[str, ...]) -> dict:
+    """The JSON's "station_fraction" (station pixels / all pixels) and "bodies" ({"sun": {"pixels": n},
+    ...}: visible pixels of each body), from the object id image and the prim path of each id."""
+    from allo_usd.usd.layout import STATION, body_path
+
+    counts = np.bincount(ids.ravel(), minlength=len(objects) + 1)
+
+    def under(root: str) -> int:
+        return int(sum(counts[i] for i, p in enumerate(objects, start=1) if p == root or p.startswith(root + "/")))
+
+    return {"station_fraction": under(STATION) / ids.size,
+            "bodies": {b.lower(): {"pixels": under(body_path(b))} for b in ("Sun", "Earth", "Moon")}}
+
+
 def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
                  workdir: Path | None = None, session=None, save_blend: Path | None = None,
-                 device: str = "auto") -> dict:
+                 device: str = "auto", passes: tuple[str, ...] | None = None) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON).
 
     `threads` overrides the layer's allo:render:threads for this process only (the layer is not
@@ -53,6 +70,9 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     also saves the built Blender scene there as a .blend (before rendering), to open what Blender got.
     `device` is 'auto', 'cpu' or 'gpu' (allo_usd.blender.device.select: probed once per process; 'gpu'
     without a GPU is a DeviceError before the layer is read).
+    `passes` (allo_usd.plan.settings.PASSES) replaces the passes the layer orders for this run: the JSON
+    records both ("passes" written, "layer_passes"), and a render with other passes than its layer's
+    is never skipped as done.
     """
     import dataclasses
     import json
@@ -64,8 +84,13 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
 
     check_output_names([layer])
     device = check_device(device)
-    if not force and save_blend is None and is_done(layer, out_dir):
-        return json.loads(output_paths(layer, out_dir)["meta"].read_text())
+    passes = None if passes is None else canonical_passes(passes)
+    if passes is not None and passes == layer_outputs(layer):
+        passes = None  # what the layer orders anyway
+    if not force and save_blend is None and passes is None and is_done(layer, out_dir):
+        meta = json.loads(output_paths(layer, out_dir)["meta"].read_text())
+        if meta.get("passes", meta.get("layer_passes")) == meta.get("layer_passes"):  # not an override's render
+            return meta
     used = select(device)
     read = walk(layer)  # checked before USD opens a file; kept open so read_scene parses no layer twice
     inputs = input_hashes(layer, read.files)  # before the read: an edit meanwhile re-renders next time
@@ -73,16 +98,26 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     del read
     if threads is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, threads=int(threads)))
+    layer_passes = desc.render.outputs
+    if passes is not None:
+        desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, outputs=passes))
     result = _render(desc, workdir, session, save_blend, used)
     paths = output_paths(layer, out_dir, desc.render.outputs)
     effects = {}
-    if "rgb" in paths:
+    if "rgb" in paths or "exr" in paths:
         rgb, effects = apply_effects(desc, result.rgb)
-        write_rgb_png(paths["rgb"], rgb)
-        write_rgb_exr(paths["exr"], rgb)
-    write_mask_png(paths["mask"], result.mask)
+        if "rgb" in paths:
+            write_rgb_png(paths["rgb"], rgb)
+        if "exr" in paths:
+            write_rgb_exr(paths["exr"], rgb)
+    if "mask" in paths:
+        write_mask_png(paths["mask"], result.mask)
     if "depth" in paths:
         write_exr(paths["depth"], {"Z": result.depth}, half=False)
+    if "normal" in paths:
+        write_exr(paths["normal"], {c: result.normal[..., i] for i, c in enumerate("XYZ")}, half=False)
+    if "instance" in paths:
+        write_instance_png(paths["instance"], result.ids)
     counts = np.bincount(result.mask.ravel(), minlength=3)
     meta = {
         "layer": str(Path(layer).resolve()),
@@ -97,6 +132,9 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         "class_pixels": {"background": int(counts[0]), "station_and_bodies": int(counts[1]),
                          "anomaly": int(counts[2])},
         "anomaly_fraction": float(counts[2] / result.mask.size),
+        **object_pixels(result.ids, result.objects),
+        "passes": list(desc.render.outputs), "layer_passes": list(layer_passes),
+        **({"instances": {str(i): p for i, p in enumerate(result.objects, start=1)}} if "instance" in paths else {}),
         "scene": desc.meta,
         "effects": effects,
         "files": {k: p.name for k, p in paths.items()},

@@ -1,9 +1,10 @@
 """What a rendered scene leaves behind and when it counts as done: one rule for `allo-usd render
 LAYER`, the dispatcher's resume and the demo, so they never disagree about what to skip.
 
-**Output names.** A layer STEM writes STEM.png, STEM.exr, STEM_mask.png, STEM_depth.exr and
-STEM.json. They are collision-free by construction: a stem ending in a reserved suffix (`_mask`,
-`_depth`, in any case) is refused, and so are two stems of one run equal up to case (file
+**Output names.** A layer STEM writes STEM.png, STEM.exr, STEM_mask.png, STEM_depth.exr,
+STEM_normal.exr, STEM_instance.png (those of its passes) and STEM.json. They are collision-free by
+construction: a stem ending in a reserved suffix (`_mask`, `_depth`, `_normal`, `_instance`, in any
+case) is refused, and so are two stems of one run equal up to case (file
 systems that ignore case). Then no name of one layer can be a name of another
 (tests/test_render_identity.py checks every pair).
 
@@ -38,7 +39,9 @@ from allo_usd.usd.sniff import refusal
 
 MANIFEST = "manifest.jsonl"
 WORKDIR = ".allo-tmp"  # Blender's render files, one directory per worker pid
-RESERVED_SUFFIXES = ("_mask", "_depth")  # what output_paths appends to a stem
+RESERVED_SUFFIXES = ("_mask", "_depth", "_normal", "_instance")  # what output_paths appends to a stem
+PASS_FILES = {"rgb": ".png", "exr": ".exr", "mask": "_mask.png", "depth": "_depth.exr", "normal": "_normal.exr",
+              "instance": "_instance.png"}  # pass -> what output_paths appends to a stem
 
 
 def _stem_problem(layer: Path) -> str | None:
@@ -48,7 +51,8 @@ def _stem_problem(layer: Path) -> str | None:
         return None
     return (f"{layer}: a layer named ...{suffix} (in any case) is refused, since its outputs could take the "
             f"names of a layer {Path(layer).stem[:-len(suffix)]}.usda's {suffix[1:]} (outputs are STEM.png, "
-            f"STEM.exr, STEM_mask.png, STEM_depth.exr, STEM.json); rename the layer so that its name does not end "
+            f"STEM.exr, STEM_mask.png, STEM_depth.exr, STEM_normal.exr, STEM_instance.png, STEM.json); rename the "
+            f"layer so that its name does not end "
             f"in {' or '.join(RESERVED_SUFFIXES)}")
 
 
@@ -68,20 +72,15 @@ def check_output_names(layers) -> None:
 
 
 def output_paths(layer: Path, out_dir: Path, outputs: tuple[str, ...] | None = None) -> dict[str, Path]:
-    """Files one scene produces, by the render vars it orders (PNG + EXR for color, the class mask,
-    a float32 depth EXR), plus the metadata JSON. A stem with a reserved suffix is a LayerError."""
+    """Files one scene produces, one per pass it orders (PASS_FILES), plus the metadata JSON. A stem
+    with a reserved suffix is a LayerError."""
     problem = _stem_problem(Path(layer))
     if problem:
         raise LayerError(problem)
     stem = Path(layer).stem
     out_dir = Path(out_dir)
     outputs = layer_outputs(layer) if outputs is None else outputs
-    paths = {}
-    if "color" in outputs:
-        paths.update(rgb=out_dir / f"{stem}.png", exr=out_dir / f"{stem}.exr")
-    paths["mask"] = out_dir / f"{stem}_mask.png"
-    if "depth" in outputs:
-        paths["depth"] = out_dir / f"{stem}_depth.exr"
+    paths = {p: out_dir / f"{stem}{PASS_FILES[p]}" for p in PASS_FILES if p in outputs}
     paths["meta"] = out_dir / f"{stem}.json"
     return paths
 

@@ -18,6 +18,7 @@ from allo_usd.core.constants import EARTH_RADIUS_M, MOON_RADIUS_M, SOLAR_CONSTAN
 from allo_usd.sky import model as sky
 from allo_usd.usd import attributes as A
 from allo_usd.usd.attributes import CLASS_MASK_SOURCE
+from allo_usd.plan.settings import DEFAULT_PASSES, PASSES
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.usd.asset import commit_layer, new_layer, stage_metadata, write_asset, write_variant_asset
@@ -210,14 +211,30 @@ def define_render_camera(stage, first: CameraPose) -> None:
     set_pose(spot.GetPrim(), SPOT_OFFSET_M, np.eye(3))
 
 
-# Render vars: prim name -> (source, data type, doc). The base product orders Color and ClassMask.
+# Render vars: prim name -> (pass, source, data type, doc), one per pass of allo_usd.plan.settings.PASSES, in
+# that order. Source names follow Hydra's AOV names where one exists (color, depth, normal, primId). The
+# base product orders the default passes; a scene layer that asks for others orders its own.
 RENDER_VARS = {
-    "Color": ("color", "color3f", "Linear scene-referred radiance (W/m^2/sr) times the camera's linear exposure "
-              "scale (UsdGeom.Camera exposure attributes)."),
-    "ClassMask": (CLASS_MASK_SOURCE, "uchar", "0 background, 1 station and celestial bodies, 2 anomaly."),
-    "Depth": ("depth", "float", "Camera distance in metres; written only when a product orders it."),
+    "Color": ("rgb", "color", "color3f", "Written as 8-bit sRGB PNG (STEM.png): linear scene-referred radiance "
+              "(W/m^2/sr) times the camera's linear exposure scale (UsdGeom.Camera exposure attributes), clipped."),
+    "LinearColor": ("exr", "color", "color3f", "Written as linear half EXR (STEM.exr): the same radiance as Color, "
+                    "unclipped."),
+    "ClassMask": ("mask", CLASS_MASK_SOURCE, "uchar", "0 background, 1 station and celestial bodies, 2 anomaly "
+                  "(STEM_mask.png)."),
+    "Depth": ("depth", "depth", "float", "Camera depth in metres along the view axis, float32 EXR "
+              "(STEM_depth.exr); written only when a product orders it."),
+    "Normal": ("normal", "normal", "normal3f", "World-space unit surface normal (Cycles' Normal pass), float32 EXR "
+               "X, Y, Z (STEM_normal.exr), 0 where nothing is hit; written only when a product orders it."),
+    "PrimId": ("instance", "primId", "int", "Object id, 1 + the index of the mesh prim's path among the scene's "
+               "sorted mesh paths, 0 background; uint16 PNG (STEM_instance.png), id -> prim path in the JSON; "
+               "written only when a product orders it."),
 }
-BASE_PRODUCT_VARS = ("Color", "ClassMask")
+PASS_VARS = {p: name for name, (p, _, _, _) in RENDER_VARS.items()}   # pass -> var prim name
+
+
+def product_vars(passes) -> list[str]:
+    """The render var prim paths a product orders for `passes` (in PASSES order)."""
+    return [layout.render_var(PASS_VARS[p]) for p in PASSES if p in passes]
 
 
 def define_render_settings(stage) -> None:
@@ -237,10 +254,10 @@ def define_render_settings(stage) -> None:
     product = UsdRender.Product.Define(stage, layout.IMAGE_PRODUCT)
     product.CreateProductNameAttr("image")
     UsdGeom.Scope.Define(stage, layout.VARS)
-    for name, (source, dtype, doc) in RENDER_VARS.items():
+    for name, (_, source, dtype, doc) in RENDER_VARS.items():
         var = UsdRender.Var.Define(stage, layout.render_var(name))
         var.CreateSourceNameAttr(source)
         var.CreateDataTypeAttr(dtype)
         var.GetPrim().SetDocumentation(doc)
-    product.CreateOrderedVarsRel().SetTargets([Sdf.Path(layout.render_var(n)) for n in BASE_PRODUCT_VARS])
+    product.CreateOrderedVarsRel().SetTargets([Sdf.Path(p) for p in product_vars(DEFAULT_PASSES)])
     stage.SetMetadata("renderSettingsPrimPath", layout.RENDER_SETTINGS)

@@ -93,7 +93,7 @@ class RenderDesc(QualitySettings):
     seed: int
     exposure: float                        # linear film exposure: the camera's UsdGeom exposure scale
     threads: int
-    outputs: tuple[str, ...]               # RenderVar source names ordered by the product
+    outputs: tuple[str, ...]               # passes (plan.settings.PASSES) of the render vars the product orders
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,8 @@ from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, Materi
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import file_problem
 from allo_usd.core.limits import resolution_problem
-from allo_usd.usd.base_stage import BASE_PRODUCT_VARS, RENDER_VARS
+from allo_usd.usd.base_stage import RENDER_VARS
+from allo_usd.plan.settings import DEFAULT_PASSES
 
 
 # Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
@@ -732,8 +733,7 @@ def read_render(settings_prim, exposure: float = 1.0) -> tuple[RenderDesc, Effec
     for product_path in settings.GetProductsRel().GetForwardedTargets():
         product = UsdRender.Product(settings_prim.GetStage().GetPrimAtPath(product_path))
         for var_path in product.GetOrderedVarsRel().GetForwardedTargets():
-            var = UsdRender.Var(settings_prim.GetStage().GetPrimAtPath(var_path))
-            outputs.append(str(var.GetSourceNameAttr().Get()))
+            outputs.append(var_pass(var_path.name))
     render = RenderDesc(resolution=(w, h), preset=str(_get(settings_prim, A.RENDER_PRESET.name, "preview")),
                         samples=samples,
                         adaptive_threshold=num(A.RENDER_ADAPTIVE_THRESHOLD.name, 0.0, bounds=RENDER_ADAPTIVE),
@@ -966,20 +966,27 @@ def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str):
     return SceneInputs(StageGeometry(base_stage), sky, perilune_epoch)
 
 
-VAR_SOURCES = {name: source for name, (source, _, _) in RENDER_VARS.items()}   # var prim name -> source
-DEFAULT_OUTPUTS = tuple(VAR_SOURCES[name] for name in BASE_PRODUCT_VARS)
+VAR_PASSES = {name: p for name, (p, _, _, _) in RENDER_VARS.items()}   # var prim name -> pass
+
+
+def var_pass(name: str) -> str:
+    """The pass (allo_usd.plan.settings.PASSES) of a render var the product orders, by its prim name."""
+    if name not in VAR_PASSES:
+        raise LayerError(f"the image product orders a render var {name!r} this renderer does not write; order only "
+                         f"{', '.join(VAR_PASSES)} under {layout.VARS} (fix the layer)")
+    return VAR_PASSES[name]
 
 
 def layer_outputs(layer: Path) -> tuple[str, ...]:
-    """The render vars a scene layer orders (its own override of the product, else the base's
-    color + class mask), read from the layer file alone: cheap enough for resume checks."""
+    """The passes a scene layer orders (its own override of the product, else the base's default
+    passes), read from the layer file alone: cheap enough for resume checks."""
     from pxr import Sdf, Tf
 
     try:
         sdf = Sdf.Layer.FindOrOpen(str(layer))
     except Tf.ErrorException:
-        return DEFAULT_OUTPUTS  # unreadable: read_scene will say what is wrong with it
+        return DEFAULT_PASSES  # unreadable: read_scene will say what is wrong with it
     rel = sdf.GetRelationshipAtPath(f"{layout.IMAGE_PRODUCT}.orderedVars") if sdf else None
     if not rel or not rel.targetPathList.explicitItems:
-        return DEFAULT_OUTPUTS
-    return tuple(VAR_SOURCES.get(t.name, t.name) for t in rel.targetPathList.explicitItems)
+        return DEFAULT_PASSES
+    return tuple(VAR_PASSES.get(t.name, t.name) for t in rel.targetPathList.explicitItems)

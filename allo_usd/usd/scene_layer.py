@@ -30,7 +30,8 @@ from allo_usd.core.limits import resolution_problem
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
-from allo_usd.usd.base_stage import LIT_BODIES, camera_ev, gf_quatd
+from allo_usd.usd.base_stage import LIT_BODIES, camera_ev, gf_quatd, product_vars
+from allo_usd.plan.settings import DEFAULT_PASSES, canonical_passes
 from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.core.files import relpath, write_text_atomic
 
@@ -217,10 +218,9 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
                      (A.EFFECTS_SENSOR_NOISE, bool(e.sensor_noise)), (A.EFFECTS_GLARE, bool(e.glare)),
                      (A.EFFECTS_INSPECTION_LIGHT, bool(e.inspection_light)), (A.EFFECTS_BODY_SHINE, bool(e.body_shine))),
         **(sensor_attrs(e.sensor, film_exposure(r.exposure)) if e.sensor_noise else {})}))
-    if r.depth or r.mask_only:  # the base product orders color and class mask; change only if asked
-        ordered = ([] if r.mask_only else [layout.render_var("Color")]) + [layout.render_var("ClassMask")]
-        ordered += [layout.render_var("Depth")] if r.depth else []
-        out.append(Prim(layout.IMAGE_PRODUCT, rels={"orderedVars": ordered}))
+    passes = canonical_passes(r.passes)
+    if passes != DEFAULT_PASSES:  # the base product orders the default passes; change only if asked
+        out.append(Prim(layout.IMAGE_PRODUCT, rels={"orderedVars": product_vars(passes)}))
     return out
 
 
