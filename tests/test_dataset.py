@@ -144,6 +144,9 @@ def test_manifest_has_one_row_per_image_with_provenance(renders, tmp_path):
     assert int(a["anomaly_pixels"]) == meta["class_pixels"]["anomaly"] and float(a["anomaly_distance_m"]) > 0
     assert a["sun_in_view"] in ("True", "False") and n["fx"] == a["fx"]
     assert n["bbox_x_min"] == n["anomaly_pixels"] == n["anomaly_distance_m"] == ""
+    assert 0 < float(a["station_fraction"]) == meta["station_fraction"] < 1  # the passes' keys, as recorded
+    assert [int(a[f"{b}_pixels"]) for b in ("sun", "earth", "moon")] == [
+        meta["bodies"][b]["pixels"] for b in ("sun", "earth", "moon")]
 
 
 def test_rows_from_before_the_camera_columns_are_filled_in(renders, tmp_path):
