@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 from allo_usd.core.errors import AlloError, PlanError
 from allo_usd.plan.settings import DEFAULT_PASSES, PASSES
 from allo_usd.run.job import render_layer
+from allo_usd.usd import layout
 from allo_usd.usd.scene_layer import write_scene_layer
 
 from helpers import make_spec
@@ -157,12 +158,17 @@ def test_instance_ids_map_to_the_prim_table_and_reproduce_the_class_mask(geometr
     mask = np.asarray(Image.open(out / meta["files"]["mask"]))
     assert ids.dtype == np.uint16
     table = meta["instances"]
-    assert [table[str(i)] for i in range(1, len(table) + 1)] == sorted(m.path for m in desc.meshes)
-    classes = {m.path: m.class_id for m in desc.meshes}
+    # one object per station or body mesh, one for the whole anomaly (all its meshes)
+    objects = sorted({layout.ANOMALY if m.path.startswith(layout.ANOMALY + "/") else m.path for m in desc.meshes})
+    assert [table[str(i)] for i in range(1, len(table) + 1)] == objects
+    assert sum(m.path.startswith(layout.ANOMALY + "/") for m in desc.meshes) >= 1 and layout.ANOMALY in objects
+    classes = {m.path: m.class_id for m in desc.meshes} | {layout.ANOMALY: 2}
     lut = np.array([0] + [classes[table[str(i)]] for i in range(1, len(table) + 1)], dtype=np.uint8)
     assert set(np.unique(ids)) <= set(range(len(table) + 1)) and len(np.unique(ids)) >= 3
     np.testing.assert_array_equal(lut[ids], mask)
     assert (mask == 2).any() and any("/Anomaly" in table[str(i)] for i in np.unique(ids) if i)
+    anomaly_id = next(int(i) for i, p in table.items() if p == layout.ANOMALY)
+    np.testing.assert_array_equal(ids == anomaly_id, mask == 2)  # the hazard is one id, whatever its meshes
 
 
 def test_station_and_body_pixels_add_up_to_class_1(geometry, tiny_base, tmp_path):

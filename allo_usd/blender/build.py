@@ -26,6 +26,7 @@ import numpy as np
 
 from allo_usd.core.errors import LayerError
 from allo_usd.plan.settings import COLOR_PASSES
+from allo_usd.usd import layout
 from allo_usd.usd.description import (CameraDesc, MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc,
                                       SunDesc)
 
@@ -297,27 +298,37 @@ def configure_render(render: RenderDesc, device=None) -> None:
     layer.use_pass_normal = "normal" in render.outputs
 
 
-# Object ids: every mesh object's pass_index is its id, 1 + the index of its prim path among the
-# scene's sorted mesh paths (0 is the background), so one object index pass gives the instance mask,
-# the class mask (through each id's class) and per-object pixel counts. Stable: a function of the
-# scene's mesh paths only. Blender's pass_index is at most MAX_OBJECT_ID.
+# Object ids: an object is a station or body mesh prim, or the whole anomaly (all meshes under
+# /World/Anomaly share its root's id: one hazard, one id). Object id = 1 + the index of the object's
+# path among the scene's sorted object paths (0 is the background); each mesh object's pass_index is
+# its object's id, so one object index pass gives the instance mask, the class mask (through each
+# id's class) and per-object pixel counts. Stable: a function of the scene's mesh paths only.
+# Blender's pass_index is at most MAX_OBJECT_ID.
 MAX_OBJECT_ID = 32767
 
 
+def _object_path(mesh) -> str:
+    return layout.ANOMALY if mesh.path.startswith(layout.ANOMALY + "/") else mesh.path
+
+
 def object_ids(desc: SceneDescription) -> tuple[tuple[str, int], ...]:
-    """(prim path, class id) of object id 1, 2, ... (the scene's mesh prims in sorted path order)."""
-    table = tuple(sorted((m.path, m.class_id) for m in desc.meshes))
+    """(object path, class id) of object id 1, 2, ...: the scene's objects in sorted path order."""
+    table = tuple(sorted({(_object_path(m), m.class_id) for m in desc.meshes}))
+    if len({path for path, _ in table}) != len(table):
+        raise LayerError(f"{desc.layer}: the anomaly's meshes under {layout.ANOMALY} have more than one class "
+                         "label; fix the layer (label the hazard's prims `anomaly`)")
     if len(table) > MAX_OBJECT_ID:
-        raise LayerError(f"{desc.layer} has {len(table)} mesh prims; the object index pass numbers at most "
+        raise LayerError(f"{desc.layer} has {len(table)} objects; the object index pass numbers at most "
                          f"{MAX_OBJECT_ID}: merge meshes (fix the layer)")
     return table
 
 
 def set_object_ids(desc: SceneDescription) -> None:
-    """Every mesh object's pass_index is its object id (object_ids)."""
+    """Every mesh object's pass_index is its object's id (object_ids)."""
     objects = _bpy().context.scene.collection.objects
-    for i, (path, _) in enumerate(object_ids(desc), start=1):
-        objects[path].pass_index = i
+    ids = {path: i for i, (path, _) in enumerate(object_ids(desc), start=1)}
+    for mesh in desc.meshes:
+        objects[mesh.path].pass_index = ids[_object_path(mesh)]
 
 
 def build_scene(desc: SceneDescription, device=None) -> None:

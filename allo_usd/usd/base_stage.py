@@ -225,8 +225,8 @@ RENDER_VARS = {
               "(STEM_depth.exr); written only when a product orders it."),
     "Normal": ("normal", "normal", "normal3f", "World-space unit surface normal (Cycles' Normal pass), float32 EXR "
                "X, Y, Z (STEM_normal.exr), 0 where nothing is hit; written only when a product orders it."),
-    "PrimId": ("instance", "primId", "int", "Object id, 1 + the index of the mesh prim's path among the scene's "
-               "sorted mesh paths, 0 background; uint16 PNG (STEM_instance.png), id -> prim path in the JSON; "
+    "PrimId": ("instance", "primId", "int", "Object id, 1 + the index of the object's path among the scene's "
+               "sorted object paths (a station or body mesh prim; the anomaly as one object), 0 background; uint16 PNG (STEM_instance.png), id -> prim path in the JSON; "
                "written only when a product orders it."),
 }
 PASS_VARS = {p: name for name, (p, _, _, _) in RENDER_VARS.items()}   # pass -> var prim name
