@@ -23,6 +23,23 @@ def tiny_base(tmp_path_factory):
     return write_base_stage(root, tiny_station(), build_bodies(), tiny_anomalies(), poses)
 
 
+@pytest.fixture(scope="session")
+def rendered(tiny_base, tmp_path_factory):
+    """A normal and an anomalous scene over the tiny base stage, rendered once for every test that
+    reads them (test_render, test_camera_record): {"normal"|"anomaly": (layer, meta, render dir)}."""
+    from allo_usd.run.job import render_layer
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from helpers import make_spec
+
+    root = tmp_path_factory.mktemp("render")
+    out = {}
+    for name, anomaly in (("normal", False), ("anomaly", True)):
+        layer = write_scene_layer(make_spec(anomaly=anomaly), root / "layers" / f"{name}.usda", tiny_base)
+        out[name] = (layer, render_layer(layer, root / "renders"), root / "renders")
+    return out
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _allow_test_asset_roots(tmp_path_factory):
     """Test layers live in pytest's temp dirs, over a tiny base stage in another temp dir: allow

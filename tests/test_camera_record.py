@@ -130,21 +130,9 @@ def test_mask_bbox_is_inclusive():
     assert mask_bbox(mask) == [10, 5, 19, 8]
 
 
-@pytest.fixture(scope="module")
-def rendered(tiny_base, tmp_path_factory):
-    from allo_usd.run.job import render_layer
-
-    root = tmp_path_factory.mktemp("camrec")
-    out = {}
-    for name, anomaly in (("normal", False), ("anomaly", True)):
-        layer = write_scene_layer(make_spec(anomaly=anomaly), root / "layers" / f"{name}.usda", tiny_base)
-        out[name] = (render_layer(layer, root / "renders"), root / "renders")
-    return out
-
-
 @pytest.mark.render
 def test_render_json_anomaly_box_matches_the_mask(rendered, tiny_base, tmp_path):
-    meta, d = rendered["anomaly"]
+    _, meta, d = rendered["anomaly"]
     mask = np.asarray(Image.open(d / meta["files"]["mask"]))
     rec = meta["annotations"]
     a = rec["anomaly"]
@@ -166,7 +154,7 @@ def test_render_json_anomaly_box_matches_the_mask(rendered, tiny_base, tmp_path)
     assert a["depth_offset_m"] == 0.0
     assert set(rec["in_view"]) == {"sun", "earth", "moon"}
     json.dumps(meta)  # plain JSON
-    assert rendered["normal"][0]["annotations"]["anomaly"] is None
+    assert rendered["normal"][1]["annotations"]["anomaly"] is None
 
 
 @pytest.mark.render
@@ -174,7 +162,7 @@ def test_rays_through_recorded_pixel_centres_reproduce_the_rendered_mask(rendere
     """Invert the recorded K and pose: a ray through each pixel centre (OpenCV: (c, r)) hits what the
     render's class mask shows there, at every pixel; half a pixel off (the other centre convention)
     it does not."""
-    meta, d = rendered["anomaly"]
+    _, meta, d = rendered["anomaly"]
     mask = np.asarray(Image.open(d / meta["files"]["mask"]))
     cam = meta["annotations"]["camera"]
     k, c2w = np.array(cam["K_px"]), np.linalg.inv(np.array(cam["world_to_cam_opencv"]))

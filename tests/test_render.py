@@ -17,16 +17,6 @@ from helpers import make_spec
 pytestmark = pytest.mark.render
 
 
-@pytest.fixture(scope="module")
-def rendered(tiny_base, tmp_path_factory):
-    root = tmp_path_factory.mktemp("render")
-    out = {}
-    for name, anomaly in (("normal", False), ("anomaly", True)):
-        layer = write_scene_layer(make_spec(anomaly=anomaly), root / "layers" / f"{name}.usda", tiny_base)
-        out[name] = (layer, render_layer(layer, root / "renders"), root / "renders")
-    return out
-
-
 def test_normal_mask_has_background_and_station(rendered):
     layer, meta, d = rendered["normal"]
     mask = np.asarray(Image.open(d / meta["files"]["mask"]))
