@@ -115,11 +115,36 @@ class Poses(_Model):
         return self
 
 
-class AnomalyChoice(_Model):
-    """One anomaly asset and the variants to draw from (None: all its variants)."""
+HAZARD_SUFFIXES = (*SUPPORTED_EXTENSIONS, ".usd", ".usda", ".usdc", ".usdz")   # a user hazard's model file
+HAZARD_ID = r"^[a-z][a-z0-9_]{0,47}$"     # a USD prim name, a dataset folder name, one spelling (lower case)
+HAZARD_UNITS = tuple(UNIT_SCALES)
+HAZARD_UP_AXES = tuple(UP_AXIS_ROTATIONS)
+RESERVED_HAZARD_IDS = ("good", "anomaly", "station", "background")   # dataset folders and class names
+USER_VARIANT = "default"                  # a user hazard's variant with the file's own materials
 
-    id: str = Field(description="Asset id from allo_usd.assets.anomalies.ANOMALY_VARIANTS.")
+
+class AnomalyChoice(_Model):
+    """One anomaly asset and the variants to draw from (None: all its variants).
+
+    A built-in asset is named by its id alone. Your own hazard adds `file`, a glTF/GLB, OBJ, STL
+    or USD model converted when the plan is authored (allo_usd.run.hazards, the importer of
+    `allo-usd asset import`), with its length unit and up axis given (`units`, `up_axis`; a USD
+    file's own metersPerUnit and upAxis are used when these are left out) and optional `colors`:
+    named linear-RGB variants that set every material's base colour (textures are multiplied by
+    it). Its variants are `default` (the file's own materials) and the colour names."""
+
+    id: str = Field(description="A built-in asset id (allo_usd.assets.catalogue.ANOMALY_VARIANTS), or, with "
+                                "`file`, your hazard's id: lower case letters, digits and _, not a built-in id.")
     variants: list[str] | None = Field(None, description="Variants to cycle through; default all.")
+    file: str | None = Field(None, description="Your hazard's model: a " + ", ".join(HAZARD_SUFFIXES) + " file "
+                                               "(relative to the working directory).")
+    units: Literal[HAZARD_UNITS] | None = Field(None, description="The file's length unit: "
+                                                + ", ".join(HAZARD_UNITS) + " (required for non-USD files).")
+    up_axis: Literal[HAZARD_UP_AXES] | None = Field(
+        None, description="The file axis that points up: " + ", ".join(HAZARD_UP_AXES)
+                          + " (required for non-USD files).")
+    colors: dict[str, tuple[float, float, float]] | None = Field(
+        None, description="Colour variants: name -> linear RGB in 0..1, set as every material's base colour.")
 
     @model_validator(mode="before")
     @classmethod
@@ -129,22 +154,74 @@ class AnomalyChoice(_Model):
             return {"id": name, "variants": [variant] if variant else None}
         return v
 
+    @field_validator("up_axis", mode="before")
+    @classmethod
+    def _axis(cls, v):
+        return v.strip().lower().lstrip("+") if isinstance(v, str) else v   # "Y", "+Z" -> "y", "z"
+
     @model_validator(mode="after")
     def _known(self):
         from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
+        if self.file is not None:
+            return self._user_hazard()
+        given = [f for f in ("units", "up_axis", "colors") if getattr(self, f) is not None]
+        if given and self.id in ANOMALY_VARIANTS:
+            raise ValueError(f"anomaly {self.id!r} is built in, so it takes no {', '.join(given)}; fix: remove them, "
+                             "or give your own hazard another id and its `file`")
         if self.id not in ANOMALY_VARIANTS:
-            raise ValueError(f"unknown anomaly id {_short(self.id)}; fix: use one of {', '.join(ANOMALY_VARIANTS)}")
+            raise ValueError(f"unknown anomaly id {_short(self.id)}; fix: use one of {', '.join(ANOMALY_VARIANTS)}, "
+                             "or add `file = \"path/to/model.glb\"` (with units and up_axis) for your own hazard")
         bad = [v for v in self.variants or () if v not in ANOMALY_VARIANTS[self.id]]
         if bad:
             raise ValueError(f"anomaly {self.id!r} has no variant {_short(bad)}; fix: use one of "
                              f"{', '.join(ANOMALY_VARIANTS[self.id])}")
         return self
 
+    def _user_hazard(self):
+        import math
+        import re
+
+        from allo_usd.assets.catalogue import ANOMALY_VARIANTS
+
+        if not re.fullmatch(HAZARD_ID, self.id) or self.id in RESERVED_HAZARD_IDS:
+            raise ValueError(f"hazard id {_short(self.id)} is not allowed; fix: use lower case letters, digits and _ "
+                             f"(a letter first, at most 48), not {', '.join(RESERVED_HAZARD_IDS)}: it names a USD prim "
+                             "and a dataset folder")
+        if self.id in ANOMALY_VARIANTS:
+            raise ValueError(f"hazard id {self.id!r} is a built-in anomaly's; fix: give your hazard another id")
+        f = self.file
+        if not f or "\0" in f or not f.lower().endswith(HAZARD_SUFFIXES):
+            raise ValueError(f"anomaly {self.id!r}: file {_short(f)} is not a model file; fix: give a path ending in "
+                             + ", ".join(HAZARD_SUFFIXES))
+        if not f.lower().endswith((".usd", ".usda", ".usdc", ".usdz")) and (self.units is None or self.up_axis is None):
+            missing = " and ".join(n for n in ("units", "up_axis") if getattr(self, n) is None)
+            raise ValueError(f"anomaly {self.id!r}: {f} needs {missing} given (a mesh file does not say reliably "
+                             "which unit and axis it uses); fix: e.g. units = \"mm\", up_axis = \"z\"")
+        for name, rgb in (self.colors or {}).items():
+            if not re.fullmatch(r"^[a-z][a-z0-9_]{0,31}$", name) or name == USER_VARIANT:
+                raise ValueError(f"anomaly {self.id!r}: colour variant name {_short(name)} is not allowed; fix: lower "
+                                 f"case letters, digits and _ (a letter first), not {USER_VARIANT!r} (the file's own "
+                                 "materials)")
+            if not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in rgb):
+                raise ValueError(f"anomaly {self.id!r}: colour {name!r} = {_short(rgb)} is not a linear RGB colour; "
+                                 "fix: three numbers in 0..1, e.g. [0.8, 0.05, 0.05]")
+        allowed = self.user_variants()
+        bad = [v for v in self.variants or () if v not in allowed]
+        if bad or (self.variants is not None and (not self.variants or len(set(self.variants)) != len(self.variants))):
+            raise ValueError(f"anomaly {self.id!r}: variants {_short(self.variants)} must be distinct names among "
+                             f"{', '.join(allowed)}; fix: list some of those, or leave variants out for all")
+        return self
+
+    def user_variants(self) -> tuple[str, ...]:
+        """A user hazard's variants: the file's own materials, then each colour (in the plan's order)."""
+        return (USER_VARIANT, *(self.colors or {}))
+
     def choices(self) -> list[tuple[str, str]]:
         from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
-        return [(self.id, v) for v in (self.variants or ANOMALY_VARIANTS[self.id])]
+        names = self.user_variants() if self.file is not None else ANOMALY_VARIANTS[self.id]
+        return [(self.id, v) for v in (self.variants or names)]
 
 
 def _all_anomalies() -> list[AnomalyChoice]:
@@ -179,6 +256,10 @@ class Anomalies(_Model):
         if len({a.id for a in v}) != len(v):
             raise ValueError("an anomaly id is listed twice; fix: list each id once, with its variants")
         return v
+
+    def user_hazards(self) -> list[AnomalyChoice]:
+        """The plan's own hazards (those with a `file`), in plan order."""
+        return [a for a in self.assets if a.file is not None]
 
 
 class Counts(_Model):

@@ -67,11 +67,14 @@ class AuthorContext:
     def __init__(self, plan: Plan, out_dir: Path, sky, stop=None):
         from allo_usd.core.constants import EXPOSURE
         from allo_usd.scene.resolve import sun_and_bodies
+        from allo_usd.usd.hazard import hazard_asset_path
         from allo_usd.usd.read import scene_inputs
 
         self.plan, self.out_dir, self.stop = plan, Path(out_dir), stop
         self.base_stage = plan.resolve_base_stage()
-        self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch))
+        # The plan's own hazards, converted into the tree by open_tree (allo_usd.usd.hazard.write_hazards).
+        self.hazards = {c.id: hazard_asset_path(self.out_dir, c.id) for c in plan.anomalies.user_hazards()}
+        self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch), self.hazards)
         q = plan.quality
         self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE,
                                  passes=tuple(q.passes), **quality_of(q))
@@ -179,7 +182,8 @@ def write_sample(ctx: AuthorContext, keys: list[SceneKey], resolved: Resolved) -
                           seed_path=resolved.seed_path, camera=resolved.camera, render=ctx.render,
                           effects=ctx.effects, anomaly=a, sky=ctx.sky(key.day))
         write_composed_scene(spec, path, pose_layer=pose_path, sky_layer=sky_layer_path(ctx.out_dir, key.day),
-                             base_stage=ctx.base_stage, root=ctx.out_dir)
+                             base_stage=ctx.base_stage, root=ctx.out_dir,
+                             anomaly_asset=None if key.asset is None else ctx.hazards.get(key.asset))
     return rows
 
 
@@ -554,7 +558,7 @@ class Authored:
 TREE_PLAN = "plan.toml"            # the plan a tree was authored from (its record, and its root for usd.safety)
 TREE_LOCK = ".allo-author.lock"    # one author run at a time per tree (core.files.RunLock)
 # What authoring writes at the top of a tree (plan.toml aside): `replace` removes exactly these.
-TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "schema", "counts.csv", "skipped.csv", "reserves.csv")
+TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "hazards", "schema", "counts.csv", "skipped.csv", "reserves.csv")
 _TRASH = re.compile(r"^\.replaced\.[a-z0-9_]{8}$")   # a replace's trash (mkdtemp), left if the run was killed
 # Plan fields the tree checks by content, not by name: the base stage's path and the station's
 # source (stages/ must be a byte copy of the plan's stage, or built from the same model file).
@@ -702,6 +706,7 @@ def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
     from allo_usd.usd.compose import copy_schema, tree_base_stage
+    from allo_usd.usd.hazard import write_hazards
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -714,6 +719,7 @@ def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
         given = plan
         try:
             plan = with_tree_stage(plan, out_dir)
+            write_hazards(plan, out_dir)   # the plan's own hazards, converted into OUT/hazards
         except (AlloError, KeyboardInterrupt):
             raise
         except Exception as exc:  # pxr's Tf.ErrorException (a RuntimeError) and the like

@@ -155,7 +155,8 @@ def commit_layer(layer, tmp: Path, path: Path) -> None:
 
 
 def write_interface(usda_path: Path, root: str, label: str, geometry: dict[str, str] | str,
-                    kind: str = "component", variant_set: str = "variant", doc: str = "") -> None:
+                    kind: str = "component", variant_set: str = "variant", doc: str = "",
+                    custom: dict | None = None) -> None:
     """The small text layer of an asset: default prim, kind, class label, geometry reference(s).
 
     `geometry` is one relative .usdc path, or {variant name: relative .usdc path} to author a
@@ -172,6 +173,8 @@ def write_interface(usda_path: Path, root: str, label: str, geometry: dict[str, 
     stage_metadata(stage, root)
     if doc:
         layer.documentation = doc
+    if custom:
+        layer.customLayerData = custom
     labels = UsdSemantics.LabelsAPI.Apply(prim, LABEL_TAXONOMY)
     labels.CreateLabelsAttr([label])
     if isinstance(geometry, str):
@@ -197,7 +200,8 @@ def write_asset(asset: Asset, directory: Path, label: str, root: str | None = No
     return out
 
 
-def write_variant_asset(variants: dict[str, Asset], directory: Path, name: str, label: str, doc: str = "") -> Path:
+def write_variant_asset(variants: dict[str, Asset], directory: Path, name: str, label: str, doc: str = "",
+                        custom: dict | None = None) -> Path:
     """<dir>/<name>.usda with a `variant` set; each variant's geometry in <dir>/<name>/<variant>.usdc."""
     directory = Path(directory)
     geometry = {}
@@ -205,5 +209,5 @@ def write_variant_asset(variants: dict[str, Asset], directory: Path, name: str, 
         write_geometry(asset, directory / name / f"{vname}.usdc", name, texture_dir="textures")
         geometry[vname] = f"./{name}/{vname}.usdc"
     out = directory / f"{name}.usda"
-    write_interface(out, name, label, geometry, doc=doc)
+    write_interface(out, name, label, geometry, doc=doc, custom=custom)
     return out

@@ -7,6 +7,7 @@ camera sample decides is written once and reused:
     OUT/sky/dDDD.usda                          sun light, bodies, eclipse state, epoch (per day)
     OUT/poses/sSEED/dDDD_pPP[_ASSET-VARIANT].usda  camera transform, offsets, attempts (per sample)
     OUT/scenes/SPLIT/KIND/SCENE_ID.usda        subLayers = [its pose layer, its sky layer, base]
+    OUT/hazards/ID/ID.usda (+ ID/, source.json) a plan's own hazard, converted (allo_usd.usd.hazard)
     OUT/schema/plugInfo.json, generatedSchema.usda  the Allo*API schemas' codeless plugin
 
 A scene layer adds only its own opinions (identity and seed, anomaly, effects, render settings),
@@ -33,6 +34,7 @@ from allo_usd.usd.scene_layer import (anomaly_asset_path, check_base_stage, pose
                                       sky_prims, validate_spec, write_layer)
 
 SKY_DIR, POSE_DIR, SCENE_DIR, STAGE_DIR, SCHEMA_DIR = "sky", "poses", "scenes", "stages", "schema"
+HAZARD_DIR = "hazards"   # a plan's own hazards, converted (allo_usd.usd.hazard)
 
 
 def tree_base_stage(out_dir: Path) -> Path:
@@ -137,16 +139,19 @@ def write_pose_layer(path: Path, *, pose: int, camera: CameraSpec, seed: int, se
 
 
 def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_layer: Path,
-                         base_stage: Path, root: Path | None = None) -> Path:
+                         base_stage: Path, root: Path | None = None, anomaly_asset: Path | None = None) -> Path:
     """A scene layer holding only its own opinions, stacked on its pose, sky and base layers.
-    With `root` (the top of the output tree), every file the layer names must lie inside it."""
+    With `root` (the top of the output tree), every file the layer names must lie inside it.
+    `anomaly_asset`: the interface layer of a plan's own hazard (allo_usd.usd.hazard), else the base
+    stage's built-in asset is referenced."""
     validate_spec(spec)
     path = Path(path)
     base_stage = check_base_stage(base_stage)
     here = path.parent
     targets = [pose_layer, sky_layer, base_stage]
     if spec.anomaly is not None:
-        targets.append(anomaly_asset_path(base_stage, spec.anomaly.asset))
+        targets.append(Path(anomaly_asset) if anomaly_asset is not None
+                       else anomaly_asset_path(base_stage, spec.anomaly.asset))
     if root is not None:
         from allo_usd.core.errors import LayerError
 

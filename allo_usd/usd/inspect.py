@@ -24,6 +24,7 @@ check the fast path). Attribute values are compared at the default time code.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +121,31 @@ def _attr(prim, name, default=None):
     return default if value is None else _plain(value)
 
 
+def _source_text(src: dict) -> str:
+    if src["kind"] == "user":
+        return (f"from {src['file']} (your hazard: sha256 {str(src['sha256'])[:12]}, {src['format']}, unit {src['unit']}, "
+                f"up axis {src['up_axis']}; converted to {src['layer']})")
+    return f"built-in ({src['layer']})"
+
+
+def _asset_source(aprim, layer: Path) -> dict:
+    """Where the anomaly's asset came from: a plan's own hazard (its conversion record: file, sha256,
+    unit, up axis) or a built-in asset of the base stage; `layer` is the asset's interface layer."""
+    from allo_usd.usd.hazard import hazard_provenance
+
+    here = Path(layer).resolve().parent
+    interface = None
+    for spec in aprim.GetPrimStack():
+        hazard = hazard_provenance(spec.layer)
+        if hazard:
+            return {"kind": "user", "file": hazard.get("source"), "sha256": hazard.get("sha256"),
+                    "format": hazard.get("format"), "unit": hazard.get("unit"), "up_axis": hazard.get("upAxis"),
+                    "layer": os.path.relpath(spec.layer.realPath, here)}
+        if spec.layer.realPath.endswith(".usda") and spec.path.pathString.count("/") == 1:
+            interface = interface or spec.layer.realPath   # the asset root's interface layer (not the scene's)
+    return {"kind": "built-in", "layer": os.path.relpath(interface, here) if interface else None}
+
+
 def describe(layer: str | Path) -> dict:
     """What the scene is, read from the USD alone: identity, anomaly, sky, camera, render, stack.
     A layer this project did not author (no AlloSceneAPI on its default prim) is a LayerError that
@@ -151,7 +177,8 @@ def describe(layer: str | Path) -> dict:
                    "depth_index": _attr(aprim, A.ANOMALY_DEPTH_INDEX.name),
                    "depth_offset": _attr(aprim, A.ANOMALY_DEPTH_OFFSET.name),
                    "predicted_area_fraction": _attr(aprim, A.ANOMALY_PREDICTED_AREA_FRACTION.name),
-                   "attempts": _attr(aprim, A.ANOMALY_ATTEMPTS.name), "position": tuple(map(float, m[:3, 3]))}
+                   "attempts": _attr(aprim, A.ANOMALY_ATTEMPTS.name), "position": tuple(map(float, m[:3, 3])),
+                   "source": _asset_source(aprim, layer)}
 
     settings_path = stage.GetMetadata("renderSettingsPrimPath") or layout.RENDER_SETTINGS
     sp = stage.GetPrimAtPath(settings_path)
@@ -264,7 +291,8 @@ def format_description(d: dict) -> str:
     an = d["anomaly"]
     lines.append("anomaly  none" if an is None else
                  f"anomaly  {an['asset']}/{an['variant']}  depth {an['depth_index']} ({_fmt(an['depth_offset'])} m)  "
-                 f"predicted area {_fmt(an['predicted_area_fraction'])}  at {_fmt(an['position'])}")
+                 f"predicted area {_fmt(an['predicted_area_fraction'])}  at {_fmt(an['position'])}  "
+                 + _source_text(an["source"]))
     r = d["render"]
     res = r["resolution"] or ("?", "?")
     lines.append(f"render   {res[0]}x{res[1]}  {r['samples']} spp  preset {r['preset']}  seed {r['seed']}  "

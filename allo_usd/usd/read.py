@@ -946,8 +946,9 @@ class StageGeometry:
     """A base stage's geometry for scene resolution (allo_usd.scene.resolve.StationGeometry): its
     camera rig, the station's triangles and each anomaly asset's triangles, read with pxr."""
 
-    def __init__(self, base_stage: str | Path):
+    def __init__(self, base_stage: str | Path, assets: dict | None = None):
         self.base_stage = Path(base_stage)
+        self.assets = dict(assets or {})   # {anomaly id: interface layer} of a plan's own hazards
 
     def poses(self) -> list:
         return read_rig(self.base_stage)
@@ -956,14 +957,16 @@ class StageGeometry:
         return read_triangles(self.base_stage, layout.STATION)
 
     def anomaly_triangles(self, asset: str, variant: str) -> tuple[np.ndarray, np.ndarray]:
-        return read_triangles(self.base_stage.parent / "anomalies" / f"{asset}.usda", layout.asset_root(asset), variant)
+        path = self.assets.get(asset, self.base_stage.parent / "anomalies" / f"{asset}.usda")
+        return read_triangles(path, layout.asset_root(asset), variant)
 
 
-def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str):
-    """SceneInputs over a base stage: what allo_usd.scene.resolve needs, read from USD."""
+def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str, assets: dict | None = None):
+    """SceneInputs over a base stage (and a plan's own hazards, {id: interface layer}): what
+    allo_usd.scene.resolve needs, read from USD."""
     from allo_usd.scene.resolve import SceneInputs
 
-    return SceneInputs(StageGeometry(base_stage), sky, perilune_epoch)
+    return SceneInputs(StageGeometry(base_stage, assets), sky, perilune_epoch)
 
 
 VAR_PASSES = {name: p for name, (p, _, _, _) in RENDER_VARS.items()}   # var prim name -> pass

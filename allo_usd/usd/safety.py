@@ -7,7 +7,7 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
 - the directory of the layer being opened (a scene layer and its neighbours);
 - the authored tree the layer belongs to: for a layer inside the `scenes/` folder of the nearest
   enclosing directory holding a `plan.toml` (allo_usd.usd.compose: OUT/plan.toml beside
-  OUT/scenes/, OUT/sky/, OUT/poses/, OUT/stages/), those four authored folders, and nothing else
+  OUT/scenes/, OUT/sky/, OUT/poses/, OUT/stages/, OUT/hazards/), those authored folders, and nothing else
   of OUT. A `plan.toml` in some ancestor of an unrelated layer (~/plan.toml over
   ~/Downloads/x.usda) makes no root: that would open ~ to it;
 - the directories named in the environment variable `ALLO_ASSET_ROOTS` (os.pathsep-separated).
@@ -16,7 +16,7 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
 - the trees a user names (`allo-usd render/inspect/diff LAYER --tree OUT`, `trees_granted`): for
   a layer of one's own outside a tree that sublayers a tree's scene layer. Each must be an
   authored tree (`OUT/plan.toml` or `OUT/stages/base.usda`), and grants what a tree grants its
-  own scene layers: its four authored folders, each of which must lie inside OUT after symbolic
+  own scene layers: its authored folders, each of which must lie inside OUT after symbolic
   links are resolved, and nothing else of OUT (not OUT/private/). They reach the process's
   `ALLO_ASSET_ROOTS`, so render workers inherit them.
 
@@ -40,10 +40,10 @@ ENV_ROOTS = "ALLO_ASSET_ROOTS"
 
 
 def _tree_folders(tree: Path) -> tuple[Path, ...]:
-    """The authored folders of a tree (OUT/scenes, sky, poses, stages): all a tree grants."""
-    from allo_usd.usd.compose import POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR
+    """The authored folders of a tree (OUT/scenes, sky, poses, stages, hazards): all a tree grants."""
+    from allo_usd.usd.compose import HAZARD_DIR, POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR
 
-    return tuple(tree / d for d in (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR))
+    return tuple(tree / d for d in (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR, HAZARD_DIR))
 
 
 def is_authored_tree(path: str | Path) -> bool:
@@ -55,7 +55,7 @@ def is_authored_tree(path: str | Path) -> bool:
 
 
 def tree_roots(tree: str | Path, option: str = "--tree") -> tuple[Path, ...]:
-    """The roots that naming `tree` grants (its four authored folders, real paths), or a LayerError
+    """The roots that naming `tree` grants (its authored folders, real paths), or a LayerError
     when `tree` is not an authored tree or one of its folders links outside it."""
     real = Path(os.path.realpath(tree))
     if not real.is_dir():

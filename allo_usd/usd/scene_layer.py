@@ -301,14 +301,16 @@ def scene_custom(spec: SceneSpec) -> dict:
     return {"seed": int(spec.seed), "seedPath": spec.seed_path, "sceneId": spec.scene_id}
 
 
-def write_scene_layer(spec: SceneSpec, path: Path, base_stage: Path) -> Path:
-    """Author `spec` to `path` (atomically) as one self-contained layer over `base_stage`."""
+def write_scene_layer(spec: SceneSpec, path: Path, base_stage: Path, anomaly_asset: Path | None = None) -> Path:
+    """Author `spec` to `path` (atomically) as one self-contained layer over `base_stage` (`anomaly_asset`:
+    a plan's own hazard's interface layer, else the base stage's built-in asset)."""
     validate_spec(spec)
     path = Path(path)
     base_stage = check_base_stage(base_stage)
     ref = ""
     if spec.anomaly is not None:
-        ref = relpath(anomaly_asset_path(base_stage, spec.anomaly.asset), path.parent)
+        ref = relpath(anomaly_asset if anomaly_asset is not None
+                      else anomaly_asset_path(base_stage, spec.anomaly.asset), path.parent)
     prims = merge_prims(scene_prims(spec, ref)[:1], pose_prims(spec.pose, spec.camera),
                         sky_prims(spec.epoch, spec.perilune_epoch, spec.day, spec.sun, spec.bodies),
                         scene_prims(spec, ref)[1:])

@@ -1,0 +1,309 @@
+"""Your own hazards: a plan's model files converted into anomaly assets inside the authored tree.
+
+A plan's anomaly list may name a glTF/GLB, OBJ, STL or USD file next to the built-in ids
+(allo_usd.plan.model.AnomalyChoice). When the plan is authored, each such file is converted once:
+
+    OUT/hazards/<id>/<id>.usda               the asset interface (class label anomaly, a `variant` set)
+    OUT/hazards/<id>/<id>/<variant>.usdc     one geometry file per variant (+ textures/)
+    OUT/hazards/<id>/source.json             what it was made from: file name, sha256, units, up axis,
+                                             colours (a re-run checks it; a changed file is refused)
+
+Mesh files go through the importer of `allo-usd asset import` (allo_usd.assets.importer, with
+the plan's units and up axis, never guessed); a USD file is read with pxr (its meshes with their
+world transforms, each mesh's bound UsdPreviewSurface constant colour, metallic and roughness,
+else its displayColor), scaled by its metersPerUnit and turned from its upAxis, both of which a
+plan may also state (they must then agree with the file). Either way the asset is recentred on
+its bounding-box centre (the placement code takes that as the object's origin) and must measure
+1 cm to 20 m: anything else is almost always a unit mistake. Variants: `default` keeps the
+file's materials; each of the plan's `colors` sets every material's base colour (a texture is
+multiplied by it). The tree's copy is written to a temporary folder and renamed, so a killed run
+leaves nothing half-made, and the same file gives the same bytes wherever the tree is authored.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from allo_usd import __version__
+from allo_usd.assets.mesh import Asset, Material, MeshPart
+from allo_usd.core.errors import AlloError, PlanError
+from allo_usd.core.files import atomic_directory, sha256_file
+from allo_usd.usd.compose import HAZARD_DIR
+
+SOURCE_MARKER = "source.json"
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+SIZE_M = (0.01, 20.0)                 # a hazard's largest extent, metres (a tool .. a loose panel)
+MAX_TRIANGLES = 2_000_000             # after triangulation (the built-in hazards have < 20k)
+MAX_FILE_BYTES = 512 << 20
+
+
+def hazard_root(out_dir: Path, asset: str) -> Path:
+    return Path(out_dir) / HAZARD_DIR / asset
+
+
+def hazard_asset_path(out_dir: Path, asset: str) -> Path:
+    """The interface layer of a tree's converted hazard (what scene layers reference)."""
+    return hazard_root(out_dir, asset) / f"{asset}.usda"
+
+
+def made_from(choice) -> dict:
+    """What a hazard's conversion depends on (recorded in source.json, compared on every run)."""
+    source = Path(choice.file)
+    if not source.is_file():
+        raise PlanError(f"anomaly {choice.id!r}: file {source} does not exist; fix: give the path of your hazard's "
+                        "model (relative to the working directory)")
+    size = source.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise PlanError(f"anomaly {choice.id!r}: {source} is {size / 2**20:.0f} MiB, above the "
+                        f"{MAX_FILE_BYTES >> 20} MiB a hazard model may have; fix: decimate it")
+    return {"id": choice.id, "source": source.name, "sha256": sha256_file(source), "units": choice.units,
+            "up_axis": choice.up_axis, "colors": {k: list(v) for k, v in (choice.colors or {}).items()},
+            "variants": list(choice.user_variants())}
+
+
+def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
+    """Convert every user hazard of `plan` into `out_dir/hazards` (once; a later run checks that the
+    file and options are the ones the tree's copy was made from). Returns {id: interface layer}."""
+    out = {}
+    for choice in plan.anomalies.user_hazards():
+        want = made_from(choice)
+        root = hazard_root(out_dir, choice.id)
+        marker, path = root / SOURCE_MARKER, hazard_asset_path(out_dir, choice.id)
+        if marker.is_file() and path.is_file():
+            try:
+                recorded = json.loads(marker.read_text())
+            except (OSError, ValueError):
+                recorded = None
+            if recorded != want:
+                raise PlanError(f"{root} was made from {recorded or 'an unreadable record'}, not from {want} "
+                                f"(the hazard's file or options changed since its scenes were authored); fix: author "
+                                "into a new output directory, or author with --replace")
+        else:
+            with atomic_directory(root) as tmp:
+                convert_hazard(choice, tmp)
+                (tmp / SOURCE_MARKER).write_text(json.dumps(want, indent=1, sort_keys=True) + "\n")
+        out[choice.id] = path
+    return out
+
+
+def convert_hazard(choice, directory: Path) -> Path:
+    """Write `choice`'s asset (every variant) into `directory`; returns the interface layer."""
+    from allo_usd.usd.asset import write_variant_asset
+
+    source = Path(choice.file)
+    asset, info = load_hazard(source, choice.id, choice.units, choice.up_axis)
+    variants = {"default": asset}
+    for name, rgb in (choice.colors or {}).items():
+        variants[name] = coloured(asset, rgb)
+    provenance = {"id": choice.id, "source": source.name, "sha256": sha256_file(source), **info,
+                  "colors": {k: [float(c) for c in v] for k, v in (choice.colors or {}).items()},
+                  "packageVersion": __version__}
+    doc = (f"allo-usd hazard {choice.id!r} converted from {source.name} (sha256 {provenance['sha256'][:12]}..., "
+           f"unit {info['unit']}, up axis {info['upAxis']})")
+    return write_variant_asset(variants, directory, choice.id, "anomaly", doc=doc,
+                               custom={"allo": {"hazard": _layer_data(provenance)}})
+
+
+def _layer_data(value):
+    """A JSON-like value as customLayerData accepts it (number lists as Vt.DoubleArray)."""
+    from pxr import Vt
+
+    if isinstance(value, dict):
+        return {k: _layer_data(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return Vt.DoubleArray([float(v) for v in value])
+    return value
+
+
+def coloured(asset: Asset, rgb) -> Asset:
+    """The asset with every material's base colour set to `rgb` (linear)."""
+    rgb = tuple(float(c) for c in rgb)
+    return replace(asset, materials=tuple(replace(m, base_color=rgb) for m in asset.materials))
+
+
+def load_hazard(path: Path, name: str, units: str | None, up_axis: str | None) -> tuple[Asset, dict]:
+    """(Asset in metres, Z up, centred on its bounding box; what the conversion used), or a PlanError."""
+    if path.suffix.lower() in USD_SUFFIXES:
+        asset, info = read_usd_hazard(path, name, units, up_axis)
+    else:
+        from allo_usd.assets.importer import import_mesh_report
+
+        try:
+            report = import_mesh_report(path, units=units, up_axis=up_axis, name=name)
+        except AlloError as exc:
+            fix = "" if "fix" in str(exc) else "; fix: re-export the model from its tool (as glTF, OBJ, STL or USD)"
+            raise PlanError(f"anomaly {name!r}: {exc}{fix}") from None
+        except Exception as exc:   # trimesh's parsers raise anything on a broken file
+            raise PlanError(f"anomaly {name!r}: {path} could not be read as a {path.suffix} model "
+                            f"({type(exc).__name__}: {str(exc)[:200]}); fix: re-export it") from None
+        asset = replace(report.asset, name=name)
+        info = {"format": report.format, "unit": report.unit, "unitScale": report.scale, "upAxis": report.source_up_axis,
+                "triangles": int(report.triangles), "droppedTriangles": int(report.dropped_triangles)}
+    n = sum(int(p.face_counts.size) for p in asset.parts)
+    if n > MAX_TRIANGLES:
+        raise PlanError(f"anomaly {name!r}: {path} has {n:,} faces, above the {MAX_TRIANGLES:,} a hazard may have; "
+                        "fix: decimate it")
+    lo, hi = asset.bounds()
+    extent = hi - lo
+    if not (np.isfinite(extent).all() and SIZE_M[0] <= extent.max() <= SIZE_M[1]):
+        raise PlanError(f"anomaly {name!r}: {path} measures {extent.max():.4g} m along its longest side with units "
+                        f"{info['unit']!r}, outside the {SIZE_M[0]:g}-{SIZE_M[1]:g} m a hazard near the station may "
+                        "measure; fix: give the unit the file is in (units = \"mm\", \"cm\", \"in\", ...)")
+    info["extentM"] = [round(float(e), 6) for e in extent]
+    return asset, info
+
+
+_NAME = re.compile(r"[^A-Za-z0-9_]")
+
+
+def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | None) -> tuple[Asset, dict]:
+    """A USD file's meshes as an Asset (see the module doc): world transforms, metersPerUnit and upAxis
+    from the file (or the plan, which must then agree), one part per mesh with its bound constant
+    material. Textures are not carried over."""
+    from pxr import Tf, Usd, UsdGeom
+
+    from allo_usd.assets.importer import UNIT_SCALES, UP_AXIS_ROTATIONS
+    from allo_usd.assets.mesh import fan_triangulate
+    from allo_usd.core.errors import LayerError
+    from allo_usd.usd.read import MAX_PRIMS, mesh_topology, world_matrix
+
+    def fail(why: str) -> PlanError:
+        return PlanError(f"anomaly {name!r}: {path} {why}")
+
+    try:
+        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+    except Tf.ErrorException as exc:
+        raise fail(f"is not a readable USD file ({str(exc).strip().splitlines()[-1][:200]}); fix: re-export it") from None
+    if stage is None:
+        raise fail("could not be opened as a USD stage; fix: re-export it")
+    scale, unit = _usd_units(stage, units, fail)
+    up = _usd_up_axis(stage, up_axis, fail)
+    rot = UP_AXIS_ROTATIONS[up]
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    parts, materials, seen = [], {}, set()
+    for count, prim in enumerate(Usd.PrimRange(stage.GetPseudoRoot()), 1):
+        if count > MAX_PRIMS:
+            raise fail(f"holds more than {MAX_PRIMS:,} prims; fix: give a single hazard model")
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        if UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
+            continue
+        try:
+            points, counts, indices = mesh_topology(prim)
+            m = world_matrix(cache, prim)
+        except LayerError as exc:
+            raise fail(f"has a mesh this importer refuses: {exc}") from None
+        tris = fan_triangulate(counts, indices)
+        if not len(tris):
+            continue
+        pts = (points.astype(np.float64) @ m[:3, :3].T + m[:3, 3]) * scale @ rot.T
+        mat = _usd_material(prim, materials)
+        base = _NAME.sub("_", prim.GetName()) or "mesh"
+        part_name, k = base, 2
+        while part_name in seen:
+            part_name, k = f"{base}_{k}", k + 1
+        seen.add(part_name)
+        parts.append(MeshPart(part_name, pts, np.full(len(tris), 3, dtype=np.int32), tris.reshape(-1), mat.name))
+    if not parts:
+        raise fail("holds no visible mesh with faces; fix: export the hazard's geometry as UsdGeom.Mesh prims")
+    lo = np.min([p.points.min(axis=0) for p in parts], axis=0)
+    hi = np.max([p.points.max(axis=0) for p in parts], axis=0)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise fail("has points that are not finite; fix: re-export it")
+    centre = (lo + hi) / 2
+    parts = [replace(p, points=p.points - centre) for p in parts]
+    asset = Asset(name, tuple(parts), tuple(materials.values()))
+    info = {"format": "usd", "unit": unit, "unitScale": scale, "upAxis": up,
+            "triangles": int(sum(p.face_counts.size for p in parts)), "droppedTriangles": 0}
+    return asset, info
+
+
+def _usd_units(stage, units: str | None, fail) -> tuple[float, str]:
+    from pxr import UsdGeom
+
+    from allo_usd.assets.importer import UNIT_SCALES
+
+    authored = stage.HasAuthoredMetadata("metersPerUnit")
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if units is None:
+        if not authored:
+            raise fail("declares no metersPerUnit (USD then assumes centimetres); fix: give units in the plan")
+        if not (math.isfinite(mpu) and mpu > 0):
+            raise fail(f"declares metersPerUnit = {mpu}; fix: correct the file or give units")
+        named = [u for u, s in UNIT_SCALES.items() if math.isclose(s, mpu, rel_tol=1e-9)]
+        return mpu, named[0] if named else f"{mpu:g} m"
+    if authored and not math.isclose(UNIT_SCALES[units], mpu, rel_tol=1e-9):
+        raise fail(f"declares metersPerUnit = {mpu:g}, but the plan says units = {units!r} "
+                   f"({UNIT_SCALES[units]:g} m); fix: leave units out (the file's is used) or correct one of them")
+    return UNIT_SCALES[units], units
+
+
+def _usd_up_axis(stage, up_axis: str | None, fail) -> str:
+    from pxr import UsdGeom
+
+    authored = stage.HasAuthoredMetadata("upAxis")
+    file_up = str(UsdGeom.GetStageUpAxis(stage)).lower()
+    if up_axis is None:
+        if not authored:
+            raise fail("declares no upAxis (USD then assumes Y); fix: give up_axis in the plan")
+        return file_up
+    if authored and up_axis != file_up:
+        raise fail(f"declares upAxis = {file_up.upper()}, but the plan says up_axis = {up_axis!r}; fix: leave up_axis "
+                   "out (the file's is used) or correct one of them")
+    return up_axis
+
+
+def _usd_material(prim, materials: dict) -> Material:
+    """The mesh's bound UsdPreviewSurface (constant inputs) or its displayColor, as a Material."""
+    from pxr import UsdGeom, UsdShade
+
+    from allo_usd.assets.importer import DEFAULT_MATERIAL
+
+    bound = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+    if bound:
+        key = str(bound.GetPath())
+        if key not in materials:
+            colour, metallic, roughness = DEFAULT_MATERIAL.base_color, 0.0, 0.5
+            shader = bound.ComputeSurfaceSource()[0]
+            if shader:
+                colour = _input(shader, "diffuseColor", colour, 3)
+                metallic = _input(shader, "metallic", metallic, 1)
+                roughness = _input(shader, "roughness", roughness, 1)
+            materials[key] = Material(f"material_{len(materials) + 1}", colour, metallic, roughness)
+        return materials[key]
+    primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor")
+    value = primvar.Get() if primvar and primvar.HasAuthoredValue() else None
+    colour = _clip(value[0], DEFAULT_MATERIAL.base_color, 3) if value is not None and len(value) else None
+    key = f"displayColor:{colour}"
+    if key not in materials:
+        materials[key] = (Material(f"material_{len(materials) + 1}", colour, 0.0, 0.5) if colour is not None
+                          else replace(DEFAULT_MATERIAL, name=f"material_{len(materials) + 1}"))
+    return materials[key]
+
+
+def _input(shader, name: str, default, n: int):
+    inp = shader.GetInput(name)
+    value = inp.Get() if inp and not inp.HasConnectedSource() else None
+    return default if value is None else _clip(value, default, n)
+
+
+def _clip(value, default, n: int):
+    """A finite colour (n=3) or factor (n=1) clipped to 0..1, else the default."""
+    v = np.asarray(value, dtype=np.float64).reshape(-1)
+    if v.size != n or not np.isfinite(v).all():
+        return default
+    v = np.clip(v, 0.0, 1.0)
+    return tuple(float(c) for c in v) if n == 3 else float(v[0])
+
+
+def hazard_provenance(layer) -> dict | None:
+    """The conversion record a hazard interface layer (an Sdf.Layer) carries, if it is one."""
+    data = dict(layer.customLayerData or {})
+    hazard = dict(data.get("allo", {})).get("hazard") if isinstance(data.get("allo"), dict) else None
+    return dict(hazard) if isinstance(hazard, dict) and hazard else None
