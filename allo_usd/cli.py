@@ -215,25 +215,27 @@ def sky(out: Path = typer.Option(Path("out/sky"), "--out", help="Output director
 
 
 @asset_app.command("import")
-def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ or STL file."),
+def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ, STL or USD file."),
                  out: Path = typer.Option(Path("out/assets"), "--out", help="Directory for the USD asset."),
                  units: str = typer.Option("auto", help="The file's unit: m, cm, mm, in, ft, or auto (glTF: "
-                                           "metres; an absurd size for a station is read as inches)."),
+                                           "metres; an absurd size for a station is read as inches; USD: the "
+                                           "file's metersPerUnit)."),
                  up_axis: str = typer.Option("auto", "--up-axis", help="The file axis that points up: x, y, z, "
-                                             "-x, -y, -z, or auto (the format's: glTF and OBJ y, STL z)."),
+                                             "-x, -y, -z, or auto (the format's: glTF and OBJ y, STL z; USD: the "
+                                             "file's upAxis)."),
                  label: str = typer.Option("station", help="Class label: station or anomaly.")):
-    """Convert a real mesh (through trimesh) into a USD asset in metres, Z up.
+    """Convert a real mesh into a USD asset in metres, Z up (the importer a plan's own hazards use).
 
-    The orientation and unit are the format's (glTF is +Y up and metres by specification) or
-    --up-axis / --units; never guessed from the file name (NASA's ISS_2016.glb: --up-axis=-z)."""
+    The orientation and unit are the format's (glTF is +Y up and metres by specification; USD
+    says both) or --up-axis / --units; never guessed from the file name (NASA's ISS_2016.glb:
+    --up-axis=-z)."""
     ensure_output_dir(out)
-    from allo_usd.assets.importer import import_mesh_report
     from allo_usd.usd.asset import write_asset
+    from allo_usd.usd.hazard import import_model
 
-    report = import_mesh_report(file, units=units, up_axis=up_axis)
-    path = write_asset(report.asset, out, label)
-    typer.echo(f"{file} -> {path} (unit {report.unit}, up axis {report.source_up_axis}, "
-               f"{report.triangles} triangles)")
+    asset, info = import_model(file, None, units, up_axis, what="model")
+    path = write_asset(asset, out, label)
+    typer.echo(f"{file} -> {path} (unit {info['unit']}, up axis {info['upAxis']}, {info['triangles']} triangles)")
 
 
 @app.command()

@@ -284,3 +284,20 @@ def test_the_rendered_mask_covers_the_projected_mesh(authored, tmp_path):
     ray2 = owner.reshape(h, w) == 2
     assert ray2.sum() >= 3
     assert (ray2 == (mask == 2)).all(), f"{int((ray2 != (mask == 2)).sum())} pixels disagree"
+
+
+def test_asset_import_is_the_same_importer_for_usd_files(tmp_path):
+    """`allo-usd asset import` reads a USD file through the importer a plan's hazards use."""
+    from typer.testing import CliRunner
+
+    from allo_usd.cli import app
+    from allo_usd.usd.hazard import load_hazard
+    from allo_usd.usd.read import read_triangles
+
+    src = _usd_box(tmp_path / "part.usda")
+    r = CliRunner().invoke(app, ["asset", "import", str(src), "--out", str(tmp_path / "out"), "--label", "anomaly"])
+    assert r.exit_code == 0, r.output
+    assert "unit cm, up axis y" in r.output
+    pts, _ = read_triangles(tmp_path / "out" / "part.usda", "/part")
+    asset, _ = load_hazard(src, "part", None, None)
+    np.testing.assert_allclose(np.ptp(pts, axis=0), np.ptp(asset.parts[0].points, axis=0), atol=1e-6)

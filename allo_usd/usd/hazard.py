@@ -128,23 +128,9 @@ def coloured(asset: Asset, rgb) -> Asset:
 
 
 def load_hazard(path: Path, name: str, units: str | None, up_axis: str | None) -> tuple[Asset, dict]:
-    """(Asset in metres, Z up, centred on its bounding box; what the conversion used), or a PlanError."""
-    if path.suffix.lower() in USD_SUFFIXES:
-        asset, info = read_usd_hazard(path, name, units, up_axis)
-    else:
-        from allo_usd.assets.importer import import_mesh_report
-
-        try:
-            report = import_mesh_report(path, units=units, up_axis=up_axis, name=name)
-        except AlloError as exc:
-            fix = "" if "fix" in str(exc) else "; fix: re-export the model from its tool (as glTF, OBJ, STL or USD)"
-            raise PlanError(f"anomaly {name!r}: {exc}{fix}") from None
-        except Exception as exc:   # trimesh's parsers raise anything on a broken file
-            raise PlanError(f"anomaly {name!r}: {path} could not be read as a {path.suffix} model "
-                            f"({type(exc).__name__}: {str(exc)[:200]}); fix: re-export it") from None
-        asset = replace(report.asset, name=name)
-        info = {"format": report.format, "unit": report.unit, "unitScale": report.scale, "upAxis": report.source_up_axis,
-                "triangles": int(report.triangles), "droppedTriangles": int(report.dropped_triangles)}
+    """(Asset in metres, Z up, centred on its bounding box; what the conversion used), or a PlanError
+    (also for a size outside SIZE_M or more than MAX_TRIANGLES faces)."""
+    asset, info = import_model(path, name, units, up_axis)
     n = sum(int(p.face_counts.size) for p in asset.parts)
     if n > MAX_TRIANGLES:
         raise PlanError(f"anomaly {name!r}: {path} has {n:,} faces, above the {MAX_TRIANGLES:,} a hazard may have; "
@@ -159,10 +145,39 @@ def load_hazard(path: Path, name: str, units: str | None, up_axis: str | None) -
     return asset, info
 
 
+def import_model(path: Path, name: str | None, units: str | None, up_axis: str | None,
+                 what: str = "anomaly") -> tuple[Asset, dict]:
+    """Any model file the project reads, as an Asset in metres, Z up, centred on its bounding box: a
+    mesh file through allo_usd.assets.importer (units/up_axis None or 'auto': the format's rule), a USD
+    file with pxr (`read_usd_hazard`). The one importer of `allo-usd asset import` and of a plan's
+    hazards. Returns (asset, {format, unit, unitScale, upAxis, triangles, droppedTriangles}); errors
+    are PlanErrors beginning with `what` and the name (e.g. "anomaly 'bracket': ...")."""
+    path = Path(path)
+    if path.suffix.lower() in USD_SUFFIXES:
+        return read_usd_hazard(path, name or _NAME.sub("_", path.stem.split(".")[0]) or "model",
+                               None if units == "auto" else units, None if up_axis == "auto" else up_axis, what)
+    else:
+        from allo_usd.assets.importer import import_mesh_report
+
+        try:
+            report = import_mesh_report(path, units=units or "auto", up_axis=up_axis or "auto", name=name)
+        except AlloError as exc:
+            fix = "" if "fix" in str(exc) else "; fix: re-export the model from its tool (as glTF, OBJ, STL or USD)"
+            raise PlanError(f"{what} {name or path.stem!r}: {exc}{fix}") from None
+        except Exception as exc:   # trimesh's parsers raise anything on a broken file
+            raise PlanError(f"{what} {name or path.stem!r}: {path} could not be read as a {path.suffix} model "
+                            f"({type(exc).__name__}: {str(exc)[:200]}); fix: re-export it") from None
+        asset = replace(report.asset, name=name) if name else report.asset
+        info = {"format": report.format, "unit": report.unit, "unitScale": report.scale, "upAxis": report.source_up_axis,
+                "triangles": int(report.triangles), "droppedTriangles": int(report.dropped_triangles)}
+        return asset, info
+
+
 _NAME = re.compile(r"[^A-Za-z0-9_]")
 
 
-def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | None) -> tuple[Asset, dict]:
+def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | None,
+                    what: str = "anomaly") -> tuple[Asset, dict]:
     """A USD file's meshes as an Asset (see the module doc): world transforms, metersPerUnit and upAxis
     from the file (or the plan, which must then agree), one part per mesh with its bound constant
     material. Textures are not carried over."""
@@ -174,7 +189,7 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
     from allo_usd.usd.read import MAX_PRIMS, mesh_topology, world_matrix
 
     def fail(why: str) -> PlanError:
-        return PlanError(f"anomaly {name!r}: {path} {why}")
+        return PlanError(f"{what} {name!r}: {path} {why}")
 
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
