@@ -335,7 +335,9 @@ def test_edited_pose_file_on_resume_is_refused(pose_csv, tmp_path):
     with pytest.raises(PlanError, match="poses.csv changed since .* was authored from it .*fix: restore"):
         author(file_plan(mine), out, limit=2, progress=False, workers=1)
     assert len(list((out / "scenes").rglob("*.usda"))) == 1
-    mine.write_bytes(original)   # restored: the run resumes
+    mine.write_bytes(original)   # restored: the run resumes, but not with other sigmas (plan.toml compares them)
+    with pytest.raises(PlanError, match="poses.position_sigma_m 1.0 in the tree, 0.5 in the plan given"):
+        author(file_plan(mine, sigmas=(0.5, 0.2)), out, limit=2, progress=False, workers=1)
     assert len(author(file_plan(mine), out, limit=2, progress=False, workers=1).paths) == 2
 
 
