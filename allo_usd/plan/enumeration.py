@@ -72,8 +72,9 @@ def iter_scenes(plan: Plan) -> Iterator[SceneKey]:
     a normal split and one seed's placements; the plan's size is bounded when it is validated.
     """
     days, seeds = plan.dates.days, plan.seeds
-    for split, poses, count in (("train", plan.poses.train, plan.counts.normal_train),
-                                ("test", plan.poses.test, plan.counts.normal_test)):
+    test_poses = plan.poses.numbers("test")   # built-in, then the pose file's (plan.model.Poses)
+    for split, poses, count in (("train", plan.poses.numbers("train"), plan.counts.normal_train),
+                                ("test", test_poses, plan.counts.normal_test)):
         n_grid = len(seeds) * days * len(poses)   # (seed, day, pose) in that nesting order
         if count is not None and count < n_grid:
             cells = np.sort(_rng("normal", split, *seeds).choice(n_grid, size=count, replace=False))
@@ -86,9 +87,9 @@ def iter_scenes(plan: Plan) -> Iterator[SceneKey]:
 
     depths = plan.anomalies.depths
     by_asset = [a.choices() for a in plan.anomalies.assets]
-    pairs_per_seed = days * len(plan.poses.test)
+    pairs_per_seed = days * len(test_poses)
     n_anom = plan.counts.anomalous_test
-    if not by_asset or not plan.poses.test or n_anom == 0:
+    if not by_asset or not test_poses or n_anom == 0:
         return
     n_place = pairs_per_seed * len(seeds) if n_anom is None else math.ceil(n_anom / len(depths))
     left = n_place * len(depths) if n_anom is None else n_anom
@@ -96,9 +97,9 @@ def iter_scenes(plan: Plan) -> Iterator[SceneKey]:
         picked = _rng("anomaly", seed, *seeds).permutation(pairs_per_seed)[:k]
         rows = []
         for j, idx in enumerate(picked):
-            d, p = divmod(int(idx), len(plan.poses.test))
+            d, p = divmod(int(idx), len(test_poses))
             asset, variant = _round_robin(by_asset, j)
-            rows.append((d, plan.poses.test[p], asset, variant))
+            rows.append((d, test_poses[p], asset, variant))
         for d, p, asset, variant in sorted(rows):
             for z in depths:
                 if left <= 0:
@@ -141,9 +142,9 @@ _RESERVE_PAIRS: dict[tuple, np.ndarray] = {}   # a permutation per (plan grid, s
 
 
 def _reserve_pairs(plan: Plan, seed: int, asset: str, variant: str) -> np.ndarray:
-    key = (plan.dates.days, tuple(plan.poses.test), tuple(plan.seeds), seed, asset, variant)
+    key = (plan.dates.days, tuple(plan.poses.numbers("test")), tuple(plan.seeds), seed, asset, variant)
     if key not in _RESERVE_PAIRS:
-        n = plan.dates.days * len(plan.poses.test)
+        n = plan.dates.days * len(key[1])
         _RESERVE_PAIRS[key] = _rng("reserve", seed, asset, variant, *plan.seeds).permutation(n)
     return _RESERVE_PAIRS[key]
 
@@ -160,7 +161,8 @@ def reserve_group(plan: Plan, seed: int, asset: str, variant: str, k: int) -> li
     if k < 1:
         raise ValueError(f"reserve groups are numbered from 1, not {k}")
     pairs = _reserve_pairs(plan, seed, asset, variant)
-    d, p = divmod(int(pairs[(k - 1) % len(pairs)]), len(plan.poses.test))
-    pose = plan.poses.test[p]
+    test_poses = plan.poses.numbers("test")
+    d, p = divmod(int(pairs[(k - 1) % len(pairs)]), len(test_poses))
+    pose = test_poses[p]
     return [SceneKey(f"s{seed}_d{d:03d}_p{pose:02d}_{asset}-{variant}_r{k}_z{z}", "test", "anomaly", d, pose, seed,
                      asset, variant, z, k) for z in plan.anomalies.depths]

@@ -89,10 +89,44 @@ def de421_dates() -> tuple[date, date]:
 
 
 class Poses(_Model):
-    """Base camera pose numbers (1..50) for training and for testing; the sets must not overlap."""
+    """Base camera pose numbers (1..50) for training and for testing; the sets must not overlap.
+
+    `file`: a pose file of the user's own poses (allo_usd.plan.posefile: CSV or JSON), relative to the
+    working directory like station.source and base_stage. Its poses come in addition to the listed
+    built-in ones (empty `train` and `test` for "instead of"), numbered N_POSES + 1, N_POSES + 2, ...
+    in file order, and join train or test by their split tag (`numbers`). Every camera is perturbed
+    by N(0, position_sigma_m) per axis and N(0, angle_sigma_rad) per angle (allo_usd.scene.rig.perturb)."""
 
     train: list[int] = Field(default_factory=lambda: list(range(1, 41)), description="Training poses.")
     test: list[int] = Field(default_factory=lambda: list(range(41, 51)), description="Test poses.")
+    file: str | None = Field(None, description="A pose file (.csv or .json) of the user's own poses, relative to "
+                                               "the working directory; see README, Your own poses.")
+    position_sigma_m: float = Field(1.0, ge=0.0, le=10.0, description="Camera position perturbation sigma per "
+                                                                      "axis, metres (the paper: 1).")
+    angle_sigma_rad: float = Field(0.2, ge=0.0, le=1.0, description="Camera angle perturbation sigma per "
+                                                                    "Euler angle, radians (the paper: 0.2).")
+
+    @field_validator("file")
+    @classmethod
+    def _file(cls, v: str | None):
+        if v is not None and ("\0" in v or not v.lower().endswith((".csv", ".json"))):
+            raise ValueError(f"poses.file {_short(v)} is not a .csv or .json file path; fix: e.g. my_poses.csv")
+        return v
+
+    def pose_file(self):
+        """The pose file read (allo_usd.plan.posefile.PoseFile), or None without one."""
+        from allo_usd.plan.posefile import read_pose_file
+
+        return None if self.file is None else read_pose_file(self.file)
+
+    def file_poses(self) -> list[tuple[int, object]]:
+        """(pose number, UserPose) of the pose file's poses: N_POSES + 1, ... in file order."""
+        f = self.pose_file()
+        return [] if f is None else [(N_POSES + 1 + i, p) for i, p in enumerate(f.poses)]
+
+    def numbers(self, split: str) -> list[int]:
+        """Every pose number of `split` (train | test): the built-in ones listed, then the file's."""
+        return [*getattr(self, split), *(n for n, p in self.file_poses() if p.split == split)]
 
     @field_validator("train", "test")
     @classmethod
@@ -110,8 +144,8 @@ class Poses(_Model):
         if both:
             raise ValueError(f"poses {both} are in both train and test; fix: make the sets disjoint "
                              "(the paper uses 1-40 for train and 41-50 for test)")
-        if not self.train and not self.test:
-            raise ValueError("no poses; fix: list at least one train or test pose")
+        if not self.numbers("train") and not self.numbers("test"):
+            raise ValueError("no poses; fix: list at least one train or test pose, or give a pose file")
         return self
 
 
@@ -481,8 +515,9 @@ class Plan(_Model):
 def grid_sizes(plan: Plan) -> dict[str, int]:
     """The scenes of each kind the plan's days, poses, seeds (and depths) allow."""
     n = plan.dates.days * len(plan.seeds)
-    return {"normal_train": n * len(plan.poses.train), "normal_test": n * len(plan.poses.test),
-            "anomalous_test": n * len(plan.poses.test) * len(plan.anomalies.depths) if plan.anomalies.assets else 0}
+    train, test = len(plan.poses.numbers("train")), len(plan.poses.numbers("test"))
+    return {"normal_train": n * train, "normal_test": n * test,
+            "anomalous_test": n * test * len(plan.anomalies.depths) if plan.anomalies.assets else 0}
 
 
 def planned_sizes(plan: Plan) -> dict[str, int]:

@@ -24,6 +24,7 @@ them instead of recomputing.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import os
@@ -34,7 +35,7 @@ import tempfile
 import time
 from collections import Counter, deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from itertools import groupby, islice
 from pathlib import Path
@@ -75,6 +76,7 @@ class AuthorContext:
         # The plan's own hazards, converted into the tree by open_tree (allo_usd.usd.hazard.write_hazards).
         self.hazards = {c.id: hazard_asset_path(self.out_dir, c.id) for c in plan.anomalies.user_hazards()}
         self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch), self.hazards)
+        self._add_file_poses(plan)
         q = plan.quality
         self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE,
                                  passes=tuple(q.passes), **quality_of(q))
@@ -87,6 +89,27 @@ class AuthorContext:
             self._sky_cache[day] = self._sun_and_bodies(self.inputs.sky, day)
         return self._sky_cache[day]
 
+    def _add_file_poses(self, plan: Plan) -> None:
+        """The plan's pose-file poses (numbers 51, ...) and perturbation sigmas, into the scene inputs."""
+        from allo_usd.scene.resolve import file_camera_poses
+
+        pose_file = plan.poses.pose_file()
+        if pose_file is not None:
+            self.inputs.extra_poses = file_camera_poses(pose_file, plan.poses.file_poses())
+        self.inputs.sigmas = (plan.poses.position_sigma_m, plan.poses.angle_sigma_rad)
+
+    def check_file_poses(self) -> None:
+        """Refuse a pose-file pose inside the station or within rig.CLEARANCE_M of it (PlanError naming
+        FILE:LINE, the pose and the fix), before anything is authored."""
+        from allo_usd.scene.rig import CLEARANCE_M, too_close
+
+        for p in self.inputs.extra_poses:
+            if too_close(self.inputs.station_scene, p.position):
+                x, y, z = (float(c) for c in p.position)
+                raise PlanError(f"pose file {p.source}: pose {p.name!r} at ({x:g}, {y:g}, {z:g}) m is inside the "
+                                f"station's geometry or within {CLEARANCE_M} m of it; fix: move it out into open "
+                                "space (positions are metres in the stage frame, Z up)")
+
     def stopped(self) -> bool:
         return self.stop is not None and self.stop.is_set()
 
@@ -98,6 +121,7 @@ class AuthorContext:
         for choice in self.plan.anomalies.assets:
             for asset, variant in choice.choices():
                 self.inputs.anomaly_geometry(asset, variant)
+        self.check_file_poses()
 
 
 def _init(plan_json: str, out_dir: str, sky, stop) -> None:
@@ -555,10 +579,12 @@ class Authored:
 # ---------------------------------------------------------------------------------------------
 # The tree: one writer at a time, the plan it was made from, a readable base stage
 
+POSE_INPUTS = "inputs"             # the tree's byte copy of the plan's pose file (with_tree_poses)
 TREE_PLAN = "plan.toml"            # the plan a tree was authored from (its record, and its root for usd.safety)
 TREE_LOCK = ".allo-author.lock"    # one author run at a time per tree (core.files.RunLock)
 # What authoring writes at the top of a tree (plan.toml aside): `replace` removes exactly these.
-TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "hazards", "schema", "counts.csv", "skipped.csv", "reserves.csv")
+TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "hazards", "schema", "counts.csv", "skipped.csv", "reserves.csv",
+                POSE_INPUTS)
 _TRASH = re.compile(r"^\.replaced\.[a-z0-9_]{8}$")   # a replace's trash (mkdtemp), left if the run was killed
 # Plan fields the tree checks by content, not by name: the base stage's path and the station's
 # source (stages/ must be a byte copy of the plan's stage, or built from the same model file).
@@ -683,6 +709,35 @@ def replace_tree(out_dir: Path) -> list[str]:
     return present
 
 
+def with_tree_poses(plan: Plan, out_dir: Path) -> tuple[Plan, Path | None]:
+    """The plan pointed at the tree's byte copy of its pose file, `out_dir/inputs/<name>` (written
+    atomically if missing), and the copy if this call wrote it (else None). A tree whose copy differs
+    from the plan's pose file (sha256) is refused, so pose layers of old poses never mix with new ones."""
+    if plan.poses.file is None:
+        return plan, None
+    from allo_usd.core.files import sha256_file, write_bytes_atomic
+
+    src = Path(plan.poses.file)
+    pose_file = plan.poses.pose_file()   # read and checked (PlanError naming FILE:LINE)
+    data = src.read_bytes()
+    now = hashlib.sha256(data).hexdigest()
+    if now != pose_file.sha256:
+        raise PlanError(f"pose file {src} changed while it was read; fix: re-run when it is no longer edited")
+    dest = Path(out_dir) / POSE_INPUTS / src.name
+    wrote = None
+    if dest.is_file():
+        had = sha256_file(dest)
+        if had != now:
+            raise PlanError(f"pose file {src} changed since {out_dir} was authored from it (sha256 {had[:12]}... in "
+                            f"the tree's copy {dest}, {now[:12]}... now); its pose layers were made from the old "
+                            "poses; fix: restore the pose file (the tree's copy is the old one), or author into a "
+                            "fresh --out, or pass --replace")
+    else:
+        write_bytes_atomic(dest, data)
+        wrote = dest
+    return plan.model_copy(update={"poses": plan.poses.model_copy(update={"file": str(dest.resolve())})}), wrote
+
+
 def _broken_stage(stage: Path, exc: BaseException, copy: Path | None = None) -> LayerError:
     """The one error for a base stage that cannot be read (pxr's own message reduced to its last line)."""
     first = (str(exc).strip().splitlines() or [type(exc).__name__])[-1].strip()
@@ -724,10 +779,17 @@ def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
             raise
         except Exception as exc:  # pxr's Tf.ErrorException (a RuntimeError) and the like
             raise _broken_stage(source, exc) from None
+        plan, new_copy = with_tree_poses(plan, out_dir)
         ctx = AuthorContext(plan, out_dir, compute_sky(plan.dates.epochs(), Orbit(perilune_epoch=plan.perilune_epoch)))
         try:
             ctx.read_stage()
         except (DiskFullError, KeyboardInterrupt):
+            raise
+        except PlanError:   # a pose-file pose inside the station: nothing is kept of this run
+            if new_copy is not None:
+                new_copy.unlink()
+                with suppress(OSError):
+                    new_copy.parent.rmdir()   # if this run made it
             raise
         except Exception as exc:  # LayerError "re-author it" is a scene layer's fix, not a stage's
             if not had_stages:    # the copy this run made from a broken stage: do not keep it

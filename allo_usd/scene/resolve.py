@@ -18,8 +18,8 @@ from allo_usd.core.labels import STATION
 from allo_usd.core.errors import PlacementError
 from allo_usd.scene.placement import anomaly_scene, place
 from allo_usd.scene.raycast import RayScene
-from allo_usd.scene.rig import PERTURBATION, perturb
-from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
+from allo_usd.scene.rig import ANGLE_SIGMA_RAD, PERTURBATION, POSITION_SIGMA_M, perturb
+from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraPose, CameraSpec, SceneSpec, SunSpec
 from allo_usd.plan.settings import EffectsSpec, RenderSpec
 from allo_usd.core.seeds import scene_seed
 
@@ -44,10 +44,12 @@ class SceneInputs:
     sky: object                 # allo_usd.sky.model.Sky
     perilune_epoch: str
     _anomaly_cache: dict = field(default_factory=dict)
+    extra_poses: list = field(default_factory=list)   # a plan's pose-file poses (CameraPose, numbers 51, ...)
+    sigmas: tuple[float, float] = (POSITION_SIGMA_M, ANGLE_SIGMA_RAD)   # the plan's perturbation
 
     @cached_property
     def poses(self):
-        return {p.index: p for p in self.geometry.poses()}
+        return {p.index: p for p in [*self.geometry.poses(), *self.extra_poses]}
 
     @cached_property
     def station_parts(self):
@@ -72,6 +74,13 @@ class SceneInputs:
             centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
             self._anomaly_cache[key] = (pts - centre, tris, centre, anomaly_scene(pts - centre, tris))
         return self._anomaly_cache[key]
+
+
+def file_camera_poses(pose_file, numbered) -> list[CameraPose]:
+    """The scene layer's CameraPoses of a plan's pose file (allo_usd.plan.posefile.PoseFile) and its
+    (pose number, UserPose) pairs (allo_usd.plan.model.Poses.file_poses)."""
+    return [CameraPose(n, p.split, np.array(p.position, dtype=np.float64), p.rotation(), p.name,
+                       pose_file.source(p), pose_file.sha256) for n, p in numbered]
 
 
 def sun_and_bodies(sky, day: int) -> tuple[SunSpec, dict[str, BodySpec]]:
@@ -106,9 +115,11 @@ def resolve_camera(inputs: SceneInputs, *, day: int, pose: int, plan_seed: int,
         key = (*key, f"r{reserve}")
     seed, seed_path = scene_seed(plan_seed, *key)
     rng = np.random.default_rng(seed)
-    pos, rot, dpos, dang, attempts = perturb(base, rng, inputs.station_scene)
+    pos, rot, dpos, dang, attempts = perturb(base, rng, inputs.station_scene, position_sigma_m=inputs.sigmas[0],
+                                             angle_sigma_rad=inputs.sigmas[1])
+    sigmas = None if tuple(inputs.sigmas) == (POSITION_SIGMA_M, ANGLE_SIGMA_RAD) else tuple(map(float, inputs.sigmas))
     camera = CameraSpec(tuple(map(float, pos)), rot, tuple(map(float, dpos)), tuple(map(float, dang)),
-                        PERTURBATION, attempts)
+                        PERTURBATION, attempts, sigmas, base.name, base.source, base.source_sha256)
     return camera, rng, seed, seed_path
 
 

@@ -201,12 +201,15 @@ def too_close(scene: RayScene, p: np.ndarray, clearance: float = CLEARANCE_M) ->
 
 
 def perturb(pose: CameraPose, rng: np.random.Generator, station: RayScene | None = None,
-            max_attempts: int = 100):
-    """Paper perturbation (N(0, 1 m) per axis, N(0, 0.2 rad) per angle), resampled while the camera
-    would sit inside or against the station. Returns (position, rotation, dpos, dang, attempts)."""
+            max_attempts: int = 100, position_sigma_m: float = POSITION_SIGMA_M,
+            angle_sigma_rad: float = ANGLE_SIGMA_RAD):
+    """Paper perturbation (N(0, 1 m) per axis, N(0, 0.2 rad) per angle; a plan may set the sigmas,
+    plan.model.Poses), resampled while the camera would sit inside or against the station. Returns
+    (position, rotation, dpos, dang, attempts). The draws are the same for any sigmas (scaled), so
+    sigma 0 gives exactly the base pose."""
     for attempt in range(1, max_attempts + 1):
-        dpos = rng.normal(0.0, POSITION_SIGMA_M, 3)
-        dang = rng.normal(0.0, ANGLE_SIGMA_RAD, 3)
+        dpos = rng.normal(0.0, position_sigma_m, 3)
+        dang = rng.normal(0.0, angle_sigma_rad, 3)
         pos = pose.position + dpos
         if station is None or not too_close(station, pos):
             return pos, pose.rotation @ perturbation_matrix(dang), dpos, dang, attempt

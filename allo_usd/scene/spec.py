@@ -46,6 +46,10 @@ class CameraSpec:
     offset_rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
     perturbation: str = "euler-zyx"
     attempts: int = 1
+    sigmas: tuple[float, float] | None = None   # (position m, angle rad) when the plan's are not the paper's
+    pose_name: str = ""                          # a pose file's pose: its name, 'FILE:LINE', the file's sha256
+    pose_source: str = ""
+    pose_source_sha256: str = ""
 
 
 @dataclass(frozen=True)
@@ -88,3 +92,6 @@ class CameraPose:
     split: str            # "train" (1-40) or "test" (41-50)
     position: np.ndarray  # (3,) metres, station frame
     rotation: np.ndarray  # (3, 3) camera-to-station, camera looks down its -Z
+    name: str = ""        # a pose file's pose (allo_usd.plan.posefile): its name,
+    source: str = ""      # where it came from, 'FILE:LINE',
+    source_sha256: str = ""  # and the file's sha256; "" for the built-in rig

@@ -60,6 +60,13 @@ GEOMETRIC_DIRECTION_SUN, GEOMETRIC_DIRECTION_EARTH, GEOMETRIC_DIRECTION_MOON = S
 GEOMETRIC_DIRECTION = {"Sun": GEOMETRIC_DIRECTION_SUN, "Earth": GEOMETRIC_DIRECTION_EARTH,
                        "Moon": GEOMETRIC_DIRECTION_MOON}
 
+# A camera sample's record beyond SCENE (AlloSceneAPI too), in its pose layer: a pose file's pose (its
+# name, 'FILE:LINE' and the file's sha256; allo_usd.plan.posefile) and the plan's perturbation sigmas,
+# each authored only where it applies (a pose-file pose; sigmas other than the paper's).
+POSE_NAME, POSE_SOURCE, POSE_SOURCE_SHA256, POSITION_SIGMA, ANGLE_SIGMA = POSE_RECORD = _group(
+    "AlloSceneAPI", layout.WORLD, ("allo:poseName", "string"), ("allo:poseSource", "string"),
+    ("allo:poseSourceSha256", "string"), ("allo:positionSigma", "double"), ("allo:angleSigma", "double"))
+
 # ---------------------------------------------------------------- AlloEclipseAPI (sun lamps)
 LIT_FRACTION, ECLIPSE_STATE, ECLIPSE_BODY, IRRADIANCE_UNOCCLUDED, SUN_DISTANCE = ECLIPSE = _group(
     "AlloEclipseAPI", SUN_LAMPS,
@@ -124,7 +131,7 @@ POSE_INDEX, POSE_SPLIT = CAMERA_POSE = _group(
 
 # Every attribute, by API schema (schema order).
 BY_SCHEMA: dict[str, tuple[AlloAttribute, ...]] = {
-    "AlloSceneAPI": SCENE + SKY_RECORD, "AlloEclipseAPI": ECLIPSE, "AlloRayVisibilityAPI": RAY,
+    "AlloSceneAPI": SCENE + SKY_RECORD + POSE_RECORD, "AlloEclipseAPI": ECLIPSE, "AlloRayVisibilityAPI": RAY,
     "AlloRenderQualityAPI": RENDER_QUALITY, "AlloEffectsAPI": EFFECTS, "AlloAnomalyAPI": ANOMALY,
     "AlloCameraPoseAPI": CAMERA_POSE,
 }

@@ -244,7 +244,12 @@ def describe(layer: str | Path) -> dict:
         "seed_path": a(A.SEED_PATH, provenance.get("seedPath")),
         "package_version": provenance.get("packageVersion"),
         "camera_perturbation": {"convention": a(A.PERTURBATION), "offset_position": a(A.CAMERA_OFFSET_POSITION),
-                                "offset_rotation": a(A.CAMERA_OFFSET_ROTATION), "attempts": a(A.CAMERA_ATTEMPTS)},
+                                "offset_rotation": a(A.CAMERA_OFFSET_ROTATION), "attempts": a(A.CAMERA_ATTEMPTS),
+                                "position_sigma_m": a(A.POSITION_SIGMA), "angle_sigma_rad": a(A.ANGLE_SIGMA),
+                                "sigmas_authored": bool(world and world.GetAttribute(A.POSITION_SIGMA.name)
+                                                        and world.GetAttribute(A.POSITION_SIGMA.name).HasAuthoredValue())},
+        "pose_file": ({"name": a(A.POSE_NAME), "source": a(A.POSE_SOURCE), "sha256": a(A.POSE_SOURCE_SHA256)}
+                      if a(A.POSE_NAME) else None),
         "anomaly": anomaly, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
         "camera": camera,
         "layer_stack": {"sublayers": list(root.subLayerPaths),
@@ -276,7 +281,12 @@ def format_description(d: dict) -> str:
     lines.append(f"camera   pose {d['pose']}  position {_fmt(cam.get('position'))} m  "
                  f"orientation(wxyz) {_fmt(cam.get('orientation_wxyz'))}  forward {_fmt(cam.get('forward'))}")
     lines.append(f"         perturbation {cp['convention']}  offset {_fmt(cp['offset_position'])} m  "
-                 f"rot {_fmt(cp['offset_rotation'])}  attempts {cp['attempts']}")
+                 f"rot {_fmt(cp['offset_rotation'])}  attempts {cp['attempts']}"
+                 + (f"  sigma {_fmt(cp['position_sigma_m'])} m, {_fmt(cp['angle_sigma_rad'])} rad"
+                    if cp.get("sigmas_authored") else ""))
+    if d.get("pose_file"):
+        pf = d["pose_file"]
+        lines.append(f"         pose file: {pf['name']} from {pf['source']}  sha256 {pf['sha256']}")
     if cam.get("exposure"):
         e, sensor = cam["exposure"], cam["sensor_mm"]
         lines.append(f"lens     focal length {_fmt(cam['focal_length_mm'])} mm  aperture {_fmt(sensor[0])} x "

@@ -164,11 +164,19 @@ def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: d
 
 
 def pose_prims(pose: int, camera: CameraSpec) -> list[Prim]:
-    """The camera sample's opinions: base pose number, perturbed transform and sampled offsets."""
+    """The camera sample's opinions: base pose number, perturbed transform and sampled offsets; for a
+    pose file's pose its name and source, and the sigmas when they are not the paper's."""
+    record = []
+    if camera.pose_name:
+        record += [(A.POSE_NAME, camera.pose_name), (A.POSE_SOURCE, camera.pose_source),
+                   (A.POSE_SOURCE_SHA256, camera.pose_source_sha256)]
+    if camera.sigmas is not None:
+        record += [(A.POSITION_SIGMA, float(camera.sigmas[0])), (A.ANGLE_SIGMA, float(camera.sigmas[1]))]
     return [Prim(layout.WORLD, A.opinions((A.POSE, int(pose)), (A.PERTURBATION, camera.perturbation),
                                           (A.CAMERA_OFFSET_POSITION, _vec3d(camera.offset_position)),
                                           (A.CAMERA_OFFSET_ROTATION, _vec3d(camera.offset_rotation)),
-                                          (A.CAMERA_ATTEMPTS, int(camera.attempts))), api=("AlloSceneAPI",)),
+                                          (A.CAMERA_ATTEMPTS, int(camera.attempts)), *record),
+                 api=("AlloSceneAPI",)),
             Prim(layout.CAMERA, {"xformOp:translate": ("double3", _vec3d(camera.position)),
                                    "xformOp:orient": ("quatd", gf_quatd(camera.rotation))})]
 
