@@ -7,11 +7,14 @@ be tested, measured and ray-cast without either.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from allo_usd.core.errors import DegenerateMeshError
+from allo_usd.core.geometry import rot_x, rot_y, rot_z
+
+_AXES = {"X": rot_x, "Y": rot_y, "Z": rot_z}
 
 
 @dataclass(frozen=True)
@@ -52,6 +55,8 @@ class MeshPart:
     material: str
     uv: np.ndarray | None = None
     smooth: bool = False
+    # The Asset joint the part hangs under (its points are then in the joint's frame), or None.
+    joint: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "points", np.ascontiguousarray(self.points, dtype=np.float64))
@@ -73,7 +78,38 @@ class MeshPart:
         m = np.asarray(matrix, dtype=np.float64)
         pts = self.points @ m[:3, :3].T + m[:3, 3]
         return MeshPart(name or self.name, pts, self.face_counts, self.face_indices,
-                        self.material, self.uv, self.smooth)
+                        self.material, self.uv, self.smooth, self.joint)
+
+
+@dataclass(frozen=True)
+class Joint:
+    """A revolute joint: an Xform under its parent joint (or the asset's geometry root) whose
+    transform is translate(mount) @ rotateXYZ(mount_rotation) @ rotate<axis>(angle), all in degrees
+    (USD's op order: the last op applies to points first). Parts naming it are in its frame."""
+
+    name: str
+    parent: str | None
+    axis: str                                        # "X", "Y" or "Z"
+    rest: float                                      # degrees: the pose the asset is built in
+    lower: float = -180.0                            # limits, degrees; -180..180 = continuous
+    upper: float = 180.0
+    translate: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mount_rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)   # rotateXYZ, degrees (X first)
+    tracks: str = "none"                             # the body it points at ("Sun"), or "none"
+    op: str = "joint"                                # the joint op's suffix: xformOp:rotate<axis>:<op>
+
+    def mount_matrix(self) -> np.ndarray:
+        m = np.eye(4)
+        rx, ry, rz = np.radians(self.mount_rotation)
+        m[:3, :3] = rot_z(rz) @ rot_y(ry) @ rot_x(rx)
+        m[:3, 3] = self.translate
+        return m
+
+    def local_matrix(self, angle: float) -> np.ndarray:
+        """4x4 joint-to-parent matrix at `angle` degrees."""
+        r = np.eye(4)
+        r[:3, :3] = _AXES[self.axis](np.radians(float(angle)))
+        return self.mount_matrix() @ r
 
 
 @dataclass(frozen=True)
@@ -84,8 +120,15 @@ class Asset:
     parts: tuple[MeshPart, ...]
     materials: tuple[Material, ...]
     textures: dict[str, np.ndarray] = field(default_factory=dict)
+    joints: tuple[Joint, ...] = ()   # parents before children
 
     def __post_init__(self) -> None:
+        known: set[str] = set()
+        for j in self.joints:
+            if j.parent is not None and j.parent not in known:
+                raise DegenerateMeshError(f"asset {self.name!r}: joint {j.name!r} names parent {j.parent!r}, "
+                                          "which is not an earlier joint; list parents first")
+            known.add(j.name)
         names = {m.name for m in self.materials}
         for part in self.parts:
             if part.material not in names:
@@ -97,25 +140,65 @@ class Asset:
                 raise DegenerateMeshError(
                     f"asset {self.name!r}: material {m.name!r} names texture "
                     f"{m.base_color_texture!r}, which the asset does not carry")
-        seen: set[str] = set()
+        seen: set[tuple] = set()
         for part in self.parts:
-            if part.name in seen:
+            if part.joint is not None and part.joint not in known:
+                raise DegenerateMeshError(f"asset {self.name!r}: part {part.name!r} hangs under joint "
+                                          f"{part.joint!r}, which the asset does not define; add it to joints")
+            if (part.joint, part.name) in seen:
                 raise DegenerateMeshError(f"asset {self.name!r}: two parts are named {part.name!r}")
-            seen.add(part.name)
+            seen.add((part.joint, part.name))
+
+    def joint_chain(self, name: str | None) -> tuple[str, ...]:
+        """The joint names from the root joint down to `name` (empty for None)."""
+        return joint_chain(self.joints, name)
+
+    def joint_matrices(self, angles: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+        """{joint: 4x4 joint-to-asset matrix} at `angles` (degrees; a joint not named is at rest)."""
+        angles = angles or {}
+        out: dict[str, np.ndarray] = {}
+        for j in self.joints:
+            parent = out[j.parent] if j.parent is not None else np.eye(4)
+            out[j.name] = parent @ j.local_matrix(angles.get(j.name, j.rest))
+        return out
+
+    def posed(self, angles: dict[str, float] | None = None) -> "Asset":
+        """The asset flattened at `angles` (rest where not given): every part in the asset frame, no joints."""
+        mats = self.joint_matrices(angles)
+        parts = tuple(replace(p.transformed(mats[p.joint]), joint=None, name=self._flat_name(p))
+                      if p.joint is not None else p for p in self.parts)
+        return Asset(self.name, parts, self.materials, self.textures)
+
+    @staticmethod
+    def _flat_name(part: MeshPart) -> str:
+        return f"{part.name}_{part.joint}"
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lo = np.min([p.points.min(axis=0) for p in self.parts], axis=0)
-        hi = np.max([p.points.max(axis=0) for p in self.parts], axis=0)
+        parts = self.posed().parts if self.joints else self.parts
+        lo = np.min([p.points.min(axis=0) for p in parts], axis=0)
+        hi = np.max([p.points.max(axis=0) for p in parts], axis=0)
         return lo, hi
 
-    def triangle_soup(self) -> tuple[np.ndarray, np.ndarray]:
-        """All parts merged: (V, 3) points and (T, 3) triangle indices, for ray casting."""
+    def triangle_soup(self, angles: dict[str, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """All parts merged in the asset frame, the joints at `angles` (degrees, rest where not
+        given): (V, 3) points and (T, 3) triangle indices, for ray casting."""
+        mats = self.joint_matrices(angles) if self.joints else {}
         pts, tris, offset = [], [], 0
         for p in self.parts:
-            pts.append(p.points)
+            pts.append(p.points if p.joint is None else p.transformed(mats[p.joint]).points)
             tris.append(p.triangles() + offset)
             offset += len(p.points)
         return np.concatenate(pts), np.concatenate(tris)
+
+
+def joint_chain(joints, name: str | None) -> tuple[str, ...]:
+    """The joint names from the root joint down to `name` (empty for None) among `joints`."""
+    by = {j.name: j for j in joints}
+    chain: list[str] = []
+    while name is not None:
+        chain.insert(0, name)
+        name = by[name].parent
+    return tuple(chain)
 
 
 def fan_triangulate(face_counts: np.ndarray, face_indices: np.ndarray) -> np.ndarray:

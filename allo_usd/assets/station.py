@@ -9,8 +9,9 @@ Layout, loosely after the real station:
 
 * Integrated truss, 109 m: S0 in the middle, S1/P1 (big thermal radiators), S3/P3 (logistics
   carriers), the solar alpha rotary joints (SARJ), then the outboard S4-S6/P4-P6 segments, which
-  are turned about the truss axis by SARJ_ANGLE; each of S4, S6, P4, P6 carries two solar-array
-  wings (35 m x 12 m, two blankets either side of a lattice mast) and a photovoltaic radiator.
+  hang under their side's alpha joint (turned about the truss axis, SARJ_ANGLE at rest); each of
+  S4, S6, P4, P6 carries two solar-array wings (35 m x 12 m, two blankets either side of a lattice
+  mast), each under its own beta joint (turned about its mast), and a photovoltaic radiator.
 * US segment along X: PMA-2 (+ a docked capsule) - Harmony (Columbus starboard, Kibo port with
   its logistics module and exposed facility) - Destiny - Unity (Quest airlock starboard,
   Tranquility port with the Cupola and PMM, Z1 truss with the Ku dish on top) - PMA-1.
@@ -18,8 +19,11 @@ Layout, loosely after the real station:
   its own solar arrays, a docked Progress aft).
 
 Everything is deterministic: the few random details (equipment boxes, payloads) come from a
-local numpy Generator with a fixed seed. Parts of one material are merged by region so the
-asset stays under ~60 parts and ~150k triangles.
+local numpy Generator with a fixed seed. Parts of one material are merged by region (and joint)
+so the asset stays under ~100 parts and ~150k triangles. Joints (station_joints, Asset.joints): a
+part under a joint is in the joint's frame; Asset.triangle_soup(angles) poses it, and
+build_station(articulated=False) merges everything flat at rest (bit-identical to the static
+station the camera rig was chosen on).
 
 Thin sheets render from both sides: each solar blanket (part solar_wing_<seg><a|b>, material
 solar_cells, cells facing +X of the turned outboard frame) has a Kapton back sheet 2 cm behind
@@ -30,11 +34,12 @@ Texture UVs are in tiles (metres / *_TILE), so the tiling textures keep a physic
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
 
-from allo_usd.assets.mesh import Asset, Material, MeshPart
+from allo_usd.assets.mesh import Asset, Joint, Material, MeshPart
 from allo_usd.assets.primitives import (box, box_between, cylinder, cylinder_between, dish, frame_from_z, grid,
                                         merge, scale_uv, transform, uv_sphere)
 from allo_usd.core.geometry import rot_x, rot_y, rot_z, unit
@@ -46,7 +51,7 @@ TRUSS_HALF_LENGTH = 54.5  # the truss spans y in [-54.5, 54.5] (109 m)
 HX, HZ = 2.25, 1.5        # half width (X) and half height (Z) of the inboard truss
 HXO, HZO = 2.0, 1.4       # the same for the outboard (S4/S6, P4/P6) truss
 SARJ_Y = (31.5, 33.0)     # |y| range of the solar alpha rotary joints
-SARJ_ANGLE = np.radians(25.0)   # outboard truss rotation about the truss axis (sun tracking)
+SARJ_ANGLE = np.radians(25.0)   # outboard truss rotation about the truss axis: the alpha joints' rest angle
 WING_Y = (39.0, 52.0)           # |y| of the solar wing pairs on S4/P4 and S6/P6
 WING_LENGTH = 32.6              # blanket length; a wing reaches ~36.7 m from the truss axis
 BLANKET_WIDTH = 4.6
@@ -260,28 +265,44 @@ def _perp(axis) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Parts:
-    """Collects primitives into named groups of one material; merged at the end."""
+    """Collects primitives into named groups of one material (per joint); merged at the end.
 
-    def __init__(self) -> None:
-        self.groups: dict[str, tuple[str, list[MeshPart]]] = {}
+    `matrix` is a 4x4 matrix into the station frame, or a (joint, 4x4 matrix into that joint's
+    frame) pair for parts that hang under a joint (the outboard truss, the solar wings)."""
 
-    def add(self, group: str, material: str, *parts: MeshPart, matrix: np.ndarray | None = None) -> None:
-        if group in self.groups and self.groups[group][0] != material:
+    def __init__(self, articulated: bool = True) -> None:
+        self.groups: dict[tuple, tuple[str, list[MeshPart]]] = {}
+        self.rest = None if articulated else _rest_frames()
+
+    def add(self, group: str, material: str, *parts: MeshPart, matrix=None) -> None:
+        joint = None
+        if isinstance(matrix, tuple):
+            joint, matrix = matrix
+            if self.rest is not None:   # flat: straight into the station frame at rest, as one group
+                joint, matrix = None, self.rest[joint] @ matrix
+        if (joint, group) in self.groups and self.groups[joint, group][0] != material:
             group = f"{group}_{material}"   # a second material in one region gets its own part
-        mat, plist = self.groups.setdefault(group, (material, []))
+        mat, plist = self.groups.setdefault((joint, group), (material, []))
         for p in parts:
             plist.append(p if matrix is None else p.transformed(matrix))
 
     def build(self) -> tuple[MeshPart, ...]:
-        return tuple(merge(name, plist, mat) for name, (mat, plist) in self.groups.items() if plist)
+        return tuple(replace(merge(name, plist, mat), joint=joint)
+                     for (joint, name), (mat, plist) in self.groups.items() if plist)
 
 
 def _inboard() -> np.ndarray:
     return transform((0.0, 0.0, TRUSS_Z))
 
 
-def _outboard() -> np.ndarray:
+def _outboard_rest() -> np.ndarray:
+    """The outboard truss frame (its alpha joint's) in the station frame, at rest."""
     return transform((0.0, 0.0, TRUSS_Z), rot_y(SARJ_ANGLE))
+
+
+def _outboard(sign: int) -> tuple[str, np.ndarray]:
+    """Parts built in the outboard truss frame of one side hang under that side's alpha joint."""
+    return ALPHA_JOINTS[sign], np.eye(4)
 
 
 # ----------------------------------------------------------------------------- truss
@@ -381,7 +402,7 @@ def _sarj(b: _Parts, sign: int) -> None:
 
 
 def _truss(rng, b: _Parts) -> None:
-    m_in, m_out = _inboard(), _outboard()
+    m_in = _inboard()
     segments = [  # name, y0, y1, outboard, hx, hz
         ("S0", -6.7, 6.7, False, HX, HZ),
         ("S1", 6.7, 20.5, False, HX, HZ), ("S3", 20.5, SARJ_Y[0], False, HX, HZ),
@@ -393,12 +414,12 @@ def _truss(rng, b: _Parts) -> None:
         if name != "S0":
             sides.append(("P" + name[1:], -y1, -y0))
         for nm, a, c in sides:
-            mat = m_out if outboard else m_in
+            mat = _outboard(1 if nm[0] == "S" else -1) if outboard else m_in
             b.add(f"truss_{nm}", TRUSS, *_lattice(a, c, hx, hz), matrix=mat)
             _equipment(rng, b, a, c, hx, hz, mat, density=0.45 if outboard else 0.75, top=not outboard)
     # segment end caps where the truss meets the SARJ: solid bulkhead plates
     for s in (1, -1):
-        for y, mat, hx, hz in ((s * (SARJ_Y[0] - 0.1), m_in, HX, HZ), (s * (SARJ_Y[1] + 0.1), m_out, HXO, HZO)):
+        for y, mat, hx, hz in ((s * (SARJ_Y[0] - 0.1), m_in, HX, HZ), (s * (SARJ_Y[1] + 0.1), _outboard(s), HXO, HZO)):
             b.add("truss_equipment", SKIN, box("p", (2 * hx - 0.3, 0.12, 2 * hz - 0.3), SKIN,
                                                transform((0, y, 0)), 1 / SKIN_TILE), matrix=mat)
         _sarj(b, s)
@@ -483,8 +504,8 @@ def _radiators(b: _Parts) -> None:
             yc = s * (11.6 + 3.5 * k)
             _panel_stack(b, name, beam + (0, yc, 0), r, (0, 1, 0), 3.2, 8, 2.7, 0.1, 0.45, m)
     # photovoltaic radiators: one per solar module, sticking out aft in the outboard frame
-    mo = _outboard()
     for s in (1, -1):
+        mo = _outboard(s)
         for yc in (41.0, 50.5):
             start = np.array([-HXO - 0.1, s * yc, 0.0])
             b.add("truss_hardware", METAL, box("p", (0.5, 1.2, 1.0), METAL, transform(start + (-0.1, 0, 0))),
@@ -511,10 +532,10 @@ def _mast(length0: float, length1: float, radius: float = 0.42, bay: float = 1.5
     return parts
 
 
-def _wing(b: _Parts, name: str, yc: float, up: bool, beta: float) -> None:
-    """One solar wing: BGA + canister + two blankets either side of a mast, in the outboard frame."""
-    flip = np.eye(4) if up else transform(rotate=rot_x(np.pi))
-    m = _outboard() @ transform((0.0, yc, 0.0)) @ flip @ transform(rotate=rot_z(beta))
+def _wing(b: _Parts, name: str) -> None:
+    """One solar wing: BGA + canister + two blankets either side of a mast, in its beta joint's frame
+    (the mast along +Z, the cells facing +X)."""
+    m = (beta_joint_name(name), np.eye(4))
     z0 = HZO
     b.add("truss_hardware", METAL, cylinder("p", 0.55, 0.7, METAL, 24, transform((0, 0, z0))), matrix=m)
     b.add("solar_blanket_boxes", SKIN, _tiled(cylinder("p", 0.62, 1.2, SKIN, 24, transform((0, 0, z0 + 0.7))),
@@ -546,16 +567,60 @@ def _wing(b: _Parts, name: str, yc: float, up: bool, beta: float) -> None:
 
 
 def _solar(b: _Parts) -> None:
-    betas = {"S4": (8.0, -5.0), "S6": (-3.0, 10.0), "P4": (5.0, -9.0), "P6": (-7.0, 4.0)}
     for side, s in (("S", 1), ("P", -1)):
         for seg, yc in (("4", WING_Y[0]), ("6", WING_Y[1])):
             name = side + seg
-            ba, bb = betas[name]
-            _wing(b, name + "a", s * yc, True, np.radians(ba))
-            _wing(b, name + "b", s * yc, False, np.radians(bb))
+            _wing(b, name + "a")
+            _wing(b, name + "b")
             # the integrated equipment assembly: a white box frame carrying the BGAs
             b.add("truss_equipment", SKIN, box("p", (2 * HXO - 0.5, 3.0, 2 * HZO - 0.4), SKIN,
-                                               transform((0, s * yc, 0)), 1 / SKIN_TILE), matrix=_outboard())
+                                               transform((0, s * yc, 0)), 1 / SKIN_TILE), matrix=_outboard(s))
+
+
+# ----------------------------------------------------------------------------- joints
+# The outboard truss of each side turns about the truss axis (Y through (0, 0, TRUSS_Z)) on its solar
+# alpha rotary joint; each wing turns about its mast (its frame's Z) on its beta gimbal, under its
+# side's alpha joint. Rest angles are the pose the static station was built in. Limits (degrees,
+# docs/physics.md "Sun-tracking arrays"): the SARJ turns continuously (-180..180, angles wrap), as on
+# the ISS; the beta gimbals are held to +-BETA_LIMIT (the +-75 degree solar beta range the ISS's orbit
+# needs; a choice); at a limit a wing stops there and misses the Sun by the excess.
+ALPHA_JOINTS = {1: "AlphaS", -1: "AlphaP"}
+ALPHA_REST = float(np.degrees(SARJ_ANGLE))
+BETA_LIMIT = 75.0
+BETA_REST = {"S4a": 8.0, "S4b": -5.0, "S6a": -3.0, "S6b": 10.0, "P4a": 5.0, "P4b": -9.0, "P6a": -7.0, "P6b": 4.0}
+WINGS = tuple(BETA_REST)   # "b" wings hang below the truss: their frame is turned 180 degrees about X
+
+
+def beta_joint_name(wing: str) -> str:
+    return f"Beta{wing}"
+
+
+def _rest_frames() -> dict[str, np.ndarray]:
+    """{joint: its frame in the station frame at rest}, composed as the static station always was (so
+    the flat build, from which the camera rig was chosen, stays bit-identical)."""
+    frames = {}
+    for s in (1, -1):
+        frames[ALPHA_JOINTS[s]] = _outboard_rest()
+    for wing in WINGS:
+        s = 1 if wing[0] == "S" else -1
+        yc = s * (WING_Y[0] if wing[1] == "4" else WING_Y[1])
+        flip = np.eye(4) if wing.endswith("a") else transform(rotate=rot_x(np.pi))
+        frames[beta_joint_name(wing)] = (_outboard_rest() @ transform((0.0, yc, 0.0)) @ flip
+                                         @ transform(rotate=rot_z(np.radians(BETA_REST[wing]))))
+    return frames
+
+
+def station_joints() -> tuple[Joint, ...]:
+    """The 2 alpha joints, then the 8 beta joints (parents first)."""
+    joints = [Joint(ALPHA_JOINTS[s], None, "Y", ALPHA_REST, -180.0, 180.0, (0.0, 0.0, TRUSS_Z),
+                    tracks="Sun", op="alpha") for s in (1, -1)]
+    for wing in WINGS:
+        s = 1 if wing[0] == "S" else -1
+        yc = s * (WING_Y[0] if wing[1] == "4" else WING_Y[1])
+        joints.append(Joint(beta_joint_name(wing), ALPHA_JOINTS[s], "Z", BETA_REST[wing], -BETA_LIMIT, BETA_LIMIT,
+                            (0.0, yc, 0.0), (180.0 if wing.endswith("b") else 0.0, 0.0, 0.0), tracks="Sun",
+                            op="beta"))
+    return tuple(joints)
 
 
 def _small_array(b: _Parts, root, direction, length: float, width: float, tilt: float, group: str) -> None:
@@ -862,26 +927,37 @@ def _progress(b: _Parts, start, axis) -> None:
 
 
 # ----------------------------------------------------------------------------- public API
-def build_station() -> Asset:
-    """The whole station as one Asset named "Station" (deterministic)."""
+def build_station(articulated: bool = True) -> Asset:
+    """The whole station as one Asset named "Station" (deterministic): the outboard trusses and the
+    wings hang under their joints (at rest), or, with articulated=False, everything is merged flat
+    in the station frame at rest (the static station as built before it had joints)."""
     rng = np.random.default_rng(20240611)
-    b = _Parts()
+    b = _Parts(articulated)
     _truss(rng, b)
     _radiators(b)
     _solar(b)
     _modules(rng, b)
-    return Asset("Station", b.build(), _materials(), _textures())
+    return Asset("Station", b.build(), _materials(), _textures(), station_joints() if articulated else ())
 
 
-def station_triangles() -> tuple[np.ndarray, np.ndarray]:
-    """All of the station merged: (V, 3) float64 points and (T, 3) int triangles, for ray casting."""
+def station_triangles(angles: dict[str, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """All of the station merged: (V, 3) float64 points and (T, 3) int triangles, for ray casting;
+    the joints at rest, or at `angles` ({joint name: degrees}, rest where not given)."""
+    if angles:
+        pts, tris = _station_asset().triangle_soup(angles)
+        return pts, tris
     pts, tris = _station_soup()
     return pts.copy(), tris.copy()
 
 
 @lru_cache(maxsize=1)
+def _station_asset() -> Asset:
+    return build_station()
+
+
+@lru_cache(maxsize=1)
 def _station_soup() -> tuple[np.ndarray, np.ndarray]:
-    return build_station().triangle_soup()
+    return build_station(articulated=False).triangle_soup()
 
 
 def station_fixture_points() -> np.ndarray:
@@ -898,7 +974,7 @@ def station_fixture_points() -> np.ndarray:
         pts.append(np.array([0.3, y, tz + HZ + 1.9]))
     for y in (-15.0, 15.0):                                    # below the truss, forward of the radiators
         pts.append(np.array([1.2, y, tz - HZ - 1.5]))
-    mo = _outboard()
+    mo = _outboard_rest()
     for y in (-48.5, -36.0, 36.0, 48.5):                       # forward face of the turned outboard truss
         p = mo @ np.array([HXO + 1.5, y, 0.3, 1.0])
         pts.append(p[:3])

@@ -408,6 +408,9 @@ class Station(_Model):
     up_axis: Literal[STATION_UP_AXES] = Field(
         "auto", description="The model axis that points up (zenith): " + ", ".join(STATION_UP_AXES)
                             + "; 'auto' is the format's own (glTF, OBJ: y; STL: z).")
+    track_sun: bool = Field(False, description="Turn the procedural station's solar arrays (alpha and beta "
+                            "joints) to face each day's Sun, within the joints' limits; off keeps the rest pose "
+                            "(the paper's). Only for source = 'procedural'.")
 
     @field_validator("up_axis", mode="before")
     @classmethod
@@ -421,6 +424,14 @@ class Station(_Model):
             raise ValueError(f"station source {_short(v)} is neither 'procedural' nor a model file; fix: use "
                              f"'procedural' or a path ending in {', '.join(STATION_SUFFIXES)}")
         return v
+
+    @model_validator(mode="after")
+    def _tracking(self):
+        if self.track_sun and self.source != "procedural":
+            raise ValueError(f"station.track_sun is on but station.source is the model {_short(self.source)}; only "
+                             "the procedural station has solar-array joints; fix: set track_sun = false or "
+                             "source = 'procedural'")
+        return self
 
 
 class Plan(_Model):
@@ -555,5 +566,5 @@ def paper_plan() -> Plan:
 def demo_plan() -> Plan:
     """A tiny plan for trying the pipeline: 2 days, 2 train poses, 1 test pose, 1 anomaly, 5 depths."""
     return Plan(name="demo", dates=Dates(days=2), poses=Poses(train=[1, 2], test=[41]),
-                anomalies=Anomalies(assets=[AnomalyChoice(id="power_drill")]),
+                anomalies=Anomalies(assets=[AnomalyChoice(id="power_drill")]), station=Station(track_sun=True),
                 quality=Quality(preset="demo", resolution=(480, 270)))

@@ -75,7 +75,8 @@ class AuthorContext:
         self.base_stage = plan.resolve_base_stage()
         # The plan's own hazards, converted into the tree by open_tree (allo_usd.usd.hazard.write_hazards).
         self.hazards = {c.id: hazard_asset_path(self.out_dir, c.id) for c in plan.anomalies.user_hazards()}
-        self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch), self.hazards)
+        self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch), self.hazards,
+                                   track_sun=plan.station.track_sun)
         self._add_file_poses(plan)
         q = plan.quality
         self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE,
@@ -136,7 +137,7 @@ def ensure_sky_layer(ctx: AuthorContext, day: int) -> Path:
     if not path.exists():
         sun, bodies = ctx.sky(day)
         write_sky_layer(path, day=day, epoch=ctx.inputs.sky.epochs[day], perilune_epoch=ctx.inputs.perilune_epoch,
-                        sun=sun, bodies=bodies)
+                        sun=sun, bodies=bodies, joints=ctx.inputs.joint_angles(day))
     return path
 
 
@@ -173,7 +174,8 @@ def resolve_sample(ctx: AuthorContext, keys: list[SceneKey]) -> Resolved:
     results: dict = {k.depth_index: None for k in keys}
     if anomaly is not None:
         try:
-            results = dict(enumerate(resolve_placements(ctx.inputs, camera, rng, anomaly, ctx.render.resolution)))
+            results = dict(enumerate(resolve_placements(ctx.inputs, camera, rng, anomaly, ctx.render.resolution,
+                                                            day=k0.day)))
         except PlacementError as exc:
             results = {k.depth_index: f"no initial placement: {exc}" for k in keys}
     return Resolved(camera, seed, seed_path, results)

@@ -34,6 +34,7 @@ from allo_usd.core.paths import BASE_STAGE
 from allo_usd.core.constants import EXPOSURE
 from allo_usd.core.timefmt import format_utc
 from allo_usd.scene.resolve import SceneInputs, resolve_scene
+from allo_usd.scene.tracking import sun_tracking_angles
 from allo_usd.usd.read import scene_inputs
 from allo_usd.plan.settings import RenderSpec
 from allo_usd.scene.spec import SceneSpec
@@ -46,6 +47,7 @@ DEMO_SCENES = (  # (day, pose, anomaly or None); poses 1-40 are the train split,
     (200, 47, ("mli_blanket", None)),
 )
 DEMO_SEED = 2030
+DEMO_TRACK_SUN = True   # as demo_plan: the arrays face each day's Sun (allo_usd.scene.tracking)
 
 
 def demo_spec(inputs: SceneInputs, index: int, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> SceneSpec:
@@ -76,8 +78,9 @@ def write_demo_layer(spec: SceneSpec, tree: Path, base_stage: Path, seed: int = 
     layer (each written once) and the scene layer `tree/SCENE_ID.usda` over them."""
     sky = sky_layer_path(tree, spec.day)
     if not sky.is_file():
+        joints = sun_tracking_angles(spec.sun.direction) if DEMO_TRACK_SUN else None
         write_sky_layer(sky, day=spec.day, epoch=spec.epoch, perilune_epoch=spec.perilune_epoch,
-                        sun=spec.sun, bodies=spec.bodies)
+                        sun=spec.sun, bodies=spec.bodies, joints=joints)
     sample_id = f"s{seed}_d{spec.day:03d}_p{spec.pose:02d}" + (
         "" if spec.anomaly is None else f"_{spec.anomaly.asset}-{spec.anomaly.variant}")
     pose = pose_layer_path(tree, seed, sample_id)
@@ -144,7 +147,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     copy_schema(tree)
     orbit = Orbit()
     sky = compute_sky(default_epochs(), orbit)
-    inputs = scene_inputs(stage, sky, format_utc(orbit.perilune_epoch))
+    inputs = scene_inputs(stage, sky, format_utc(orbit.perilune_epoch), track_sun=DEMO_TRACK_SUN)
     rows = []
     with tqdm(total=len(DEMO_SCENES), unit="scene", desc="demo", disable=not progress) as bar:
         for i in range(len(DEMO_SCENES)):

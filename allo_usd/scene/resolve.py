@@ -24,13 +24,17 @@ from allo_usd.plan.settings import EffectsSpec, RenderSpec
 from allo_usd.core.seeds import scene_seed
 
 
+DAY_SCENES_KEPT = 4   # posed station BVHs SceneInputs keeps (~0.1 s to build each)
+
+
 class StationGeometry(Protocol):
     """Where the base stage's geometry comes from: allo_usd.usd.read.StageGeometry reads it from a
     base stage; anything else that answers these three calls will do (the scene layer reads no USD)."""
 
     def poses(self) -> list: ...                                        # CameraPose, pose numbers 1..50
 
-    def station_triangles(self) -> tuple[np.ndarray, np.ndarray]: ...   # (points, triangles), world frame
+    # (points, triangles), world frame; `angles` {joint name: degrees} poses the station's joints (rest if None)
+    def station_triangles(self, angles: dict[str, float] | None = None) -> tuple[np.ndarray, np.ndarray]: ...
 
     def anomaly_triangles(self, asset: str, variant: str) -> tuple[np.ndarray, np.ndarray]: ...  # asset frame
 
@@ -38,14 +42,18 @@ class StationGeometry(Protocol):
 @dataclass
 class SceneInputs:
     """What resolving a scene needs, loaded once and shared by every scene of a run: the base
-    poses, the station's ray-casting BVH, each anomaly's mesh and BVH, and the sky."""
+    poses, the station's ray-casting BVH, each anomaly's mesh and BVH, and the sky. With `track_sun`
+    (the plan's station.track_sun) the station's arrays face each day's Sun: `station_scene_on(day)`
+    is then that day's posed station (the camera rig's base poses were chosen at rest)."""
 
     geometry: StationGeometry
     sky: object                 # allo_usd.sky.model.Sky
     perilune_epoch: str
+    track_sun: bool = False
     _anomaly_cache: dict = field(default_factory=dict)
     extra_poses: list = field(default_factory=list)   # a plan's pose-file poses (CameraPose, numbers 51, ...)
     sigmas: tuple[float, float] = (POSITION_SIGMA_M, ANGLE_SIGMA_RAD)   # the plan's perturbation
+    _day_scenes: dict = field(default_factory=dict)
 
     @cached_property
     def poses(self):
@@ -59,6 +67,28 @@ class SceneInputs:
     @cached_property
     def station_scene(self) -> RayScene:
         return RayScene(self.station_parts)
+
+    def joint_angles(self, day: int) -> dict[str, float] | None:
+        """The station's joint angles on `day` (degrees, allo_usd.scene.tracking), or None (rest) when
+        the plan does not track the Sun."""
+        if not self.track_sun:
+            return None
+        from allo_usd.scene.tracking import sun_tracking_angles
+
+        return sun_tracking_angles(sun_and_bodies(self.sky, day)[0].direction)
+
+    def station_scene_on(self, day: int | None) -> RayScene:
+        """The station's BVH as it is posed on `day` (the rest pose without tracking or day); the last
+        few days' are kept (a day's scenes are authored together)."""
+        angles = None if day is None else self.joint_angles(day)
+        if angles is None:
+            return self.station_scene
+        if day not in self._day_scenes:
+            while len(self._day_scenes) >= DAY_SCENES_KEPT:
+                self._day_scenes.pop(next(iter(self._day_scenes)))
+            pts, tris = self.geometry.station_triangles(angles)
+            self._day_scenes[day] = RayScene([(pts, tris, STATION)])
+        return self._day_scenes[day]
 
     def anomaly_geometry(self, asset: str, variant: str):
         key = (asset, variant)
@@ -115,7 +145,7 @@ def resolve_camera(inputs: SceneInputs, *, day: int, pose: int, plan_seed: int,
         key = (*key, f"r{reserve}")
     seed, seed_path = scene_seed(plan_seed, *key)
     rng = np.random.default_rng(seed)
-    pos, rot, dpos, dang, attempts = perturb(base, rng, inputs.station_scene, position_sigma_m=inputs.sigmas[0],
+    pos, rot, dpos, dang, attempts = perturb(base, rng, inputs.station_scene_on(day), position_sigma_m=inputs.sigmas[0],
                                              angle_sigma_rad=inputs.sigmas[1])
     sigmas = None if tuple(inputs.sigmas) == (POSITION_SIGMA_M, ANGLE_SIGMA_RAD) else tuple(map(float, inputs.sigmas))
     camera = CameraSpec(tuple(map(float, pos)), rot, tuple(map(float, dpos)), tuple(map(float, dang)),
@@ -124,14 +154,15 @@ def resolve_camera(inputs: SceneInputs, *, day: int, pose: int, plan_seed: int,
 
 
 def resolve_placements(inputs: SceneInputs, camera: CameraSpec, rng: np.random.Generator, anomaly: tuple[str, str],
-                       resolution: tuple[int, int]) -> list[AnomalySpec | str]:
+                       resolution: tuple[int, int], day: int | None = None) -> list[AnomalySpec | str]:
     """All five depths of one placement from one ray-cast search (`placement.place`: candidates are
     redrawn until all five depths pass, screened at 480 px wide and confirmed at `resolution`): an
     AnomalySpec per depth, with the fraction of the image it covers at `resolution`, or the reason
-    that depth was skipped. Raises PlacementError when no initial placement is found."""
+    that depth was skipped. Raises PlacementError when no initial placement is found.
+    `day`: the station as posed that day (SceneInputs.station_scene_on; None: at rest)."""
     pts, tris, centre, scene = inputs.anomaly_scene(*anomaly)
     pos = np.asarray(camera.position, dtype=np.float64)
-    placements = place(inputs.station_scene, pts, tris, pos, camera.rotation, rng, resolution[0], resolution[1],
+    placements = place(inputs.station_scene_on(day), pts, tris, pos, camera.rotation, rng, resolution[0], resolution[1],
                        anomaly=scene)
     out = []
     for p in placements:
@@ -163,7 +194,7 @@ def resolve_scene(inputs: SceneInputs, *, scene_id: str, day: int, pose: int, pl
                                                   reserve=reserve)
     anomaly_spec = None
     if anomaly is not None:
-        chosen = resolve_placements(inputs, camera, rng, anomaly, render.resolution)[depth_index]
+        chosen = resolve_placements(inputs, camera, rng, anomaly, render.resolution, day=day)[depth_index]
         if isinstance(chosen, str):
             raise PlacementError(f"scene {scene_id}: {chosen}")
         anomaly_spec = chosen

@@ -14,7 +14,7 @@ from PIL import Image
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import atomic_path, commit_temp, temp_beside
-from allo_usd.assets.mesh import Asset, MeshPart
+from allo_usd.assets.mesh import Asset, Joint, MeshPart
 from allo_usd.usd import layout
 
 LABEL_TAXONOMY = "class"
@@ -101,8 +101,10 @@ def write_geometry(asset: Asset, usdc_path: Path, root: str, texture_dir: str = 
         material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
         materials[mat.name] = material
 
+    define_joints(stage, asset, root)
     for part in asset.parts:
-        mesh = UsdGeom.Mesh.Define(stage, f"{layout.asset_geom(root)}/{part.name}")
+        parent = layout.asset_joint(root, asset.joint_chain(part.joint))
+        mesh = UsdGeom.Mesh.Define(stage, f"{parent}/{part.name}")
         pts = part.points.astype(np.float32)
         mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(part.face_counts))
@@ -121,6 +123,33 @@ def write_geometry(asset: Asset, usdc_path: Path, root: str, texture_dir: str = 
         binding.Bind(materials[part.material])
 
     commit_layer(layer, tmp, usdc_path)
+
+
+def joint_op_name(joint: Joint) -> str:
+    """The joint angle's xformOp attribute (e.g. xformOp:rotateY:alpha)."""
+    return f"xformOp:rotate{joint.axis}:{joint.op}"
+
+
+def define_joints(stage, asset: Asset, root: str) -> None:
+    """Each joint an Xform: translate and rotateXYZ mounting ops (suffix `mount`), then its one joint
+    op at the rest angle; AlloJointAPI records axis, limits and what it tracks."""
+    from pxr import Gf, UsdGeom
+
+    from allo_usd.usd import attributes as A
+    from allo_usd.usd import schema
+
+    for joint in asset.joints:
+        prim = UsdGeom.Xform.Define(stage, layout.asset_joint(root, asset.joint_chain(joint.name)))
+        prim.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble, "mount").Set(Gf.Vec3d(*map(float, joint.translate)))
+        if any(joint.mount_rotation):
+            prim.AddRotateXYZOp(UsdGeom.XformOp.PrecisionDouble, "mount").Set(
+                Gf.Vec3d(*map(float, joint.mount_rotation)))
+        add = {"X": prim.AddRotateXOp, "Y": prim.AddRotateYOp, "Z": prim.AddRotateZOp}[joint.axis]
+        add(UsdGeom.XformOp.PrecisionDouble, joint.op).Set(float(joint.rest))
+        schema.apply(prim.GetPrim(), "AlloJointAPI")
+        for attr, value in ((A.JOINT_AXIS, joint.axis), (A.JOINT_LOWER_LIMIT, float(joint.lower)),
+                            (A.JOINT_UPPER_LIMIT, float(joint.upper)), (A.JOINT_TRACKS, joint.tracks)):
+            prim.GetPrim().GetAttribute(attr.name).Set(value)
 
 
 def new_layer(path: Path):

@@ -129,11 +129,19 @@ ANOMALY_PREFIX = "allo:anomaly:"
 POSE_INDEX, POSE_SPLIT = CAMERA_POSE = _group(
     "AlloCameraPoseAPI", RIG_POSES, ("allo:pose:index", "int"), ("allo:pose:split", "token"))
 
+# ---------------------------------------------------------------- AlloJointAPI (station joints)
+# An articulated joint of the procedural station (an Xform whose one named xformOp, e.g.
+# xformOp:rotateY:alpha, is the joint angle): its axis, limits in degrees and the body it tracks.
+STATION_JOINTS = f"{layout.STATION}/Geom/*"
+JOINT_AXIS, JOINT_LOWER_LIMIT, JOINT_UPPER_LIMIT, JOINT_TRACKS = JOINT = _group(
+    "AlloJointAPI", STATION_JOINTS, ("allo:joint:axis", "token"), ("allo:joint:lowerLimit", "double"),
+    ("allo:joint:upperLimit", "double"), ("allo:joint:tracks", "token"))
+
 # Every attribute, by API schema (schema order).
 BY_SCHEMA: dict[str, tuple[AlloAttribute, ...]] = {
     "AlloSceneAPI": SCENE + SKY_RECORD + POSE_RECORD, "AlloEclipseAPI": ECLIPSE, "AlloRayVisibilityAPI": RAY,
     "AlloRenderQualityAPI": RENDER_QUALITY, "AlloEffectsAPI": EFFECTS, "AlloAnomalyAPI": ANOMALY,
-    "AlloCameraPoseAPI": CAMERA_POSE,
+    "AlloCameraPoseAPI": CAMERA_POSE, "AlloJointAPI": JOINT,
 }
 ALL: tuple[AlloAttribute, ...] = tuple(a for group in BY_SCHEMA.values() for a in group)
 BY_NAME: dict[str, AlloAttribute] = {a.name: a for a in ALL}

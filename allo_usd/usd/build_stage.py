@@ -33,8 +33,9 @@ def station_and_fixtures(source: str | None, units: str = "auto", up_axis: str =
         from allo_usd.assets.station import build_station, station_fixture_points
 
         station = build_station()
-        core = Asset("core", tuple(p for p in station.parts if not p.name.startswith(_NOT_FIXTURES)),
-                     station.materials, station.textures)
+        flat = build_station(articulated=False)   # the rest pose, merged as the rig was chosen from
+        core = Asset("core", tuple(p for p in flat.parts if not p.name.startswith(_NOT_FIXTURES)),
+                     flat.materials, flat.textures)
         samples = fixtures_from_mesh(*core.triangle_soup(), count=SURFACE_CANDIDATES)
         return (station, np.concatenate([station_fixture_points(), samples]),
                 "Procedural ISS-like station (allo_usd.assets.station).")

@@ -125,9 +125,11 @@ def scene_layer_path(out_dir: Path, split: str, kind: str, scene_id: str) -> Pat
     return Path(out_dir) / SCENE_DIR / split / kind / f"{scene_id}.usda"
 
 
-def write_sky_layer(path: Path, *, day: int, epoch: str, perilune_epoch: str, sun: SunSpec, bodies: dict) -> Path:
-    """The shared layer of one day: everything the sky decides."""
-    return write_layer(path, sky_prims(epoch, perilune_epoch, day, sun, bodies), [],
+def write_sky_layer(path: Path, *, day: int, epoch: str, perilune_epoch: str, sun: SunSpec, bodies: dict,
+                    joints: dict[str, float] | None = None) -> Path:
+    """The shared layer of one day: everything the sky decides, and with `joints` (a plan that
+    tracks the Sun) the station's joint angles that day."""
+    return write_layer(path, sky_prims(epoch, perilune_epoch, day, sun, bodies, joints), [],
                        {"day": int(day), "epoch": epoch}, f"allo-usd sky of day {day} ({epoch})")
 
 

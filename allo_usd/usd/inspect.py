@@ -236,6 +236,7 @@ def describe(layer: str | Path) -> dict:
 
     root = stage.GetRootLayer()
     start = Path(root.realPath).parent if root.realPath else Path.cwd()
+    joints = _joints(stage, start)
     return {
         "layer": str(layer),
         "scene_id": a(A.SCENE_ID, provenance.get("sceneId")), "epoch": a(A.EPOCH),
@@ -251,10 +252,26 @@ def describe(layer: str | Path) -> dict:
         "pose_file": ({"name": a(A.POSE_NAME), "source": a(A.POSE_SOURCE), "sha256": a(A.POSE_SOURCE_SHA256)}
                       if a(A.POSE_NAME) else None),
         "anomaly": anomaly, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
-        "camera": camera,
+        "camera": camera, "joints": joints,
         "layer_stack": {"sublayers": list(root.subLayerPaths),
                         "layers": [_rel(l.realPath, start) or l.identifier for l in _stack(stage)]},
     }
+
+
+def _joints(stage, start: Path) -> dict:
+    """The procedural station's joints as the scene composes them: {name: {angle (degrees), lower,
+    upper, from (the layer holding the angle: the sky layer when the plan tracks the Sun)}}."""
+    from allo_usd.usd.read import joint_op, station_joints
+
+    out = {}
+    for name, prim in station_joints(stage).items():
+        op = joint_op(prim)
+        specs = op.GetAttr().GetPropertyStack()
+        source = specs[0].layer if specs else None
+        out[name] = {"angle": float(op.Get()), "lower": _attr(prim, A.JOINT_LOWER_LIMIT.name),
+                     "upper": _attr(prim, A.JOINT_UPPER_LIMIT.name),
+                     "from": (_rel(source.realPath, start) or source.identifier) if source else None}
+    return out
 
 
 def _fmt(v) -> str:
@@ -310,6 +327,10 @@ def format_description(d: dict) -> str:
     lines.append("effects  " + "  ".join(f"{k}={v}" for k, v in d["effects"].items()))
     if d.get("sensor"):
         lines.append("sensor   " + "  ".join(f"{k}={_fmt(v)}" for k, v in sorted(d["sensor"].items())))
+    if d.get("joints"):
+        sources = sorted({str(j["from"]) for j in d["joints"].values()})
+        lines.append("joints   " + "  ".join(f"{k} {_fmt(j['angle'])}" for k, j in d["joints"].items())
+                     + f"  (degrees; from {', '.join(sources)})")
     lines.append("stack    " + " -> ".join(d["layer_stack"]["layers"]))
     return "\n".join(lines)
 

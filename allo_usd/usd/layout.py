@@ -56,3 +56,13 @@ def asset_looks(root: str) -> str:
 
 def asset_geom(root: str) -> str:
     return f"/{root}/Geom"
+
+
+def asset_joint(root: str, chain) -> str:
+    """A joint's Xform inside an asset: /<root>/Geom/<joint>/<child joint>... (`chain`: root joint first)."""
+    return "/".join((asset_geom(root), *chain))
+
+
+def station_joint(chain) -> str:
+    """A station joint's prim in the base stage and scene layers (e.g. /World/Station/Geom/AlphaS/BetaS4a)."""
+    return "/".join((STATION, "Geom", *chain))

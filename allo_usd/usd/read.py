@@ -911,8 +911,11 @@ def read_rig(base_stage: str | Path) -> list:
     return sorted(poses, key=lambda p: p.index)
 
 
-def read_triangles(layer_path: str | Path, root: str, variant: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """World-space (points, triangles) of every mesh under `root`, for ray casting."""
+def read_triangles(layer_path: str | Path, root: str, variant: str | None = None,
+                   joint_angles: dict[str, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space (points, triangles) of every mesh under `root`, for ray casting; `joint_angles`
+    ({joint prim name: degrees}) sets the joint op of each AlloJointAPI prim under `root` first (in
+    the stage's session layer: the files are not touched)."""
     from pxr import Usd, UsdGeom
 
     from allo_usd.assets.mesh import fan_triangulate
@@ -921,6 +924,8 @@ def read_triangles(layer_path: str | Path, root: str, variant: str | None = None
     prim = stage.GetPrimAtPath(root) if root else stage.GetDefaultPrim()
     if not prim:
         raise LayerError(f"{layer_path} has no prim {root}")
+    if joint_angles:
+        set_joint_angles(stage, prim, joint_angles, layer_path)
     if variant is not None:
         vs = prim.GetVariantSets().GetVariantSet("variant")
         if variant not in vs.GetVariantNames():
@@ -942,6 +947,57 @@ def read_triangles(layer_path: str | Path, root: str, variant: str | None = None
     return np.concatenate(pts), np.concatenate(tris)
 
 
+def joint_op(prim):
+    """The joint-angle xformOp of an AlloJointAPI prim: its last op, a single-axis rotate."""
+    from pxr import UsdGeom
+
+    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
+    if not ops or ops[-1].GetOpType() not in (UsdGeom.XformOp.TypeRotateX, UsdGeom.XformOp.TypeRotateY,
+                                              UsdGeom.XformOp.TypeRotateZ):
+        raise LayerError(f"joint {prim.GetPath()} has no single-axis rotate as its last xformOp (its joint angle); "
+                         "fix the base stage: regenerate it with scripts/make_base_stage.py")
+    return ops[-1]
+
+
+def station_joints(stage, root=None) -> dict:
+    """{joint prim name: prim} of every AlloJointAPI prim under `root` (default the station)."""
+    from pxr import Usd
+
+    top = root if root is not None else stage.GetPrimAtPath(layout.STATION)
+    if not top:
+        return {}
+    return {p.GetName(): p for p in Usd.PrimRange(top) if p.HasAPI("AlloJointAPI")}
+
+
+def set_joint_angles(stage, root, angles: dict[str, float], where) -> None:
+    """Author each joint's angle in the stage's session layer (the files stay as they are)."""
+    from pxr import Usd
+
+    joints = station_joints(stage, root)
+    unknown = sorted(set(angles) - set(joints))
+    if unknown:
+        raise LayerError(f"{where}: the station has no joints {unknown} (it has {sorted(joints)}); fix: regenerate "
+                         "the base stage with scripts/make_base_stage.py, or turn station.track_sun off")
+    with Usd.EditContext(stage, stage.GetSessionLayer()):
+        for name, value in angles.items():
+            joint_op(joints[name]).Set(float(value))
+
+
+def read_joint_angles(layer_path: str | Path) -> dict[str, dict]:
+    """{joint name: {path, op, angle, axis, lower, upper, tracks}} of the station's joints as a layer composes them."""
+    stage = open_stage(layer_path)
+    out = {}
+    for name, prim in station_joints(stage).items():
+        op = joint_op(prim)
+        rec = {"path": str(prim.GetPath()), "op": op.GetOpName(), "angle": float(op.Get())}
+        for key, attr in (("axis", A.JOINT_AXIS), ("lower", A.JOINT_LOWER_LIMIT), ("upper", A.JOINT_UPPER_LIMIT),
+                          ("tracks", A.JOINT_TRACKS)):
+            value = prim.GetAttribute(attr.name).Get()
+            rec[key] = value if isinstance(value, str) or value is None else float(value)
+        out[name] = rec
+    return out
+
+
 class StageGeometry:
     """A base stage's geometry for scene resolution (allo_usd.scene.resolve.StationGeometry): its
     camera rig, the station's triangles and each anomaly asset's triangles, read with pxr."""
@@ -953,20 +1009,23 @@ class StageGeometry:
     def poses(self) -> list:
         return read_rig(self.base_stage)
 
-    def station_triangles(self) -> tuple[np.ndarray, np.ndarray]:
-        return read_triangles(self.base_stage, layout.STATION)
+    def station_triangles(self, angles: dict[str, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The station's triangles, its joints (read from the base stage, so an edited stage is seen)
+        at `angles` ({joint name: degrees}) or as the base stage has them."""
+        return read_triangles(self.base_stage, layout.STATION, joint_angles=angles)
 
     def anomaly_triangles(self, asset: str, variant: str) -> tuple[np.ndarray, np.ndarray]:
         path = self.assets.get(asset, self.base_stage.parent / "anomalies" / f"{asset}.usda")
         return read_triangles(path, layout.asset_root(asset), variant)
 
 
-def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str, assets: dict | None = None):
+def scene_inputs(base_stage: str | Path, sky, perilune_epoch: str, assets: dict | None = None,
+                 track_sun: bool = False):
     """SceneInputs over a base stage (and a plan's own hazards, {id: interface layer}): what
-    allo_usd.scene.resolve needs, read from USD."""
+    allo_usd.scene.resolve needs, read from USD. `track_sun`: the station's arrays follow each day's Sun."""
     from allo_usd.scene.resolve import SceneInputs
 
-    return SceneInputs(StageGeometry(base_stage, assets), sky, perilune_epoch)
+    return SceneInputs(StageGeometry(base_stage, assets), sky, perilune_epoch, track_sun=track_sun)
 
 
 VAR_PASSES = {name: p for name, (p, _, _, _) in RENDER_VARS.items()}   # var prim name -> pass

@@ -142,11 +142,13 @@ def eclipse_day(sun: SunSpec, bodies: dict) -> bool:
                for name in LIT_BODIES if name in bodies)
 
 
-def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: dict) -> list[Prim]:
+def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: dict,
+              joints: dict[str, float] | None = None) -> list[Prim]:
     """The day's opinions: epoch, the station's sun lamp and each body's position (apparent) with its
     geometric direction for the record (docs/physics.md section 11). On an eclipse day
     (eclipse_day) also the light linking: the station's lamp excludes the lit bodies, each of which
-    gets its own active lamp (the Sun from its centre, its own lit fraction)."""
+    gets its own active lamp (the Sun from its centre, its own lit fraction). With `joints` (a plan
+    that tracks the Sun: {station joint name: degrees}) also each joint's angle (joint_prims)."""
     lit = [name for name in LIT_BODIES if name in bodies]
     linked = eclipse_day(sun, bodies)
     excludes = {"collection:lightLink:excludes": [layout.body_path(name) for name in lit]} if linked else {}
@@ -160,6 +162,27 @@ def sky_prims(epoch: str, perilune_epoch: str, day: int, sun: SunSpec, bodies: d
     for name, body in bodies.items():
         out.append(Prim(layout.body_path(name), {"xformOp:translate": ("double3", _vec3d(body.position)),
                                                "xformOp:scale": ("double3", _vec3d([body.radius] * 3))}))
+    return out + joint_prims(joints or {})
+
+
+def joint_prims(angles: dict[str, float]) -> list[Prim]:
+    """An over per procedural-station joint setting its joint op (e.g. xformOp:rotateY:alpha) to
+    `angles[name]` degrees, under /World/Station (allo_usd.scene.tracking computes the angles)."""
+    from allo_usd.assets.mesh import joint_chain
+    from allo_usd.assets.station import station_joints
+    from allo_usd.usd.asset import joint_op_name
+
+    joints = station_joints()
+    by = {j.name: j for j in joints}
+    unknown = sorted(set(angles) - set(by))
+    if unknown:
+        raise LayerError(f"joint angles for {unknown}, which the procedural station does not have "
+                         f"({sorted(by)}); fix the caller")
+    out = []
+    for name, value in angles.items():
+        check_finite(f"joint {name} angle", [value])
+        out.append(Prim(layout.station_joint(joint_chain(joints, name)),
+                        {joint_op_name(by[name]): ("double", float(value))}))
     return out
 
 
