@@ -278,3 +278,45 @@ def test_predicted_area_agrees_with_the_rendered_anomaly_for_a_plan_lens(tiny_ba
     rendered = (mask == ANOMALY).mean()
     assert rendered > 0
     assert rendered == pytest.approx(p.area_fraction, rel=0.25), (rendered, p.area_fraction)
+
+
+def test_inspect_shows_the_lens_and_where_it_comes_from(tiny_base, tmp_path):
+    from allo_usd.usd.inspect import describe, format_description
+
+    lens = _plan(**PLAN_CAMERA).camera_model()[0]
+    plan_layer = write_scene_layer(_spec(lens), tmp_path / "plan_lens.usda", tiny_base)
+    d = describe(plan_layer)["camera"]
+    assert d["focal_length_mm"] == pytest.approx(50.0)
+    assert d["aperture_offset_mm"] == pytest.approx((-3.0, -2.0))
+    assert d["lens_from"] == "scene layer plan_lens.usda (plan camera)"
+    assert "aperture offset (-3, -2) mm  from scene layer" in format_description(describe(plan_layer))
+    default = describe(write_scene_layer(_spec(DEFAULT_CAMERA), tmp_path / "d.usda", tiny_base))["camera"]
+    assert default["lens_from"] == "base stage base.usda (Table I default)"
+    assert default["aperture_offset_mm"] == (0.0, 0.0) and default["focal_length_mm"] == pytest.approx(25.0)
+
+
+@pytest.mark.render
+def test_a_plan_with_its_own_camera_authors_and_renders_end_to_end(tmp_path, capsys):
+    """Author a tiny plan with a 50 mm camera over the shipped base stage: every layer carries the lens,
+    the rig poses that do not qualify under it are noted (one line each, not an error), and the
+    anomalous scene renders with the anomaly where placement predicted (area within a loose bound)."""
+    from allo_usd.core.paths import BASE_STAGE
+    from allo_usd.run.author import author_plan
+    from allo_usd.run.job import render_layer
+    from allo_usd.usd.inspect import describe
+
+    plan = make_plan({"name": "cam", "dates": {"days": 1}, "poses": {"train": [1], "test": [41, 42]},
+                      "anomalies": {"assets": ["power_drill"], "depths": [0]}, "quality": {"samples": 2},
+                      "base_stage": str(BASE_STAGE), "camera": PLAN_CAMERA})
+    paths = author_plan(plan, tmp_path / "tree", progress=False)
+    notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("note: base pose")]
+    assert notes and all("does not qualify under the plan's camera" in line for line in notes)
+    for p in paths:
+        assert set(LENS_ATTRS) <= _camera_specs(p)
+        assert describe(p)["camera"]["lens_from"].endswith("(plan camera)")
+    anomalous = [p for p in paths if "/anomaly/" in str(p)]
+    assert anomalous
+    meta = render_layer(anomalous[0], tmp_path / "out")
+    mask = np.asarray(Image.open(tmp_path / "out" / meta["files"]["mask"]))
+    predicted = describe(anomalous[0])["anomaly"]["predicted_area_fraction"]
+    assert (mask == ANOMALY).mean() == pytest.approx(predicted, rel=0.5, abs=2 / mask.size)
