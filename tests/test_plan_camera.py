@@ -13,7 +13,7 @@ from PIL import Image
 
 from allo_usd.assets.mesh import fan_triangulate
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
-from allo_usd.core.errors import LayerError, PlanError
+from allo_usd.core.errors import AlloError, LayerError, PlanError
 from allo_usd.core.labels import ANOMALY
 from allo_usd.plan.io import make_plan
 from allo_usd.plan.model import paper_plan
@@ -129,7 +129,7 @@ def test_lens_is_authored_only_when_it_differs_from_table_one(tiny_base, tmp_pat
 def test_validate_spec_refuses_a_lens_the_reader_would(tiny_base, tmp_path):
     for bad in (CameraModel(0.5), CameraModel(principal_point_offset_px=(40.0, 0.0)),
                 CameraModel(clipping_range_m=(2.0, 1.0)), CameraModel(sensor_width_mm=float("nan"))):
-        with pytest.raises((LayerError, Exception)) as err:
+        with pytest.raises(AlloError) as err:          # LayerError, or check_finite's AlloError
             write_scene_layer(_spec(bad), tmp_path / "bad.usda", tiny_base)
         assert "fix" in str(err.value)
         assert not (tmp_path / "bad.usda").exists()
