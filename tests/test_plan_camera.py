@@ -320,3 +320,15 @@ def test_a_plan_with_its_own_camera_authors_and_renders_end_to_end(tmp_path, cap
     mask = np.asarray(Image.open(tmp_path / "out" / meta["files"]["mask"]))
     predicted = describe(anomalous[0])["anomaly"]["predicted_area_fraction"]
     assert (mask == ANOMALY).mean() == pytest.approx(predicted, rel=0.5, abs=2 / mask.size)
+
+
+def test_bodies_in_view_uses_the_shifted_view_pyramid():
+    """A body just inside the image's right edge with the principal point moved left (dx < 0 puts the
+    image's centre right of the axis) is in view; the same body outside the centred pyramid is not."""
+    from allo_usd.output.annotations import disc_in_view
+
+    half_x, half_y = 0.32, 0.18
+    d = np.array([0.40, 0.0, 1.0])                     # x/z = 0.40: beyond 0.32, within 0.10 + 0.32
+    assert not disc_in_view(d, 1e-4, half_x, half_y)
+    assert disc_in_view(d, 1e-4, half_x, half_y, (0.10, 0.0))
+    assert not disc_in_view(np.array([-0.40, 0.0, 1.0]), 1e-4, half_x, half_y, (0.10, 0.0))   # left of -0.22
