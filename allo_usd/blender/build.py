@@ -162,12 +162,19 @@ def build_mesh(desc: MeshDesc, material):
 
 
 def set_lens(cam, desc: CameraDesc) -> None:
-    """Focal length, sensor size (mm) and clipping range (m) of a Blender camera."""
+    """Focal length, sensor size (mm), clipping range (m) and lens shift of a Blender camera."""
     assign(cam, "lens", desc.focal_length_mm, f"{desc.path} focal length (mm)")
     assign(cam, "sensor_width", desc.sensor_width_mm, f"{desc.path} horizontal aperture (mm)")
     assign(cam, "sensor_height", desc.sensor_height_mm, f"{desc.path} vertical aperture (mm)")
     assign(cam, "clip_start", desc.clip[0], f"{desc.path} clipping range near (m)")
     assign(cam, "clip_end", desc.clip[1], f"{desc.path} clipping range far (m)")
+    # Lens shift for the aperture offsets: with sensor_fit HORIZONTAL Blender counts both shifts in
+    # sensor widths (shift_x moves the view right, shift_y up), as UsdGeom.Camera moves its window by
+    # the offsets (core.camera_model): shift = offset / horizontal aperture.
+    assign(cam, "shift_x", desc.horizontal_offset_mm / desc.sensor_width_mm,
+           f"{desc.path} horizontalApertureOffset / horizontalAperture")
+    assign(cam, "shift_y", desc.vertical_offset_mm / desc.sensor_width_mm,
+           f"{desc.path} verticalApertureOffset / horizontalAperture")
 
 
 def build_camera(desc: CameraDesc):

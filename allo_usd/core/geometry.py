@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from allo_usd.core.errors import AlloError
-from allo_usd.core.constants import FOCAL_LENGTH_MM, SENSOR_WIDTH_MM
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 
 
 def check_finite(name: str, value) -> np.ndarray:
@@ -129,10 +129,11 @@ def rotation_towards(direction) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def camera_intrinsics(width: int, height: int) -> np.ndarray:
-    """3x3 pinhole matrix (pixels) for the 25 mm / 36 mm-wide camera, sensor fit horizontal."""
-    f = FOCAL_LENGTH_MM / SENSOR_WIDTH_MM * width
-    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+def camera_intrinsics(width: int, height: int, lens: CameraModel = DEFAULT_CAMERA) -> np.ndarray:
+    """3x3 pinhole matrix (pixels, pixel-corner convention: the image spans [0, W] x [0, H]) of `lens`
+    (default: the paper's 25 mm / 36 mm-wide camera), sensor fit horizontal, with its principal
+    point offset (core.camera_model)."""
+    return lens.intrinsics(width, height)
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:

@@ -6,8 +6,10 @@ Conventions (README "Dataset" repeats them; tests/test_camera_record.py checks e
   (u, v) = (c, r), so the image spans [-0.5, W - 0.5] x [-0.5, H - 0.5].
 - `K_px` = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] as Blender renders the layer's camera: sensor fit
   horizontal, square pixels, so fx = fy = focal_length_mm / sensor_width_mm * W (the vertical
-  aperture follows from the aspect ratio), and cx = (W - 1) / 2, cy = (H - 1) / 2: the reader
-  takes no aperture offset and the builder sets no lens shift.
+  aperture follows from the aspect ratio), and cx = (W - 1) / 2 + dx, cy = (H - 1) / 2 + dy, where
+  (dx, dy) = (-horizontalApertureOffset, +verticalApertureOffset) / horizontalAperture x W is the
+  principal point's offset from the image centre in pixels (core.camera_model; the builder renders
+  the offsets as Blender's lens shift). The paper's camera has no offset.
 - `cam_to_world_usd`: the camera prim's local-to-world 4x4 in the stage's frame (Z up, metres),
   camera looking down its -Z with +Y up and +X right (UsdGeom.Camera), as nested rows in the
   column-vector convention: p_world = M @ [x, y, z, 1], translation in the last column. (USD's
@@ -39,10 +41,14 @@ from allo_usd.usd.layout import body_path
 USD_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])   # camera axes: USD (x right, y up, -z forward) -> OpenCV
 
 
-def intrinsics(width: int, height: int, focal_length_mm: float, sensor_width_mm: float) -> np.ndarray:
-    """3x3 K in pixels, OpenCV pixel centres (module docstring), as Blender's horizontal sensor fit renders."""
+def intrinsics(width: int, height: int, focal_length_mm: float, sensor_width_mm: float,
+               offset_mm: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """3x3 K in pixels, OpenCV pixel centres (module docstring), as Blender's horizontal sensor fit renders;
+    `offset_mm`: the camera's (horizontalApertureOffset, verticalApertureOffset) in mm."""
     f = focal_length_mm / sensor_width_mm * width
-    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+    px_per_mm = width / sensor_width_mm
+    dx, dy = -offset_mm[0] * px_per_mm, offset_mm[1] * px_per_mm
+    return np.array([[f, 0.0, (width - 1) / 2.0 + dx], [0.0, f, (height - 1) / 2.0 + dy], [0.0, 0.0, 1.0]])
 
 
 def world_to_cam_opencv(cam_to_world_usd: np.ndarray) -> np.ndarray:
@@ -71,13 +77,17 @@ def _world_points(mesh) -> np.ndarray:
     return p @ mesh.matrix[:3, :3].T + mesh.matrix[:3, 3]
 
 
-def disc_in_view(direction, angular_radius: float, half_x: float, half_y: float) -> bool:
+def disc_in_view(direction, angular_radius: float, half_x: float, half_y: float,
+                 centre: tuple[float, float] = (0.0, 0.0)) -> bool:
     """Does a disc (centre direction in OpenCV camera axes, angular radius in radians) meet the
-    view pyramid |x/z| <= half_x, |y/z| <= half_y, z > 0? Exact: the angle from the centre to the
-    pyramid (0 inside; else to the nearest face or edge ray) is below the radius."""
+    view pyramid |x/z - cx| <= half_x, |y/z - cy| <= half_y, z > 0 ((cx, cy) = `centre`: the image
+    centre's direction, off the axis with a principal point offset)? Exact: the angle from the
+    centre to the pyramid (0 inside; else to the nearest face or edge ray) is below the radius."""
     d = np.asarray(direction, dtype=np.float64)
     d = d / np.linalg.norm(d)
-    corners = np.array([[-half_x, -half_y, 1.0], [half_x, -half_y, 1.0], [half_x, half_y, 1.0], [-half_x, half_y, 1.0]])
+    cx, cy = centre
+    corners = np.array([[cx - half_x, cy - half_y, 1.0], [cx + half_x, cy - half_y, 1.0],
+                        [cx + half_x, cy + half_y, 1.0], [cx - half_x, cy + half_y, 1.0]])
     corners /= np.linalg.norm(corners, axis=1, keepdims=True)
     normals = np.cross(corners, np.roll(corners, -1, axis=0))     # inward: the optical axis is on their + side
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
@@ -94,7 +104,8 @@ def disc_in_view(direction, angular_radius: float, half_x: float, half_y: float)
 
 def camera_record(desc, width: int, height: int) -> dict:
     cam = desc.camera
-    k = intrinsics(width, height, cam.focal_length_mm, cam.sensor_width_mm)
+    k = intrinsics(width, height, cam.focal_length_mm, cam.sensor_width_mm,
+                   (cam.horizontal_offset_mm, cam.vertical_offset_mm))
     c2w = np.asarray(cam.matrix, dtype=np.float64)
     return {"width": int(width), "height": int(height), "K_px": k.tolist(),
             "focal_length_mm": float(cam.focal_length_mm), "sensor_width_mm": float(cam.sensor_width_mm),
@@ -121,6 +132,7 @@ def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray) -> di
 def bodies_in_view(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int) -> dict:
     """{body: in_view} for sun, earth, moon (None for a body the scene has no sphere of)."""
     half_x, half_y = width / 2.0 / k[0, 0], height / 2.0 / k[1, 1]
+    view_centre = (((width - 1) / 2.0 - k[0, 2]) / k[0, 0], ((height - 1) / 2.0 - k[1, 2]) / k[1, 1])
     out = {}
     for body in BODIES:
         prefix = body_path(body.capitalize()) + "/"
@@ -132,7 +144,8 @@ def bodies_in_view(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int
         centre = w2c[:3, :3] @ m[:3, 3] + w2c[:3, 3]
         radius = float(np.linalg.norm(m[:3, :3], axis=0).mean())   # a unit sphere scaled by the body's radius
         dist = float(np.linalg.norm(centre))
-        out[body] = True if dist <= radius else disc_in_view(centre, math.asin(radius / dist), half_x, half_y)
+        out[body] = True if dist <= radius else disc_in_view(centre, math.asin(radius / dist), half_x, half_y,
+                                                                         view_centre)
     return out
 
 

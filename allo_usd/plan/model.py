@@ -9,6 +9,7 @@ outside the seeds the plan records. `paper_plan()` is the ALLO paper's Table II.
 
 from __future__ import annotations
 
+import math
 import reprlib
 from datetime import date, datetime, time, timedelta, timezone
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_validator, model_validator
 
 from allo_usd.assets.importer import SUPPORTED_EXTENSIONS, UNIT_SCALES, UP_AXIS_ROTATIONS
+from allo_usd.core.camera_model import CLIP_M, DEFAULT_CAMERA, LENS_MM, SENSOR_MM, CameraModel
 from allo_usd.core.errors import EpochError, PlanError
 from allo_usd.core.limits import resolution_problem
 from allo_usd.core.timefmt import format_utc, parse_utc
@@ -434,6 +436,91 @@ class Station(_Model):
         return self
 
 
+def _in(name: str, v: float, bounds: tuple[float, float], unit: str, example: str) -> float:
+    if not bounds[0] <= v <= bounds[1]:
+        raise ValueError(f"{name} = {v:g} {unit} is outside {bounds[0]:g}..{bounds[1]:g} {unit} (what the layer "
+                         f"reader passes to Blender); fix: e.g. {example}")
+    return v
+
+
+class Camera(_Model):
+    """The lens and sensor (`[camera]`); every field left out is the paper's Table I (25 mm lens,
+    36 x 20.25 mm sensor, clipping 0.05 m .. 1e12 m, principal point at the image centre). Pixels are
+    square and the fit horizontal: give the sensor's width or its height, the other follows from the
+    resolution's aspect. Authored on /World/Camera as UsdGeom.Camera values (core.camera_model)."""
+
+    focal_length_mm: float = Field(DEFAULT_CAMERA.focal_length_mm, allow_inf_nan=False,
+                                   description="Focal length in mm.")
+    sensor_width_mm: float | None = Field(None, allow_inf_nan=False,
+                                          description="Sensor (horizontal aperture) width in mm; default 36.")
+    sensor_height_mm: float | None = Field(None, allow_inf_nan=False,
+                                           description="Sensor height in mm (instead of the width).")
+    resolution: tuple[int, int] | None = Field(None, description="Width, height in pixels; default "
+                                               "quality.resolution (give one of the two, or the same).")
+    clipping_range_m: tuple[float, float] = Field(DEFAULT_CAMERA.clipping_range_m,
+                                                  description="Near, far clipping distances in metres.")
+    principal_point_offset_px: tuple[float, float] = Field(
+        (0.0, 0.0), description="Principal point in pixels from the image centre (x right, y down), within the image.")
+
+    @field_validator("focal_length_mm")
+    @classmethod
+    def _focal(cls, v):
+        return _in("focal_length_mm", v, LENS_MM, "mm", "focal_length_mm = 25")
+
+    @field_validator("sensor_width_mm", "sensor_height_mm")
+    @classmethod
+    def _sensor(cls, v, info):
+        return v if v is None else _in(info.field_name, v, SENSOR_MM, "mm", f"{info.field_name} = 36")
+
+    @field_validator("clipping_range_m")
+    @classmethod
+    def _clip(cls, v):
+        near, far = v
+        if not CLIP_M[0] <= near < far <= CLIP_M[1]:
+            raise ValueError(f"clipping_range_m = ({near:g}, {far:g}) must be near < far within {CLIP_M[0]:g}..{CLIP_M[1]:g} m "
+                             "(what the layer reader passes to Blender); fix: e.g. clipping_range_m = [0.05, 1e12]")
+        return v
+
+    @field_validator("principal_point_offset_px")
+    @classmethod
+    def _offset(cls, v):
+        if not all(math.isfinite(x) for x in v):
+            raise ValueError(f"principal_point_offset_px = {_short(v)} is not finite; fix: e.g. [0, 0]")
+        return v
+
+    @field_validator("resolution")
+    @classmethod
+    def _resolution(cls, v):
+        problem = v and resolution_problem(*v)
+        if problem:
+            raise ValueError(f"{problem}; fix: e.g. resolution = [1920, 1080]")
+        return v
+
+    def model(self, size: tuple[int, int]) -> CameraModel:
+        """The lens for a `size` = (width, height) image; raises ValueError naming the field and the fix."""
+        w, h = size
+        sw, sh = self.sensor_width_mm, self.sensor_height_mm
+        if sw is None and sh is None:
+            sw, sh = DEFAULT_CAMERA.sensor_width_mm, DEFAULT_CAMERA.sensor_height_mm   # Table I, as the base stage
+        elif sh is None:
+            sh = sw * h / w
+        elif sw is None:
+            sw = sh * w / h
+        elif abs(sw * h - sh * w) > 1e-6 * sw * h:
+            raise ValueError(f"camera.sensor_width_mm = {sw:g} and sensor_height_mm = {sh:g} (aspect {sw / sh:.6g}) "
+                             f"do not match the {w}x{h} image (aspect {w / h:.6g}) with square pixels; fix: give only "
+                             f"one of them, or sensor_height_mm = {sw * h / w:g}")
+        for name, v in (("sensor_width_mm", sw), ("sensor_height_mm", sh)):
+            _in(f"camera.{name} (from the other and the {w}x{h} aspect)", v, SENSOR_MM, "mm",
+                "a sensor size nearer the image's aspect")
+        dx, dy = self.principal_point_offset_px
+        if abs(dx) > w / 2 or abs(dy) > h / 2:
+            raise ValueError(f"camera.principal_point_offset_px = ({dx:g}, {dy:g}) puts the principal point outside "
+                             f"the {w}x{h} image (|dx| <= {w / 2:g}, |dy| <= {h / 2:g}); fix: give an offset within it")
+        return CameraModel(float(self.focal_length_mm), float(sw), float(sh),
+                           tuple(map(float, self.clipping_range_m)), (float(dx) + 0.0, float(dy) + 0.0))
+
+
 class Plan(_Model):
     """A whole dataset: every field has a default, so `Plan(name="x")` is a valid (full-grid) plan."""
 
@@ -450,6 +537,44 @@ class Plan(_Model):
     seeds: list[int] = Field(default_factory=lambda: [2030], description="One pipeline run per seed.")
     station: Station = Field(default_factory=Station)
     base_stage: str = Field("stages/base.usda", description="Relative to the working directory, else to the installed package (stages/base.usda is the shipped base stage).")
+    camera: Camera = Field(default_factory=Camera, description="The lens and sensor; defaults: the paper's Table I.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _camera_resolution(cls, data):
+        """camera.resolution fills quality.resolution when the plan leaves that out (so the render uses it)."""
+        if not isinstance(data, dict):
+            return data
+        cam = data.get("camera")
+        res = cam.get("resolution") if isinstance(cam, dict) else getattr(cam, "resolution", None)
+        q = data.get("quality", {})
+        if res is None:
+            return data
+        if isinstance(q, Quality):
+            if "resolution" in q.model_fields_set:
+                return data
+            q = {k: getattr(q, k) for k in q.model_fields_set}
+        if not isinstance(q, dict) or "resolution" in q:
+            return data
+        return {**data, "quality": {**q, "resolution": res}}
+
+    @model_validator(mode="after")
+    def _camera_fits(self):
+        res = self.camera.resolution
+        if res is not None and tuple(res) != tuple(self.quality.resolution):
+            raise ValueError(f"camera.resolution {list(res)} differs from quality.resolution "
+                             f"{list(self.quality.resolution)}; fix: give the resolution in one of them, or the same "
+                             "in both")
+        self.camera.model(self.quality.resolution)   # the sensor's aspect and the offset against the image
+        return self
+
+    def camera_model(self) -> tuple[CameraModel, tuple[int, int]]:
+        """(the plan's lens, the image size (width, height)) it renders with."""
+        size = tuple(int(v) for v in self.quality.resolution)
+        try:
+            return self.camera.model(size), size
+        except ValueError as exc:
+            raise PlanError(str(exc)) from None
 
     @field_validator("perilune_epoch", mode="before")
     @classmethod

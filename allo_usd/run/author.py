@@ -31,17 +31,19 @@ import os
 import re
 import shutil
 import signal
+import sys
 import tempfile
 import time
 from collections import Counter, deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from itertools import groupby, islice
 from pathlib import Path
 
 from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_path, write_composed_scene,
                                   write_pose_layer, write_sky_layer)
+from allo_usd.core.camera_model import DEFAULT_CAMERA
 from allo_usd.core.files import atomic_directory, write_text_atomic
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
 from allo_usd.core.timefmt import format_utc
@@ -78,6 +80,7 @@ class AuthorContext:
         self.inputs = scene_inputs(self.base_stage, sky, format_utc(plan.perilune_epoch), self.hazards,
                                    track_sun=plan.station.track_sun)
         self._add_file_poses(plan)
+        self.inputs.lens, self.size = plan.camera_model()   # placement looks through the plan's camera
         q = plan.quality
         self.render = RenderSpec(resolution=tuple(q.resolution), preset=q.preset, exposure=EXPOSURE,
                                  passes=tuple(q.passes), **quality_of(q))
@@ -518,6 +521,26 @@ def _existing(out_dir: Path) -> set[str]:
     return found
 
 
+def rig_notes(ctx: AuthorContext) -> list[str]:
+    """One line per base pose the plan uses whose view does not qualify (rig.view_quality) under the
+    plan's camera: the built-in rig was chosen for the paper's Table I camera. Empty for that camera."""
+    from allo_usd.scene.rig import view_quality
+
+    lens = ctx.inputs.lens
+    if lens == DEFAULT_CAMERA:
+        return []
+    out = []
+    for index in (*ctx.plan.poses.train, *ctx.plan.poses.test):
+        pose = ctx.inputs.poses[index]
+        q = view_quality(ctx.inputs.station_scene, pose.position, pose.rotation, lens=lens, size=ctx.size)
+        if not q.ok:
+            out.append(f"base pose {index}'s view does not qualify under the plan's camera "
+                       f"({lens.focal_length_mm:g} mm on {lens.sensor_width_mm:g} mm): optical axis meets structure "
+                       f"at {q.centre_m:.3g} m, {q.coverage:.0%} of the frame shows structure, {q.in_range:.0%} of "
+                       f"it 5-40 m away, {q.near:.0%} nearer than 5 m (the rig was chosen for Table I)")
+    return out
+
+
 STATION_MARKER = "station_source.json"  # in a model-built stages/: which file (and sha256) it was built from
 
 
@@ -544,6 +567,9 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
 
     made_from = {"source": source.name, "sha256": sha256_file(source), "units": plan.station.units,
                  "up_axis": plan.station.up_axis}
+    lens, size = plan.camera_model()   # the rig scores its views through the plan's camera
+    if lens != DEFAULT_CAMERA:
+        made_from["camera"] = {**asdict(lens), "resolution": list(size)}
     marker = base.parent / STATION_MARKER
     if base.is_file():
         recorded = json.loads(marker.read_text()) if marker.is_file() else None
@@ -554,7 +580,7 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
         from allo_usd.usd.build_stage import build_base_stage
 
         with atomic_directory(base.parent) as tmp:  # replaces an incomplete build of an older version
-            build_base_stage(tmp, str(source), plan.station.units, plan.station.up_axis)
+            build_base_stage(tmp, str(source), plan.station.units, plan.station.up_axis, lens, size)
             (tmp / STATION_MARKER).write_text(json.dumps(made_from, indent=1, sort_keys=True) + "\n")
     return plan.model_copy(update={"base_stage": str(base.resolve())})
 
@@ -833,6 +859,8 @@ def _author_tree(ctx: AuthorContext, keys: list[SceneKey], progress: bool, worke
     from tqdm import tqdm
 
     plan, sky, out_dir = ctx.plan, ctx.inputs.sky, ctx.out_dir
+    for line in rig_notes(ctx):
+        print(f"note: {line}", file=sys.stderr)
     for day in sorted({k.day for k in keys}):
         ensure_sky_layer(ctx, day)
 

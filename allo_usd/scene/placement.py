@@ -26,6 +26,7 @@ import numpy as np
 
 from allo_usd.core.labels import ANOMALY
 from allo_usd.core.errors import PlacementError
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import box_corners, camera_intrinsics, fibonacci_sphere, quat_to_matrix
 from allo_usd.scene.raycast import RayScene, pixel_rays
 
@@ -68,10 +69,10 @@ def _bounds_to_pixels(width: int, height: int, u0: float, u1: float, v0: float, 
     return i0, i1, j0, j1
 
 
-def _sphere_box(cam_pos, cam_rot, width: int, height: int, centre, radius: float):
+def _sphere_box(cam_pos, cam_rot, width: int, height: int, centre, radius: float, lens: CameraModel = DEFAULT_CAMERA):
     """The sphere's exact image-space bounding box (tangent planes through the camera) as pixel
     bounds, or None when the sphere reaches the camera plane (then every pixel is a candidate)."""
-    k = camera_intrinsics(width, height)
+    k = camera_intrinsics(width, height, lens)
     c = (np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
     depth = -c[2]
     if depth <= radius * 1.01:
@@ -86,11 +87,11 @@ def _sphere_box(cam_pos, cam_rot, width: int, height: int, centre, radius: float
                              k[1, 2] - sy1 * k[1, 1], k[1, 2] - sy0 * k[1, 1])
 
 
-def _corner_box(cam_pos, cam_rot, width: int, height: int, corners):
+def _corner_box(cam_pos, cam_rot, width: int, height: int, corners, lens: CameraModel = DEFAULT_CAMERA):
     """Pixel bounds of points' projections (a convex object's box corners), or None when any lies
     on or behind the camera plane. Perspective maps a convex set in front of the camera to the
     convex hull of its corners' images, so every pixel whose ray meets the object is inside."""
-    k = camera_intrinsics(width, height)
+    k = camera_intrinsics(width, height, lens)
     c = (np.asarray(corners, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
@@ -116,12 +117,13 @@ def _box_indices(box, width: int, stride: int = 1) -> np.ndarray:
     return (np.arange(j0, j1 + 1, stride)[:, None] * width + np.arange(i0, i1 + 1, stride)[None, :]).ravel()
 
 
-def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box, stride: int = 1):
+def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box, stride: int = 1,
+               lens: CameraModel = DEFAULT_CAMERA):
     """Row-major indices of the pixels in `box` (and on the stride sub-grid) whose centre lies in the
     widened image box of at least one triangle: the object's footprint, much tighter than its
     overall box for thin or hollow objects, and exact (a ray meets a triangle only through its
     image). None when a vertex lies on or behind the camera plane."""
-    k = camera_intrinsics(width, height)
+    k = camera_intrinsics(width, height, lens)
     c = (np.asarray(points, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
@@ -133,12 +135,13 @@ def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box
     return _rects_union(width, box, stride, uu.min(axis=0), uu.max(axis=0), vv.min(axis=0), vv.max(axis=0))
 
 
-def _parts_footprint(cam_pos, cam_rot, width: int, height: int, corners, box, stride: int = 1):
+def _parts_footprint(cam_pos, cam_rot, width: int, height: int, corners, box, stride: int = 1,
+                     lens: CameraModel = DEFAULT_CAMERA):
     """Like `_footprint`, for the boxes of the object's parts (`raycast.RayScene.part_boxes`, posed: (P, 8, 3)
     corners): the pixels whose centre lies in the widened image box of some part. A part's image
     lies in the convex hull of its box corners' images, and each triangle's in its part's, so this
     holds every pixel `_footprint` holds (exact too), at a cost that does not grow with the mesh."""
-    k = camera_intrinsics(width, height)
+    k = camera_intrinsics(width, height, lens)
     c = (np.asarray(corners, dtype=np.float64).reshape(-1, 3) - np.asarray(cam_pos, dtype=np.float64)) \
         @ np.asarray(cam_rot)
     depth = -c[:, 2]
@@ -179,16 +182,18 @@ def _rects_union(width: int, box, stride: int, u0, u1, v0, v1) -> np.ndarray:
     return ((rj0 + jj * stride) * width + (ci0 + ii * stride)).astype(np.int64, copy=False)
 
 
-def sphere_pixels(cam_pos, cam_rot, width: int, height: int, centre, radius: float) -> np.ndarray | None:
+def sphere_pixels(cam_pos, cam_rot, width: int, height: int, centre, radius: float,
+                  lens: CameraModel = DEFAULT_CAMERA) -> np.ndarray | None:
     """Row-major indices of the pixels whose centre ray may pass within `radius` of `centre`: the
     sphere's exact image-space bounding box (tangent planes through the camera), widened by one
     pixel. None when the sphere reaches the camera plane (then every pixel is a candidate)."""
-    box = _sphere_box(cam_pos, cam_rot, width, height, centre, radius)
+    box = _sphere_box(cam_pos, cam_rot, width, height, centre, radius, lens)
     return None if box is None else _box_indices(box, width)
 
 
 def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_rot, width: int, height: int,
-                     rays=None, sphere=None, pose=None, corners=None, stride: int = 1, mesh=None) -> float:
+                     rays=None, sphere=None, pose=None, corners=None, stride: int = 1, mesh=None,
+                     lens: CameraModel = DEFAULT_CAMERA) -> float:
     """Fraction of pixel centres whose first hit is the anomaly (station and anomaly BVHs kept apart,
     so the station's is built once per world and the anomaly's once per asset; `station` None:
     the object's silhouette alone).
@@ -205,13 +210,14 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
     cheaper, for the rest) are cast; both are exact, and then the sphere test is skipped (it would
     drop almost nothing more). `stride` s > 1 (with `sphere`): cast one pixel in s x s
     (`_box_indices`) and count each for s^2 pixels. Every cull only leaves out rays that cannot
-    meet the object, so the count is the same whichever applies."""
+    meet the object, so the count is the same whichever applies. `lens`: the camera's lens and sensor
+    (core.camera_model; its principal point offset is in pixels of this width x height)."""
     if sphere is not None:
         c, r = np.asarray(sphere[0], dtype=np.float64), float(sphere[1]) * 1.001 + 1e-9
-        box = _sphere_box(cam_pos, cam_rot, width, height, c, r)
+        box = _sphere_box(cam_pos, cam_rot, width, height, c, r, lens)
         if corners is not None and pose is not None:
             world = np.asarray(pose[0], dtype=np.float64) + np.asarray(corners) @ np.asarray(pose[1]).T
-            tight = _corner_box(cam_pos, cam_rot, width, height, world)
+            tight = _corner_box(cam_pos, cam_rot, width, height, world, lens)
             if tight is not None:
                 box = tight if box is None else (max(box[0], tight[0]), min(box[1], tight[1]),
                                                  max(box[2], tight[2]), min(box[3], tight[3]))
@@ -221,16 +227,16 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
         if box is not None and mesh is not None and pose is not None:
             if (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > _FOOTPRINT_FROM * stride * stride:
                 world = np.asarray(pose[0], dtype=np.float64) + np.asarray(mesh[0]) @ np.asarray(pose[1]).T
-                idx = _footprint(cam_pos, cam_rot, width, height, world, mesh[1], box, stride)
+                idx = _footprint(cam_pos, cam_rot, width, height, world, mesh[1], box, stride, lens)
             elif _PART_LEVELS:
                 parts = np.asarray(pose[0], dtype=np.float64) + \
                     anomaly.part_boxes(_PART_LEVELS) @ np.asarray(pose[1], dtype=np.float64).T
-                idx = _parts_footprint(cam_pos, cam_rot, width, height, parts, box, stride)
+                idx = _parts_footprint(cam_pos, cam_rot, width, height, parts, box, stride, lens)
             fitted = idx is not None
         if idx is None and box is not None:
             idx = _box_indices(box, width, stride)
         if rays is None:
-            o, d = pixel_rays(cam_pos, cam_rot, width, height, idx)
+            o, d = pixel_rays(cam_pos, cam_rot, width, height, idx, lens)
         else:
             o, d = rays if idx is None else (rays[0][idx], rays[1][idx])
         if not len(o):
@@ -246,7 +252,7 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
     else:
         if stride != 1:
             raise ValueError("stride needs sphere=(centre, radius)")
-        o, d = pixel_rays(cam_pos, cam_rot, width, height) if rays is None else rays
+        o, d = pixel_rays(cam_pos, cam_rot, width, height, lens=lens) if rays is None else rays
     if pose is None:
         a_owner, a_dist = anomaly.first_hit(o, d)
     else:
@@ -283,9 +289,10 @@ def _clear_of(station: RayScene, position, radius: float, cam_pos, cam_rot) -> s
 
 
 def _visibility(station: RayScene, anomaly: RayScene, radius: float, corners, position, rotation, cam_pos, cam_rot,
-                width: int, height: int, min_fraction: float, stride: int = 1, mesh=None) -> tuple[bool, float, str]:
+                width: int, height: int, min_fraction: float, stride: int = 1, mesh=None,
+                lens: CameraModel = DEFAULT_CAMERA) -> tuple[bool, float, str]:
     frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height, None, (position, radius),
-                            (position, rotation), corners, stride, mesh)
+                            (position, rotation), corners, stride, mesh, lens)
     if frac == 0.0:
         return False, 0.0, "fully occluded or outside the frame"
     if frac < min_fraction:
@@ -294,8 +301,8 @@ def _visibility(station: RayScene, anomaly: RayScene, radius: float, corners, po
 
 
 def check(station: RayScene, anomaly_points, anomaly_tris, position, rotation, cam_pos, cam_rot,
-          width, height, min_fraction=MIN_FRACTION, rays=None, anomaly: RayScene | None = None
-          ) -> tuple[bool, float, str]:
+          width, height, min_fraction=MIN_FRACTION, rays=None, anomaly: RayScene | None = None,
+          lens: CameraModel = DEFAULT_CAMERA) -> tuple[bool, float, str]:
     """(accepted, visible fraction at width x height, reason) for one candidate placement.
     `anomaly`: the object's BVH in its own frame (`anomaly_scene`), if already built."""
     cam_pos = np.asarray(cam_pos, dtype=np.float64)
@@ -309,14 +316,14 @@ def check(station: RayScene, anomaly_points, anomaly_tris, position, rotation, c
         anomaly = anomaly_scene(anomaly_points, anomaly_tris)
     if rays is not None:
         frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height, rays, (position, radius),
-                                (position, rotation))
+                                (position, rotation), lens=lens)
         if frac == 0.0:
             return False, 0.0, "fully occluded or outside the frame"
         if frac < min_fraction:
             return False, frac, f"covers {frac:.4%} of the image, under {min_fraction:.1%}"
         return True, frac, ""
     return _visibility(station, anomaly, radius, box_corners(anomaly_points), position, rotation, cam_pos,
-                       cam_rot, width, height, min_fraction, 1, (anomaly_points, np.asarray(anomaly_tris)))
+                       cam_rot, width, height, min_fraction, 1, (anomaly_points, np.asarray(anomaly_tris)), lens)
 
 
 _SPHERE_DIRS = fibonacci_sphere(128)
@@ -343,7 +350,8 @@ class _Group:
     it reads as steps (draw, room, screen, confirm, fall back) with nothing recomputed."""
 
     def __init__(self, station_parts, anomaly_points, anomaly_tris, cam_pos, cam_rot, width: int, height: int,
-                 check_width: int | None, min_fraction: float, anomaly: RayScene | None):
+                 check_width: int | None, min_fraction: float, anomaly: RayScene | None,
+                 lens: CameraModel = DEFAULT_CAMERA):
         self.cam_pos = np.asarray(cam_pos, dtype=np.float64)
         self.cam_rot = np.asarray(cam_rot, dtype=np.float64)
         self.station = station_parts if isinstance(station_parts, RayScene) else RayScene(station_parts)
@@ -356,7 +364,9 @@ class _Group:
         self.full = (int(width), int(height))
         self.screen = self.full if not check_width or check_width >= width else \
             (int(check_width), max(1, round(height * check_width / width)))
-        self.k = camera_intrinsics(width, height)
+        self.k = camera_intrinsics(width, height, lens)
+        # The lens at each checked size: its principal point offset is in pixels of the full size.
+        self.lenses = {self.full: lens, self.screen: lens.scaled(self.screen[0] / width)}
         self.nearest = self.radius + CAMERA_CLEARANCE_M + 1e-6  # the closest an object's centre may come (depth)
         self.ref = max(self.nearest, 8.0 * self.radius)         # where an attempt measures the object's silhouette
         # A draw's checks are pure functions of (attempt, depth), so each is computed once: the
@@ -403,7 +413,8 @@ class _Group:
         # still covers min_fraction (coverage falls as 1/depth^2); 0.95 keeps a margin.
         at = self.cam_pos + self.ref * ray
         silhouette = visible_fraction(None, self.anomaly, self.cam_pos, self.cam_rot, *self.screen, None,
-                                      (at, self.radius), (at, rot), self.corners, 1, self.mesh)
+                                      (at, self.radius), (at, rot), self.corners, 1, self.mesh,
+                                      self.lenses[self.screen])
         top = min(surface, 0.95 * self.ref * np.sqrt(silhouette / self.min_fraction))
         return top if top > self.nearest else None
 
@@ -424,7 +435,7 @@ class _Group:
         if why:
             return False, 0.0, why
         return _visibility(self.station, self.anomaly, self.radius, self.corners, pos, rot, self.cam_pos,
-                           self.cam_rot, *size, self.min_fraction, stride, self.mesh)
+                           self.cam_rot, *size, self.min_fraction, stride, self.mesh, self.lenses[size])
 
     def at_screen(self, attempt, depth_index, ray, depth, rot):
         """One depth at the cheap screening size, cached so the fallback reuses the main loop's work."""
@@ -473,14 +484,16 @@ class _Group:
 
 def place(station_parts: "RayScene | list", anomaly_points, anomaly_tris, cam_pos, cam_rot, rng: np.random.Generator,
           width: int, height: int, max_attempts: int = MAX_ATTEMPTS, check_width: int | None = SCREEN_WIDTH,
-          min_fraction: float = MIN_FRACTION, anomaly: RayScene | None = None) -> list[Placement]:
+          min_fraction: float = MIN_FRACTION, anomaly: RayScene | None = None,
+          lens: CameraModel = DEFAULT_CAMERA) -> list[Placement]:
     """Place one object at all five depths (see the module doc); raises PlacementError when no
     attempt gives even a valid initial depth. `check_width`: the width candidates are screened at
     (None or >= width: every check at width x height); accepted depths are always confirmed, and
     their fractions computed, at width x height. `anomaly`: the object's BVH in its own frame
-    (`anomaly_scene`), if cached by the caller."""
+    (`anomaly_scene`), if cached by the caller. `lens`: the camera (core.camera_model; default the
+    paper's), its principal point offset in pixels of width x height."""
     group = _Group(station_parts, anomaly_points, anomaly_tris, cam_pos, cam_rot, width, height, check_width,
-                   min_fraction, anomaly)
+                   min_fraction, anomaly, lens)
     drawn = []                                      # (-depths that fit, attempt, ray, depth, rot)
     budget, short = max_attempts, 0
     for attempt in range(1, max_attempts + 1):

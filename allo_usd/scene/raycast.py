@@ -13,6 +13,7 @@ import numpy as np
 from trimesh.triangles import normals as triangle_normals
 from trimesh.util import diagonal_dot, unitize
 
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import box_corners, camera_intrinsics
 
 _RAY_OFFSET_FACTOR, _RAY_OFFSET_FLOOR = 1e-6, 1e-8   # step past a hit face (multiple hits)
@@ -157,12 +158,14 @@ class RayScene:
         return int((crossings % 2 == 1).sum()) >= 4
 
 
-def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None,
+               lens: CameraModel = DEFAULT_CAMERA) -> tuple[np.ndarray, np.ndarray]:
     """One ray through each pixel centre, row-major from the top-left pixel; with `index` (row-major
     pixel numbers), only those pixels' rays. Every ray is computed element-wise on its own, so a
     subset gives exactly the bits the full grid would. (Each direction component is computed as
-    its own contiguous array, the same operations in the same order as R @ (x, y, -1) per ray.)"""
-    k = camera_intrinsics(width, height)
+    its own contiguous array, the same operations in the same order as R @ (x, y, -1) per ray.)
+    `lens`: the camera's lens and sensor (core.camera_model), with its principal point offset."""
+    k = camera_intrinsics(width, height, lens)
     if index is None:
         u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
         u, v = u.ravel(), v.ravel()
@@ -184,8 +187,9 @@ def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None) -> tuple[n
     return o, d
 
 
-def class_image(scene: RayScene, cam_pos, cam_rot, width: int, height: int) -> np.ndarray:
-    """(H, W) uint8 owner ids seen at each pixel centre: a geometric mask."""
-    o, d = pixel_rays(cam_pos, cam_rot, width, height)
+def class_image(scene: RayScene, cam_pos, cam_rot, width: int, height: int,
+                lens: CameraModel = DEFAULT_CAMERA) -> np.ndarray:
+    """(H, W) uint8 owner ids seen at each pixel centre through `lens`: a geometric mask."""
+    o, d = pixel_rays(cam_pos, cam_rot, width, height, lens=lens)
     owner, _ = scene.first_hit(o, d)
     return owner.reshape(height, width)

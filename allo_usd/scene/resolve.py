@@ -14,6 +14,7 @@ from typing import Protocol
 
 import numpy as np
 
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.labels import STATION
 from allo_usd.core.errors import PlacementError
 from allo_usd.scene.placement import anomaly_scene, place
@@ -54,6 +55,7 @@ class SceneInputs:
     extra_poses: list = field(default_factory=list)   # a plan's pose-file poses (CameraPose, numbers 51, ...)
     sigmas: tuple[float, float] = (POSITION_SIGMA_M, ANGLE_SIGMA_RAD)   # the plan's perturbation
     _day_scenes: dict = field(default_factory=dict)
+    lens: CameraModel = DEFAULT_CAMERA   # the plan's camera: placement's visibility checks look through it
 
     @cached_property
     def poses(self):
@@ -163,7 +165,7 @@ def resolve_placements(inputs: SceneInputs, camera: CameraSpec, rng: np.random.G
     pts, tris, centre, scene = inputs.anomaly_scene(*anomaly)
     pos = np.asarray(camera.position, dtype=np.float64)
     placements = place(inputs.station_scene_on(day), pts, tris, pos, camera.rotation, rng, resolution[0], resolution[1],
-                       anomaly=scene)
+                       anomaly=scene, lens=inputs.lens)
     out = []
     for p in placements:
         if p.position is None:
@@ -182,7 +184,7 @@ def build_spec(inputs: SceneInputs, *, scene_id: str, day: int, pose: int, seed:
     sun, bodies = sky if sky is not None else sun_and_bodies(inputs.sky, day)
     render = RenderSpec(**{**render.__dict__, "seed": seed % (2 ** 31)})
     return SceneSpec(scene_id, inputs.sky.epochs[day], inputs.perilune_epoch, day, pose, inputs.poses[pose].split,
-                     seed, seed_path, camera, sun, bodies, render, effects, anomaly)
+                     seed, seed_path, camera, sun, bodies, render, effects, anomaly, lens=inputs.lens)
 
 
 def resolve_scene(inputs: SceneInputs, *, scene_id: str, day: int, pose: int, plan_seed: int,

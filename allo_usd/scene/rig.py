@@ -21,7 +21,7 @@ import numpy as np
 
 from allo_usd.scene.spec import CameraPose
 from allo_usd.core.errors import PlacementError
-from allo_usd.core.constants import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import check_finite, fibonacci_sphere, look_at, rot_x, rot_y, rot_z
 from allo_usd.scene.raycast import RayScene
 
@@ -76,20 +76,25 @@ class ViewQuality:
         return self.value if self.ok else -1.0
 
 
-def image_grid(nx: int, ny: int) -> np.ndarray:
+def image_grid(nx: int, ny: int, lens: CameraModel = DEFAULT_CAMERA, size: tuple[int, int] | None = None
+               ) -> np.ndarray:
     """(nx * ny + 1, 3) camera-frame ray directions: the centres of an nx x ny grid of cells over
-    the 36 x 20.25 mm sensor, row-major from the top left, then the optical axis (0, 0, -1)."""
-    tx = SENSOR_WIDTH_MM / 2 / FOCAL_LENGTH_MM
-    ty = SENSOR_HEIGHT_MM / 2 / FOCAL_LENGTH_MM
-    x = ((np.arange(nx) + 0.5) / nx * 2 - 1) * tx
-    y = (1 - (np.arange(ny) + 0.5) / ny * 2) * ty
+    the image `lens` sees (default the paper's 36 x 20.25 mm sensor behind 25 mm), row-major from the
+    top left, then the optical axis (0, 0, -1). `size`: the image's (width, height) in pixels, which
+    the lens's principal point offset is counted in (the window moves by -dx/f, +dy/f in x/-z, y/-z);
+    None: no offset."""
+    tx, ty = lens.half_tangents()
+    ox, oy = (0.0, 0.0) if size is None else lens.window_centre(size[0])
+    x = ((np.arange(nx) + 0.5) / nx * 2 - 1) * tx + ox
+    y = (1 - (np.arange(ny) + 0.5) / ny * 2) * ty + oy
     gx, gy = np.meshgrid(x, y)
     d = np.stack([gx.ravel(), gy.ravel(), -np.ones(gx.size)], axis=1)
     return np.concatenate([d, [[0.0, 0.0, -1.0]]])
 
 
-def _qualities(station: RayScene, position, rotations: np.ndarray, grid) -> list[ViewQuality]:
-    local = image_grid(*grid)
+def _qualities(station: RayScene, position, rotations: np.ndarray, grid, lens: CameraModel = DEFAULT_CAMERA,
+               size: tuple[int, int] | None = None) -> list[ViewQuality]:
+    local = image_grid(*grid, lens, size)
     d = np.einsum("kij,nj->kni", rotations, local).reshape(-1, 3)
     _, dist = station.first_hit(np.broadcast_to(np.asarray(position, dtype=np.float64), d.shape), d)
     dist = dist.reshape(len(rotations), len(local))
@@ -102,33 +107,36 @@ def _qualities(station: RayScene, position, rotations: np.ndarray, grid) -> list
                         float((g[k] < lo).mean())) for k in range(len(rotations))]
 
 
-def view_quality(station: RayScene, position, rotation, grid: tuple[int, int] = QUALITY_GRID) -> ViewQuality:
-    """Ray-cast summary of one camera's view (see `ViewQuality`)."""
-    return _qualities(station, position, np.asarray(rotation, dtype=np.float64)[None], grid)[0]
+def view_quality(station: RayScene, position, rotation, grid: tuple[int, int] = QUALITY_GRID,
+                 lens: CameraModel = DEFAULT_CAMERA, size: tuple[int, int] | None = None) -> ViewQuality:
+    """Ray-cast summary of one camera's view through `lens` (see `ViewQuality`, `image_grid`)."""
+    return _qualities(station, position, np.asarray(rotation, dtype=np.float64)[None], grid, lens, size)[0]
 
 
-def best_view(station: RayScene, position) -> tuple[ViewQuality, np.ndarray, float] | None:
+def best_view(station: RayScene, position, lens: CameraModel = DEFAULT_CAMERA, size: tuple[int, int] | None = None
+              ) -> tuple[ViewQuality, np.ndarray, float] | None:
     """The best qualifying look direction from `position` (Z-up camera): (its quality, rotation,
     robust score), or None if none qualifies. The robust score averages `ViewQuality.value` over
     the view, the view panned and tilted by one perturbation sigma (+-0.2 rad), and the camera moved
     by one sigma (1 m) forward and to either side, so a pose whose perturbed cameras still see
-    structure at a distance wins over one that only works when placed and aimed exactly."""
+    structure at a distance wins over one that only works when placed and aimed exactly. `lens`, `size`:
+    the camera the views are scored with (`image_grid`)."""
     p = np.asarray(position, dtype=np.float64)
     rots = np.array([look_at(p, p + d) for d in fibonacci_sphere(_N_DIRECTIONS)])
-    coarse = np.array([q.score for q in _qualities(station, p, rots, _SCREEN_GRID)])
+    coarse = np.array([q.score for q in _qualities(station, p, rots, _SCREEN_GRID, lens, size)])
     top = [int(k) for k in np.argsort(-coarse, kind="stable")[:_REFINE] if coarse[k] > 0]
-    fine = _qualities(station, p, rots[top], QUALITY_GRID) if top else []
+    fine = _qualities(station, p, rots[top], QUALITY_GRID, lens, size) if top else []
     top = [(k, q) for k, q in zip(top, fine) if q.ok]
     if not top:
         return None
     a = ANGLE_SIGMA_RAD
     turns = np.array([rot_y(a), rot_y(-a), rot_x(a), rot_x(-a)])
     tilted = _qualities(station, p, np.einsum("kij,tjl->ktil", rots[[k for k, _ in top]], turns).reshape(-1, 3, 3),
-                        _SCREEN_GRID)
+                        _SCREEN_GRID, lens, size)
     robust = []
     for i, (k, q) in enumerate(top):
         r = rots[k]
-        moved = [_qualities(station, p + POSITION_SIGMA_M * step, r[None], _SCREEN_GRID)[0]
+        moved = [_qualities(station, p + POSITION_SIGMA_M * step, r[None], _SCREEN_GRID, lens, size)[0]
                  for step in (-r[:, 2], r[:, 0], -r[:, 0])]
         views = [q, *tilted[4 * i:4 * i + 4], *moved]
         robust.append(sum(v.value for v in views) / len(views))
@@ -145,12 +153,14 @@ def _spaced(order, dist: np.ndarray, spacing: float, allowed=None) -> list[int]:
     return kept
 
 
-def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangles: np.ndarray) -> list[CameraPose]:
+def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangles: np.ndarray,
+               lens: CameraModel = DEFAULT_CAMERA, size: tuple[int, int] | None = None) -> list[CameraPose]:
     """50 deterministic poses from candidate camera positions `fixtures` (see the module doc):
-    poses 1-40 train, 41-50 test; raises PlacementError when the candidates cannot give 50."""
+    poses 1-40 train, 41-50 test, views scored through `lens` (`best_view`); raises PlacementError when
+    the candidates cannot give 50."""
     pos = check_finite("fixture points", fixtures)
     station = RayScene([(station_points, station_triangles, 1)])
-    views = [None if too_close(station, p, 0.5) else best_view(station, p) for p in pos]
+    views = [None if too_close(station, p, 0.5) else best_view(station, p, lens, size) for p in pos]
     order = sorted((i for i, v in enumerate(views) if v is not None), key=lambda i: (-views[i][2], i))
     if len(order) < N_TRAIN + N_TEST:
         raise PlacementError(f"only {len(order)} of {len(pos)} candidate camera positions see station "

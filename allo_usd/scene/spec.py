@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.plan.settings import EffectsSpec, RenderSpec
 
 
@@ -80,6 +81,7 @@ class SceneSpec:
     render: RenderSpec = field(default_factory=RenderSpec)
     effects: EffectsSpec = field(default_factory=EffectsSpec)
     anomaly: AnomalySpec | None = None
+    lens: CameraModel = DEFAULT_CAMERA       # the plan's camera; authored on the camera only when not the default
 
     @property
     def variant(self) -> str:

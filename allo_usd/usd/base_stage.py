@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from allo_usd.core.camera_model import CLIPPING_RANGE_M
 from allo_usd.core.constants import EXPOSURE, FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM
 from allo_usd.core.geometry import matrix_to_quat
 from allo_usd.assets.mesh import Asset
@@ -28,7 +29,7 @@ from allo_usd.scene.spec import CameraPose
 FOCAL_LENGTH = FOCAL_LENGTH_MM / 100.0
 H_APERTURE = SENSOR_WIDTH_MM / 100.0
 V_APERTURE = SENSOR_HEIGHT_MM / 100.0
-CLIPPING_RANGE = (0.05, 1.0e12)  # far plane beyond the Sun at 1.5e11 m (scheme C, true scale)
+CLIPPING_RANGE = CLIPPING_RANGE_M  # far plane beyond the Sun at 1.5e11 m (core.camera_model: Table I)
 
 # Inspection light: a 5 cm sphere emitting radiance L (UsdLux: an un-normalised SphereLight's intensity is
 # the radiance of its surface; this project is radiometric, so W/m^2/sr), shaped to a 35-degree half-angle

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.usd.base_stage import write_base_stage
 
 
@@ -49,13 +50,14 @@ def station_and_fixtures(source: str | None, units: str = "auto", up_axis: str =
 
 
 def build_base_stage(out: Path, station_source: str | None = None, units: str = "auto",
-                     up_axis: str = "auto") -> Path:
-    """Write `out/base.usda` and every asset it references; returns the base stage path."""
+                     up_axis: str = "auto", lens: CameraModel = DEFAULT_CAMERA, size: tuple[int, int] | None = None) -> Path:
+    """Write `out/base.usda` and every asset it references; returns the base stage path. `lens`, `size`:
+    the camera (core.camera_model) and image size the rig scores its views with (default Table I)."""
     from allo_usd.assets.anomalies import ANOMALY_VARIANTS, build_anomaly
     from allo_usd.assets.bodies import build_bodies
     from allo_usd.scene.rig import base_poses
 
     station, fixtures, doc = station_and_fixtures(station_source, units, up_axis)
-    poses = base_poses(fixtures, *station.triangle_soup())
+    poses = base_poses(fixtures, *station.triangle_soup(), lens, size)
     anomalies = {name: {v: build_anomaly(name, v) for v in variants} for name, variants in ANOMALY_VARIANTS.items()}
     return write_base_stage(out, station, build_bodies(), anomalies, poses, station_doc=doc)

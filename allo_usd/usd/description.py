@@ -50,6 +50,8 @@ class CameraDesc:
     sensor_height_mm: float
     clip: tuple[float, float]
     path: str = CAMERA                     # the UsdGeom.Camera prim (the Blender object's name)
+    horizontal_offset_mm: float = 0.0      # horizontalApertureOffset, verticalApertureOffset in mm (the
+    vertical_offset_mm: float = 0.0        # principal point: core.camera_model; Blender's lens shift)
 
 
 @dataclass(frozen=True)

@@ -146,6 +146,19 @@ def _asset_source(aprim, layer: Path) -> dict:
     return {"kind": "built-in", "layer": os.path.relpath(interface, here) if interface else None}
 
 
+def _lens_source(attr, stack) -> str:
+    """Which layer holds the lens's strongest opinion: the scene's own layers (a plan's [camera]) or the
+    base stage (the bottom of the stack: the paper's Table I camera)."""
+    specs = attr.GetPropertyStack()
+    if not specs:
+        return "schema fallback"
+    layer = specs[0].layer
+    name = Path(layer.realPath).name if layer.realPath else layer.identifier
+    if stack and layer.identifier == stack[-1].identifier:
+        return f"base stage {name} (Table I default)"
+    return f"scene layer {name} (plan camera)"
+
+
 def describe(layer: str | Path) -> dict:
     """What the scene is, read from the USD alone: identity, anomaly, sky, camera, render, stack.
     A layer this project did not author (no AlloSceneAPI on its default prim) is a LayerError that
@@ -229,6 +242,9 @@ def describe(layer: str | Path) -> dict:
                   "forward": tuple(map(float, -m[:3, 2])), "up": tuple(map(float, m[:3, 1])),
                   "focal_length_mm": mm(lens.GetFocalLengthAttr()),
                   "sensor_mm": (mm(lens.GetHorizontalApertureAttr()), mm(lens.GetVerticalApertureAttr())),
+                  "aperture_offset_mm": (mm(lens.GetHorizontalApertureOffsetAttr()) or 0.0,
+                                         mm(lens.GetVerticalApertureOffsetAttr()) or 0.0),
+                  "lens_from": _lens_source(lens.GetFocalLengthAttr(), _stack(stage)),
                   "exposure": {"ev": values["exposure"], "f_stop": values["exposure:fStop"],
                                "time_s": values["exposure:time"], "iso": values["exposure:iso"],
                                "responsivity": values["exposure:responsivity"], "linear_scale": scale}}
@@ -309,6 +325,7 @@ def format_description(d: dict) -> str:
         lines.append(f"lens     focal length {_fmt(cam['focal_length_mm'])} mm  aperture {_fmt(sensor[0])} x "
                      f"{_fmt(sensor[1])} mm  exposure {_fmt(e['ev'])} EV (f/{_fmt(e['f_stop'])}, {_fmt(e['time_s'])} s, "
                      f"ISO {_fmt(e['iso'])}, responsivity {_fmt(e['responsivity'])}) = linear x{_fmt(e['linear_scale'])}")
+        lines.append(f"         aperture offset {_fmt(cam['aperture_offset_mm'])} mm  from {cam['lens_from']}")
     for s in ([d["sun"]] if d["sun"] else []) + d.get("body_suns", []):
         name = "sun" if s is d["sun"] else s["path"].rsplit("/", 1)[-1]
         lines.append(f"{name:<8} {_fmt(s['irradiance'])} W/m2 (intensity {_fmt(s['intensity'])}, normalize "

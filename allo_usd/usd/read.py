@@ -17,6 +17,7 @@ from allo_usd.core.labels import BACKGROUND, CLASS_IDS
 from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
 from allo_usd.usd.description import (CameraDesc, EffectsDesc, LightLink, MaterialDesc, MeshDesc, RenderDesc,
                                       SceneDescription, SpotDesc, SunDesc)
+from allo_usd.core.camera_model import CLIP_M, LENS_MM, MAX_SHIFT, SENSOR_MM
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import file_problem
 from allo_usd.core.limits import resolution_problem
@@ -31,9 +32,7 @@ MAX_CAMERA_DISTANCE_M = 1e4    # the camera, from the station (ALLO cameras sit 
 # What the reader lets through to Blender (docs/reliability.md, section 2). Each range lies
 # inside the hard limits of the bpy RNA property the value ends in, so Blender never clamps a value the
 # layer records: tests/test_reader_bounds.py reads those limits from bpy and checks every one.
-LENS_MM = (1.0, 100_000.0)        # Camera.lens (Blender's hard minimum is 1 mm)
-SENSOR_MM = (1.0, 10_000.0)       # Camera.sensor_width / sensor_height (hard minimum 1 mm)
-CLIP_M = (1e-5, 1e13)             # Camera.clip_start / clip_end (hard minimum 1e-6 m); the Sun is 1.5e11 m away
+# LENS_MM, SENSOR_MM, CLIP_M, MAX_SHIFT: core.camera_model (a plan's [camera] is held to the same bounds).
 SUN_ANGLE_DEG = (0.0, 180.0)      # SunLight.angle, 0..pi
 SPOT_CONE_DEG = (0.5, 90.0)       # half angle; SpotLight.spot_size (the full cone) is 1..180 degrees
 SPOT_SOFTNESS = (0.0, 1.0)        # SpotLight.spot_blend
@@ -554,8 +553,15 @@ def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
     if not CLIP_M[0] <= near < far <= CLIP_M[1]:
         raise LayerError(f"{where}.clippingRange = ({near:g}, {far:g}) must be near < far within "
                          f"{_range(*CLIP_M, 'm')} (Blender's Camera.clip_start/clip_end); fix the layer")
+    offsets = []
+    for attr, aperture in ((cam.GetHorizontalApertureOffsetAttr(), width), (cam.GetVerticalApertureOffsetAttr(), height)):
+        mm = _number(attr.Get(), f"{where}.{attr.GetName()}") * 100.0
+        if not abs(mm) <= MAX_SHIFT * aperture:
+            raise LayerError(f"{where}.{attr.GetName()} = {attr.Get()!r} ({mm:.3g} mm) puts the principal point outside "
+                             f"the image (|offset| <= {MAX_SHIFT:g} x the {aperture:.3g} mm aperture); fix the layer")
+        offsets.append(mm + 0.0)
     m = world_matrix(cache, prim, MAX_CAMERA_DISTANCE_M, checked)
-    return CameraDesc(m, focal, width, height, (near, far), str(where))
+    return CameraDesc(m, focal, width, height, (near, far), str(where), *offsets)
 
 
 # UsdGeom.Camera exposure attributes: (attribute getter name, fallback, bounds). The fallbacks are the

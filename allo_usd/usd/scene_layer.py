@@ -5,7 +5,7 @@ A scene's opinions fall into three groups, each built here as plain data (`Prim`
   own lamp with the light linking; true-scale bodies, eclipse states, epoch);
 - `pose_prims`: what the perturbed camera sample decides (camera transform, offsets, attempts);
 - `scene_prims`: what only this image decides (identity and seed, anomaly, effects, render, and
-  the camera's exposure).
+  the camera's exposure and, when the plan's camera is not the paper's, its lens: `lens_attrs`).
 
 `write_scene_layer` writes all three into one self-contained layer over the base stage;
 `author.compose` writes the first two once as shared layers and stacks them under a scene layer
@@ -24,6 +24,7 @@ from allo_usd.usd import schema
 from allo_usd.sky import eclipse as sky_eclipse
 from allo_usd.core.sensor import SensorParams
 from allo_usd.core.errors import AlloError, LayerError
+from allo_usd.core.camera_model import CLIP_M, DEFAULT_CAMERA, LENS_MM, MAX_SHIFT, SENSOR_MM
 from allo_usd.core.geometry import check_finite, rotation_towards
 from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
 from allo_usd.core.limits import resolution_problem
@@ -88,6 +89,45 @@ def validate_spec(spec: SceneSpec) -> None:
         raise LayerError(f"samples={spec.render.samples} is outside 1..65536")
     if spec.split not in ("train", "test"):
         raise LayerError(f"split must be 'train' or 'test', got {spec.split!r}")
+    _check_lens(spec)
+
+
+def _check_lens(spec: SceneSpec) -> None:
+    """The plan's lens within what the reader (usd/read.py) accepts, so no layer authors what it refuses."""
+    lens, (w, h) = spec.lens, spec.render.resolution
+    values = (lens.focal_length_mm, lens.sensor_width_mm, lens.sensor_height_mm, *lens.clipping_range_m,
+              *lens.principal_point_offset_px)
+    check_finite("camera lens (focal length, sensor, clipping range, principal point offset)", values)
+    for what, v, (lo, hi) in (("focal length", lens.focal_length_mm, LENS_MM),
+                              ("sensor width", lens.sensor_width_mm, SENSOR_MM),
+                              ("sensor height", lens.sensor_height_mm, SENSOR_MM)):
+        if not lo <= v <= hi:
+            raise LayerError(f"camera {what} {v:g} mm is outside {lo:g}..{hi:g} mm; fix the plan's [camera]")
+    near, far = lens.clipping_range_m
+    if not CLIP_M[0] <= near < far <= CLIP_M[1]:
+        raise LayerError(f"camera clipping range ({near:g}, {far:g}) must be near < far within "
+                         f"{CLIP_M[0]:g}..{CLIP_M[1]:g} m; fix the plan's [camera]")
+    dx, dy = lens.principal_point_offset_px
+    if abs(dx) > MAX_SHIFT * w or abs(dy) > MAX_SHIFT * h:
+        raise LayerError(f"camera principal point offset ({dx:g}, {dy:g}) px leaves the {w}x{h} image; fix the "
+                         "plan's camera.principal_point_offset_px")
+
+
+def lens_attrs(spec: SceneSpec) -> dict:
+    """The plan's lens as UsdGeom.Camera attributes (tenths of a scene unit, metersPerUnit = 1: mm / 100;
+    core.camera_model for the aperture offsets), or {} for the paper's camera (the base stage's)."""
+    from pxr import Gf
+
+    lens = spec.lens
+    if lens == DEFAULT_CAMERA:
+        return {}
+    h_off, v_off = lens.aperture_offsets_mm(spec.render.resolution[0])
+    return {"focalLength": ("float", lens.focal_length_mm / 100.0),
+            "horizontalAperture": ("float", lens.sensor_width_mm / 100.0),
+            "verticalAperture": ("float", lens.sensor_height_mm / 100.0),
+            "horizontalApertureOffset": ("float", h_off / 100.0),
+            "verticalApertureOffset": ("float", v_off / 100.0),
+            "clippingRange": ("float2", Gf.Vec2f(*lens.clipping_range_m))}
 
 
 ECLIPSE_STATES = sky_eclipse.ECLIPSE_STATES                 # allo:eclipseState's allowed tokens
@@ -233,7 +273,7 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
                                          (A.SEED, int(spec.seed)), (A.SEED_PATH, spec.seed_path)),
                 api=("AlloSceneAPI",))]
     # The film exposure as UsdGeom.Camera defines it: 2^exposure (fStop, time, iso, responsivity at fallbacks).
-    out.append(Prim(layout.CAMERA, {"exposure": ("float", camera_ev(spec.render.exposure))}))
+    out.append(Prim(layout.CAMERA, {"exposure": ("float", camera_ev(spec.render.exposure)), **lens_attrs(spec)}))
     if not spec.effects.inspection_light:
         out.append(Prim(layout.INSPECTION_LIGHT, active=False))
     if spec.anomaly is not None:
