@@ -301,3 +301,13 @@ def test_asset_import_is_the_same_importer_for_usd_files(tmp_path):
     pts, _ = read_triangles(tmp_path / "out" / "part.usda", "/part")
     asset, _ = load_hazard(src, "part", None, None)
     np.testing.assert_allclose(np.ptp(pts, axis=0), np.ptp(asset.parts[0].points, axis=0), atol=1e-6)
+
+
+@pytest.mark.parametrize("make, words", [(lambda p: None, "does not exist"), (lambda p: p.mkdir(), "is not a regular file")])
+def test_a_missing_or_odd_hazard_file_is_named_before_anything_is_made(tmp_path, make, words):
+    from allo_usd.run.author import author_plan
+
+    make(tmp_path / "bracket.stl")
+    with pytest.raises(PlanError, match=f"bracket.stl {words}; fix"):
+        author_plan(_plan(tmp_path / "bracket.stl"), tmp_path / "tree", progress=False)
+    assert not (tmp_path / "tree" / "scenes").exists() and not (tmp_path / "tree" / "hazards").exists()

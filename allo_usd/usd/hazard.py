@@ -56,8 +56,9 @@ def made_from(choice) -> dict:
     """What a hazard's conversion depends on (recorded in source.json, compared on every run)."""
     source = Path(choice.file)
     if not source.is_file():
-        raise PlanError(f"anomaly {choice.id!r}: file {source} does not exist; fix: give the path of your hazard's "
-                        "model (relative to the working directory)")
+        what = "is not a regular file" if source.exists() else "does not exist"
+        raise PlanError(f"anomaly {choice.id!r}: file {source} {what}; fix: give the path of your hazard's "
+                        "model file (relative to the working directory)")
     size = source.stat().st_size
     if size > MAX_FILE_BYTES:
         raise PlanError(f"anomaly {choice.id!r}: {source} is {size / 2**20:.0f} MiB, above the "
