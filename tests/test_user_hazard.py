@@ -303,11 +303,55 @@ def test_asset_import_is_the_same_importer_for_usd_files(tmp_path):
     np.testing.assert_allclose(np.ptp(pts, axis=0), np.ptp(asset.parts[0].points, axis=0), atol=1e-6)
 
 
-@pytest.mark.parametrize("make, words", [(lambda p: None, "does not exist"), (lambda p: p.mkdir(), "is not a regular file")])
+@pytest.mark.parametrize("make, words", [(lambda p: None, "does not exist"), (lambda p: p.mkdir(), "is not a regular file \\(a directory")])
 def test_a_missing_or_odd_hazard_file_is_named_before_anything_is_made(tmp_path, make, words):
     from allo_usd.run.author import author_plan
 
     make(tmp_path / "bracket.stl")
-    with pytest.raises(PlanError, match=f"bracket.stl {words}; fix"):
+    with pytest.raises(PlanError, match=f"bracket.stl {words}.*; fix"):
         author_plan(_plan(tmp_path / "bracket.stl"), tmp_path / "tree", progress=False)
     assert not (tmp_path / "tree" / "scenes").exists() and not (tmp_path / "tree" / "hazards").exists()
+
+
+def test_usd_instances_count_and_guides_do_not(tmp_path):
+    """An instanced mesh is part of the hazard (instance proxies are read); a guide-purpose mesh is not."""
+    from pxr import Gf, Usd, UsdGeom
+
+    from allo_usd.usd.hazard import load_hazard
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "pair.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    proto = UsdGeom.Xform.Define(stage, "/Proto")
+    proto.GetPrim().SetSpecifier(__import__("pxr").Sdf.SpecifierClass)
+    tris = box_triangles((0, 0, 0), (0.2, 0.2, 0.2))
+    mesh = UsdGeom.Mesh.Define(stage, "/Proto/Body")
+    mesh.CreatePointsAttr([Gf.Vec3f(*p) for p in tris.reshape(-1, 3)])
+    mesh.CreateFaceVertexCountsAttr([3] * len(tris))
+    mesh.CreateFaceVertexIndicesAttr(list(range(3 * len(tris))))
+    for name, x in (("A", 0.0), ("B", 1.0)):
+        inst = UsdGeom.Xform.Define(stage, f"/Pair/{name}")
+        inst.AddTranslateOp().Set(Gf.Vec3d(x, 0, 0))
+        inst.GetPrim().GetInherits().AddInherit("/Proto")
+        inst.GetPrim().SetInstanceable(True)
+    guide = UsdGeom.Mesh.Define(stage, "/Pair/Guide")
+    guide.CreatePointsAttr([Gf.Vec3f(*p) for p in box_triangles((0, 0, 0), (9, 9, 9)).reshape(-1, 3)])
+    guide.CreateFaceVertexCountsAttr([3] * 12)
+    guide.CreateFaceVertexIndicesAttr(list(range(36)))
+    guide.CreatePurposeAttr(UsdGeom.Tokens.guide)
+    stage.SetDefaultPrim(stage.GetPrimAtPath("/Pair"))
+    stage.Save()
+    asset, info = load_hazard(tmp_path / "pair.usda", "pair", None, None)
+    lo, hi = asset.bounds()
+    np.testing.assert_allclose(hi - lo, (1.2, 0.2, 0.2), atol=1e-6)   # both instances, not the 9 m guide
+    assert info["triangles"] == 24
+
+
+def test_too_many_colours_and_a_name_too_long_are_plan_errors(tmp_path):
+    from allo_usd.run.author import author_plan
+
+    with pytest.raises(ValueError, match="colour variants, above the 32"):
+        hazard(tmp_path / "b.stl", colors={f"c{i}": (0.5, 0.5, 0.5) for i in range(33)})
+    long = tmp_path / ("x" * 300 + ".stl")
+    with pytest.raises(PlanError, match=r"cannot be read \(File name too long\); fix"):
+        author_plan(_plan(long), tmp_path / "tree", progress=False)

@@ -157,6 +157,7 @@ HAZARD_UNITS = tuple(UNIT_SCALES)
 HAZARD_UP_AXES = tuple(UP_AXIS_ROTATIONS)
 RESERVED_HAZARD_IDS = ("good", "anomaly", "station", "background")   # dataset folders and class names
 USER_VARIANT = "default"                  # a user hazard's variant with the file's own materials
+MAX_HAZARD_COLORS = 32
 
 
 class AnomalyChoice(_Model):
@@ -234,6 +235,10 @@ class AnomalyChoice(_Model):
             missing = " and ".join(n for n in ("units", "up_axis") if getattr(self, n) is None)
             raise ValueError(f"anomaly {self.id!r}: {f} needs {missing} given (a mesh file does not say reliably "
                              "which unit and axis it uses); fix: e.g. units = \"mm\", up_axis = \"z\"")
+        if len(self.colors or {}) > MAX_HAZARD_COLORS:
+            raise ValueError(f"anomaly {self.id!r} has {len(self.colors)} colour variants, above the "
+                             f"{MAX_HAZARD_COLORS} a hazard may have (each is a geometry file in the tree); fix: "
+                             "keep the colours you train on")
         for name, rgb in (self.colors or {}).items():
             if not re.fullmatch(r"^[a-z][a-z0-9_]{0,31}$", name) or name == USER_VARIANT:
                 raise ValueError(f"anomaly {self.id!r}: colour variant name {_short(name)} is not allowed; fix: lower "

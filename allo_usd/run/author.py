@@ -44,7 +44,7 @@ from pathlib import Path
 from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_path, write_composed_scene,
                                   write_pose_layer, write_sky_layer)
 from allo_usd.core.camera_model import DEFAULT_CAMERA
-from allo_usd.core.files import atomic_directory, write_text_atomic
+from allo_usd.core.files import atomic_directory, file_problem, write_text_atomic
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
 from allo_usd.core.timefmt import format_utc
 from allo_usd.plan.model import Plan
@@ -560,8 +560,9 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
         copy_base_stage(plan.resolve_base_stage(), out_dir)
         return plan.model_copy(update={"base_stage": str(base.resolve())})
     source = Path(plan.station.source)
-    if not source.is_file():
-        raise PlanError(f"station.source: {source} does not exist; fix: give the path of a glTF/OBJ/STL "
+    problem = file_problem(source, 1 << 40)   # missing, unreadable, a name too long, not a regular file
+    if problem:
+        raise PlanError(f"station.source: {str(source)[:200]} {problem}; fix: give the path of a glTF/OBJ/STL "
                         "model, or 'procedural'")
     from allo_usd.core.files import sha256_file
 

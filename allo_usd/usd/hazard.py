@@ -33,7 +33,7 @@ import numpy as np
 from allo_usd import __version__
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.core.errors import AlloError, PlanError
-from allo_usd.core.files import atomic_directory, sha256_file
+from allo_usd.core.files import atomic_directory, file_problem, sha256_file
 from allo_usd.usd.compose import HAZARD_DIR
 
 SOURCE_MARKER = "source.json"
@@ -55,17 +55,21 @@ def hazard_asset_path(out_dir: Path, asset: str) -> Path:
 def made_from(choice) -> dict:
     """What a hazard's conversion depends on (recorded in source.json, compared on every run)."""
     source = Path(choice.file)
-    if not source.is_file():
-        what = "is not a regular file" if source.exists() else "does not exist"
-        raise PlanError(f"anomaly {choice.id!r}: file {source} {what}; fix: give the path of your hazard's "
-                        "model file (relative to the working directory)")
-    size = source.stat().st_size
-    if size > MAX_FILE_BYTES:
-        raise PlanError(f"anomaly {choice.id!r}: {source} is {size / 2**20:.0f} MiB, above the "
-                        f"{MAX_FILE_BYTES >> 20} MiB a hazard model may have; fix: decimate it")
+    problem = file_problem(source, MAX_FILE_BYTES)
+    if problem:
+        if "No such file" in problem:
+            problem = "does not exist"
+        raise PlanError(f"anomaly {choice.id!r}: file {_short_path(source)} {problem}; fix: give the path of your "
+                        "hazard's model file (relative to the working directory), at most "
+                        f"{MAX_FILE_BYTES >> 20} MiB (decimate a larger one)")
     return {"id": choice.id, "source": source.name, "sha256": sha256_file(source), "units": choice.units,
             "up_axis": choice.up_axis, "colors": {k: list(v) for k, v in (choice.colors or {}).items()},
             "variants": list(choice.user_variants())}
+
+
+def _short_path(path: Path) -> str:
+    text = str(path)
+    return text if len(text) <= 200 else text[:120] + "..." + text[-60:]
 
 
 def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
@@ -203,12 +207,16 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
     rot = UP_AXIS_ROTATIONS[up]
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     parts, materials, seen = [], {}, set()
-    for count, prim in enumerate(Usd.PrimRange(stage.GetPseudoRoot()), 1):
+    # Instanced meshes count (instance proxies); guide and proxy purposes are not the object itself.
+    prims = Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+    for count, prim in enumerate(prims, 1):
         if count > MAX_PRIMS:
             raise fail(f"holds more than {MAX_PRIMS:,} prims; fix: give a single hazard model")
         if not prim.IsA(UsdGeom.Mesh):
             continue
-        if UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
+        imageable = UsdGeom.Imageable(prim)
+        if (imageable.ComputeVisibility() == UsdGeom.Tokens.invisible
+                or imageable.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)):
             continue
         try:
             points, counts, indices = mesh_topology(prim)
