@@ -236,3 +236,41 @@ def test_raycast_of_the_day_matches_cycles(sky, tmp_path):
     agree, agree_rest = (tracked == mask).mean(), (rest == mask).mean()
     assert agree >= 0.98, agree
     assert agree_rest < agree - 0.03, (agree_rest, agree)
+
+
+def test_a_file_pose_a_wing_sweeps_through_fails_naming_the_day_the_pose_and_the_fix(sky, tmp_path):
+    """A pose-file pose clear of the rest-pose station but inside a wing as turned on the plan's first
+    day: with sigma 0 no camera can be drawn there, and the error says which day, which pose line,
+    and that the arrays turned (nothing half-written is left: the error comes before that scene)."""
+    from allo_usd.core.errors import PlacementError
+    from allo_usd.plan.model import Anomalies, Counts, Dates, Plan, Poses, Station
+    from allo_usd.run.author import author_plan
+    from allo_usd.scene.raycast import RayScene
+    from allo_usd.scene.rig import too_close
+    from allo_usd.usd.read import StageGeometry
+
+    day = RENDER_DAY
+    geometry = StageGeometry(BASE_STAGE)
+    rest = RayScene([(*geometry.station_triangles(), 1)])
+    pts, tris = geometry.station_triangles(_day(sky, day)[2])
+    turned = RayScene([(pts, tris, 1)])
+    # a point just off a turned wing's blanket that the rest pose leaves clear
+    centres = pts[tris].mean(axis=1)
+    far_from_rest = [c for c in centres[:: max(1, len(centres) // 4000)]
+                     if abs(c[1]) > 40 and not too_close(rest, c, 1.0)]
+    assert far_from_rest, "no turned wing point clear of the rest pose"
+    spot = far_from_rest[0]
+    assert too_close(turned, spot) and not too_close(rest, spot)
+    (tmp_path / "poses.csv").write_text("name,split,x,y,z,qw,qx,qy,qz\n"
+                                        f"in_the_sweep,train,{spot[0]},{spot[1]},{spot[2]},1,0,0,0\n")
+    from datetime import date, timedelta
+
+    plan = Plan(name="sweep", dates=Dates(start=date(2030, 1, 1) + timedelta(days=day), days=1),
+                poses=Poses(train=[], test=[], file=str(tmp_path / "poses.csv"), position_sigma_m=0.0,
+                            angle_sigma_rad=0.0),
+                anomalies=Anomalies(assets=[]), counts=Counts(), station=Station(track_sun=True),
+                base_stage=str(BASE_STAGE))
+    with pytest.raises(PlacementError) as e:
+        author_plan(plan, tmp_path / "tree", progress=False)
+    text = str(e.value)
+    assert "day 0" in text and "in_the_sweep" in text and "poses.csv:2" in text and "track_sun" in text

@@ -147,8 +147,14 @@ def resolve_camera(inputs: SceneInputs, *, day: int, pose: int, plan_seed: int,
         key = (*key, f"r{reserve}")
     seed, seed_path = scene_seed(plan_seed, *key)
     rng = np.random.default_rng(seed)
-    pos, rot, dpos, dang, attempts = perturb(base, rng, inputs.station_scene_on(day), position_sigma_m=inputs.sigmas[0],
-                                             angle_sigma_rad=inputs.sigmas[1])
+    try:
+        pos, rot, dpos, dang, attempts = perturb(base, rng, inputs.station_scene_on(day),
+                                                 position_sigma_m=inputs.sigmas[0], angle_sigma_rad=inputs.sigmas[1])
+    except PlacementError as exc:   # say which day, and why a pose that was clear may not be on it
+        where = f"; it is {base.name!r} of the pose file {base.source}" if base.source else ""
+        turning = (" with the solar arrays turned to that day's Sun (station.track_sun): a wing may sweep through "
+                   "the pose; move it, or set a position sigma above 0") if inputs.track_sun else ""
+        raise PlacementError(f"day {day}: {exc}{where}{turning}") from None
     sigmas = None if tuple(inputs.sigmas) == (POSITION_SIGMA_M, ANGLE_SIGMA_RAD) else tuple(map(float, inputs.sigmas))
     camera = CameraSpec(tuple(map(float, pos)), rot, tuple(map(float, dpos)), tuple(map(float, dang)),
                         PERTURBATION, attempts, sigmas, base.name, base.source, base.source_sha256)
