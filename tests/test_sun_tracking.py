@@ -53,22 +53,31 @@ def _composed(sky_layer):
     return Usd.Stage.Open(root)
 
 
-def _cell_normals(stage) -> dict[str, np.ndarray]:
-    """{wing: world-space unit normal of its cell side}, from the solar_wing_<wing> meshes' first face."""
+def _face_normals(stage, name_of) -> dict[str, np.ndarray]:
+    """{name_of(mesh name): world-space unit normal of the mesh's first face} for every station mesh that
+    name_of names (returns a key, or None to skip it)."""
     from pxr import Usd, UsdGeom
 
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     out = {}
     for prim in Usd.PrimRange(stage.GetPrimAtPath("/World/Station")):
-        if prim.IsA(UsdGeom.Mesh) and prim.GetName().startswith("solar_wing_") and prim.GetName() != "solar_wing_backs":
-            mesh = UsdGeom.Mesh(prim)
-            pts = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)
-            idx = np.array(mesh.GetFaceVertexIndicesAttr().Get())[:3]
-            m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64).T
-            p = pts[idx] @ m[:3, :3].T
-            n = np.cross(p[1] - p[0], p[2] - p[0])
-            out[prim.GetName().removeprefix("solar_wing_")] = n / np.linalg.norm(n)
+        key = name_of(prim.GetName()) if prim.IsA(UsdGeom.Mesh) else None
+        if key is None:
+            continue
+        mesh = UsdGeom.Mesh(prim)
+        pts = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)
+        idx = np.array(mesh.GetFaceVertexIndicesAttr().Get())[:3]
+        m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64).T
+        p = pts[idx] @ m[:3, :3].T
+        n = np.cross(p[1] - p[0], p[2] - p[0])
+        out[key] = n / np.linalg.norm(n)
     return out
+
+
+def _cell_normals(stage) -> dict[str, np.ndarray]:
+    """{wing: world-space unit normal of its cell side}, from the solar_wing_<wing> meshes' first face."""
+    return _face_normals(stage, lambda name: name.removeprefix("solar_wing_")
+                         if name.startswith("solar_wing_") and name != "solar_wing_backs" else None)
 
 
 def _angle_deg(a, b) -> float:
@@ -100,11 +109,12 @@ def test_joint_limits_respected_all_year(sky):
     from allo_usd.usd.read import read_joint_angles
 
     joints = read_joint_angles(BASE_STAGE)
-    assert sorted(joints) == sorted(["AlphaS", "AlphaP"] + [f"Beta{w}" for w in
-                                                            ("S4a", "S4b", "S6a", "S6b", "P4a", "P4b", "P6a", "P6b")])
+    assert sorted(joints) == sorted(["AlphaS", "AlphaP", "RadiatorS", "RadiatorP"]
+                                    + [f"Beta{w}" for w in ("S4a", "S4b", "S6a", "S6b", "P4a", "P4b", "P6a", "P6b")])
     assert joints["AlphaS"]["op"] == "xformOp:rotateY:alpha" and joints["BetaS4a"]["op"] == "xformOp:rotateZ:beta"
+    assert joints["RadiatorS"]["op"] == "xformOp:rotateY:trrj" and joints["RadiatorP"]["angle"] == pytest.approx(0.0)
     assert joints["AlphaS"]["angle"] == pytest.approx(25.0) and joints["BetaP4b"]["angle"] == pytest.approx(-9.0)
-    assert all(j["tracks"] == "Sun" for j in joints.values())
+    assert all(j["tracks"] == ("SunEdgeOn" if n.startswith("Radiator") else "Sun") for n, j in joints.items())
     for day in range(len(sky.epochs)):
         for name, angle in _day(sky, day)[2].items():
             assert joints[name]["lower"] <= angle <= joints[name]["upper"], (day, name, angle)
@@ -137,7 +147,7 @@ def test_no_tracking_writes_no_joint_opinions(sky, tmp_path):
         return found
 
     assert station_specs(off) == []
-    assert len([p for p in station_specs(on) if p.IsPropertyPath()]) == 10
+    assert len([p for p in station_specs(on) if p.IsPropertyPath()]) == 12   # 2 alpha, 8 beta, 2 radiator
     assert "Station" not in off.read_text() and "xformOp:rotateY:alpha" in on.read_text()
 
 
@@ -211,7 +221,7 @@ def test_articulated_budget():
 
     station = build_station()
     assert len(station.parts) <= 100 and sum(len(p.triangles()) for p in station.parts) <= 150_000
-    assert len(station.joints) == 10
+    assert len(station.joints) == 12
     under = {p.joint for p in station.parts}
     assert under >= {"AlphaS", "AlphaP", "BetaS4a", "BetaP6b"}
     wings = [p for p in station.parts if p.name.startswith("solar_wing_") and p.material == "solar_cells"]
@@ -274,3 +284,68 @@ def test_a_file_pose_a_wing_sweeps_through_fails_naming_the_day_the_pose_and_the
         author_plan(plan, tmp_path / "tree", progress=False)
     text = str(e.value)
     assert "day 0" in text and "in_the_sweep" in text and "poses.csv:2" in text and "track_sun" in text
+
+
+
+def _radiator_normals(stage) -> dict[str, np.ndarray]:
+    """{side: world-space unit normal of the S1/P1 radiator panels}, from the radiator_*_panels meshes."""
+    return _face_normals(stage, lambda name: name[9:11] if name in ("radiator_S1_panels", "radiator_P1_panels")
+                         else None)
+
+
+@pytest.mark.parametrize("day", DAYS + (CLAMPED_DAY,))
+def test_the_radiators_turn_edge_on_to_the_sun(sky, tmp_path, day):
+    """The S1/P1 thermal radiators (TRRJ) turn so the Sun grazes them: their panels' normal is at 90
+    degrees to the Sun within 1 degree, or, where the edge-on angle lies past the joint's +-85 degree
+    limit, at most the 5 degrees that leaves (the two edge-on angles are 180 degrees apart)."""
+    from allo_usd.assets.station import RADIATOR_LIMITS
+    from allo_usd.scene.tracking import radiator_normal
+
+    sun, _, angles = _day(sky, day)
+    normals = _radiator_normals(_composed(_write_sky(tmp_path / "sky.usda", sky, day, angles)))
+    assert sorted(normals) == ["P1", "S1"]
+    at_limit = angles["RadiatorS"] in RADIATOR_LIMITS
+    for side, n in normals.items():
+        grazing = 90.0 - _angle_deg(n, sun.direction) if _angle_deg(n, sun.direction) <= 90 else \
+            _angle_deg(n, sun.direction) - 90.0
+        assert grazing <= (5.0 if at_limit else 1.0), (day, side, grazing, angles["RadiatorS"])
+        np.testing.assert_allclose(abs(n @ radiator_normal(angles)), 1.0, atol=1e-9)
+
+
+def test_the_radiators_sweep_clear_of_the_station():
+    """Across the radiator joints' whole range (every 5 degrees), no radiator panel, rail or hinge
+    member crosses any other part of the station, nor any station edge a radiator part: a joint angle
+    inside the limits never puts a panel through the truss or a module. (Past -97 degrees they would.)"""
+    from allo_usd.assets.mesh import Asset
+    from allo_usd.assets.station import RADIATOR_BEAM, RADIATOR_JOINTS, RADIATOR_LIMITS, TRUSS_Z, build_station
+    from allo_usd.scene.raycast import RayScene
+
+    station = build_station()
+    moving = set(RADIATOR_JOINTS.values())
+    rest = Asset("rest", tuple(p for p in station.parts if p.joint not in moving), station.materials,
+                 station.textures, station.joints)
+    radiators = Asset("radiators", tuple(p for p in station.parts if p.joint in moving), station.materials,
+                      station.textures, station.joints)
+    axis = np.array([RADIATOR_BEAM[0], RADIATOR_BEAM[2] + TRUSS_Z])
+
+    def away_from_hinge(t):   # the panels' rails start on the beam they turn about: leave the hinge out
+        return t[(np.linalg.norm(t[:, :, [0, 2]] - axis, axis=2) > 1.0).all(axis=1)]
+
+    def crossings(scene, t) -> int:
+        n = 0
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            d = t[:, j] - t[:, i]
+            length = np.linalg.norm(d, axis=1)
+            ok = length > 1e-9
+            n += int(scene.occluded(t[ok, i], d[ok] / length[ok, None], length[ok]).sum())
+        return n
+
+    spts, stris = rest.triangle_soup()
+    static, static_tris = RayScene([(spts, stris, 1)]), away_from_hinge(spts[stris])
+    lo, hi = RADIATOR_LIMITS
+    for theta in [*np.arange(lo, hi, 5.0), hi]:
+        pts, tris = radiators.triangle_soup({name: theta for name in moving})
+        assert crossings(static, away_from_hinge(pts[tris])) == 0, theta
+        assert crossings(RayScene([(pts, tris, 2)]), static_tris) == 0, theta
+    pts, tris = radiators.triangle_soup({name: -105.0 for name in moving})   # the check can fail
+    assert crossings(static, away_from_hinge(pts[tris])) > 0

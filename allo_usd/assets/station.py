@@ -490,19 +490,26 @@ def _panel_stack(b: _Parts, group: str, start, length_dir, width_dir, width: flo
                                                     0.06, METAL), matrix=matrix)
 
 
+RADIATOR_BEAM = np.array([-HX - 0.25, 0.0, -HZ - 0.2])   # the S1/P1 radiator beam's axis (inboard frame, along Y)
+RADIATOR_PHI = np.radians(35.0)                          # rest: the panels hang down and aft, 35 degrees aft of nadir
+
+
 def _radiators(b: _Parts) -> None:
-    phi = np.radians(35.0)
-    r = np.array([-np.sin(phi), 0.0, -np.cos(phi)])   # down and aft
+    r = np.array([-np.sin(RADIATOR_PHI), 0.0, -np.cos(RADIATOR_PHI)])   # down and aft
     m = _inboard()
     for s, name in ((1, "radiator_S1"), (-1, "radiator_P1")):
         y0, y1 = 10.0 * s, 20.2 * s
-        beam = np.array([-HX - 0.25, 0.0, -HZ - 0.2])
+        beam = RADIATOR_BEAM
         b.add("truss_hardware", METAL, box_between("p", beam + (0, y0, 0), beam + (0, y1, 0), 0.35, METAL),
               cylinder("p", 0.55, 0.6, METAL, 24, transform(beam + (0, y0 - 0.6 if s > 0 else y0, 0),
                                                              rot_x(-np.pi / 2))), matrix=m)
         for k in range(3):
             yc = s * (11.6 + 3.5 * k)
-            _panel_stack(b, name, beam + (0, yc, 0), r, (0, 1, 0), 3.2, 8, 2.7, 0.1, 0.45, m)
+            if b.rest is None:   # articulated: the panels turn about the beam on its TRRJ (joint frame at the beam)
+                _panel_stack(b, name + "_panels", (0.0, yc, 0.0), r, (0, 1, 0), 3.2, 8, 2.7, 0.1, 0.45,
+                             (RADIATOR_JOINTS[s], np.eye(4)))
+            else:                # flat: exactly as the static station was built
+                _panel_stack(b, name, beam + (0, yc, 0), r, (0, 1, 0), 3.2, 8, 2.7, 0.1, 0.45, m)
     # photovoltaic radiators: one per solar module, sticking out aft in the outboard frame
     for s in (1, -1):
         mo = _outboard(s)
@@ -585,6 +592,12 @@ def _solar(b: _Parts) -> None:
 # the ISS; the beta gimbals are held to +-BETA_LIMIT (the +-75 degree solar beta range the ISS's orbit
 # needs; a choice); at a limit a wing stops there and misses the Sun by the excess.
 ALPHA_JOINTS = {1: "AlphaS", -1: "AlphaP"}
+# The S1/P1 thermal radiators turn about their beam (station Y) on the thermal radiator rotary joints
+# (TRRJ), edge-on to the Sun so it heats them least. Rest 0 is the pose the static station was built in
+# (panels 35 degrees aft of nadir). The limits keep the 22 m panels clear of the modules forward of the
+# truss and of the truss itself (tests/test_sun_tracking.py sweeps them: docs/physics.md section 14).
+RADIATOR_JOINTS = {1: "RadiatorS", -1: "RadiatorP"}
+RADIATOR_LIMITS = (-85.0, 85.0)
 ALPHA_REST = float(np.degrees(SARJ_ANGLE))
 BETA_LIMIT = 75.0
 BETA_REST = {"S4a": 8.0, "S4b": -5.0, "S6a": -3.0, "S6b": 10.0, "P4a": 5.0, "P4b": -9.0, "P6a": -7.0, "P6b": 4.0}
@@ -607,11 +620,19 @@ def _rest_frames() -> dict[str, np.ndarray]:
         flip = np.eye(4) if wing.endswith("a") else transform(rotate=rot_x(np.pi))
         frames[beta_joint_name(wing)] = (_outboard_rest() @ transform((0.0, yc, 0.0)) @ flip
                                          @ transform(rotate=rot_z(np.radians(BETA_REST[wing]))))
+    for s in (1, -1):
+        frames[RADIATOR_JOINTS[s]] = transform(_radiator_hinge())
     return frames
 
 
+def _radiator_hinge() -> tuple[float, float, float]:
+    """The radiator joints' origin in the station frame: on the beam's axis (rounded: 0.3, not 0.30000000000000004)."""
+    x, y, z = RADIATOR_BEAM + (0.0, 0.0, TRUSS_Z)
+    return (round(float(x), 9), round(float(y), 9), round(float(z), 9))
+
+
 def station_joints() -> tuple[Joint, ...]:
-    """The 2 alpha joints, then the 8 beta joints (parents first)."""
+    """The 2 alpha joints, the 8 beta joints (parents first), then the 2 radiator joints."""
     joints = [Joint(ALPHA_JOINTS[s], None, "Y", ALPHA_REST, -180.0, 180.0, (0.0, 0.0, TRUSS_Z),
                     tracks="Sun", op="alpha") for s in (1, -1)]
     for wing in WINGS:
@@ -620,6 +641,8 @@ def station_joints() -> tuple[Joint, ...]:
         joints.append(Joint(beta_joint_name(wing), ALPHA_JOINTS[s], "Z", BETA_REST[wing], -BETA_LIMIT, BETA_LIMIT,
                             (0.0, yc, 0.0), (180.0 if wing.endswith("b") else 0.0, 0.0, 0.0), tracks="Sun",
                             op="beta"))
+    joints += [Joint(RADIATOR_JOINTS[s], None, "Y", 0.0, *RADIATOR_LIMITS, _radiator_hinge(),
+                     tracks="SunEdgeOn", op="trrj") for s in (1, -1)]
     return tuple(joints)
 
 

@@ -16,6 +16,14 @@ s = +1 for an "a" wing and -1 for a "b" wing. For the unit direction to the Sun 
 so n = d exactly while |asin(d_y)| (the Sun's elevation out of the station's orbital XZ plane, its
 beta angle) is within the limit; beyond it the wing stops at the limit and misses the Sun by the
 excess. The direction is the apparent one (SunSpec.direction), the one the Sun lamp shines along.
+
+The S1/P1 thermal radiators turn about their beam (station +Y) by theta, edge-on to the Sun (the Sun
+then heats them least): their panels span Y and r(theta) = Ry(theta) r0, r0 = (-sin 35, 0, -cos 35)
+(down and aft at rest), so they are edge-on when r(theta) is parallel to d's projection on the XZ
+plane. With psi(v) = atan2(v_x, v_z), the two solutions are theta = psi(d) - psi(r0) and that + 180
+degrees; the one inside the joint's limits with the smaller turn is taken, else the limit nearer to
+a solution (the panels then meet the Sun at the excess angle). A Sun along +-Y is edge-on at any
+theta: the radiators stay at rest.
 """
 
 from __future__ import annotations
@@ -24,7 +32,8 @@ import math
 
 import numpy as np
 
-from allo_usd.assets.station import ALPHA_JOINTS, WINGS, beta_joint_name, station_joints
+from allo_usd.assets.station import (ALPHA_JOINTS, RADIATOR_JOINTS, RADIATOR_PHI, WINGS, beta_joint_name,
+                                     station_joints)
 
 
 def _wrap(deg: float) -> float:
@@ -50,7 +59,34 @@ def sun_tracking_angles(direction) -> dict[str, float]:
         name = beta_joint_name(wing)
         lo, hi = limits[name]
         out[name] = float(min(hi, max(lo, s * elevation)))
+    theta = radiator_angle(d, limits[RADIATOR_JOINTS[1]])
+    for name in RADIATOR_JOINTS.values():
+        out[name] = theta
     return {j.name: out[j.name] for j in station_joints()}
+
+
+def radiator_angle(d: np.ndarray, limits: tuple[float, float]) -> float:
+    """The radiator joint angle (degrees) turning the panels edge-on to the unit Sun direction `d`."""
+    if math.hypot(d[0], d[2]) < 1e-9:
+        return 0.0
+    psi_d = math.degrees(math.atan2(d[0], d[2]))
+    psi_r = math.degrees(math.atan2(-math.sin(RADIATOR_PHI), -math.cos(RADIATOR_PHI)))
+    lo, hi = limits
+    best = None
+    for theta in (_wrap(psi_d - psi_r), _wrap(psi_d - psi_r + 180.0)):
+        clamped = min(hi, max(lo, theta))
+        key = (abs(clamped - theta), abs(clamped))
+        if best is None or key < best[0]:
+            best = (key, clamped)
+    return float(best[1])
+
+
+def radiator_normal(angles: dict[str, float], side: int = 1) -> np.ndarray:
+    """The unit normal of the S1 (side 1) or P1 (-1) radiator panels in the station frame at `angles`."""
+    t = math.radians(angles[RADIATOR_JOINTS[side]])
+    r0 = np.array([-math.sin(RADIATOR_PHI), 0.0, -math.cos(RADIATOR_PHI)])
+    r = np.array([math.cos(t) * r0[0] + math.sin(t) * r0[2], 0.0, -math.sin(t) * r0[0] + math.cos(t) * r0[2]])
+    return np.cross(r, [0.0, 1.0, 0.0])
 
 
 def cell_normal(angles: dict[str, float], wing: str) -> np.ndarray:
