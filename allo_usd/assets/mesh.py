@@ -7,7 +7,7 @@ be tested, measured and ray-cast without either.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -162,32 +162,23 @@ class Asset:
             out[j.name] = parent @ j.local_matrix(angles.get(j.name, j.rest))
         return out
 
-    def posed(self, angles: dict[str, float] | None = None) -> "Asset":
-        """The asset flattened at `angles` (rest where not given): every part in the asset frame, no joints."""
-        mats = self.joint_matrices(angles)
-        parts = tuple(replace(p.transformed(mats[p.joint]), joint=None, name=self._flat_name(p))
-                      if p.joint is not None else p for p in self.parts)
-        return Asset(self.name, parts, self.materials, self.textures)
-
-    @staticmethod
-    def _flat_name(part: MeshPart) -> str:
-        return f"{part.name}_{part.joint}"
+    def posed_points(self, angles: dict[str, float] | None = None) -> list[np.ndarray]:
+        """Each part's points in the asset frame, the joints at `angles` (degrees, rest where not given)."""
+        mats = self.joint_matrices(angles) if self.joints else {}
+        return [p.points if p.joint is None else p.transformed(mats[p.joint]).points for p in self.parts]
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        parts = self.posed().parts if self.joints else self.parts
-        lo = np.min([p.points.min(axis=0) for p in parts], axis=0)
-        hi = np.max([p.points.max(axis=0) for p in parts], axis=0)
-        return lo, hi
+        """The asset's axis-aligned bounds in its own frame, joints at rest."""
+        pts = self.posed_points()
+        return np.min([p.min(axis=0) for p in pts], axis=0), np.max([p.max(axis=0) for p in pts], axis=0)
 
     def triangle_soup(self, angles: dict[str, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """All parts merged in the asset frame, the joints at `angles` (degrees, rest where not
         given): (V, 3) points and (T, 3) triangle indices, for ray casting."""
-        mats = self.joint_matrices(angles) if self.joints else {}
-        pts, tris, offset = [], [], 0
-        for p in self.parts:
-            pts.append(p.points if p.joint is None else p.transformed(mats[p.joint]).points)
+        pts, tris, offset = self.posed_points(angles), [], 0
+        for p, points in zip(self.parts, pts):
             tris.append(p.triangles() + offset)
-            offset += len(p.points)
+            offset += len(points)
         return np.concatenate(pts), np.concatenate(tris)
 
 

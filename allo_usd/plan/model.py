@@ -151,7 +151,8 @@ class Poses(_Model):
         return self
 
 
-HAZARD_SUFFIXES = (*SUPPORTED_EXTENSIONS, ".usd", ".usda", ".usdc", ".usdz")   # a user hazard's model file
+HAZARD_USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")   # a USD hazard: its own metersPerUnit and upAxis
+HAZARD_SUFFIXES = (*SUPPORTED_EXTENSIONS, *HAZARD_USD_SUFFIXES)   # a user hazard's model file
 HAZARD_ID = r"^[a-z][a-z0-9_]{0,47}$"     # a USD prim name, a dataset folder name, one spelling (lower case)
 HAZARD_UNITS = tuple(UNIT_SCALES)
 HAZARD_UP_AXES = tuple(UP_AXIS_ROTATIONS)
@@ -164,7 +165,7 @@ class AnomalyChoice(_Model):
     """One anomaly asset and the variants to draw from (None: all its variants).
 
     A built-in asset is named by its id alone. Your own hazard adds `file`, a glTF/GLB, OBJ, STL
-    or USD model converted when the plan is authored (allo_usd.run.hazards, the importer of
+    or USD model converted when the plan is authored (allo_usd.usd.hazard, the importer of
     `allo-usd asset import`), with its length unit and up axis given (`units`, `up_axis`; a USD
     file's own metersPerUnit and upAxis are used when these are left out) and optional `colors`:
     named linear-RGB variants that set every material's base colour (textures are multiplied by
@@ -231,7 +232,7 @@ class AnomalyChoice(_Model):
         if not f or "\0" in f or not f.lower().endswith(HAZARD_SUFFIXES):
             raise ValueError(f"anomaly {self.id!r}: file {_short(f)} is not a model file; fix: give a path ending in "
                              + ", ".join(HAZARD_SUFFIXES))
-        if not f.lower().endswith((".usd", ".usda", ".usdc", ".usdz")) and (self.units is None or self.up_axis is None):
+        if not f.lower().endswith(HAZARD_USD_SUFFIXES) and (self.units is None or self.up_axis is None):
             missing = " and ".join(n for n in ("units", "up_axis") if getattr(self, n) is None)
             raise ValueError(f"anomaly {self.id!r}: {f} needs {missing} given (a mesh file does not say reliably "
                              "which unit and axis it uses); fix: e.g. units = \"mm\", up_axis = \"z\"")

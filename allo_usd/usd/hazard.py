@@ -34,10 +34,10 @@ from allo_usd import __version__
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.core.errors import AlloError, PlanError
 from allo_usd.core.files import atomic_directory, file_problem, sha256_file
+from allo_usd.plan.model import HAZARD_USD_SUFFIXES, USER_VARIANT
 from allo_usd.usd.compose import HAZARD_DIR
 
 SOURCE_MARKER = "source.json"
-USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 SIZE_M = (0.01, 20.0)                 # a hazard's largest extent, metres (a tool .. a loose panel)
 MAX_TRIANGLES = 2_000_000             # after triangulation (the built-in hazards have < 20k)
 MAX_FILE_BYTES = 512 << 20
@@ -91,22 +91,22 @@ def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
                                 "into a new output directory, or author with --replace")
         else:
             with atomic_directory(root) as tmp:
-                convert_hazard(choice, tmp)
+                convert_hazard(choice, tmp, want["sha256"])
                 (tmp / SOURCE_MARKER).write_text(json.dumps(want, indent=1, sort_keys=True) + "\n")
         out[choice.id] = path
     return out
 
 
-def convert_hazard(choice, directory: Path) -> Path:
-    """Write `choice`'s asset (every variant) into `directory`; returns the interface layer."""
+def convert_hazard(choice, directory: Path, sha256: str | None = None) -> Path:
+    """Write `choice`'s asset (every variant) into `directory`; returns the interface layer. `sha256`:
+    the source file's, if already computed (made_from)."""
     from allo_usd.usd.asset import write_variant_asset
 
     source = Path(choice.file)
     asset, info = load_hazard(source, choice.id, choice.units, choice.up_axis)
-    variants = {"default": asset}
-    for name, rgb in (choice.colors or {}).items():
-        variants[name] = coloured(asset, rgb)
-    provenance = {"id": choice.id, "source": source.name, "sha256": sha256_file(source), **info,
+    variants = {name: asset if name == USER_VARIANT else coloured(asset, choice.colors[name])
+                for name in choice.user_variants()}
+    provenance = {"id": choice.id, "source": source.name, "sha256": sha256 or sha256_file(source), **info,
                   "colors": {k: [float(c) for c in v] for k, v in (choice.colors or {}).items()},
                   "packageVersion": __version__}
     doc = (f"allo-usd hazard {choice.id!r} converted from {source.name} (sha256 {provenance['sha256'][:12]}..., "
@@ -158,7 +158,7 @@ def import_model(path: Path, name: str | None, units: str | None, up_axis: str |
     hazards. Returns (asset, {format, unit, unitScale, upAxis, triangles, droppedTriangles}); errors
     are PlanErrors beginning with `what` and the name (e.g. "anomaly 'bracket': ...")."""
     path = Path(path)
-    if path.suffix.lower() in USD_SUFFIXES:
+    if path.suffix.lower() in HAZARD_USD_SUFFIXES:
         return read_usd_hazard(path, name or _NAME.sub("_", path.stem.split(".")[0]) or "model",
                                None if units == "auto" else units, None if up_axis == "auto" else up_axis, what)
     else:
@@ -188,7 +188,7 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
     material. Textures are not carried over."""
     from pxr import Tf, Usd, UsdGeom
 
-    from allo_usd.assets.importer import UNIT_SCALES, UP_AXIS_ROTATIONS
+    from allo_usd.assets.importer import UP_AXIS_ROTATIONS
     from allo_usd.assets.mesh import fan_triangulate
     from allo_usd.core.errors import LayerError
     from allo_usd.usd.read import MAX_PRIMS, mesh_topology, world_matrix

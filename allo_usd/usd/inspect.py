@@ -24,7 +24,6 @@ check the fast path). Attribute values are compared at the default time code.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +32,7 @@ from allo_usd.core.errors import LayerError
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
-from allo_usd.usd.read import camera_exposure, distant_size_factor, world_matrix, open_stage
+from allo_usd.usd.read import camera_exposure, open_stage, sun_irradiance, world_matrix
 
 ROOTS = (layout.WORLD, layout.RENDER)
 ABSENT = "<absent>"
@@ -128,22 +127,22 @@ def _source_text(src: dict) -> str:
     return f"built-in ({src['layer']})"
 
 
-def _asset_source(aprim, layer: Path) -> dict:
+def _asset_source(aprim, start: Path) -> dict:
     """Where the anomaly's asset came from: a plan's own hazard (its conversion record: file, sha256,
-    unit, up axis) or a built-in asset of the base stage; `layer` is the asset's interface layer."""
+    unit, up axis) or a built-in asset of the base stage; `layer` is the asset's interface layer,
+    relative to `start` (the scene layer's folder)."""
     from allo_usd.usd.hazard import hazard_provenance
 
-    here = Path(layer).resolve().parent
     interface = None
     for spec in aprim.GetPrimStack():
         hazard = hazard_provenance(spec.layer)
         if hazard:
             return {"kind": "user", "file": hazard.get("source"), "sha256": hazard.get("sha256"),
                     "format": hazard.get("format"), "unit": hazard.get("unit"), "up_axis": hazard.get("upAxis"),
-                    "layer": os.path.relpath(spec.layer.realPath, here)}
+                    "layer": _rel(spec.layer.realPath, start)}
         if spec.layer.realPath.endswith(".usda") and spec.path.pathString.count("/") == 1:
             interface = interface or spec.layer.realPath   # the asset root's interface layer (not the scene's)
-    return {"kind": "built-in", "layer": os.path.relpath(interface, here) if interface else None}
+    return {"kind": "built-in", "layer": _rel(interface, start) if interface else None}
 
 
 def _lens_source(attr, stack) -> str:
@@ -179,6 +178,8 @@ def describe(layer: str | Path) -> dict:
                          "the scene layers that `allo-usd author` writes (fix the path; for other USD files use "
                          "usdcat or usdview)")
     provenance = dict(stage.GetRootLayer().customLayerData.get("allo", {}))
+    root = stage.GetRootLayer()
+    start = Path(root.realPath).parent if root.realPath else Path.cwd()
     a = lambda attr, default=None: _attr(world, attr.name, default)  # noqa: E731
 
     anomaly = None
@@ -191,7 +192,7 @@ def describe(layer: str | Path) -> dict:
                    "depth_offset": _attr(aprim, A.ANOMALY_DEPTH_OFFSET.name),
                    "predicted_area_fraction": _attr(aprim, A.ANOMALY_PREDICTED_AREA_FRACTION.name),
                    "attempts": _attr(aprim, A.ANOMALY_ATTEMPTS.name), "position": tuple(map(float, m[:3, 3])),
-                   "source": _asset_source(aprim, layer)}
+                   "source": _asset_source(aprim, start)}
 
     settings_path = stage.GetMetadata("renderSettingsPrimPath") or layout.RENDER_SETTINGS
     sp = stage.GetPrimAtPath(settings_path)
@@ -212,9 +213,8 @@ def describe(layer: str | Path) -> dict:
         normalize = bool(_attr(prim, "inputs:normalize", False))
         intensity, angle = _attr(prim, "inputs:intensity", 50000.0), _attr(prim, "inputs:angle", 0.53)
         exposure = _attr(prim, "inputs:exposure", 0.0)
-        emission = intensity * 2.0 ** exposure  # UsdLux: with normalize, this is the irradiance itself
         return {"path": str(prim.GetPath()), "intensity": intensity, "exposure": exposure, "normalize": normalize,
-                "irradiance": emission if normalize else emission * distant_size_factor(angle),
+                "irradiance": sun_irradiance(intensity * 2.0 ** exposure, angle, normalize),
                 "irradiance_unoccluded": _attr(prim, A.IRRADIANCE_UNOCCLUDED.name),
                 "lit_fraction": _attr(prim, A.LIT_FRACTION.name),
                 "eclipse_state": _attr(prim, A.ECLIPSE_STATE.name), "eclipse_body": _attr(prim, A.ECLIPSE_BODY.name),
@@ -250,8 +250,6 @@ def describe(layer: str | Path) -> dict:
                                "responsivity": values["exposure:responsivity"], "linear_scale": scale}}
         render["exposure"] = scale  # the film exposure the renderer applies (the camera's linear scale)
 
-    root = stage.GetRootLayer()
-    start = Path(root.realPath).parent if root.realPath else Path.cwd()
     joints = _joints(stage, start)
     return {
         "layer": str(layer),
