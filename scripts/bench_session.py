@@ -266,7 +266,7 @@ def write_docs(r: dict, docs: Path, n: int) -> None:
     la, lb = r["load_before"], r["load_after"]
     md = f"""# Warm render sessions: benchmark
 
-`python scripts/bench_session.py` on the committed `allo_usd/stages/base.usda` ({sw['meshes']} meshes,
+`python scripts/bench_session.py` on the committed `stages/base.usda` ({sw['meshes']} meshes,
 {sw['points']:,} points in the normal scene), {r['cpu_count']} CPU cores shared with other work;
 load average {la[0]:.2f} / {la[1]:.2f} / {la[2]:.2f} (1/5/15 min) before and {lb[0]:.2f} / {lb[1]:.2f} / {lb[2]:.2f} after.
 Absolute times move with the load (another engineer's jobs shared the cores); the ratios are what

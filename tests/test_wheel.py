@@ -116,7 +116,9 @@ def test_the_wheel_holds_the_package_data(installed):
     names = set(zipfile.ZipFile(wheel).namelist())
     assert {"allo_usd/stages/base.usda", "allo_usd/schemas/alloUsd/plugInfo.json",
             "allo_usd/schemas/alloUsd/generatedSchema.usda", "allo_usd/cli.py"} <= names
-    shipped = {p.relative_to(ROOT).as_posix() for d in (STAGES, SCHEMAS) for p in d.rglob("*")
+    # the checkout keeps them at its top (stages/, schemas/); the wheel maps them into the package
+    assert STAGES == ROOT / "stages" and SCHEMAS == ROOT / "schemas"
+    shipped = {"allo_usd/" + p.relative_to(ROOT).as_posix() for d in (STAGES, SCHEMAS) for p in d.rglob("*")
                if p.is_file() and "__pycache__" not in p.parts}
     assert len(shipped) >= 70 and shipped <= names, sorted(shipped - names)[:5]
     assert {n.split("/")[0] for n in names} == {"allo_usd", wheel.name.split("-")[0] + "-" +
@@ -165,3 +167,15 @@ def test_allo_usd_demo_runs_from_an_unrelated_folder(installed, tmp_path):
         assert {"rgb", "mask"} <= set(meta["files"])
     assert (out / "contact_sheet.png").is_file() and (out / "layers" / "stages" / "base.usda").is_file()
     assert (out / "layers" / "schema" / "plugInfo.json").is_file()
+
+
+def test_pyproject_lists_every_code_package():
+    """pyproject.toml lists the packages (the data folders are mapped in beside them), so a new
+    subpackage left out of the list would be missing from the wheel: the list must match allo_usd/."""
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    code = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "allo_usd").rglob("__init__.py")
+            if "__pycache__" not in p.parts}
+    assert set(config["packages"]) == code | {"allo_usd.stages", "allo_usd.schemas"}
+    assert config["package-dir"] == {"allo_usd.stages": "stages", "allo_usd.schemas": "schemas"}

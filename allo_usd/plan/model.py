@@ -542,7 +542,7 @@ class Plan(_Model):
     render: Render = Field(default_factory=Render)
     seeds: list[int] = Field(default_factory=lambda: [2030], description="One pipeline run per seed.")
     station: Station = Field(default_factory=Station)
-    base_stage: str = Field("stages/base.usda", description="Relative to the working directory, else to the installed package (stages/base.usda is the shipped base stage).")
+    base_stage: str = Field("stages/base.usda", description="Relative to the working directory, else to the package's data (stages/base.usda is the shipped base stage).")
     camera: Camera = Field(default_factory=Camera, description="The lens and sensor; defaults: the paper's Table I.")
 
     @model_validator(mode="before")
@@ -644,10 +644,10 @@ class Plan(_Model):
         return self
 
     def resolve_base_stage(self) -> Path:
-        from allo_usd.core.paths import PACKAGE
+        from allo_usd.core.paths import DATA
 
         p = Path(self.base_stage)
-        for cand in (p, PACKAGE / p):
+        for cand in (p, DATA / p):
             if cand.is_file():
                 return cand.resolve()
         raise PlanError(f"base_stage: {self.base_stage} does not exist; fix: run scripts/make_base_stage.py "

@@ -772,7 +772,7 @@ def _broken_stage(stage: Path, exc: BaseException, copy: Path | None = None) -> 
     first = (str(exc).strip().splitlines() or [type(exc).__name__])[-1].strip()
     also = f", and delete the tree's copy {copy} (or author with --replace)" if copy is not None else ""
     return LayerError(f"base stage {stage} cannot be read ({first[:300]}); fix: regenerate it (`make stage`, "
-                      f"i.e. scripts/make_base_stage.py) or restore stages/ (git checkout allo_usd/stages){also}, then re-run")
+                      f"i.e. scripts/make_base_stage.py) or restore stages/ (git checkout stages){also}, then re-run")
 
 
 def _stage_source(plan: Plan) -> Path:
