@@ -8,39 +8,16 @@ An imported model's orientation and unit are its format's (glTF: +Y up, metres) 
 --units (allo_usd.assets.importer); NASA's ISS_2016.glb breaks glTF's rule (inches, +Z nadir),
 so it needs both given (--units auto reads its inches from its size).
 
-Byte-identical across x86-64 machines: numpy's small products and norms (`@`, `np.dot`,
-`np.linalg.norm`) go through OpenBLAS, which picks a kernel per CPU at load time, and the
-AVX-512 kernels round the last bit differently from the AVX2 ones (measured: 7 of 97 files
-differed on an AVX-512 EPYC). So this script pins OpenBLAS to its AVX2 ("Haswell") kernel
-before numpy loads, on every x86-64 CPU that has AVX2 and FMA (`blas_pin`). Elsewhere the
-files match to the last few ulps, and tests/test_base_stage.py compares them by value.
+Byte-identical on every x86-64 machine, whatever its BLAS kernel or SIMD features: every value that
+reaches a file is computed with allo_usd.core.fixedmath (no BLAS, no libm or SVML transcendentals),
+so no environment pin is needed (scripts/check_determinism.py shows it; docs/determinism.md).
 """
 
 from __future__ import annotations
 
-import os
-import platform
+import argparse
 import sys
-
-
-def blas_pin() -> dict[str, str]:
-    """The environment that makes OpenBLAS round the same on every x86-64 CPU with AVX2, or {}."""
-    if platform.machine().lower() not in ("x86_64", "amd64"):
-        return {}
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
-    except OSError:
-        return {}
-    return {"OPENBLAS_CORETYPE": "Haswell"} if {"avx2", "fma"} <= set(flags) else {}
-
-
-if __name__ == "__main__":  # before numpy is imported; importing this file (tests) changes nothing
-    for _key, _value in blas_pin().items():
-        os.environ.setdefault(_key, _value)
-
-import argparse  # noqa: E402
-from pathlib import Path  # noqa: E402
+from pathlib import Path
 
 from allo_usd.usd.build_stage import build_base_stage as build
 from allo_usd.core.paths import STAGES

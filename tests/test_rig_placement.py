@@ -222,7 +222,9 @@ def test_pixel_ray_subsets_and_sphere_culling_are_exact():
 
 
 def test_raycaster_matches_trimesh():
-    """`RayScene` calls embree directly; distances and owners equal trimesh's RayMeshIntersector."""
+    """`RayScene` calls embree directly; it hits what trimesh's RayMeshIntersector hits, at the same
+    distances to the last few ulps (trimesh sums its dot products with BLAS, whose rounding depends on
+    the CPU; RayScene sums them in a fixed order, core.fixedmath)."""
     import trimesh
 
     st = tiny_station()
@@ -236,7 +238,9 @@ def test_raycaster_matches_trimesh():
     locs, ray_idx, _ = ref.intersects_location(o, d, multiple_hits=False)
     want = np.full(len(o), np.inf)
     want[ray_idx] = np.linalg.norm(locs - o[ray_idx], axis=1)
-    assert np.array_equal(dist, want) and np.array_equal(owner > 0, np.isfinite(want))
+    assert np.array_equal(np.isfinite(dist), np.isfinite(want)) and np.array_equal(owner > 0, np.isfinite(want))
+    hit = np.isfinite(want)
+    assert hit.sum() > 100 and np.allclose(dist[hit], want[hit], rtol=1e-12, atol=0.0)
     _, multi, _ = ref.intersects_location(o[:200], d[:200], multiple_hits=True)
     assert np.array_equal(np.bincount(scene.hits(o[:200], d[:200]), minlength=200), np.bincount(multi, minlength=200))
 

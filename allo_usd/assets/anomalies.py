@@ -27,6 +27,7 @@ from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.assets.primitives import (box, cylinder, cylinder_between, extrude_polygon, frame_from_z, grid,
                                         lathe, merge, path_frames, ring_prism, smooth_path,
                                         superellipsoid, sweep, transform)
+from allo_usd.core import fixedmath as fm
 
 ANOMALY_TRIANGLE_BUDGET = 20_000
 
@@ -46,12 +47,12 @@ def _rot(axis, angle: float) -> np.ndarray:
     """Rotation matrix about a unit axis (Rodrigues)."""
     k = unit(axis)
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+    return np.eye(3) + fm.sin(angle) * kx + (1 - fm.cos(angle)) * fm.matmul(kx, kx)
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
-    w, x, y, z = q / np.linalg.norm(q)
+    w, x, y, z = q / fm.norm(q)
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
@@ -78,12 +79,12 @@ def _subset(part: MeshPart, keep: np.ndarray, name: str, material: str, smooth: 
 
 def _resample(path: np.ndarray, s_values: np.ndarray) -> np.ndarray:
     """Points of a polyline at the given arc lengths."""
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    s = np.concatenate([[0.0], np.cumsum(fm.norm(np.diff(path, axis=0), axis=1))])
     return np.stack([np.interp(s_values, s, path[:, k]) for k in range(3)], axis=1)
 
 
 def _arc_length(path: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+    return float(fm.norm(np.diff(path, axis=0), axis=1).sum())
 
 
 def _waves(rng: np.random.Generator, pts: np.ndarray, n: int, lam_min: float, lam_max: float,
@@ -92,16 +93,16 @@ def _waves(rng: np.random.Generator, pts: np.ndarray, n: int, lam_min: float, la
     `ridged` folds each wave (|sin|), giving the sharp creases of crumpled foil."""
     dim = pts.shape[1]
     dirs = rng.normal(size=(n, dim))
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    lam = np.exp(rng.uniform(np.log(lam_min), np.log(lam_max), n))
+    dirs /= fm.norm(dirs, axis=1, keepdims=True)
+    lam = fm.exp(rng.uniform(fm.log(lam_min), fm.log(lam_max), n))
     phase = rng.uniform(0.0, 2 * np.pi, n)
     amp = lam / lam.max()
-    arg = pts @ (dirs * (2 * np.pi / lam)[:, None]).T + phase
+    arg = fm.matmul(pts, (dirs * (2 * np.pi / lam)[:, None]).T) + phase
     if ridged:
         sign = rng.choice([-1.0, 1.0], n)
-        w = (np.abs(np.sin(arg)) - 2 / np.pi) * 2 * sign
+        w = (np.abs(fm.sin(arg)) - 2 / np.pi) * 2 * sign
     else:
-        w = np.sin(arg)
+        w = fm.sin(arg)
     return (w * amp).sum(axis=1) / np.sqrt((amp ** 2).sum() * 2)
 
 
@@ -110,7 +111,7 @@ def _fold(pts: np.ndarray, origin, normal_angle: float, radius: float, angle: fl
     side `normal_angle` points to, in XY) wrap up around a cylinder of `radius` by up to `angle`
     radians, then carry on straight. Smooth and orientation-preserving while z < radius."""
     r = rot_z(-normal_angle)
-    p = (pts - np.array([origin[0], origin[1], 0.0])) @ r.T
+    p = fm.matmul(pts - np.array([origin[0], origin[1], 0.0]), r.T)
     d, h = p[:, 0], p[:, 2]
     m = d > 0
     arc = np.minimum(d, radius * angle)
@@ -119,10 +120,10 @@ def _fold(pts: np.ndarray, origin, normal_angle: float, radius: float, angle: fl
     rho = radius - h
     if (rho[m] <= 0).any():
         raise ValueError("_fold: sheet rises above the fold radius; use a larger radius")
-    x_new = rho * np.sin(th) + rest * np.cos(th)
-    z_new = radius - rho * np.cos(th) + rest * np.sin(th)
+    x_new = rho * fm.sin(th) + rest * fm.cos(th)
+    z_new = radius - rho * fm.cos(th) + rest * fm.sin(th)
     p[m, 0], p[m, 2] = x_new[m], z_new[m]
-    return p @ r + np.array([origin[0], origin[1], 0.0])
+    return fm.matmul(p, r) + np.array([origin[0], origin[1], 0.0])
 
 
 def _random_walk(rng: np.random.Generator, n: int, step: float, max_turn: float) -> np.ndarray:
@@ -130,7 +131,7 @@ def _random_walk(rng: np.random.Generator, n: int, step: float, max_turn: float)
     pts = [np.zeros(3)]
     for _ in range(n - 1):
         axis = np.cross(d, rng.normal(size=3))
-        d = _rot(axis, rng.uniform(0.3, 1.0) * max_turn) @ d
+        d = fm.matmul(_rot(axis, rng.uniform(0.3, 1.0) * max_turn), d)
         pts.append(pts[-1] + d * step * rng.uniform(0.75, 1.25))
     return np.array(pts)
 
@@ -139,7 +140,7 @@ def _self_clear(path: np.ndarray, radius: float) -> bool:
     """True when no two parts of the tube around `path` come closer than its diameter."""
     ds = _arc_length(path) / (len(path) - 1)
     gap = max(1, int(np.ceil(8 * radius / ds)))
-    d = np.linalg.norm(path[:, None, :] - path[None, :, :], axis=-1)
+    d = fm.norm(path[:, None, :] - path[None, :, :], axis=-1)
     i, j = np.triu_indices(len(path), gap)
     return bool((d[i, j] > 2.4 * radius).all())
 
@@ -157,7 +158,7 @@ def _cable_route(seed: int, n_ctrl: int, step: float, max_turn: float, samples: 
 
 def _hexagon(circumradius: float, points_per_side: int = 1) -> np.ndarray:
     """A regular hexagon (flats on +-Y), optionally with extra points along each side."""
-    corners = np.array([[np.cos(a), np.sin(a)] for a in np.arange(6) * np.pi / 3]) * circumradius
+    corners = np.array([[fm.cos(a), fm.sin(a)] for a in np.arange(6) * np.pi / 3]) * circumradius
     out = []
     for i in range(6):
         a, b = corners[i], corners[(i + 1) % 6]
@@ -168,14 +169,14 @@ def _hexagon(circumradius: float, points_per_side: int = 1) -> np.ndarray:
 
 def _circle(radius: float, n: int, phase: float = 0.0) -> np.ndarray:
     t = np.linspace(0.0, 2 * np.pi, n, endpoint=False) + phase
-    return np.column_stack([np.cos(t), np.sin(t)]) * radius
+    return np.column_stack([fm.cos(t), fm.sin(t)]) * radius
 
 
 def _gear(r_out: float, r_in: float, teeth: int) -> np.ndarray:
     """A knurled outline: 4 points per tooth alternating between two radii."""
     t = np.linspace(0.0, 2 * np.pi, 4 * teeth, endpoint=False)
     r = np.where((np.arange(4 * teeth) // 2) % 2 == 0, r_out, r_in)
-    return np.column_stack([np.cos(t) * r, np.sin(t) * r])
+    return np.column_stack([fm.cos(t) * r, fm.sin(t) * r])
 
 
 def _boundary_loop(nu: int, nv: int) -> np.ndarray:
@@ -226,8 +227,8 @@ def _mli_sheet(variant: str) -> tuple[Parts, Mats]:
     sheet = _sheet("sheet", su, sv, "outer", nu, nv, h.reshape(nv + 1, nu + 1), t)
 
     def deform(p):
-        p = _fold(p, (0.42, 0.18), np.radians(35), 0.05, np.radians(150))
-        return _fold(p, (-0.5, -0.3), np.radians(200), 0.06, np.radians(70))
+        p = _fold(p, (0.42, 0.18), fm.radians(35), 0.05, fm.radians(150))
+        return _fold(p, (-0.5, -0.3), fm.radians(200), 0.06, fm.radians(70))
 
     pts = deform(sheet.points)
     sheet = _with(sheet, pts)
@@ -267,17 +268,17 @@ def _mli_torn(variant: str) -> tuple[Parts, Mats]:
         ks = np.arange(2, 40)
         amp = np.where(ks < 6, 0.07, 0.05 / np.sqrt(ks)) * g.uniform(0.3, 1.0, len(ks))
         ph = g.uniform(0, 2 * np.pi, len(ks))
-        return lambda th: base + (amp[None, :] * np.cos(ks[None, :] * th[:, None] + ph[None, :])).sum(1)
+        return lambda th: base + (amp[None, :] * fm.cos(ks[None, :] * th[:, None] + ph[None, :])).sum(1)
 
     def face_mask(r_of_theta):  # faces (front and back) whose centre lies inside the torn outline
         cx = (uu[:-1, :-1] + uu[1:, 1:]).ravel() / 2
         cy = (vv[:-1, :-1] + vv[1:, 1:]).ravel() / 2
         ex, ey = cx / (su / 2), cy / (sv / 2)
-        keep = np.hypot(ex, ey) < r_of_theta(np.arctan2(ey, ex))
+        keep = fm.hypot(ex, ey) < r_of_theta(fm.arctan2(ey, ex))
         return np.concatenate([keep, keep])
 
     def deform(p):
-        return _fold(p, (0.13, 0.02), np.radians(-20), 0.05, np.radians(160))
+        return _fold(p, (0.13, 0.02), fm.radians(-20), 0.05, fm.radians(160))
 
     outer = _sheet("outer", su, sv, "face", nu, nv, h.reshape(nv + 1, nu + 1), t)
     inner = _sheet("inner", su, sv, "layer", nu, nv, h_in.reshape(nv + 1, nu + 1), t)
@@ -304,12 +305,12 @@ def _mli_strip(variant: str) -> tuple[Parts, Mats]:
     strip = _sheet("strip", su, sv, "face", nu, nv, h.reshape(nv + 1, nu + 1), t)
 
     def deform(p):
-        p = _fold(p, (0.33, 0.0), 0.0, 0.07, np.radians(215))          # curled free end
+        p = _fold(p, (0.33, 0.0), 0.0, 0.07, fm.radians(215))          # curled free end
         x = p[:, 0]
         a = 1.4 * (x + su / 2) / su                                    # twist along the strip
         y, z = p[:, 1], p[:, 2]
-        y2, z2 = y * np.cos(a) - z * np.sin(a), y * np.sin(a) + z * np.cos(a)
-        bow = 0.18 * np.sin(np.pi * (x + su / 2) / su)                 # gentle bow
+        y2, z2 = y * fm.cos(a) - z * fm.sin(a), y * fm.sin(a) + z * fm.cos(a)
+        bow = 0.18 * fm.sin(np.pi * (x + su / 2) / su)                 # gentle bow
         return np.column_stack([x, y2 + bow, z2])
 
     strip = _with(strip, deform(strip.points))
@@ -342,8 +343,8 @@ def _connector(tag: str, end: np.ndarray, direction: np.ndarray, cable_r: float)
     shell = lathe(f"shell_{tag}", [(0.0, 0.0), (0.0185, 0.0), (0.0185, 0.036), (0.0155, 0.036),
                                    (0.0155, 0.063), (0.0, 0.063)], "shell", 24, matrix=m)
     nut = extrude_polygon(f"nut_{tag}", _gear(0.0225, 0.0212, 20), 0.022, "shell",
-                          matrix=m @ transform((0.0, 0.0, 0.048)))
-    face = cylinder(f"face_{tag}", 0.0125, 0.004, "insert", 20, matrix=m @ transform((0.0, 0.0, 0.061)))
+                          matrix=fm.matmul(m, transform((0.0, 0.0, 0.048))))
+    face = cylinder(f"face_{tag}", 0.0125, 0.004, "insert", 20, matrix=fm.matmul(m, transform((0.0, 0.0, 0.061))))
     return {"boot": boot, "shell": shell, "nut": nut, "face": face}
 
 
@@ -397,7 +398,7 @@ def _cable_harness(variant: str) -> tuple[Parts, Mats]:
     wires, tips = [], []
     for i in range(3):
         a = twist + 2 * np.pi * i / 3
-        path = centre + rho[:, None] * (np.cos(a)[:, None] * nrm + np.sin(a)[:, None] * bin_)
+        path = centre + rho[:, None] * (fm.cos(a)[:, None] * nrm + fm.sin(a)[:, None] * bin_)
         trim = [0.004 * i, 0.004 * (2 - i)]
         path = _resample(path, np.linspace(trim[0], _arc_length(path) - trim[1], 220))
         wires.append(sweep(f"wire_{i}", path, r, f"wire_{i}", segments=8))
@@ -411,7 +412,7 @@ def _cable_harness(variant: str) -> tuple[Parts, Mats]:
         bz = np.cross(tz, nz)
         a = np.linspace(0, 2 * np.pi, 24, endpoint=False)
         rad = 2.2 * r + 0.001
-        loop = c + rad * (np.cos(a)[:, None] * nz + np.sin(a)[:, None] * bz)
+        loop = c + rad * (fm.cos(a)[:, None] * nz + fm.sin(a)[:, None] * bz)
         ties.append(sweep(f"tie_{k}", loop, 0.0008, "tie", segments=6, closed=True, aspect=3.0,
                           exponent=0.5, up=loop - c))
         head_c = c + (rad + 0.003) * nz
@@ -474,12 +475,12 @@ def _finger_path(base, direction, bend_axis, length: float, bend: float, samples
     d = unit(direction)
     pts = [np.asarray(base, dtype=np.float64)]
     for frac in (0.45, 0.3, 0.25):
-        d = _rot(bend_axis, bend) @ d
+        d = fm.matmul(_rot(bend_axis, bend), d)
         pts.append(pts[-1] + d * frac * length)
     dense = smooth_path(pts, 200)
     total = _arc_length(dense)
     s = np.concatenate([np.linspace(0.0, total - tip_r, samples_body, endpoint=False),
-                        total - tip_r + tip_r * np.sin(np.linspace(0.0, np.pi / 2, 7))])
+                        total - tip_r + tip_r * fm.sin(np.linspace(0.0, np.pi / 2, 7))])
     return _resample(dense, s), s
 
 
@@ -492,7 +493,7 @@ def _finger_radius(s: np.ndarray, r0: float, r1: float) -> np.ndarray:
 
 
 def _eva_glove(variant: str) -> tuple[Parts, Mats]:
-    curl = np.radians(48 if variant == "curled" else 14)
+    curl = fm.radians(48 if variant == "curled" else 14)
     parts = [superellipsoid("palm", (0.10, 0.115, 0.044), "fabric", 0.6, 40, 20),
              superellipsoid("palm_pad", (0.086, 0.09, 0.012), "rubber", 0.3, 32, 12,
                             transform((0.0, 0.006, -0.018)))]
@@ -515,10 +516,10 @@ def _eva_glove(variant: str) -> tuple[Parts, Mats]:
     parts += [merge("fingers", fingers), merge("fingertips", tips)]
     # Back-of-hand restraint strap wrapping over the palm.
     t = np.linspace(-0.05, np.pi + 0.05, 30)
-    strap = np.column_stack([0.0535 * np.sign(np.cos(t)) * np.abs(np.cos(t)) ** 0.6,
+    strap = np.column_stack([0.0535 * np.sign(fm.cos(t)) * fm.power(np.abs(fm.cos(t)), 0.6),
                              np.full(len(t), -0.018),
-                             0.0235 * np.sign(np.sin(t)) * np.abs(np.sin(t)) ** 0.6])
-    out = strap * np.array([1.0 / 0.0535 ** 2, 0.0, 1.0 / 0.0235 ** 2])
+                             0.0235 * np.sign(fm.sin(t)) * fm.power(np.abs(fm.sin(t)), 0.6)])
+    out = strap * np.array([1.0 / (0.0535 * 0.0535), 0.0, 1.0 / (0.0235 * 0.0235)])
     parts.append(sweep("strap", strap, 0.0015, "strap", segments=8, aspect=8.0, exponent=0.4, up=out))
     # Wrist: fabric neck, blue disconnect ring, flared gauntlet with a dark lining.
     to_wrist = rot_x(np.pi / 2)          # local +Z -> world -Y
@@ -546,15 +547,15 @@ def _wrench(variant: str) -> tuple[Parts, Mats]:
                             0.0062, "steel")
     # Open-end jaw head: a disc with a 13 mm slot angled 15 degrees.
     R, w, xb = 0.0205, 0.0068, -0.0015
-    a0 = np.arcsin(w / R)
+    a0 = fm.arcsin(w / R)
     arc = np.linspace(a0, 2 * np.pi - a0, 40)
-    outline = [np.column_stack([R * np.cos(arc), R * np.sin(arc)])]
-    x_edge = R * np.cos(a0)
+    outline = [np.column_stack([R * fm.cos(arc), R * fm.sin(arc)])]
+    x_edge = R * fm.cos(a0)
     outline.append([[x_edge * 0.5 + xb * 0.5, -w]])
     bottom = np.linspace(-np.pi / 2, -3 * np.pi / 2, 12)
-    outline.append(np.column_stack([xb + w * np.cos(bottom), w * np.sin(bottom)]))
+    outline.append(np.column_stack([xb + w * fm.cos(bottom), w * fm.sin(bottom)]))
     outline.append([[x_edge * 0.5 + xb * 0.5, w]])
-    jaw = np.concatenate(outline) @ rot_z(np.radians(15))[:2, :2].T
+    jaw = fm.matmul(np.concatenate(outline), rot_z(fm.radians(15))[:2, :2].T)
     open_head = extrude_polygon("open_end", jaw, 0.0075, "steel", transform((0.108, 0.0, 0.0)))
     star = _circle(1.0, 24, 0.0) * np.where(np.arange(24) % 2 == 0, 0.0079, 0.0069)[:, None]
     ring_head = ring_prism("box_end", _circle(0.0172, 24), star, 0.009, "steel",
@@ -612,7 +613,7 @@ def _bolt_cluster(variant: str) -> tuple[Parts, Mats]:
     centres: list[np.ndarray] = []
     while len(centres) < len(kinds):
         c = rng.uniform(-0.06, 0.06, 3)
-        if np.linalg.norm(c) <= 0.06 and all(np.linalg.norm(c - o) > 0.034 for o in centres):
+        if fm.norm(c) <= 0.06 and all(fm.norm(c - o) > 0.034 for o in centres):
             centres.append(c)
     bolts, heads, nuts, washers = [], [], [], []
     pitch, r_maj, r_min = 0.002, 0.005, 0.0041
@@ -627,12 +628,12 @@ def _bolt_cluster(variant: str) -> tuple[Parts, Mats]:
             prof += [(r_maj, -0.007), (r_maj, 0.0005), (0.0, 0.0005)]
             bolts.append(lathe(f"shank_{i}", prof, "bolt", 14, matrix=m))
             heads.append(extrude_polygon(f"head_{i}", _hexagon(0.0092), 0.0065, "bolt",
-                                         m @ transform((0.0, 0.0, 0.00325))))
+                                         fm.matmul(m, transform((0.0, 0.0, 0.00325)))))
             heads.append(lathe(f"collar_{i}", [(0.0, 0.0), (0.0085, 0.0), (0.0085, 0.001), (0.0, 0.001)], "bolt",
                                20, matrix=m))
             if i % 3 == 0:  # a nut threaded part way up
                 nuts.append(ring_prism(f"nut_on_{i}", _hexagon(0.0092, 2), _circle(0.0045, 12), 0.008, "nut",
-                                       m @ transform((0.0, 0.0, -length * 0.55))))
+                                       fm.matmul(m, transform((0.0, 0.0, -length * 0.55)))))
         elif kind == "nut":
             nuts.append(ring_prism(f"nut_{i}", _hexagon(0.0092, 2), _circle(0.0048, 12), 0.008, "nut", m))
         else:
@@ -665,7 +666,7 @@ def _tether_hook(variant: str) -> tuple[Parts, Mats]:
     # Swivel ring around the bottom bar, in the YZ plane.
     ring_c = np.array([0.0, -0.0605, 0.0])
     a = np.linspace(0.0, 2 * np.pi, 36, endpoint=False)
-    ring = ring_c + 0.0115 * np.column_stack([np.zeros_like(a), np.cos(a), np.sin(a)])
+    ring = ring_c + 0.0115 * np.column_stack([np.zeros_like(a), fm.cos(a), fm.sin(a)])
     parts.append(sweep("swivel", ring, 0.0025, "gate", segments=10, closed=True))
     k = 1.45  # the hardware above is drawn at carabiner scale 1; EVA hooks are this much bigger
     parts = [p.transformed(transform(scale=k)) for p in parts]
@@ -675,7 +676,7 @@ def _tether_hook(variant: str) -> tuple[Parts, Mats]:
                      [0.01, -0.37, 0.02], [0.05, -0.44, -0.02]])
     path = smooth_path(ctrl, 90)
     phi = np.linspace(0.0, 1.3, len(path))
-    up = np.column_stack([np.sin(phi), np.zeros_like(phi), np.cos(phi)])
+    up = np.column_stack([fm.sin(phi), np.zeros_like(phi), fm.cos(phi)])
     parts.append(sweep("strap", path, 0.0013, "strap", segments=12, aspect=9.5, exponent=0.35, up=up))
     fold = path[:14] + 0.0028 * up[:14]
     parts.append(sweep("strap_fold", fold, 0.0013, "strap", segments=12, aspect=9.5, exponent=0.35, up=up[:14]))
@@ -687,8 +688,8 @@ def _tether_hook(variant: str) -> tuple[Parts, Mats]:
     ring_frame = np.column_stack([unit(np.cross(up[-1], t_end)), up[-1], t_end])
     dring = np.array([[0.0, 0.0], [0.018, 0.0], [0.018, 0.006], [0.009, 0.02], [-0.009, 0.02], [-0.018, 0.006],
                       [-0.018, 0.0]])
-    dring3 = end + np.column_stack([dring[:, 0], np.zeros(len(dring)), dring[:, 1] + 0.004]) @ np.column_stack(
-        [ring_frame[:, 0], ring_frame[:, 1], ring_frame[:, 2]]).T
+    dring3 = end + fm.matmul(np.column_stack([dring[:, 0], np.zeros(len(dring)), dring[:, 1] + 0.004]), np.column_stack(
+        [ring_frame[:, 0], ring_frame[:, 1], ring_frame[:, 2]]).T)
     parts.append(sweep("d_ring", smooth_path(dring3, 40, closed=True), 0.0022, "gate", segments=10, closed=True))
     hook, strap = {"default": ((0.55, 0.56, 0.58), (0.8, 0.78, 0.7)),
                    "yellow": ((0.7, 0.25, 0.03), (0.85, 0.6, 0.03))}[variant]
@@ -720,8 +721,8 @@ def _handrail(variant: str) -> tuple[Parts, Mats]:
     parts = [rail, merge("standoffs", posts), merge("feet", feet), merge("bolt_heads", bolts)]
     if variant == "bent":
         def deform(p):
-            p = _fold(p, (0.12, 0.0), 0.0, 0.16, np.radians(38))
-            return _fold(p, (-0.25, 0.0), np.pi, 0.3, np.radians(12))
+            p = _fold(p, (0.12, 0.0), 0.0, 0.16, fm.radians(38))
+            return _fold(p, (-0.25, 0.0), np.pi, 0.3, fm.radians(12))
         parts = [_with(p, deform(p.points)) for p in parts]
     mats = [_m("rail", (0.75, 0.48, 0.05), 0.5, 0.4), _m("foot", (0.5, 0.5, 0.52), 1.0, 0.4),
             _m("bolt", (0.65, 0.65, 0.66), 1.0, 0.3)]
@@ -734,19 +735,19 @@ def _crew_bag(variant: str) -> tuple[Parts, Mats]:
     body = superellipsoid("bag", (a, b, c), "fabric", e, 64, 32)
     p = body.points
     q = p / (np.array([a, b, c]) / 2)
-    g = np.sign(q) * np.abs(q) ** (2 / e - 1) / (np.array([a, b, c]) / 2)
-    nrm = g / np.linalg.norm(g, axis=1, keepdims=True)
+    g = np.sign(q) * fm.power(np.abs(q), 2 / e - 1) / (np.array([a, b, c]) / 2)
+    nrm = g / fm.norm(g, axis=1, keepdims=True)
     wr = 0.006 * _waves(rng, p, 14, 0.05, 0.2, ridged=True) + 0.004 * _waves(rng, p, 6, 0.2, 0.5)
-    sag = np.column_stack([np.zeros(len(p)), np.zeros(len(p)), -0.012 * np.cos(np.pi * p[:, 0] / a) ** 2])
+    sag = np.column_stack([np.zeros(len(p)), np.zeros(len(p)), -0.012 * fm.cos(np.pi * p[:, 0] / a) ** 2])
     parts = [_with(body, p + wr[:, None] * nrm + sag * (p[:, 2:3] > 0))]
     # Zipper all round the lid, just below the top edge.
     t = np.linspace(0.0, 2 * np.pi, 120, endpoint=False)
     ex = 0.3
-    zip_loop = np.column_stack([(a / 2 + 0.004) * np.sign(np.cos(t)) * np.abs(np.cos(t)) ** ex,
-                                (b / 2 + 0.004) * np.sign(np.sin(t)) * np.abs(np.sin(t)) ** ex,
+    zip_loop = np.column_stack([(a / 2 + 0.004) * np.sign(fm.cos(t)) * fm.power(np.abs(fm.cos(t)), ex),
+                                (b / 2 + 0.004) * np.sign(fm.sin(t)) * fm.power(np.abs(fm.sin(t)), ex),
                                 np.full_like(t, c / 2 - 0.03)])
-    nx = np.column_stack([np.sign(np.cos(t)) * np.abs(np.cos(t)) ** (2 - ex) / a,
-                          np.sign(np.sin(t)) * np.abs(np.sin(t)) ** (2 - ex) / b, np.zeros_like(t)])
+    nx = np.column_stack([np.sign(fm.cos(t)) * fm.power(np.abs(fm.cos(t)), 2 - ex) / a,
+                          np.sign(fm.sin(t)) * fm.power(np.abs(fm.sin(t)), 2 - ex) / b, np.zeros_like(t)])
     parts.append(sweep("zipper", zip_loop, 0.0025, "zipper", segments=8, closed=True, aspect=2.0, up=nx))
     parts.append(box("zipper_pull", (0.012, 0.004, 0.03), "metal",
                      transform((a / 2 - 0.06, -b / 2 - 0.008, c / 2 - 0.045))))
@@ -794,12 +795,12 @@ def _experiment_box(variant: str) -> tuple[Parts, Mats]:
     conns, faces, nuts = [], [], []
     for k, cx in enumerate((-0.12, -0.07, -0.02)):
         m = transform((cx, yf, -0.045), out)
-        conns.append(box(f"flange_{k}", (0.034, 0.034, 0.004), "metal", m @ transform((0.0, 0.0, 0.003))))
+        conns.append(box(f"flange_{k}", (0.034, 0.034, 0.004), "metal", fm.matmul(m, transform((0.0, 0.0, 0.003)))))
         conns.append(lathe(f"shell_{k}", [(0.0, 0.0), (0.0125, 0.0), (0.0125, 0.024), (0.0, 0.024)], "metal", 20,
                            matrix=m))
         nuts.append(extrude_polygon(f"coupling_{k}", _gear(0.0145, 0.0137, 14), 0.01, "connector",
-                                    m @ transform((0.0, 0.0, 0.014))))
-        faces.append(cylinder(f"insert_{k}", 0.0095, 0.0015, "insert", 16, m @ transform((0.0, 0.0, 0.024))))
+                                    fm.matmul(m, transform((0.0, 0.0, 0.014)))))
+        faces.append(cylinder(f"insert_{k}", 0.0095, 0.0015, "insert", 16, fm.matmul(m, transform((0.0, 0.0, 0.024)))))
     parts += [merge("connector_shells", conns), merge("connector_nuts", nuts), merge("connector_inserts", faces)]
     switches = []
     for k, cx in enumerate((0.06, 0.095)):
@@ -854,7 +855,7 @@ def _camera_unit(variant: str) -> tuple[Parts, Mats]:
         parts.append(lathe("bezel", [(0.0, 0.0), (0.062, 0.0), (0.062, 0.022), (0.055, 0.022), (0.05, 0.01),
                                      (0.0, 0.01)], "dark", 40, matrix=transform((0.095, 0.0, 0.0), ry)))
         leds = [cylinder(f"emitter_{i}", 0.0085, 0.008, "led", 16,
-                         transform((0.105, 0.021 * np.cos(a), 0.021 * np.sin(a)), ry))
+                         transform((0.105, 0.021 * fm.cos(a), 0.021 * fm.sin(a)), ry))
                 for i, a in enumerate(np.arange(6) * np.pi / 3)]
         leds.append(cylinder("emitter_c", 0.0085, 0.008, "led", 16, transform((0.105, 0.0, 0.0), ry)))
         parts.append(merge("emitters", leds))

@@ -44,10 +44,11 @@ import numpy as np
 from allo_usd.core.constants import AU_M, SOLAR_CONSTANT, SUN_RADIUS_M
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.assets.primitives import sphere_outline_scale, uv_sphere
+from allo_usd.core import fixedmath as fm
 
 # Radiance of the solar disc: irradiance / solid angle = E / (pi sin^2 theta) at 1 AU (what the
 # DistantLight's disc has: UsdLux's size factor of a normalised DistantLight, read.distant_size_factor).
-SUN_RADIANCE = SOLAR_CONSTANT / (np.pi * (SUN_RADIUS_M / AU_M) ** 2)
+SUN_RADIANCE = SOLAR_CONSTANT / (np.pi * (SUN_RADIUS_M / AU_M) * (SUN_RADIUS_M / AU_M))
 
 MOON_ALBEDO = 0.11    # Bond albedo (geometric: 0.12)
 EARTH_ALBEDO = 0.306  # Bond albedo (geometric: 0.434)
@@ -86,7 +87,7 @@ def _fbm(h: int, w: int, seed: int, octaves: int = 6, base: int = 4) -> np.ndarr
 
 def _to_srgb8(linear: np.ndarray) -> np.ndarray:
     c = np.clip(linear, 0.0, 1.0)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * fm.power(c, 1 / 2.4) - 0.055)
     return np.round(s * 255).astype(np.uint8)
 
 
@@ -103,7 +104,7 @@ def row_latitudes(h: int) -> np.ndarray:
 
 def area_weights(h: int) -> np.ndarray:
     """(h, 1) weights proportional to the sphere area each equirectangular row covers."""
-    return np.cos(row_latitudes(h))[:, None]
+    return fm.cos(row_latitudes(h))[:, None]
 
 
 def area_weighted_reflectance(texture: np.ndarray) -> float:
@@ -147,10 +148,10 @@ def moon_texture(h: int = 512, w: int = 1024) -> np.ndarray:
     lon = np.linspace(-np.pi, np.pi, w, endpoint=False)[None, :]
     craters = np.zeros((h, w))
     for _ in range(160):  # bright-rimmed craters with dark floors
-        clat, clon = np.arcsin(rng.uniform(-1, 1)), rng.uniform(-np.pi, np.pi)
+        clat, clon = fm.arcsin(rng.uniform(-1, 1)), rng.uniform(-np.pi, np.pi)
         r = rng.uniform(0.01, 0.08)
-        d = np.arccos(np.clip(np.sin(lat) * np.sin(clat) + np.cos(lat) * np.cos(clat) * np.cos(lon - clon), -1, 1))
-        craters += np.exp(-((d - r) / (0.15 * r)) ** 2) * 0.35 - (d < r) * 0.08
+        d = fm.arccos(np.clip(fm.sin(lat) * fm.sin(clat) + fm.cos(lat) * fm.cos(clat) * fm.cos(lon - clon), -1, 1))
+        craters += fm.exp(-((d - r) / (0.15 * r)) ** 2) * 0.35 - (d < r) * 0.08
     albedo = 1.0 + 0.5 * (n - 0.5) - 0.35 * maria + craters
     return _normalised_srgb8(np.repeat(albedo[..., None], 3, axis=2), MOON_ALBEDO)
 
@@ -164,7 +165,7 @@ def earth_texture(h: int = 512, w: int = 1024) -> np.ndarray:
     weights = area_weights(h) * np.ones((1, w))
     land = _fbm(h, w, seed=6371, octaves=6, base=3)
     clouds = _fbm(h, w, seed=2030, octaves=6, base=6)
-    lat = np.degrees(row_latitudes(h))[:, None] * np.ones((1, w))
+    lat = fm.degrees(row_latitudes(h))[:, None] * np.ones((1, w))
     ocean = np.array([0.03, 0.05, 0.10])
     green = np.array([0.08, 0.12, 0.05])
     desert = np.array([0.35, 0.27, 0.16])

@@ -94,6 +94,7 @@ import numpy as np
 
 from allo_usd.core.errors import AssetError, DegenerateMeshError, ImportOptionError
 from allo_usd.assets.mesh import Asset, Material, MeshPart
+from allo_usd.core import fixedmath as fm
 
 __all__ = [
     "DEFAULT_MATERIAL",
@@ -208,9 +209,9 @@ def import_mesh_report(path, *, units: str = "auto", up_axis: str = "auto", name
     source_extent = hi - lo
     unit, scale, reason = _resolve_units(units, float(source_extent.max()), path)
 
-    rot = user_rot @ UP_AXIS_ROTATIONS[up]
+    rot = fm.matmul(user_rot, UP_AXIS_ROTATIONS[up])
     for g in groups:
-        g["points"] = (g["points"] * scale) @ rot.T
+        g["points"] = fm.apply(rot, g["points"] * scale)
     offset = np.zeros(3)
     if recenter:
         lo = np.min([g["points"].min(axis=0) for g in groups], axis=0)
@@ -296,7 +297,7 @@ def _check_rotation(rotation) -> np.ndarray:
     r = np.asarray(rotation, dtype=np.float64)
     if r.shape != (3, 3) or not np.isfinite(r).all():
         raise ImportOptionError(f"rotation must be a finite 3x3 matrix, got shape {r.shape}")
-    if not np.allclose(r @ r.T, np.eye(3), atol=1e-9) or not np.linalg.det(r) > 0:
+    if not np.allclose(fm.matmul(r, r.T), np.eye(3), atol=1e-9) or not fm.det3(r) > 0:
         raise ImportOptionError("rotation must be a proper rotation (orthonormal, determinant +1); "
                                 "use up_axis for axis flips and fix any scale in units")
     return r
@@ -351,9 +352,9 @@ def _collect(scene, path: Path, fmt: str) -> tuple[list[dict], int]:
         has_normals = _has_file_normals(geom)
         m = np.asarray(matrix, dtype=np.float64)
         verts = np.asarray(geom.vertices, dtype=np.float64)
-        pts = verts @ m[:3, :3].T + m[:3, 3]
+        pts = fm.apply(m[:3, :3], verts) + m[:3, 3]
         faces = np.asarray(geom.faces, dtype=np.int64)
-        if np.linalg.det(m[:3, :3]) < 0:  # mirrored instance: keep faces counter-clockwise
+        if fm.det3(m[:3, :3]) < 0:  # mirrored instance: keep faces counter-clockwise
             faces = faces[:, ::-1]
         visual = geom.visual
         material, uv = None, None
@@ -412,7 +413,7 @@ def _clean(g: dict) -> None:
     tri = p[f]
     finite = np.isfinite(tri).all(axis=(1, 2))
     tri = np.where(finite[:, None, None], tri, 0.0)
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area2 = fm.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     edge2 = (np.diff(tri[:, [0, 1, 2, 0]], axis=1) ** 2).sum(axis=2).max(axis=1)
     keep = finite & (area2 > 2.0 * _DEGENERATE_REL_AREA * edge2) & (area2 > 0.0)
     f = f[keep]
@@ -427,7 +428,7 @@ def _clean(g: dict) -> None:
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return np.where(c <= 0.04045, c / 12.92, fm.power((c + 0.055) / 1.055, 2.4))
 
 
 def _as_unit_floats(value, n: int) -> np.ndarray | None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from allo_usd.core.errors import DegenerateMeshError
 from allo_usd.core.geometry import rot_x, rot_y, rot_z
+from allo_usd.core import fixedmath as fm
 
 _AXES = {"X": rot_x, "Y": rot_y, "Z": rot_z}
 
@@ -76,7 +77,7 @@ class MeshPart:
     def transformed(self, matrix: np.ndarray, name: str | None = None) -> "MeshPart":
         """A copy with points mapped by a 4x4 row-vector-free matrix (p' = M @ [p, 1])."""
         m = np.asarray(matrix, dtype=np.float64)
-        pts = self.points @ m[:3, :3].T + m[:3, 3]
+        pts = fm.apply(m[:3, :3], self.points) + m[:3, 3]
         return MeshPart(name or self.name, pts, self.face_counts, self.face_indices,
                         self.material, self.uv, self.smooth, self.joint)
 
@@ -100,16 +101,16 @@ class Joint:
 
     def mount_matrix(self) -> np.ndarray:
         m = np.eye(4)
-        rx, ry, rz = np.radians(self.mount_rotation)
-        m[:3, :3] = rot_z(rz) @ rot_y(ry) @ rot_x(rx)
+        rx, ry, rz = fm.radians(self.mount_rotation)
+        m[:3, :3] = fm.matmul(fm.matmul(rot_z(rz), rot_y(ry)), rot_x(rx))
         m[:3, 3] = self.translate
         return m
 
     def local_matrix(self, angle: float) -> np.ndarray:
         """4x4 joint-to-parent matrix at `angle` degrees."""
         r = np.eye(4)
-        r[:3, :3] = _AXES[self.axis](np.radians(float(angle)))
-        return self.mount_matrix() @ r
+        r[:3, :3] = _AXES[self.axis](fm.radians(float(angle)))
+        return fm.matmul(self.mount_matrix(), r)
 
 
 @dataclass(frozen=True)
@@ -159,7 +160,7 @@ class Asset:
         out: dict[str, np.ndarray] = {}
         for j in self.joints:
             parent = out[j.parent] if j.parent is not None else np.eye(4)
-            out[j.name] = parent @ j.local_matrix(angles.get(j.name, j.rest))
+            out[j.name] = fm.matmul(parent, j.local_matrix(angles.get(j.name, j.rest)))
         return out
 
     def posed_points(self, angles: dict[str, float] | None = None) -> list[np.ndarray]:
@@ -223,6 +224,6 @@ def validate_part(part: MeshPart) -> None:
         raise DegenerateMeshError(f"{where}: uv must be face-varying, shape ({len(part.face_indices)}, 2)")
     tri = part.triangles()
     p = part.points
-    area = 0.5 * np.linalg.norm(np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]), axis=1).sum()
+    area = 0.5 * fm.norm(np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]), axis=1).sum()
     if not area > 0.0:
         raise DegenerateMeshError(f"{where}: total surface area is zero; the mesh is degenerate")

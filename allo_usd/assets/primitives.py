@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from allo_usd.assets.mesh import MeshPart
+from allo_usd.core import fixedmath as fm
 
 
 def transform(translate=(0.0, 0.0, 0.0), rotate: np.ndarray | None = None, scale=1.0) -> np.ndarray:
@@ -26,10 +27,10 @@ def transform(translate=(0.0, 0.0, 0.0), rotate: np.ndarray | None = None, scale
 def frame_from_z(axis: np.ndarray) -> np.ndarray:
     """A rotation whose third column is unit(axis): maps local +Z onto `axis`."""
     z = np.asarray(axis, dtype=np.float64)
-    z = z / np.linalg.norm(z)
+    z = z / fm.norm(z)
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
+    x /= fm.norm(x)
     y = np.cross(z, x)
     return np.stack([x, y, z], axis=1)
 
@@ -72,7 +73,7 @@ def cylinder(name: str, radius: float, length: float, material: str, segments: i
     """Cylinder (or cone frustum) along local +Z from z=0 to z=length, smooth sides, flat caps."""
     r0, r1 = float(radius), float(radius if radius_top is None else radius_top)
     t = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    ring = np.stack([np.cos(t), np.sin(t)], axis=1)
+    ring = np.stack([fm.cos(t), fm.sin(t)], axis=1)
     bottom = np.column_stack([ring * r0, np.zeros(segments)])
     top = np.column_stack([ring * r1, np.full(segments, length)])
     pts = [bottom, top]
@@ -102,7 +103,7 @@ def cylinder_between(name: str, a, b, radius: float, material: str, segments: in
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     axis = b - a
-    return cylinder(name, radius, float(np.linalg.norm(axis)), material, segments,
+    return cylinder(name, radius, float(fm.norm(axis)), material, segments,
                     transform(a, frame_from_z(axis)), caps)
 
 
@@ -138,7 +139,7 @@ def uv_sphere(name: str, radius: float, material: str, segments: int = 32, rings
     theta = np.linspace(0.0, np.pi, rings + 1)          # polar angle from +Z
     phi = np.linspace(0.0, 2 * np.pi, segments + 1)      # seam duplicated for UVs
     th, ph = np.meshgrid(theta, phi, indexing="ij")
-    pts = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3) * radius
+    pts = np.stack([fm.sin(th) * fm.cos(ph), fm.sin(th) * fm.sin(ph), fm.cos(th)], -1).reshape(-1, 3) * radius
     r, s = np.meshgrid(np.arange(rings), np.arange(segments), indexing="ij")
     w = segments + 1
     a = r * w + s
@@ -184,17 +185,17 @@ def tube(name: str, path: np.ndarray, radius: float, material: str, segments: in
     path = np.asarray(path, dtype=np.float64)
     k = len(path)
     tang = np.gradient(path, axis=0)
-    tang /= np.linalg.norm(tang, axis=1, keepdims=True)
+    tang /= fm.norm(tang, axis=1, keepdims=True)
     n = frame_from_z(tang[0])[:, 0]
     normals = []
     for t in tang:  # parallel transport keeps the tube from twisting
-        n = n - np.dot(n, t) * t
-        n /= np.linalg.norm(n)
+        n = n - fm.dot(n, t) * t
+        n /= fm.norm(n)
         normals.append(n.copy())
     normals = np.array(normals)
     binormals = np.cross(tang, normals)
     ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    ring = (np.cos(ang)[None, :, None] * normals[:, None, :] + np.sin(ang)[None, :, None] * binormals[:, None, :])
+    ring = (fm.cos(ang)[None, :, None] * normals[:, None, :] + fm.sin(ang)[None, :, None] * binormals[:, None, :])
     pts = (path[:, None, :] + radius * ring).reshape(-1, 3)
     r, s = np.meshgrid(np.arange(k - 1), np.arange(segments), indexing="ij")
     a = r * segments + s
@@ -235,14 +236,14 @@ def box_between(name: str, a, b, width: float, material: str, depth: float | Non
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     axis = b - a
-    length = float(np.linalg.norm(axis))
+    length = float(fm.norm(axis))
     z = axis / length
     if up is None:
         rot = frame_from_z(z)
     else:
         y = np.asarray(up, dtype=np.float64)
-        y = y - np.dot(y, z) * z
-        y /= np.linalg.norm(y)
+        y = y - fm.dot(y, z) * z
+        y /= fm.norm(y)
         rot = np.stack([np.cross(y, z), y, z], axis=1)
     d = width if depth is None else depth
     return box(name, (width, d, length), material, transform((a + b) / 2.0, rot), uv_scale)
@@ -257,8 +258,8 @@ def dish(name: str, radius: float, depth: float, material: str, segments: int = 
     """
     rr = np.linspace(hub * radius, radius, rings + 1)
     t = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    x = rr[:, None] * np.cos(t)[None, :]
-    y = rr[:, None] * np.sin(t)[None, :]
+    x = rr[:, None] * fm.cos(t)[None, :]
+    y = rr[:, None] * fm.sin(t)[None, :]
     z = depth * (rr[:, None] / radius) ** 2 * np.ones_like(x)
     front = np.stack([x, y, z], -1).reshape(-1, 3)
     back = front - np.array([0.0, 0.0, thickness])
@@ -294,7 +295,7 @@ def scale_uv(part: MeshPart, su: float, sv: float | None = None) -> MeshPart:
 # ---------------------------------------------------------------------------------------------
 
 def _sgnpow(x: np.ndarray, e: float) -> np.ndarray:
-    return np.sign(x) * np.abs(x) ** e
+    return np.sign(x) * fm.power(np.abs(x), e)
 
 
 def smooth_path(control, samples: int, closed: bool = False, alpha: float = 0.5) -> np.ndarray:
@@ -302,7 +303,7 @@ def smooth_path(control, samples: int, closed: bool = False, alpha: float = 0.5)
     evenly spaced by arc length. Open paths start and end on the first and last control point;
     closed paths do not repeat their first point."""
     p = np.asarray(control, dtype=np.float64)
-    if len(p) < 2 or (np.linalg.norm(np.diff(p, axis=0), axis=1) <= 0).any():
+    if len(p) < 2 or (fm.norm(np.diff(p, axis=0), axis=1) <= 0).any():
         raise ValueError("smooth_path needs at least two control points, none repeated in a row")
     ext = np.vstack([p[-1], p, p[0], p[1]]) if closed else np.vstack([2 * p[0] - p[1], p, 2 * p[-1] - p[-2]])
     dense = []
@@ -310,9 +311,9 @@ def smooth_path(control, samples: int, closed: bool = False, alpha: float = 0.5)
     for i in range(len(ext) - 3):
         p0, p1, p2, p3 = ext[i:i + 4]
         t0 = 0.0
-        t1 = t0 + np.linalg.norm(p1 - p0) ** alpha
-        t2 = t1 + np.linalg.norm(p2 - p1) ** alpha
-        t3 = t2 + np.linalg.norm(p3 - p2) ** alpha
+        t1 = t0 + fm.power(fm.norm(p1 - p0), alpha)
+        t2 = t1 + fm.power(fm.norm(p2 - p1), alpha)
+        t3 = t2 + fm.power(fm.norm(p3 - p2), alpha)
         t = np.linspace(t1, t2, m, endpoint=False)[:, None]
         a1 = (t1 - t) / (t1 - t0) * p0 + (t - t0) / (t1 - t0) * p1
         a2 = (t2 - t) / (t2 - t1) * p1 + (t - t1) / (t2 - t1) * p2
@@ -322,7 +323,7 @@ def smooth_path(control, samples: int, closed: bool = False, alpha: float = 0.5)
         dense.append((t2 - t) / (t2 - t1) * b1 + (t - t1) / (t2 - t1) * b2)
     dense.append((p[0] if closed else p[-1])[None, :])
     d = np.concatenate(dense)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(d, axis=0), axis=1))])
+    s = np.concatenate([[0.0], np.cumsum(fm.norm(np.diff(d, axis=0), axis=1))])
     target = np.linspace(0.0, s[-1], samples, endpoint=not closed)
     return np.stack([np.interp(target, s, d[:, k]) for k in range(3)], axis=1)
 
@@ -340,33 +341,33 @@ def path_frames(path: np.ndarray, closed: bool = False, up=None) -> tuple[np.nda
         tang = np.roll(path, -1, axis=0) - np.roll(path, 1, axis=0)
     else:
         tang = np.gradient(path, axis=0)
-    tang /= np.linalg.norm(tang, axis=1, keepdims=True)
+    tang /= fm.norm(tang, axis=1, keepdims=True)
     normals = np.empty_like(path)
     if up is not None:
         ups = np.broadcast_to(np.asarray(up, dtype=np.float64), path.shape)
         prev = frame_from_z(tang[0])[:, 0]
         for i in range(k):
-            n = ups[i] - np.dot(ups[i], tang[i]) * tang[i]
-            norm = np.linalg.norm(n)
+            n = ups[i] - fm.dot(ups[i], tang[i]) * tang[i]
+            norm = fm.norm(n)
             if norm < 1e-9:  # up along the tangent here: keep the previous normal
-                n = prev - np.dot(prev, tang[i]) * tang[i]
-                norm = np.linalg.norm(n)
+                n = prev - fm.dot(prev, tang[i]) * tang[i]
+                norm = fm.norm(n)
             n = n / norm
             normals[i] = prev = n
     else:
         n = frame_from_z(tang[0])[:, 0]
         for i in range(k):
-            n = n - np.dot(n, tang[i]) * tang[i]
-            n /= np.linalg.norm(n)
+            n = n - fm.dot(n, tang[i]) * tang[i]
+            n /= fm.norm(n)
             normals[i] = n
         if closed:
             t0 = tang[0]
-            back = n - np.dot(n, t0) * t0
-            back /= np.linalg.norm(back)
-            phi = np.arctan2(np.dot(np.cross(normals[0], back), t0), np.dot(normals[0], back))
+            back = n - fm.dot(n, t0) * t0
+            back /= fm.norm(back)
+            phi = fm.arctan2(fm.dot(np.cross(normals[0], back), t0), fm.dot(normals[0], back))
             theta = -phi * np.arange(k) / k
             cr = np.cross(tang, normals)
-            normals = normals * np.cos(theta)[:, None] + cr * np.sin(theta)[:, None]
+            normals = normals * fm.cos(theta)[:, None] + cr * fm.sin(theta)[:, None]
     binormals = np.cross(tang, normals)
     return tang, normals, binormals
 
@@ -386,7 +387,7 @@ def sweep(name: str, path: np.ndarray, radius, material: str, segments: int = 12
     r = np.broadcast_to(np.asarray(radius, dtype=np.float64), (k,)).copy()
     tang, normals, binormals = path_frames(path, closed, up)
     ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    cu, su = _sgnpow(np.cos(ang), exponent), _sgnpow(np.sin(ang), exponent) * aspect
+    cu, su = _sgnpow(fm.cos(ang), exponent), _sgnpow(fm.sin(ang), exponent) * aspect
     ring = cu[None, :, None] * normals[:, None, :] + su[None, :, None] * binormals[:, None, :]
     pts = (path[:, None, :] + r[:, None, None] * ring).reshape(-1, 3)
     rows = k if closed else k - 1
@@ -423,20 +424,20 @@ def lathe(name: str, profile, material: str, segments: int = 24, closed: bool = 
     last profile point back to the first (rings, washers).
     """
     prof = np.asarray(profile, dtype=np.float64)
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(prof, axis=0), axis=1) > 1e-12])
+    keep = np.concatenate([[True], fm.norm(np.diff(prof, axis=0), axis=1) > 1e-12])
     prof = prof[keep]
-    if closed and np.linalg.norm(prof[0] - prof[-1]) <= 1e-12:
+    if closed and fm.norm(prof[0] - prof[-1]) <= 1e-12:
         prof = prof[:-1]
     if len(prof) < 2 or (prof[:, 0] < 0).any():
         raise ValueError(f"lathe {name!r}: profile needs 2+ distinct points with radius >= 0")
     kp = len(prof)
     nseg = kp if closed else kp - 1
     seg_dir = np.array([prof[(i + 1) % kp] - prof[i] for i in range(nseg)])
-    seg_dir /= np.linalg.norm(seg_dir, axis=1, keepdims=True)
-    cos_crease = np.cos(np.radians(crease_deg))
+    seg_dir /= fm.norm(seg_dir, axis=1, keepdims=True)
+    cos_crease = fm.cos(fm.radians(crease_deg))
 
     def sharp(i_seg_in: int, i_seg_out: int) -> bool:
-        return float(np.dot(seg_dir[i_seg_in], seg_dir[i_seg_out])) < cos_crease
+        return float(fm.dot(seg_dir[i_seg_in], seg_dir[i_seg_out])) < cos_crease
 
     # Runs of segments joined smoothly; each run gets its own rings.
     corners = [v for v in range(kp) if (closed or 0 < v < kp - 1) and sharp((v - 1) % nseg, v % nseg)]
@@ -461,7 +462,7 @@ def lathe(name: str, profile, material: str, segments: int = 24, closed: bool = 
         if len(cur) > 1:
             runs.append((cur, False))
     t = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    cs, sn = np.cos(t), np.sin(t)
+    cs, sn = fm.cos(t), fm.sin(t)
     pts, quads, off = [], [], 0
     for run, wrap in runs:
         rings = np.stack([np.column_stack([prof[v, 0] * cs, prof[v, 0] * sn, np.full(segments, prof[v, 1])])

@@ -43,6 +43,7 @@ from allo_usd.assets.mesh import Asset, Joint, Material, MeshPart
 from allo_usd.assets.primitives import (box, box_between, cylinder, cylinder_between, dish, frame_from_z, grid,
                                         merge, scale_uv, transform, uv_sphere)
 from allo_usd.core.geometry import rot_x, rot_y, rot_z, unit
+from allo_usd.core import fixedmath as fm
 
 # ----------------------------------------------------------------------------- layout constants
 TRUSS_Z = 2.0             # height of the truss axis
@@ -51,7 +52,7 @@ TRUSS_HALF_LENGTH = 54.5  # the truss spans y in [-54.5, 54.5] (109 m)
 HX, HZ = 2.25, 1.5        # half width (X) and half height (Z) of the inboard truss
 HXO, HZO = 2.0, 1.4       # the same for the outboard (S4/S6, P4/P6) truss
 SARJ_Y = (31.5, 33.0)     # |y| range of the solar alpha rotary joints
-SARJ_ANGLE = np.radians(25.0)   # outboard truss rotation about the truss axis: the alpha joints' rest angle
+SARJ_ANGLE = fm.radians(25.0)   # outboard truss rotation about the truss axis: the alpha joints' rest angle
 WING_Y = (39.0, 52.0)           # |y| of the solar wing pairs on S4/P4 and S6/P6
 WING_LENGTH = 32.6              # blanket length; a wing reaches ~36.7 m from the truss axis
 BLANKET_WIDTH = 4.6
@@ -158,7 +159,7 @@ def _periodic_voronoi(rng: np.random.Generator, n: int, gu: int, gv: int):
             su = ku + jitter[iv, iu, 0]
             sv = kv + jitter[iv, iu, 1]
             du_, dv_ = u - su, v - sv
-            d = np.hypot(du_, dv_)
+            d = fm.hypot(du_, dv_)
             closer = d < best[0]
             best[1] = np.where(closer, best[0], np.minimum(best[1], d))
             best[0] = np.where(closer, d, best[0])
@@ -174,8 +175,8 @@ def _mli_texture(rng: np.random.Generator, color, n: int = 512) -> np.ndarray:
     seeds = gu * gv
     level = rng.uniform(0.55, 1.1, seeds)                 # each facet catches the light differently
     tilt = rng.normal(size=(seeds, 2)) * 0.22             # and shades across itself
-    shade = level[idx] + np.einsum("ijk,ijk->ij", rel, tilt[idx])
-    crease = np.exp(-((f2 - f1) * (n / gv) / 1.6) ** 2)   # thin lines where facets meet
+    shade = level[idx] + fm.dot(rel, tilt[idx])
+    crease = fm.exp(-((f2 - f1) * (n / gv) / 1.6) ** 2)   # thin lines where facets meet
     shade = shade * (1.0 - 0.35 * crease) + 0.12 * crease * (level[idx] > 0.9)
     wave = _periodic_noise(rng, n, 2, 8)
     fine = _periodic_noise(rng, n, 40, 120)
@@ -237,7 +238,7 @@ def _basis(u, v) -> np.ndarray:
     """Rotation with columns u, v (orthogonalised), u x v."""
     u = unit(u)
     v = np.asarray(v, dtype=np.float64)
-    v = unit(v - np.dot(v, u) * u)
+    v = unit(v - fm.dot(v, u) * u)
     return np.stack([u, v, np.cross(u, v)], axis=1)
 
 
@@ -279,7 +280,7 @@ class _Parts:
         if isinstance(matrix, tuple):
             joint, matrix = matrix
             if self.rest is not None:   # flat: straight into the station frame at rest, as one group
-                joint, matrix = None, self.rest[joint] @ matrix
+                joint, matrix = None, fm.matmul(self.rest[joint], matrix)
         if (joint, group) in self.groups and self.groups[joint, group][0] != material:
             group = f"{group}_{material}"   # a second material in one region gets its own part
         mat, plist = self.groups.setdefault((joint, group), (material, []))
@@ -396,8 +397,8 @@ def _sarj(b: _Parts, sign: int) -> None:
                                                 transform((0, y, 0), rot_x(-np.pi / 2))), matrix=m)
     for k in range(6):  # drive / lock boxes around the ring
         a = k * np.pi / 3 + np.pi / 6
-        c = np.array([2.25 * np.cos(a), (lo + hi) / 2, 2.25 * np.sin(a)])
-        b.add("truss_equipment", SKIN, _obox(c, (0, 1, 0), (np.cos(a), 0, np.sin(a)), (0.7, 0.4, 0.45), SKIN,
+        c = np.array([2.25 * fm.cos(a), (lo + hi) / 2, 2.25 * fm.sin(a)])
+        b.add("truss_equipment", SKIN, _obox(c, (0, 1, 0), (fm.cos(a), 0, fm.sin(a)), (0.7, 0.4, 0.45), SKIN,
                                              1 / SKIN_TILE), matrix=m)
 
 
@@ -491,11 +492,11 @@ def _panel_stack(b: _Parts, group: str, start, length_dir, width_dir, width: flo
 
 
 RADIATOR_BEAM = np.array([-HX - 0.25, 0.0, -HZ - 0.2])   # the S1/P1 radiator beam's axis (inboard frame, along Y)
-RADIATOR_PHI = np.radians(35.0)                          # rest: the panels hang down and aft, 35 degrees aft of nadir
+RADIATOR_PHI = fm.radians(35.0)                          # rest: the panels hang down and aft, 35 degrees aft of nadir
 
 
 def _radiators(b: _Parts) -> None:
-    r = np.array([-np.sin(RADIATOR_PHI), 0.0, -np.cos(RADIATOR_PHI)])   # down and aft
+    r = np.array([-fm.sin(RADIATOR_PHI), 0.0, -fm.cos(RADIATOR_PHI)])   # down and aft
     m = _inboard()
     for s, name in ((1, "radiator_S1"), (-1, "radiator_P1")):
         y0, y1 = 10.0 * s, 20.2 * s
@@ -524,8 +525,8 @@ def _radiators(b: _Parts) -> None:
 def _mast(length0: float, length1: float, radius: float = 0.42, bay: float = 1.5) -> list[MeshPart]:
     """A triangular lattice mast along +Z (wing frame)."""
     parts = []
-    ang = np.radians([90.0, 210.0, 330.0])
-    c = np.stack([radius * np.cos(ang), radius * np.sin(ang)], 1)
+    ang = fm.radians([90.0, 210.0, 330.0])
+    c = np.stack([radius * fm.cos(ang), radius * fm.sin(ang)], 1)
     n = int(round((length1 - length0) / bay))
     zs = np.linspace(length0, length1, n + 1)
     for (x, y) in c:
@@ -598,7 +599,7 @@ ALPHA_JOINTS = {1: "AlphaS", -1: "AlphaP"}
 # truss and of the truss itself (tests/test_sun_tracking.py sweeps them: docs/physics.md section 14).
 RADIATOR_JOINTS = {1: "RadiatorS", -1: "RadiatorP"}
 RADIATOR_LIMITS = (-85.0, 85.0)
-ALPHA_REST = float(np.degrees(SARJ_ANGLE))
+ALPHA_REST = float(fm.degrees(SARJ_ANGLE))
 BETA_LIMIT = 75.0
 BETA_REST = {"S4a": 8.0, "S4b": -5.0, "S6a": -3.0, "S6b": 10.0, "P4a": 5.0, "P4b": -9.0, "P6a": -7.0, "P6b": 4.0}
 WINGS = tuple(BETA_REST)   # "b" wings hang below the truss: their frame is turned 180 degrees about X
@@ -618,8 +619,8 @@ def _rest_frames() -> dict[str, np.ndarray]:
         s = 1 if wing[0] == "S" else -1
         yc = s * (WING_Y[0] if wing[1] == "4" else WING_Y[1])
         flip = np.eye(4) if wing.endswith("a") else transform(rotate=rot_x(np.pi))
-        frames[beta_joint_name(wing)] = (_outboard_rest() @ transform((0.0, yc, 0.0)) @ flip
-                                         @ transform(rotate=rot_z(np.radians(BETA_REST[wing]))))
+        frames[beta_joint_name(wing)] = fm.matmul(fm.matmul(fm.matmul(_outboard_rest(), transform((0.0, yc, 0.0))), flip),
+                                                   transform(rotate=rot_z(fm.radians(BETA_REST[wing]))))
     for s in (1, -1):
         frames[RADIATOR_JOINTS[s]] = transform(_radiator_hinge())
     return frames
@@ -650,8 +651,8 @@ def _small_array(b: _Parts, root, direction, length: float, width: float, tilt: 
     """A single-blanket array on a boom (Russian modules, vehicles): direction is the span."""
     root = np.asarray(root, dtype=np.float64)
     d = unit(direction)
-    n = rot_y(tilt) @ np.array([0.0, 0.0, 1.0])
-    n = unit(n - np.dot(n, d) * d)
+    n = fm.matmul(rot_y(tilt), np.array([0.0, 0.0, 1.0]))
+    n = unit(n - fm.dot(n, d) * d)
     w = np.cross(d, n)                       # across the blanket
     c = root + d * (0.6 + length / 2)
     rot_f = np.stack([w, d, n], 1)           # grid u->w, v->d, normal n
@@ -701,7 +702,7 @@ def _handrails(b: _Parts, start, axis, radius: float, t0: float, t1: float, angl
     n = max(1, int((t1 - t0) // spacing))
     ts = np.linspace(t0, t1, n + 2)[1:-1]
     for a in angles:
-        rd = np.cos(a) * e1 + np.sin(a) * e2
+        rd = fm.cos(a) * e1 + fm.sin(a) * e2
         for t in ts:
             p0 = start + axis * (t - 0.3)
             p1 = start + axis * (t + 0.3)
@@ -720,7 +721,7 @@ def _clutter(rng, b: _Parts, start, axis, radius: float, t0: float, t1: float, c
     for k in range(count):
         a = rng.uniform(0, 2 * np.pi)
         t = rng.uniform(t0 + 0.5, t1 - 0.5)
-        rd = np.cos(a) * e1 + np.sin(a) * e2
+        rd = fm.cos(a) * e1 + fm.sin(a) * e2
         tang = np.cross(axis, rd)
         kind = k % 3
         if kind == 2:   # grapple fixture: a base plate and a pin
@@ -757,7 +758,7 @@ def _us_module(b: _Parts, name: str, start, axis, length: float, radius: float, 
     ])
     if rails:
         _handrails(b, start, axis, radius, 0.3 + cone, length - 0.3 - cone,
-                   np.radians([20, 110, 200, 290]))
+                   fm.radians([20, 110, 200, 290]))
     if clutter:
         _clutter(rng, b, start, axis, radius, 0.3 + cone, length - 0.3 - cone, clutter)
 
@@ -814,7 +815,7 @@ def _modules(rng, b: _Parts) -> None:
     # Columbus (starboard) and Kibo (port) on Harmony
     col = "module_columbus"
     _sections(b, hc + Y * 2.7, Y, [_skin(0.6, 1.3, 2.25, col), _skin(5.4, 2.25, 2.25, col), _skin(0.9, 2.25, 1.2, col)])
-    _handrails(b, hc + Y * 2.7, Y, 2.25, 0.6, 6.0, np.radians([30, 150, 270]))
+    _handrails(b, hc + Y * 2.7, Y, 2.25, 0.6, 6.0, fm.radians([30, 150, 270]))
     _clutter(rng, b, hc + Y * 2.7, Y, 2.25, 0.6, 6.0, 4)
     for k, (dx, dz) in enumerate(((-1.3, 0.9), (1.3, 0.9), (0.0, -1.2))):   # external payloads on the end cone
         mat, g = (MLI_GOLD, "module_details_mli") if k != 1 else (DARK, "module_details_dark")
@@ -823,7 +824,7 @@ def _modules(rng, b: _Parts) -> None:
     kibo = "module_kibo"
     _sections(b, hc - Y * 2.7, -Y, [_skin(0.6, 1.3, 2.2, kibo), _skin(kibo_len - 1.2, 2.2, 2.2, kibo),
                                     _skin(0.6, 2.2, 1.3, kibo)])
-    _handrails(b, hc - Y * 2.7, -Y, 2.2, 0.6, kibo_len - 0.6, np.radians([0, 135, 225]))
+    _handrails(b, hc - Y * 2.7, -Y, 2.2, 0.6, kibo_len - 0.6, fm.radians([0, 135, 225]))
     _clutter(rng, b, hc - Y * 2.7, -Y, 2.2, 0.6, kibo_len - 0.6, 6)
     # Kibo logistics module (zenith) and exposed facility (end)
     elm = "module_kibo_elm"
@@ -876,7 +877,7 @@ def _modules(rng, b: _Parts) -> None:
              (2.3, 1.45, 1.45, "russian_mli", MLI_SILVER), (0.8, 1.45, 2.05, "module_zarya", SKIN),
              (7.2, 2.05, 2.05, "module_zarya", SKIN), (0.8, 2.05, 1.0, "russian_mli", MLI_SILVER)]
     _sections(b, (-11.75, 0, zc), -X, zarya)
-    _handrails(b, (-16.05, 0, zc), -X, 2.05, 0.3, 7.0, np.radians([45, 135, 315]))
+    _handrails(b, (-16.05, 0, zc), -X, 2.05, 0.3, 7.0, fm.radians([45, 135, 315]))
     _clutter(rng, b, (-16.05, 0, zc), -X, 2.05, 0.3, 7.0, 5)
     for s in (1, -1):   # Zarya's retracted array stubs
         b.add("module_details_dark", DARK, box("p", (1.2, 1.6, 0.1), DARK, transform((-19.0, s * 2.8, zc))))
@@ -892,15 +893,15 @@ def _modules(rng, b: _Parts) -> None:
     zvz = "module_zvezda"
     _sections(b, zv - X * 0.9, -X, [_skin(3.6, 1.45, 1.45, zvz), _foil(1.0, 1.45, 2.07), _skin(5.3, 2.07, 2.07, zvz),
                                     _foil(0.7, 2.07, 1.0), _port(0.5, 0.6)])
-    _handrails(b, zv - X * 0.9, -X, 1.45, 0.2, 3.4, np.radians([45, 135, 225, 315]), spacing=1.2)
-    _handrails(b, zv - X * 5.5, -X, 2.07, 0.0, 5.3, np.radians([90, 270]))
+    _handrails(b, zv - X * 0.9, -X, 1.45, 0.2, 3.4, fm.radians([45, 135, 225, 315]), spacing=1.2)
+    _handrails(b, zv - X * 5.5, -X, 2.07, 0.0, 5.3, fm.radians([90, 270]))
     _clutter(rng, b, zv - X * 5.5, -X, 2.07, 0.0, 5.3, 4)
     for s in (1, -1):
-        _small_array(b, zv + (-8.0, s * 2.0, 0), (0, s, 0), 10.7, 3.3, np.radians(30), "solar_small_arrays")
+        _small_array(b, zv + (-8.0, s * 2.0, 0), (0, s, 0), 10.7, 3.3, fm.radians(30), "solar_small_arrays")
     # Zvezda antennas: a few small dishes and whips
     for (dx, a) in ((-7.0, 50), (-10.0, 130), (-10.0, 230)):
-        ang = np.radians(a)
-        rd = np.array([0.0, np.cos(ang), np.sin(ang)])
+        ang = fm.radians(a)
+        rd = np.array([0.0, fm.cos(ang), fm.sin(ang)])
         p = zv + X * dx + rd * 2.07
         b.add("truss_hardware", METAL, box_between("p", p, p + rd * 0.7, 0.06, METAL))
         b.add("antennas", SKIN, dish("p", 0.3, 0.08, SKIN, 16, 2, transform(p + rd * 0.7, frame_from_z(rd + X * 0.5))))
@@ -912,7 +913,7 @@ def _modules(rng, b: _Parts) -> None:
     nk = "module_nauka"
     t = _sections(b, zv - Z * 1.0, -Z, [_port(0.3, 0.7), _skin(3.0, 1.45, 1.45, nk), _foil(1.0, 1.45, 2.05),
                                         _skin(7.7, 2.05, 2.05, nk), _foil(0.7, 2.05, 1.1), _port(0.3, 0.7)])
-    _handrails(b, zv - Z * 5.3, -Z, 2.05, 0.0, 7.7, np.radians([0, 180]))
+    _handrails(b, zv - Z * 5.3, -Z, 2.05, 0.0, 7.7, fm.radians([0, 180]))
     b.add("russian_mli", MLI_SILVER, _sphere_tiled(uv_sphere("p", 1.3, MLI_SILVER, 32, 16,
                                                                transform(zv - Z * (1.0 + t + 1.2))), 1.3, MLI_TILE))
     b.add("radiator_PV", RADIATOR, _obox(zv + (-1.0, 2.4, -9.0), (0, 0, 1), (1, 0, 0), (5.0, 1.8, 0.05), RADIATOR,
@@ -932,7 +933,7 @@ def _soyuz(b: _Parts, start, axis, group: str) -> None:
                                             _skin(2.4, 1.36, 1.36, group), (0.3, 1.36, 1.1, dark, DARK)], 28)
     e1 = np.array([0.0, 1.0, 0.0])
     for s in (1, -1):
-        _small_array(b, start + axis * 5.8 + e1 * s * 1.3, e1 * s, 4.0, 1.15, np.radians(-20), "solar_small_arrays")
+        _small_array(b, start + axis * 5.8 + e1 * s * 1.3, e1 * s, 4.0, 1.15, fm.radians(-20), "solar_small_arrays")
     b.add("module_ports", METAL, cylinder("p", 0.25, 0.4, METAL, 12, transform(start - axis * 0.2, frame_from_z(axis))))
 
 
@@ -945,7 +946,7 @@ def _progress(b: _Parts, start, axis) -> None:
                                             (0.3, 1.1, 1.36, "module_details_dark", DARK),
                                             (2.5, 1.36, 1.36, "vehicles", SKIN)], 28)
     for s in (1, -1):
-        _small_array(b, start + axis * 5.4 + np.array([0, s * 1.3, 0]), (0, s, 0), 4.0, 1.15, np.radians(15),
+        _small_array(b, start + axis * 5.4 + np.array([0, s * 1.3, 0]), (0, s, 0), 4.0, 1.15, fm.radians(15),
                      "solar_small_arrays")
 
 
@@ -999,7 +1000,7 @@ def station_fixture_points() -> np.ndarray:
         pts.append(np.array([1.2, y, tz - HZ - 1.5]))
     mo = _outboard_rest()
     for y in (-48.5, -36.0, 36.0, 48.5):                       # forward face of the turned outboard truss
-        p = mo @ np.array([HXO + 1.5, y, 0.3, 1.0])
+        p = fm.matmul(mo, np.array([HXO + 1.5, y, 0.3, 1.0]))
         pts.append(p[:3])
     zc = MODULE_Z
     pts += [

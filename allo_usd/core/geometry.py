@@ -10,6 +10,7 @@ import numpy as np
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
+from allo_usd.core import fixedmath as fm
 
 
 def check_finite(name: str, value) -> np.ndarray:
@@ -26,56 +27,56 @@ def _unit(name: str, value) -> np.ndarray:
     if big == 0:
         raise AlloError(f"{name} has zero length; give a non-zero vector")
     a = a / big  # pre-scaled, so tiny and huge vectors neither underflow nor overflow
-    return a / np.linalg.norm(a)
+    return a / fm.norm(a)
 
 
 def unit(v) -> np.ndarray:
     """One vector as float64 divided by its length, unchecked (asset building, where axes are
     known to be non-zero; `_unit` checks user input)."""
     v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v)
+    return v / fm.norm(v)
 
 
 def unit_rows(v) -> np.ndarray:
     """`v` scaled to unit length along its last axis, unchecked (for vectors known to be non-zero;
     `_unit` checks a single vector)."""
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / fm.norm(v, axis=-1, keepdims=True)
 
 
 def rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Dot products of matching rows of two (n, 3) arrays."""
-    return np.einsum("ni,ni->n", a, b)
+    return fm.dot(a, b)
 
 
 def angle_between(a, b) -> np.ndarray:
     """Angle between vectors (..., 3) as atan2(|a x b|, a . b): accurate at 0 and pi too."""
     a = unit_rows(np.asarray(a, dtype=np.float64))
     b = unit_rows(np.asarray(b, dtype=np.float64))
-    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i->...", a, b))
+    return fm.arctan2(fm.norm(np.cross(a, b), axis=-1), fm.dot(a, b))
 
 
 def rot_x(a: float) -> np.ndarray:
     """Rotation by `a` radians about +X (right-handed)."""
-    c, s = np.cos(a), np.sin(a)
+    c, s = fm.cos(a), fm.sin(a)
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
 
 
 def rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
+    c, s = fm.cos(a), fm.sin(a)
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=np.float64)
 
 
 def rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
+    c, s = fm.cos(a), fm.sin(a)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z), w >= 0, from a proper rotation matrix (Shepperd's method)."""
     r = check_finite("rotation matrix", r)
-    if abs(np.linalg.det(r) - 1.0) > 1e-6 or not np.allclose(r @ r.T, np.eye(3), atol=1e-6):
+    if abs(fm.det3(r) - 1.0) > 1e-6 or not np.allclose(fm.matmul(r, r.T), np.eye(3), atol=1e-6):
         raise AlloError("rotation matrix is not orthonormal with det +1; build it from unit axes")
-    t = np.trace(r)
+    t = r[0, 0] + r[1, 1] + r[2, 2]
     cands = np.array([t, r[0, 0], r[1, 1], r[2, 2]])
     k = int(np.argmax(cands))
     if k == 0:
@@ -90,7 +91,7 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     else:
         s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
         q = np.array([(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s])
-    q /= np.linalg.norm(q)
+    q /= fm.norm(q)
     return q if q[0] >= 0 else -q
 
 
@@ -107,15 +108,15 @@ def look_at(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera rotation (columns = camera x, y, z in world) looking down -Z at target, +Y up."""
     p = check_finite("camera position", position)
     fwd = check_finite("look target", target) - p
-    n = np.linalg.norm(fwd)
+    n = fm.norm(fwd)
     if n == 0:
         raise AlloError("camera position equals its look target; give a target at a distance")
     fwd /= n
     up = _unit("up vector", up)
-    if abs(np.dot(fwd, up)) > 0.999:  # looking straight up/down: pick another up
+    if abs(fm.dot(fwd, up)) > 0.999:  # looking straight up/down: pick another up
         up = np.array([1.0, 0.0, 0.0]) if abs(fwd[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(fwd, up)
-    x /= np.linalg.norm(x)
+    x /= fm.norm(x)
     y = np.cross(x, fwd)
     return np.stack([x, y, -fwd], axis=1)
 
@@ -125,7 +126,7 @@ def rotation_towards(direction) -> np.ndarray:
     z = _unit("direction", direction)
     helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
+    x /= fm.norm(x)
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
@@ -139,9 +140,9 @@ def camera_intrinsics(width: int, height: int, lens: CameraModel = DEFAULT_CAMER
 def fibonacci_sphere(n: int) -> np.ndarray:
     """(n, 3) unit vectors spread evenly over the sphere (Fibonacci lattice), deterministic."""
     i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5 ** 0.5) * i
-    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+    phi = fm.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + np.sqrt(5.0)) * i
+    return np.stack([fm.cos(theta) * fm.sin(phi), fm.sin(theta) * fm.sin(phi), fm.cos(phi)], axis=1)
 
 
 def box_corners(points) -> np.ndarray:

@@ -29,6 +29,7 @@ from allo_usd.core.errors import PlacementError
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import box_corners, camera_intrinsics, fibonacci_sphere, quat_to_matrix
 from allo_usd.scene.raycast import RayScene, pixel_rays
+from allo_usd.core import fixedmath as fm
 
 DEPTH_OFFSETS = (0.0, -1.0, 1.0, -2.0, 2.0)
 MIN_FRACTION = 0.001
@@ -58,7 +59,7 @@ class Placement:
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
-    return quat_to_matrix(q / np.linalg.norm(q))
+    return quat_to_matrix(q / fm.norm(q))
 
 
 def _bounds_to_pixels(width: int, height: int, u0: float, u1: float, v0: float, v1: float):
@@ -73,15 +74,15 @@ def _sphere_box(cam_pos, cam_rot, width: int, height: int, centre, radius: float
     """The sphere's exact image-space bounding box (tangent planes through the camera) as pixel
     bounds, or None when the sphere reaches the camera plane (then every pixel is a candidate)."""
     k = camera_intrinsics(width, height, lens)
-    c = (np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
+    c = fm.matmul(np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
     depth = -c[2]
     if depth <= radius * 1.01:
         return None
     bounds = []
     for lateral in (c[0], c[1]):
-        h = np.hypot(lateral, depth)
-        theta, beta = np.arctan2(lateral, depth), np.arcsin(min(1.0, radius / h))
-        bounds.append((np.tan(theta - beta), np.tan(theta + beta)))
+        h = fm.hypot(lateral, depth)
+        theta, beta = fm.arctan2(lateral, depth), fm.arcsin(min(1.0, radius / h))
+        bounds.append((fm.tan(theta - beta), fm.tan(theta + beta)))
     (sx0, sx1), (sy0, sy1) = bounds
     return _bounds_to_pixels(width, height, sx0 * k[0, 0] + k[0, 2], sx1 * k[0, 0] + k[0, 2],
                              k[1, 2] - sy1 * k[1, 1], k[1, 2] - sy0 * k[1, 1])
@@ -92,7 +93,7 @@ def _corner_box(cam_pos, cam_rot, width: int, height: int, corners, lens: Camera
     on or behind the camera plane. Perspective maps a convex set in front of the camera to the
     convex hull of its corners' images, so every pixel whose ray meets the object is inside."""
     k = camera_intrinsics(width, height, lens)
-    c = (np.asarray(corners, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
+    c = fm.matmul(np.asarray(corners, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
         return None
@@ -124,7 +125,7 @@ def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box
     overall box for thin or hollow objects, and exact (a ray meets a triangle only through its
     image). None when a vertex lies on or behind the camera plane."""
     k = camera_intrinsics(width, height, lens)
-    c = (np.asarray(points, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)) @ np.asarray(cam_rot)
+    c = fm.matmul(np.asarray(points, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
         return None
@@ -142,8 +143,8 @@ def _parts_footprint(cam_pos, cam_rot, width: int, height: int, corners, box, st
     lies in the convex hull of its box corners' images, and each triangle's in its part's, so this
     holds every pixel `_footprint` holds (exact too), at a cost that does not grow with the mesh."""
     k = camera_intrinsics(width, height, lens)
-    c = (np.asarray(corners, dtype=np.float64).reshape(-1, 3) - np.asarray(cam_pos, dtype=np.float64)) \
-        @ np.asarray(cam_rot)
+    c = fm.matmul(np.asarray(corners, dtype=np.float64).reshape(-1, 3) - np.asarray(cam_pos, dtype=np.float64),
+                  np.asarray(cam_rot))
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
         return None
@@ -216,7 +217,7 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
         c, r = np.asarray(sphere[0], dtype=np.float64), float(sphere[1]) * 1.001 + 1e-9
         box = _sphere_box(cam_pos, cam_rot, width, height, c, r, lens)
         if corners is not None and pose is not None:
-            world = np.asarray(pose[0], dtype=np.float64) + np.asarray(corners) @ np.asarray(pose[1]).T
+            world = np.asarray(pose[0], dtype=np.float64) + fm.apply(pose[1], corners)
             tight = _corner_box(cam_pos, cam_rot, width, height, world, lens)
             if tight is not None:
                 box = tight if box is None else (max(box[0], tight[0]), min(box[1], tight[1]),
@@ -226,11 +227,11 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
         idx, fitted = None, False
         if box is not None and mesh is not None and pose is not None:
             if (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > _FOOTPRINT_FROM * stride * stride:
-                world = np.asarray(pose[0], dtype=np.float64) + np.asarray(mesh[0]) @ np.asarray(pose[1]).T
+                world = np.asarray(pose[0], dtype=np.float64) + fm.apply(pose[1], mesh[0])
                 idx = _footprint(cam_pos, cam_rot, width, height, world, mesh[1], box, stride, lens)
             elif _PART_LEVELS:
                 parts = np.asarray(pose[0], dtype=np.float64) + \
-                    anomaly.part_boxes(_PART_LEVELS) @ np.asarray(pose[1], dtype=np.float64).T
+                    fm.matmul(anomaly.part_boxes(_PART_LEVELS), np.asarray(pose[1], dtype=np.float64).T)
                 idx = _parts_footprint(cam_pos, cam_rot, width, height, parts, box, stride, lens)
             fitted = idx is not None
         if idx is None and box is not None:
@@ -243,8 +244,8 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
             return 0.0
         if not fitted:                                 # a footprint already keeps (nearly) only these
             v = c - o[0]                               # every ray starts at the camera
-            t = d @ v
-            miss = (np.dot(v, v) - t * t > r * r) | (t < -r)
+            t = fm.dot(d, v)
+            miss = (fm.dot(v, v) - t * t > r * r) | (t < -r)
             keep = np.flatnonzero(~miss)
             if keep.size == 0:
                 return 0.0
@@ -257,7 +258,7 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
         a_owner, a_dist = anomaly.first_hit(o, d)
     else:
         position, rotation = np.asarray(pose[0], dtype=np.float64), np.asarray(pose[1], dtype=np.float64)
-        a_owner, a_dist = anomaly.first_hit((o - position) @ rotation, d @ rotation)
+        a_owner, a_dist = anomaly.first_hit(fm.matmul(o - position, rotation), fm.matmul(d, rotation))
     hit = a_owner > 0
     if not hit.any():
         return 0.0
@@ -278,7 +279,7 @@ def _clear_of(station: RayScene, position, radius: float, cam_pos, cam_rot) -> s
     CAMERA_CLEARANCE_M of the camera plane or behind it; a station surface closer to its centre
     than the bounding radius (touching), or none within NEAR_STRUCTURE_M (not near the station);
     both probed along 128 directions from the centre."""
-    if np.dot(position - cam_pos, -cam_rot[:, 2]) <= radius + CAMERA_CLEARANCE_M:
+    if fm.dot(position - cam_pos, -cam_rot[:, 2]) <= radius + CAMERA_CLEARANCE_M:
         return "behind or against the camera"
     _, dist = station.first_hit(np.repeat(position[None], len(_SPHERE_DIRS), 0), _SPHERE_DIRS)
     if (dist < radius * 1.05).any():
@@ -308,7 +309,7 @@ def check(station: RayScene, anomaly_points, anomaly_tris, position, rotation, c
     cam_pos = np.asarray(cam_pos, dtype=np.float64)
     cam_rot = np.asarray(cam_rot, dtype=np.float64)
     position = np.asarray(position, dtype=np.float64)
-    radius = float(np.linalg.norm(anomaly_points, axis=1).max())
+    radius = float(fm.norm(anomaly_points, axis=1).max())
     why = _clear_of(station, position, radius, cam_pos, cam_rot)
     if why:
         return False, 0.0, why
@@ -335,7 +336,7 @@ def _image_rays(cam_rot, k: np.ndarray, px, py) -> np.ndarray:
     x = (np.asarray(px, dtype=np.float64) - k[0, 2]) / k[0, 0]
     y = -(np.asarray(py, dtype=np.float64) - k[1, 2]) / k[1, 1]
     d = x[..., None] * r[:, 0] + y[..., None] * r[:, 1] - r[:, 2]
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return d / fm.norm(d, axis=-1, keepdims=True)
 
 
 def _stride(fraction: float, n_pixels: int) -> int:
@@ -355,7 +356,7 @@ class _Group:
         self.cam_pos = np.asarray(cam_pos, dtype=np.float64)
         self.cam_rot = np.asarray(cam_rot, dtype=np.float64)
         self.station = station_parts if isinstance(station_parts, RayScene) else RayScene(station_parts)
-        self.radius = float(np.linalg.norm(anomaly_points, axis=1).max())
+        self.radius = float(fm.norm(anomaly_points, axis=1).max())
         self.corners = box_corners(anomaly_points)
         self.mesh = (np.asarray(anomaly_points, dtype=np.float64), np.asarray(anomaly_tris, dtype=np.int64))
         self.anomaly = anomaly_scene(anomaly_points, anomaly_tris) if anomaly is None else anomaly

@@ -10,14 +10,24 @@ which dominated for the small ray batches placement casts.
 from __future__ import annotations
 
 import numpy as np
-from trimesh.triangles import normals as triangle_normals
-from trimesh.util import diagonal_dot, unitize
 
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import box_corners, camera_intrinsics
+from allo_usd.core import fixedmath as fm
 
 _RAY_OFFSET_FACTOR, _RAY_OFFSET_FLOOR = 1e-6, 1e-8   # step past a hit face (multiple hits)
 _PARALLEL = 1e-5                                      # |cos| under this: the ray grazes the plane
+_ZERO = 1e-13                                         # a shorter normal or direction has none (trimesh's tol.zero)
+
+
+def _unitize(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows of `v` scaled to unit length, which rows had a length): trimesh's `unitize` (times the
+    reciprocal length; a zero row stays zero), with the length summed in a fixed order rather than
+    by a BLAS product, so that hits and distances are the same on every CPU (core.fixedmath)."""
+    length = fm.norm(v, axis=-1)
+    ok = length > _ZERO
+    inv = np.where(ok, 1.0 / np.where(ok, length, 1.0), 1.0)
+    return v * inv[:, None], ok
 
 
 class RayScene:
@@ -38,14 +48,13 @@ class RayScene:
         self.owner = np.concatenate(owner)
         used = self.vertices[np.unique(self.faces)] if len(self.faces) else self.vertices
         lo, hi = used.min(axis=0), used.max(axis=0)
-        self.scale = float(np.linalg.norm(hi - lo))             # bounding-box diagonal
+        self.scale = float(fm.norm(hi - lo))             # bounding-box diagonal
         self._origin = lo
         self._factor = 100.0 / self.scale if self.scale > 0 else 1.0
         tri = self.vertices[self.faces]
         self._plane_origin = tri[:, 0].copy()
-        normals, ok = triangle_normals(tri)
-        self._normal = np.zeros((len(tri), 3))
-        self._normal[ok] = normals
+        normals, ok = _unitize(fm.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+        self._normal = np.where(ok[:, None], normals, 0.0)
         self._parts: dict[int, np.ndarray] = {}
         self._embree = rtcore_scene.EmbreeScene()
         TriangleMesh(scene=self._embree, vertices=((self.vertices - lo) * self._factor).astype(np.float32),
@@ -81,10 +90,10 @@ class RayScene:
 
     def _plane_distance(self, tri: np.ndarray, origins: np.ndarray, dirs: np.ndarray):
         """(valid, signed distance t along each unit ray to its hit triangle's plane), in float64
-        (trimesh's `planes_lines`, operation for operation)."""
+        (trimesh's `planes_lines`, operation for operation, the dot products in a fixed order)."""
         n = self._normal[tri]
-        ori = diagonal_dot(self._plane_origin[tri] - origins, n)
-        den = diagonal_dot(dirs, n)
+        ori = fm.dot(self._plane_origin[tri] - origins, n)
+        den = fm.dot(dirs, n)
         valid = np.abs(den) > _PARALLEL
         return valid, np.divide(ori[valid], den[valid])
 
@@ -92,7 +101,7 @@ class RayScene:
         """(owner id or 0, distance or inf) of the first hit of each ray (directions need not be unit)."""
         origins = np.asarray(origins, dtype=np.float64)
         dirs = np.asarray(dirs, dtype=np.float64)
-        dirs = unitize(dirs)
+        dirs = _unitize(dirs)[0]
         owner = np.zeros(len(origins), dtype=np.uint8)
         dist = np.full(len(origins), np.inf)
         if not len(origins):
@@ -106,7 +115,7 @@ class RayScene:
             owner[rays] = self.owner[tri]
             loc = dirs[rays] * t.reshape((-1, 1))
             loc += origins[rays]
-            dist[rays] = np.linalg.norm(loc - origins[rays], axis=1)
+            dist[rays] = fm.norm(loc - origins[rays], axis=1)
         return owner, dist
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
@@ -123,7 +132,7 @@ class RayScene:
     def hits(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int = 100) -> np.ndarray:
         """Ray index of every surface crossing (one entry per crossing), stepping past each hit face."""
         o = np.array(origins, dtype=np.float64)
-        d = unitize(np.asarray(dirs, dtype=np.float64))
+        d = _unitize(np.asarray(dirs, dtype=np.float64))[0]
         base = max(_RAY_OFFSET_FLOOR, self.scale * _RAY_OFFSET_FACTOR)
         offsets = d * base
         last = np.full(len(o), -1, dtype=np.int64)

@@ -23,6 +23,7 @@ from allo_usd.scene.rig import ANGLE_SIGMA_RAD, PERTURBATION, POSITION_SIGMA_M, 
 from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraPose, CameraSpec, SceneSpec, SunSpec
 from allo_usd.plan.settings import EffectsSpec, RenderSpec
 from allo_usd.core.seeds import scene_seed
+from allo_usd.core import fixedmath as fm
 
 
 DAY_SCENES_KEPT = 4   # posed station BVHs SceneInputs keeps (~0.1 s to build each)
@@ -178,7 +179,7 @@ def resolve_placements(inputs: SceneInputs, camera: CameraSpec, rng: np.random.G
             out.append(f"depth {p.depth_index} ({p.depth_offset:+.0f} m) was skipped: {p.skipped_reason}")
             continue
         # The asset's own origin is its bounding-box centre, so the placed centre is the prim position.
-        out.append(AnomalySpec(anomaly[0], anomaly[1], tuple(map(float, p.position - p.rotation @ centre)),
+        out.append(AnomalySpec(anomaly[0], anomaly[1], tuple(map(float, p.position - fm.matmul(p.rotation, centre))),
                                p.rotation, p.depth_index, p.depth_offset, p.attempts, p.area_fraction))
     return out
 

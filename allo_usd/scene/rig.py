@@ -24,6 +24,7 @@ from allo_usd.core.errors import PlacementError
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import check_finite, fibonacci_sphere, look_at, rot_x, rot_y, rot_z
 from allo_usd.scene.raycast import RayScene
+from allo_usd.core import fixedmath as fm
 
 N_TRAIN, N_TEST = 40, 10
 POSITION_SIGMA_M = 1.0
@@ -95,7 +96,7 @@ def image_grid(nx: int, ny: int, lens: CameraModel = DEFAULT_CAMERA, size: tuple
 def _qualities(station: RayScene, position, rotations: np.ndarray, grid, lens: CameraModel = DEFAULT_CAMERA,
                size: tuple[int, int] | None = None) -> list[ViewQuality]:
     local = image_grid(*grid, lens, size)
-    d = np.einsum("kij,nj->kni", rotations, local).reshape(-1, 3)
+    d = fm.dot(rotations[:, None, :, :], local[None, :, None, :]).reshape(-1, 3)
     _, dist = station.first_hit(np.broadcast_to(np.asarray(position, dtype=np.float64), d.shape), d)
     dist = dist.reshape(len(rotations), len(local))
     lo, hi = VIEW_RANGE_M
@@ -131,7 +132,7 @@ def best_view(station: RayScene, position, lens: CameraModel = DEFAULT_CAMERA, s
         return None
     a = ANGLE_SIGMA_RAD
     turns = np.array([rot_y(a), rot_y(-a), rot_x(a), rot_x(-a)])
-    tilted = _qualities(station, p, np.einsum("kij,tjl->ktil", rots[[k for k, _ in top]], turns).reshape(-1, 3, 3),
+    tilted = _qualities(station, p, fm.matmul(rots[[k for k, _ in top]][:, None], turns[None]).reshape(-1, 3, 3),
                         _SCREEN_GRID, lens, size)
     robust = []
     for i, (k, q) in enumerate(top):
@@ -168,7 +169,7 @@ def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangl
                              "more fixture points (rig.fixtures_from_mesh(count=...)) or check the model's units")
     dist = np.sqrt(((pos[:, None, :] - pos[None, :, :]) ** 2).sum(axis=2))
     ahead = np.array([-views[i][1][:, 2] if views[i] is not None else np.zeros(3) for i in range(len(pos))])
-    turned = ahead @ ahead.T < np.cos(np.radians(TEST_TURN_DEG))   # views at least TEST_TURN_DEG apart
+    turned = fm.matmul(ahead, ahead.T) < fm.cos(fm.radians(TEST_TURN_DEG))   # views at least TEST_TURN_DEG apart
 
     def train_pool(test: list[int]) -> list[int]:
         if not test:
@@ -198,14 +199,14 @@ def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangl
 
 def perturbation_matrix(angles) -> np.ndarray:
     yaw, pitch, roll = angles
-    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+    return fm.matmul(fm.matmul(rot_z(yaw), rot_y(pitch)), rot_x(roll))
 
 
 def too_close(scene: RayScene, p: np.ndarray, clearance: float = CLEARANCE_M) -> bool:
     """True if p is within `clearance` of the station or enclosed by it (parity vote)."""
     dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
                      [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], dtype=np.float64)
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs /= fm.norm(dirs, axis=1, keepdims=True)
     owner, dist = scene.first_hit(np.repeat(p[None], len(dirs), 0), dirs)
     return bool((dist < clearance).any() or scene.inside(p))
 
@@ -222,7 +223,7 @@ def perturb(pose: CameraPose, rng: np.random.Generator, station: RayScene | None
         dang = rng.normal(0.0, angle_sigma_rad, 3)
         pos = pose.position + dpos
         if station is None or not too_close(station, pos):
-            return pos, pose.rotation @ perturbation_matrix(dang), dpos, dang, attempt
+            return pos, fm.matmul(pose.rotation, perturbation_matrix(dang)), dpos, dang, attempt
     raise PlacementError(f"pose {pose.index}: no perturbed camera outside the station in {max_attempts} "
                          "attempts; move the base pose further from the structure")
 
@@ -239,7 +240,7 @@ def fixtures_from_mesh(points: np.ndarray, triangles: np.ndarray, count: int = 4
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles)
     n = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
-    area = np.linalg.norm(n, axis=1)
+    area = fm.norm(n, axis=1)
     keep = np.flatnonzero(area > 0)
     prob = area[keep] / area[keep].sum() if weight == "area" else None
     rng = np.random.default_rng(seed)
@@ -253,7 +254,7 @@ def fixtures_from_mesh(points: np.ndarray, triangles: np.ndarray, count: int = 4
             a, b = 1 - a, 1 - b
         q = p[t[i, 0]] + a * (p[t[i, 1]] - p[t[i, 0]]) + b * (p[t[i, 2]] - p[t[i, 0]])
         normal = n[i] / area[i]
-        if np.dot(normal, q - centre) < 0:  # meshes of unknown winding: point away from the centre
+        if fm.dot(normal, q - centre) < 0:  # meshes of unknown winding: point away from the centre
             normal = -normal
         f = q + normal * rng.uniform(*standoff)
         if not too_close(scene, f, clearance=0.5):

@@ -34,6 +34,7 @@ import numpy as np
 
 from allo_usd.assets.station import (ALPHA_JOINTS, RADIATOR_JOINTS, RADIATOR_PHI, WINGS, beta_joint_name,
                                      station_joints)
+from allo_usd.core import fixedmath as fm
 
 
 def _wrap(deg: float) -> float:
@@ -44,12 +45,12 @@ def sun_tracking_angles(direction) -> dict[str, float]:
     """{joint name: angle in degrees} pointing every wing's cells at the Sun along `direction`
     (station frame), within each joint's limits; joints listed in station_joints() order."""
     d = np.asarray(direction, dtype=np.float64)
-    norm = float(np.linalg.norm(d))
+    norm = float(fm.norm(d))
     if not norm > 0.0 or not np.isfinite(d).all():
         raise ValueError(f"sun direction {tuple(d)} is not a finite non-zero vector")
     d = d / norm
-    alpha = _wrap(math.degrees(math.atan2(-d[2], d[0])))
-    elevation = math.degrees(math.asin(min(1.0, max(-1.0, d[1]))))
+    alpha = _wrap(math.degrees(fm.arctan2(-d[2], d[0])))
+    elevation = math.degrees(fm.arcsin(min(1.0, max(-1.0, d[1]))))
     limits = {j.name: (j.lower, j.upper) for j in station_joints()}
     out: dict[str, float] = {}
     for name in ALPHA_JOINTS.values():
@@ -67,10 +68,10 @@ def sun_tracking_angles(direction) -> dict[str, float]:
 
 def radiator_angle(d: np.ndarray, limits: tuple[float, float]) -> float:
     """The radiator joint angle (degrees) turning the panels edge-on to the unit Sun direction `d`."""
-    if math.hypot(d[0], d[2]) < 1e-9:
+    if fm.hypot(d[0], d[2]) < 1e-9:
         return 0.0
-    psi_d = math.degrees(math.atan2(d[0], d[2]))
-    psi_r = math.degrees(math.atan2(-math.sin(RADIATOR_PHI), -math.cos(RADIATOR_PHI)))
+    psi_d = math.degrees(fm.arctan2(d[0], d[2]))
+    psi_r = math.degrees(fm.arctan2(-fm.sin(RADIATOR_PHI), -fm.cos(RADIATOR_PHI)))
     lo, hi = limits
     best = None
     for theta in (_wrap(psi_d - psi_r), _wrap(psi_d - psi_r + 180.0)):
@@ -84,8 +85,8 @@ def radiator_angle(d: np.ndarray, limits: tuple[float, float]) -> float:
 def radiator_normal(angles: dict[str, float], side: int = 1) -> np.ndarray:
     """The unit normal of the S1 (side 1) or P1 (-1) radiator panels in the station frame at `angles`."""
     t = math.radians(angles[RADIATOR_JOINTS[side]])
-    r0 = np.array([-math.sin(RADIATOR_PHI), 0.0, -math.cos(RADIATOR_PHI)])
-    r = np.array([math.cos(t) * r0[0] + math.sin(t) * r0[2], 0.0, -math.sin(t) * r0[0] + math.cos(t) * r0[2]])
+    r0 = np.array([-fm.sin(RADIATOR_PHI), 0.0, -fm.cos(RADIATOR_PHI)])
+    r = np.array([fm.cos(t) * r0[0] + fm.sin(t) * r0[2], 0.0, -fm.sin(t) * r0[0] + fm.cos(t) * r0[2]])
     return np.cross(r, [0.0, 1.0, 0.0])
 
 
@@ -94,4 +95,4 @@ def cell_normal(angles: dict[str, float], wing: str) -> np.ndarray:
     a = math.radians(angles[ALPHA_JOINTS[1 if wing[0] == "S" else -1]])
     b = math.radians(angles[beta_joint_name(wing)])
     s = 1.0 if wing.endswith("a") else -1.0
-    return np.array([math.cos(a) * math.cos(b), s * math.sin(b), -math.sin(a) * math.cos(b)])
+    return np.array([fm.cos(a) * fm.cos(b), s * fm.sin(b), -fm.sin(a) * fm.cos(b)])

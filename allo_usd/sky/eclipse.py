@@ -23,6 +23,7 @@ from allo_usd.core.constants import MOON_RADIUS_M, SUN_RADIUS_M
 from allo_usd.core.errors import SkyInputError
 from allo_usd.core.geometry import angle_between, rowdot, unit_rows
 from allo_usd.sky.ephemeris import finite_number
+from allo_usd.core import fixedmath as fm
 
 SHADOW_BODIES: tuple[str, ...] = ("moon", "earth")
 ECLIPSE_STATES: tuple[str, ...] = ("lit", "penumbra", "annular", "umbra")  # index = state code
@@ -39,7 +40,7 @@ def _x_minus_sin_x(x: np.ndarray) -> np.ndarray:
     x2 = x * x
     series = x * x2 * (1 / 6 - x2 * (1 / 120 - x2 * (1 / 5040 - x2 * (1 / 362880 - x2 * (
         1 / 39916800 - x2 * (1 / 6227020800))))))
-    return np.where(np.abs(x) < 0.5, series, x - np.sin(x))
+    return np.where(np.abs(x) < 0.5, series, x - fm.sin(x))
 
 
 def _check_finite_nonneg(name: str, v: np.ndarray) -> None:
@@ -72,8 +73,8 @@ def disc_overlap_area(r1, r2, d) -> np.ndarray:
         # 4 * triangle area; a product of square roots cannot underflow like sqrt(product)
         four_k = (np.sqrt(a + (b + c)) * np.sqrt(np.maximum(c - (a - b), 0.0))
                   * np.sqrt(c + (a - b)) * np.sqrt(np.maximum(a + (b - c), 0.0)))
-        half1 = np.arctan2(four_k, (dd - a2) * (dd + a2) + a1 * a1)  # chord half-angle at centre 1
-        half2 = np.arctan2(four_k, (dd - a1) * (dd + a1) + a2 * a2)
+        half1 = fm.arctan2(four_k, (dd - a2) * (dd + a2) + a1 * a1)  # chord half-angle at centre 1
+        half2 = fm.arctan2(four_k, (dd - a1) * (dd + a1) + a2 * a2)
         area = 0.5 * a1 * a1 * _x_minus_sin_x(2.0 * half1) + 0.5 * a2 * a2 * _x_minus_sin_x(2.0 * half2)
         out[lens] = np.minimum(area, np.pi * rs[lens] ** 2)
     return out
@@ -111,12 +112,12 @@ def eclipse_from_vectors(u_sun, u_body, sun_radius_m: float = SUN_RADIUS_M, body
     u_body = np.asarray(u_body, dtype=np.float64)
     if not (np.all(np.isfinite(u_sun)) and np.all(np.isfinite(u_body))):
         raise SkyInputError("eclipse vectors contain NaN or inf")
-    ds = np.linalg.norm(u_sun, axis=-1)
-    db = np.linalg.norm(u_body, axis=-1)
+    ds = fm.norm(u_sun, axis=-1)
+    db = fm.norm(u_body, axis=-1)
     if np.any(ds <= sun_radius_m) or np.any(db <= body_radius_m):
         raise SkyInputError("observer is inside the Sun or the shadowing body (distance <= radius)")
-    theta_s = np.arcsin(sun_radius_m / ds)
-    theta_b = np.arcsin(body_radius_m / db)
+    theta_s = fm.arcsin(sun_radius_m / ds)
+    theta_b = fm.arcsin(body_radius_m / db)
     sep = angle_between(u_sun, u_body)
     code, lit = classify_eclipse(theta_s, theta_b, sep, db < ds)
     return code, lit, theta_s, theta_b, sep
@@ -131,7 +132,7 @@ def _sunflower(n: int) -> np.ndarray:
     k = np.arange(n, dtype=np.float64) + 0.5
     r = np.sqrt(k / n)
     phi = k * (np.pi * (3.0 - math.sqrt(5.0)))
-    q = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
+    q = np.stack([r * fm.cos(phi), r * fm.sin(phi)], axis=1)
     q.flags.writeable = False
     return q
 
@@ -154,13 +155,13 @@ def body_lit_fraction(sun, body, body_radius_m: float, occluder, occluder_radius
     if r_b <= 0.0 or r_o <= 0.0:
         raise SkyInputError("body_lit_fraction: radii must be positive")
     u_s, u_o = sun - body, occ - body
-    d_s, d_o = np.linalg.norm(u_s, axis=-1), np.linalg.norm(u_o, axis=-1)
+    d_s, d_o = fm.norm(u_s, axis=-1), fm.norm(u_o, axis=-1)
     if np.any(d_s <= SUN_RADIUS_M + r_b) or np.any(d_o <= r_o + r_b):
         raise SkyInputError("body_lit_fraction: the bodies overlap the Sun or each other")
     # From any point within r_b of the centre the Sun and the occluder move by at most asin(r_b/d)
     # and grow to at most asin(R/(d - r_b)); if even that cannot make them overlap, all is lit.
-    reach = (np.arcsin(SUN_RADIUS_M / (d_s - r_b)) + np.arcsin(r_b / d_s)
-             + np.arcsin(r_o / (d_o - r_b)) + np.arcsin(r_b / d_o))
+    reach = (fm.arcsin(SUN_RADIUS_M / (d_s - r_b)) + fm.arcsin(r_b / d_s)
+             + fm.arcsin(r_o / (d_o - r_b)) + fm.arcsin(r_b / d_o))
     out = np.ones(d_s.shape)
     cand = np.flatnonzero((angle_between(u_s, u_o) < reach) & (d_o < d_s))
     if cand.size:
@@ -182,7 +183,7 @@ def body_lit_fraction(sun, body, body_radius_m: float, occluder, occluder_radius
 
 def _arc_term(cx: float, cy: float, r: float, a: float, b: float) -> float:
     """Green's-theorem integral 1/2 (x dy - y dx) along a circle arc, counter-clockwise a -> b."""
-    return 0.5 * (r * cx * (math.sin(b) - math.sin(a)) - r * cy * (math.cos(b) - math.cos(a)) + r * r * (b - a))
+    return 0.5 * (r * cx * (fm.sin(b) - fm.sin(a)) - r * cy * (fm.cos(b) - fm.cos(a)) + r * r * (b - a))
 
 
 def _sun_minus_discs_area(r0: float, discs: list[tuple[float, float, float]]) -> float:
@@ -213,11 +214,11 @@ def _sun_minus_discs_area(r0: float, discs: list[tuple[float, float, float]]) ->
             if j == i:
                 continue
             vx, vy = dx_ - cx, dy_ - cy
-            d = math.hypot(vx, vy)
+            d = fm.hypot(vx, vy)
             if d == 0.0 or d >= r + rj or d <= abs(r - rj):
                 continue
-            base = math.atan2(vy, vx)
-            half = math.acos(max(-1.0, min(1.0, (d * d + r * r - rj * rj) / (2.0 * d * r))))
+            base = fm.arctan2(vy, vx)
+            half = fm.arccos(max(-1.0, min(1.0, (d * d + r * r - rj * rj) / (2.0 * d * r))))
             angles += [base - half, base + half]
         sign = 1.0 if i == 0 else -1.0
         if not angles:
@@ -230,7 +231,7 @@ def _sun_minus_discs_area(r0: float, discs: list[tuple[float, float, float]]) ->
             if b - a <= 0.0:
                 continue
             m = 0.5 * (a + b)
-            if on_boundary(i, cx + r * math.cos(m), cy + r * math.sin(m)):
+            if on_boundary(i, cx + r * fm.cos(m), cy + r * fm.sin(m)):
                 total += sign * _arc_term(cx, cy, r, a, b)
     return max(0.0, min(total, math.pi * r0 * r0))
 
@@ -249,7 +250,7 @@ def lit_two_occluders(u_sun, u_bodies, theta_sun, theta_bodies, seps) -> np.ndar
     for u, sep in zip(u_bodies, seps):
         b = unit_rows(np.asarray(u, dtype=np.float64))
         w = b - s * rowdot(b, s)[:, None]
-        wn = np.linalg.norm(w, axis=1)
+        wn = fm.norm(w, axis=1)
         wn = np.where(wn > 0.0, wn, 1.0)
         centres.append(np.stack([rowdot(w, e1), rowdot(w, e2)], axis=1) * (np.asarray(sep) / wn)[:, None])
     out = np.empty(s.shape[0])

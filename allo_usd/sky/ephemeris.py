@@ -25,9 +25,11 @@ from typing import Sequence
 
 import numpy as np
 
+from allo_usd.core.constants import SECONDS_PER_DAY
 from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
 from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
+from allo_usd.core import fixedmath as fm
 
 _EXPIRED_WARNING = r".*finals2000A\.all has expired.*"
 SPEED_OF_LIGHT_M_S = 299_792_458.0  # exact (SI definition of the metre)
@@ -144,7 +146,7 @@ def time_from_utc(dts: Sequence[datetime], offsets_s: np.ndarray | None = None):
     if offsets_s is not None:
         s = s + offsets_s
     with quiet_expiry():
-        return e.ts.utc(y, mo, da, h, mi, s)
+        return _with_tdb(e.ts.utc(y, mo, da, h, mi, s))
 
 
 def time_from_start(start: datetime, offsets_s: np.ndarray):
@@ -152,7 +154,28 @@ def time_from_start(start: datetime, offsets_s: np.ndarray):
     e = load_de421()
     sec = start.second + start.microsecond * 1e-6 + np.asarray(offsets_s, dtype=np.float64)
     with quiet_expiry():
-        return e.ts.utc(start.year, start.month, start.day, start.hour, start.minute, sec)
+        return _with_tdb(e.ts.utc(start.year, start.month, start.day, start.hour, start.minute, sec))
+
+
+def tdb_minus_tt_s(whole, fraction) -> np.ndarray:
+    """TDB - TT in seconds at TT (or TDB) Julian date whole + fraction: skyfield's own series (USNO
+    Circular 179, eq. 2.6), term for term, with core.fixedmath's sine instead of numpy's (which
+    rounds differently on AVX-512 CPUs)."""
+    t = (np.asarray(whole, dtype=np.float64) - 2451545.0 + np.asarray(fraction, dtype=np.float64)) / 36525.0
+    return (0.001657 * fm.sin(628.3076 * t + 6.2401)
+            + 0.000022 * fm.sin(575.3385 * t + 4.2970)
+            + 0.000014 * fm.sin(1256.6152 * t + 6.1969)
+            + 0.000005 * fm.sin(606.9777 * t + 4.0212)
+            + 0.000005 * fm.sin(52.9691 * t + 0.4444)
+            + 0.000002 * fm.sin(21.3299 * t + 5.5431)
+            + 0.000010 * t * fm.sin(628.3076 * t + 4.2490))
+
+
+def _with_tdb(t):
+    """`t` with its TDB fraction set before skyfield computes it: the ephemeris is read at TDB, and
+    skyfield's own conversion calls numpy's sine, whose last bit depends on the CPU."""
+    t.tdb_fraction = t.tt_fraction + tdb_minus_tt_s(t.whole, t.tt_fraction) / SECONDS_PER_DAY
+    return t
 
 
 def check_range(t, labels: Sequence[str] | None) -> None:
@@ -209,9 +232,9 @@ def light_time_vectors(geometric, target_velocity) -> tuple[np.ndarray, np.ndarr
     """
     g = np.asarray(geometric, dtype=np.float64)
     v = np.asarray(target_velocity, dtype=np.float64)
-    tau = np.linalg.norm(g, axis=-1) / SPEED_OF_LIGHT_M_S
+    tau = fm.norm(g, axis=-1) / SPEED_OF_LIGHT_M_S
     for _ in range(_LIGHT_TIME_ITERATIONS):
-        tau = np.linalg.norm(g - tau[..., None] * v, axis=-1) / SPEED_OF_LIGHT_M_S
+        tau = fm.norm(g - tau[..., None] * v, axis=-1) / SPEED_OF_LIGHT_M_S
     return g - tau[..., None] * v, tau
 
 
@@ -221,15 +244,15 @@ def aberrate(retarded, observer_velocity) -> np.ndarray:
     skyfield and NOVAS use (``add_aberration``)."""
     p = np.asarray(retarded, dtype=np.float64)
     v = np.asarray(observer_velocity, dtype=np.float64)
-    dist = np.linalg.norm(p, axis=-1)
+    dist = fm.norm(p, axis=-1)
     beta_vec = v / SPEED_OF_LIGHT_M_S
-    beta = np.linalg.norm(beta_vec, axis=-1)
-    cosd = np.einsum("...i,...i->...", p, beta_vec) / (dist * np.where(beta > 0.0, beta, 1.0))
+    beta = fm.norm(beta_vec, axis=-1)
+    cosd = fm.dot(p, beta_vec) / (dist * np.where(beta > 0.0, beta, 1.0))
     gamma_inv = np.sqrt(1.0 - beta * beta)
     pb = beta * cosd
     q = (1.0 + pb / (1.0 + gamma_inv)) * dist
     out = gamma_inv[..., None] * p + q[..., None] * beta_vec
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+    return out / fm.norm(out, axis=-1, keepdims=True)
 
 
 def apparent_vectors(geometric, target_velocity, observer_velocity) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

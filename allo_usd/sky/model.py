@@ -65,6 +65,7 @@ from allo_usd.sky.eclipse import (ECLIPSE_STATES, LIT, SHADOW_BODIES, UMBRA, lit
 from allo_usd.sky.ephemeris import (apparent_vectors, as_utc, check_range, light_time_vectors, load_de421, iso_utc,
                                     quiet_expiry, time_from_utc, _translate_range_error)
 from allo_usd.sky.orbit import Orbit
+from allo_usd.core import fixedmath as fm
 
 # ---------------------------------------------------------------------------------------------
 # Constants (docs/physics.md sections 3 and 5)
@@ -98,7 +99,7 @@ def sky_geometry(t, orbit: Orbit, body_light: bool = True) -> dict[str, np.ndarr
         "station_vel_rel_moon_icrf_m_s": vel,
         "station_vel_icrf_m_s": v_moon + vel,
         "icrf_to_station": icrf_to_station,
-        "station_moon_distance_m": np.linalg.norm(rel, axis=1),
+        "station_moon_distance_m": fm.norm(rel, axis=1),
         "seconds_since_perilune": dt_s,
     }
     seen, retarded = _bodies_seen(geometric, velocity, v_moon + vel, icrf_to_station)
@@ -123,21 +124,26 @@ def _ephemeris_states(t, orbit: Orbit):
             (moon.position.m.T, moon.velocity.m_per_s.T), tp)
 
 
+def _cube(x: np.ndarray) -> np.ndarray:
+    """x**3 as two products (numpy's `** 3` calls pow, which rounds by CPU on AVX-512)."""
+    return x * x * x
+
+
 def _earth_moon_frame(p_sun, p_earth, v_earth, p_moon, v_moon):
     """The Earth-Moon rotating frame's x and z axes per epoch and their time derivatives."""
     r = p_moon - p_earth
     v = v_moon - v_earth
-    r_norm = np.linalg.norm(r, axis=1, keepdims=True)
+    r_norm = fm.norm(r, axis=1, keepdims=True)
     x = r / r_norm
     z = unit_rows(np.cross(r, v))
     x_dot = (v - x * rowdot(x, v)[:, None]) / r_norm
     # z_dot from h_dot = r x a: the Earth-Moon central pull drops out, the Sun's tide remains.
     h = np.cross(r, v)
-    h_norm = np.linalg.norm(h, axis=1, keepdims=True)
+    h_norm = fm.norm(h, axis=1, keepdims=True)
     to_sun_m, to_sun_e = p_sun - p_moon, p_sun - p_earth
     a_tide = GM_SUN_M3_S2 * (
-        to_sun_m / np.linalg.norm(to_sun_m, axis=1, keepdims=True) ** 3
-        - to_sun_e / np.linalg.norm(to_sun_e, axis=1, keepdims=True) ** 3
+        to_sun_m / _cube(fm.norm(to_sun_m, axis=1, keepdims=True))
+        - to_sun_e / _cube(fm.norm(to_sun_e, axis=1, keepdims=True))
     )
     h_dot = np.cross(r, a_tide)
     z_dot = (h_dot - z * rowdot(z, h_dot)[:, None]) / h_norm
@@ -168,13 +174,13 @@ def _bodies_seen(geometric: dict, velocity: dict, observer_velocity, icrf_to_sta
     out, retarded = {}, {}
     for body, g in geometric.items():
         apparent, ret, _ = apparent_vectors(g, velocity[body], observer_velocity)
-        d = np.linalg.norm(ret, axis=1)
+        d = fm.norm(ret, axis=1)
         retarded[body] = ret
         out[f"distance_m.{body}"] = d
-        out[f"direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, apparent)
-        out[f"geometric_direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, g) / np.linalg.norm(
+        out[f"direction.{body}"] = fm.dot(icrf_to_station, apparent[:, None, :])
+        out[f"geometric_direction.{body}"] = fm.dot(icrf_to_station, g[:, None, :]) / fm.norm(
             g, axis=1)[:, None]
-        out[f"angular_radius_rad.{body}"] = np.arcsin(BODY_RADIUS_M[body] / d)
+        out[f"angular_radius_rad.{body}"] = fm.arcsin(BODY_RADIUS_M[body] / d)
     out["sun_irradiance_w_m2"] = SOLAR_CONSTANT * (AU_M / out["distance_m.sun"]) ** 2
     return out, retarded
 
@@ -191,9 +197,9 @@ def _sunlight_on_bodies(sun: tuple, centres: dict, icrf_to_station) -> dict[str,
         p_o, v_o = centres[occ]
         apparent, to_sun, _ = apparent_vectors(p_sun - p_b, v_sun, v_b)
         to_occ, _ = light_time_vectors(p_o - p_b, v_o)
-        d = np.linalg.norm(to_sun, axis=1)
+        d = fm.norm(to_sun, axis=1)
         out[f"body_sun_distance_m.{body}"] = d
-        out[f"body_sun_direction.{body}"] = np.einsum("nij,nj->ni", icrf_to_station, apparent)
+        out[f"body_sun_direction.{body}"] = fm.dot(icrf_to_station, apparent[:, None, :])
         out[f"body_sun_irradiance_w_m2.{body}"] = SOLAR_CONSTANT * (AU_M / d) ** 2
         out[f"body_lit_fraction.{body}"] = body_lit_fraction(
             p_b + to_sun, p_b, BODY_RADIUS_M[body], p_b + to_occ, BODY_RADIUS_M[occ])
@@ -419,7 +425,7 @@ def station_observer(orbit: Orbit = Orbit(), offset_station_m=(0.0, 0.0, 0.0)):
 
         def _at(self, t):
             g = sky_geometry(t, orbit, body_light=False)
-            p = g["station_icrf_m"] + np.einsum("nji,j->ni", g["icrf_to_station"], offset)
+            p = g["station_icrf_m"] + fm.dot(np.swapaxes(g["icrf_to_station"], 1, 2), np.asarray(offset, dtype=np.float64))
             return (p / au_m).T, (g["station_vel_icrf_m_s"] / au_m * day_s).T, None, None
 
     return Station()
@@ -482,7 +488,7 @@ def body_sun_light(sky_at: SkyAt) -> dict[str, dict]:
             "direction_to_sun": np.asarray(sky_at.body_sun_direction[b], dtype=np.float64),
             "irradiance_w_m2": unocc * lit,
             "irradiance_unoccluded_w_m2": unocc,
-            "angular_diameter_rad": 2.0 * math.asin(SUN_RADIUS_M / d),
+            "angular_diameter_rad": 2.0 * fm.arcsin(SUN_RADIUS_M / d),
             "distance_m": d,
             "lit_fraction": lit,
             "state": "lit" if lit == 1.0 else "umbra" if lit == 0.0 else "penumbra",

@@ -22,6 +22,7 @@ import numpy as np
 from allo_usd.core.constants import MOON_RADIUS_M, SECONDS_PER_DAY
 from allo_usd.core.errors import SkyInputError
 from allo_usd.sky.ephemeris import as_utc, finite_number, iso_utc
+from allo_usd.core import fixedmath as fm
 
 
 # ---------------------------------------------------------------------------------------------
@@ -43,7 +44,7 @@ def solve_kepler(mean_anomaly, eccentricity: float, tol: float = 1e-12, max_iter
     m = np.remainder(m + np.pi, 2.0 * np.pi) - np.pi
     big_e = m + 0.85 * e * np.where(m >= 0.0, 1.0, -1.0)
     for _ in range(max_iter):
-        d = (big_e - e * np.sin(big_e) - m) / (1.0 - e * np.cos(big_e))
+        d = (big_e - e * fm.sin(big_e) - m) / (1.0 - e * fm.cos(big_e))
         big_e = big_e - d
         if not np.any(np.abs(d) >= tol):
             return big_e
@@ -104,7 +105,7 @@ class Orbit:
         b = a * math.sqrt(1.0 - e * e)
         n = self.mean_motion_rad_s
         big_e = solve_kepler(n * dt, e)
-        s, c = np.sin(big_e), np.cos(big_e)
+        s, c = fm.sin(big_e), fm.cos(big_e)
         e_dot = n / (1.0 - e * c)
         zeros = np.zeros_like(s)
         pos = np.stack([b * s, zeros, a * (c - e)], axis=-1)

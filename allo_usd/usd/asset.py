@@ -16,6 +16,7 @@ from allo_usd.core.errors import AlloError
 from allo_usd.core.files import atomic_path, commit_temp, temp_beside
 from allo_usd.assets.mesh import Asset, Joint, MeshPart
 from allo_usd.usd import layout
+from allo_usd.core import fixedmath as fm
 
 LABEL_TAXONOMY = "class"
 CLASS_LABELS = ("station", "celestial_body", "anomaly")
@@ -28,7 +29,7 @@ def _vertex_normals(part: MeshPart) -> np.ndarray:
     vn = np.zeros_like(p)
     for k in range(3):
         np.add.at(vn, tri[:, k], fn)
-    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    norm = fm.norm(vn, axis=1, keepdims=True)
     vn = np.where(norm > 0, vn / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 1.0]))
     return vn
 

@@ -24,6 +24,7 @@ from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.usd.asset import commit_layer, new_layer, stage_metadata, write_asset, write_variant_asset
 from allo_usd.scene.spec import CameraPose
+from allo_usd.core import fixedmath as fm
 
 # UsdGeom.Camera lens values are tenths of a scene unit (docs/physics.md section 6).
 FOCAL_LENGTH = FOCAL_LENGTH_MM / 100.0
@@ -71,7 +72,7 @@ def gf_quatd(rotation):
 
 def camera_ev(film_exposure: float) -> float:
     """A linear film exposure as UsdGeom.Camera `exposure` (EV, log2), rounded to the float it is stored as."""
-    return float(np.float32(np.log2(film_exposure)))
+    return float(np.float32(fm.log2(film_exposure)))
 
 
 def define_camera(stage, path: str):

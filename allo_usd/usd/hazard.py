@@ -36,6 +36,7 @@ from allo_usd.core.errors import AlloError, PlanError
 from allo_usd.core.files import atomic_directory, file_problem, sha256_file
 from allo_usd.plan.model import HAZARD_USD_SUFFIXES, USER_VARIANT
 from allo_usd.usd.compose import HAZARD_DIR
+from allo_usd.core import fixedmath as fm
 
 SOURCE_MARKER = "source.json"
 SIZE_M = (0.01, 20.0)                 # a hazard's largest extent, metres (a tool .. a loose panel)
@@ -226,7 +227,7 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
         tris = fan_triangulate(counts, indices)
         if not len(tris):
             continue
-        pts = (points.astype(np.float64) @ m[:3, :3].T + m[:3, 3]) * scale @ rot.T
+        pts = fm.apply(rot, (fm.apply(m[:3, :3], points.astype(np.float64)) + m[:3, 3]) * scale)
         mat = _usd_material(prim, materials)
         base = _NAME.sub("_", prim.GetName()) or "mesh"
         part_name, k = base, 2

@@ -23,6 +23,7 @@ from allo_usd.core.files import file_problem
 from allo_usd.core.limits import resolution_problem
 from allo_usd.usd.base_stage import RENDER_VARS
 from allo_usd.plan.settings import DEFAULT_PASSES
+from allo_usd.core import fixedmath as fm
 
 
 # Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
@@ -205,7 +206,7 @@ def _check_xform_ops(prim, checked: set | None = None) -> None:
 
 def _check_quaternion(where, value, wxyz) -> None:
     """An orient op's quaternion must have a length: USD reads (0, 0, 0, 0) as no rotation, silently."""
-    norm = float(np.linalg.norm(np.asarray(wxyz, dtype=np.float64)))
+    norm = float(fm.norm(np.asarray(wxyz, dtype=np.float64)))
     if norm < 1e-6:
         raise LayerError(f"{where} = {value} is not a rotation (a quaternion of length {norm:.3g}, which USD would "
                          "silently read as no rotation); fix the layer: write a unit quaternion (real, i, j, k), "
@@ -215,17 +216,17 @@ def _check_quaternion(where, value, wxyz) -> None:
 def _check_position(cache, prim, m: np.ndarray, max_distance: float) -> None:
     """The prim's world position lies within `max_distance` metres of the station (the origin);
     the error names the outermost prim that is already too far (the one whose transform to fix)."""
-    distance = float(np.linalg.norm(m[:3, 3]))
+    distance = float(fm.norm(m[:3, 3]))
     if distance <= max_distance:
         return
     culprit, where = prim, m[:3, 3]
     parent = prim.GetParent()
     while parent and not parent.IsPseudoRoot():
         t = np.array(cache.GetLocalToWorldTransform(parent), dtype=np.float64)[3, :3]  # row-vector: last row
-        if not np.linalg.norm(t) > max_distance:
+        if not fm.norm(t) > max_distance:
             break
         culprit, where, parent = parent, t, parent.GetParent()
-    raise LayerError(f"{culprit.GetPath()} is at {tuple(float(c) for c in where)}, {np.linalg.norm(where):.3g} m "
+    raise LayerError(f"{culprit.GetPath()} is at {tuple(float(c) for c in where)}, {fm.norm(where):.3g} m "
                      f"from the station at the origin, beyond the {max_distance:,.0f} m allowed for it; fix the "
                      "xformOp:translate (or parent transform) that puts it there")
 
@@ -944,7 +945,7 @@ def read_triangles(layer_path: str | Path, root: str, variant: str | None = None
             points, counts, indices = mesh_topology(p)
             local = points.astype(np.float64)
             m = world_matrix(cache, p)
-            pts.append(local @ m[:3, :3].T + m[:3, 3])
+            pts.append(fm.apply(m[:3, :3], local) + m[:3, 3])   # fixed-order sums: placement reads these
             t = fan_triangulate(counts, indices)
             tris.append(t + off)
             off += len(local)

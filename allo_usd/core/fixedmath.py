@@ -1,0 +1,434 @@
+"""Maths whose every result is the same double on every x86-64 machine: the values that reach a file.
+
+Why this exists (docs/determinism.md): numpy's transcendental ufuncs (`np.sin`, `np.arccos`, ...)
+switch to Intel's SVML on AVX-512 CPUs, glibc's libm (what `math.sin` and numpy's other paths call)
+picks FMA variants of sin, cos, atan, acos, exp, log and pow through ifuncs, and `@`, `np.dot` and
+`np.linalg.norm` of a vector go through OpenBLAS, whose kernel depends on the CPU. Each of these
+rounds the last bit differently on some inputs (measured here: glibc's FMA and non-FMA sin differ
+on random inputs), so a layer authored on one machine differed from the same plan's layer on another.
+
+Everything here is built from IEEE-754 operations that are correctly rounded by definition and
+carried out one numpy ufunc at a time (+, -, *, /, sqrt, rint, ldexp, frexp, comparisons and bit
+masks), so no SIMD width, FMA contraction or library choice can change a result:
+- `sin`, `cos`, `tan`, `arcsin`, `arccos`, `arctan`, `arctan2`, `exp`, `log`, `log2`: fdlibm's
+  algorithms (Sun Microsystems, freely redistributable; the FreeBSD msun versions), vectorised; each
+  is within 1 ulp of the true value (tests/test_fixedmath.py checks against `math` on random inputs);
+- `norm`, `dot`, `matmul`, `det3`, `cross`: sums of products written out in a fixed order;
+- `radians`, `degrees`: one multiplication, as numpy and math do it.
+Scalars in give Python floats out; arrays give float64 arrays. Range reduction for sin and cos is
+fdlibm's Cody-Waite with pi/2 in 33-bit pieces (to 85, 118 or 151 bits as cancellation needs), valid for |x| < 2**19 * pi/2 (823,550
+rad); a larger argument is an error rather than a silently inaccurate value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from allo_usd.core.errors import AlloError
+
+PI = 3.14159265358979311600e+00
+_PIO2_HI, _PIO2_LO, _PIO4_HI = 1.57079632679489655800e+00, 6.12323399573676603587e-17, 7.85398163397448278999e-01
+_PI_LO = 1.2246467991473531772e-16
+_DEG = PI / 180.0
+
+# rem_pio2 (fdlibm e_rem_pio2.c, the medium-size branch done to its third stage)
+_INVPIO2 = 6.36619772367581382433e-01
+_PIO2_1, _PIO2_1T = 1.57079632673412561417e+00, 6.07710050650619224932e-11
+_PIO2_2, _PIO2_2T = 6.07710050630396597660e-11, 2.02226624879595063154e-21
+_PIO2_3, _PIO2_3T = 2.02226624871116645580e-21, 8.47842766036889956997e-32
+REDUCTION_LIMIT = 2.0 ** 19 * _PIO2_HI
+
+# k_sin.c, k_cos.c
+_S1, _S2, _S3 = -1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04
+_S4, _S5, _S6 = 2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10
+_C1, _C2, _C3 = 4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05
+_C4, _C5, _C6 = -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11
+
+# s_atan.c
+_ATANHI = np.array([4.63647609000806093515e-01, 7.85398163397448278999e-01,
+                    9.82793723247329054082e-01, 1.57079632679489655800e+00, 0.0])
+_ATANLO = np.array([2.26987774529616870924e-17, 3.06161699786838301793e-17,
+                    1.39033110312309984516e-17, 6.12323399573676603587e-17, 0.0])
+_AT = (3.33333333333329318027e-01, -1.99999999998764832476e-01, 1.42857142725034663711e-01,
+       -1.11111104054623557880e-01, 9.09088713343650656196e-02, -7.69187620504482999495e-02,
+       6.66107313738753120669e-02, -5.83357013379057348645e-02, 4.97687799461593236017e-02,
+       -3.65315727442169155270e-02, 1.62858201153657823623e-02)
+
+# e_asin.c, e_acos.c
+_PS = (1.66666666666666657415e-01, -3.25565818622400915405e-01, 2.01212532134862925881e-01,
+       -4.00555345006794114027e-02, 7.91534994289814532176e-04, 3.47933107596021167570e-05)
+_QS = (-2.40339491173441421878e+00, 2.02094576023350569471e+00, -6.88283971605453293030e-01,
+       7.70381505559019352791e-02)
+
+# e_exp.c, e_log.c
+_LN2_HI, _LN2_LO = 6.93147180369123816490e-01, 1.90821492927058770002e-10
+_INVLN2 = 1.44269504088896338700e+00
+_P = (1.66666666666666019037e-01, -2.77777777770155933842e-03, 6.61375632143793436117e-05,
+      -1.65339022054652515390e-06, 4.13813679705723846039e-08)
+_EXP_HI, _EXP_LO = 7.09782712893383973096e+02, -7.45133219101941108420e+02
+_LG = (6.666666666666735130e-01, 3.999999999940941908e-01, 2.857142874366239149e-01,
+       2.222219843214978396e-01, 1.818357216161805012e-01, 1.531383769920937332e-01,
+       1.479819860511658591e-01)
+_SQRT_HALF = 7.07106781186547524401e-01
+_LN2 = 6.93147180559945286227e-01
+
+
+def _arr(x) -> tuple[np.ndarray, bool]:
+    a = np.asarray(x, dtype=np.float64)
+    return a, a.ndim == 0
+
+
+def _out(a: np.ndarray, scalar: bool):
+    return float(a) if scalar else a
+
+
+def _rem_pio2(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(n mod 4, y0, y1) with x = n * pi/2 + (y0 + y1), |y0 + y1| <= ~pi/4 (fdlibm's medium branch)."""
+    finite = np.isfinite(x)
+    if np.any(np.abs(x[finite]) >= REDUCTION_LIMIT):
+        raise AlloError(f"an angle of magnitude >= {REDUCTION_LIMIT:.0f} rad reached sin/cos "
+                        "(allo_usd.core.fixedmath reduces |x| < 2**19 * pi/2 exactly); reduce the angle first")
+    fn = np.rint(x * _INVPIO2)
+    r = x - fn * _PIO2_1          # exact: fn has at most 20 bits and pio2_1 33
+    w = fn * _PIO2_1T             # good to about 85 bits
+    ex = np.frexp(x)[1]
+    # a second and third stage only where the first cancelled (fdlibm's i > 16 and i > 49): a later
+    # stage starts over from the previous r, which is exact only after such a cancellation
+    for need, hi, lo in ((16, _PIO2_2, _PIO2_2T), (49, _PIO2_3, _PIO2_3T)):
+        more = (ex - np.frexp(r - w)[1]) > need
+        t = r
+        w2 = fn * hi
+        r2 = t - w2
+        w2 = fn * lo - ((t - r2) - w2)
+        r, w = np.where(more, r2, r), np.where(more, w2, w)
+    y0 = r - w
+    y1 = (r - y0) - w
+    n = np.where(finite, fn, 0.0).astype(np.int64) & 3
+    return n, y0, y1
+
+
+def _ksin(x, y):
+    z = x * x
+    v = z * x
+    r = _S2 + z * (_S3 + z * (_S4 + z * (_S5 + z * _S6)))
+    return x - ((z * (0.5 * y - v * r) - y) - v * _S1)
+
+
+def _kcos(x, y):
+    z = x * x
+    w = z * z
+    r = z * (_C1 + z * (_C2 + z * _C3)) + w * w * (_C4 + z * (_C5 + z * _C6))
+    hz = 0.5 * z
+    w = 1.0 - hz
+    return w + (((1.0 - w) - hz) + (z * r - x * y))
+
+
+def _sincos(x: np.ndarray, want_cos: bool) -> np.ndarray:
+    with np.errstate(all="ignore"):
+        n, y0, y1 = _rem_pio2(x)
+        s, c = _ksin(y0, y1), _kcos(y0, y1)
+        if want_cos:
+            out = np.choose(n, [c, -s, -c, s])
+        else:
+            out = np.choose(n, [s, c, -s, -c])
+        tiny = np.abs(x) < 2.0 ** -27     # fdlibm returns x (sin) and 1 (cos) here
+        out = np.where(tiny, 1.0 if want_cos else x, out)
+        return np.where(np.isfinite(x), out, np.nan)
+
+
+def sin(x):
+    a, scalar = _arr(x)
+    return _out(_sincos(np.atleast_1d(a), False).reshape(a.shape), scalar)
+
+
+def cos(x):
+    a, scalar = _arr(x)
+    return _out(_sincos(np.atleast_1d(a), True).reshape(a.shape), scalar)
+
+
+def tan(x):
+    """sin(x) / cos(x): within 2 ulp, and the same on every machine (the camera's half-angles)."""
+    a, scalar = _arr(x)
+    a1 = np.atleast_1d(a)
+    with np.errstate(all="ignore"):
+        return _out((_sincos(a1, False) / _sincos(a1, True)).reshape(a.shape), scalar)
+
+
+def _atan(x: np.ndarray) -> np.ndarray:
+    ax = np.abs(x)
+    with np.errstate(all="ignore"):
+        idx = np.select([ax < 0.4375, ax < 0.6875, ax < 1.1875, ax < 2.4375], [4, 0, 1, 2], 3)
+        t = np.select([idx == 4, idx == 0, idx == 1, idx == 2],
+                      [ax, (2.0 * ax - 1.0) / (2.0 + ax), (ax - 1.0) / (ax + 1.0), (ax - 1.5) / (1.0 + 1.5 * ax)],
+                      -1.0 / ax)
+        z = t * t
+        w = z * z
+        s1 = z * (_AT[0] + w * (_AT[2] + w * (_AT[4] + w * (_AT[6] + w * (_AT[8] + w * _AT[10])))))
+        s2 = w * (_AT[1] + w * (_AT[3] + w * (_AT[5] + w * (_AT[7] + w * _AT[9]))))
+        small = t - t * (s1 + s2)
+        big = _ATANHI[idx] - ((t * (s1 + s2) - _ATANLO[idx]) - t)
+        r = np.where(idx == 4, small, big)
+        return np.where(np.signbit(x), -r, r)
+
+
+def arctan(x):
+    a, scalar = _arr(x)
+    return _out(_atan(np.atleast_1d(a)).reshape(a.shape), scalar)
+
+
+def arctan2(y, x):
+    """Angle of (x, y) in [-pi, pi], fdlibm's e_atan2.c case by case (signed zeros and infinities too)."""
+    yy, sy = _arr(y)
+    xx, sx = _arr(x)
+    yy, xx = np.broadcast_arrays(np.atleast_1d(yy), np.atleast_1d(xx))
+    shape = np.broadcast_shapes(np.shape(y), np.shape(x))
+    with np.errstate(all="ignore"):
+        z = _atan(np.abs(yy / xx))
+        neg_x, neg_y = np.signbit(xx), np.signbit(yy)
+        r = np.where(neg_x, PI - (z - _PI_LO), z)
+        # both infinite: pi/4 or 3pi/4; y = 0: 0 or pi; x = 0 or y infinite: pi/2; x infinite: 0 or pi
+        both_inf = np.isinf(xx) & np.isinf(yy)
+        r = np.where(both_inf, np.where(neg_x, 3.0 * _PIO4_HI + 3.0 * _PIO2_LO / 2.0, _PIO4_HI + _PIO2_LO / 2.0), r)
+        r = np.where(~both_inf & np.isinf(xx), np.where(neg_x, PI + _PI_LO, 0.0), r)
+        r = np.where(~both_inf & (np.isinf(yy) | ((xx == 0.0) & (yy != 0.0))), _PIO2_HI + _PIO2_LO, r)
+        r = np.where(yy == 0.0, np.where(neg_x, PI + _PI_LO, 0.0), r)
+        r = np.where(neg_y, -r, r)
+        r = np.where(np.isnan(xx) | np.isnan(yy), np.nan, r)
+    return _out(r.reshape(shape), sx and sy)
+
+
+def _pq(t):
+    p = t * (_PS[0] + t * (_PS[1] + t * (_PS[2] + t * (_PS[3] + t * (_PS[4] + t * _PS[5])))))
+    q = 1.0 + t * (_QS[0] + t * (_QS[1] + t * (_QS[2] + t * _QS[3])))
+    return p, q
+
+
+def _high_word(x: np.ndarray) -> np.ndarray:
+    """x with its low 32 bits cleared (fdlibm's SET_LOW_WORD(x, 0))."""
+    return (np.ascontiguousarray(x, dtype=np.float64).view(np.uint64) & np.uint64(0xFFFFFFFF00000000)).view(np.float64)
+
+
+def _asin(x: np.ndarray) -> np.ndarray:
+    ax = np.abs(x)
+    with np.errstate(all="ignore"):
+        p, q = _pq(x * x)
+        small = x + x * (p / q)
+        w = 1.0 - ax
+        t = w * 0.5
+        p, q = _pq(t)
+        s = np.sqrt(t)
+        near_one = _PIO2_HI - (2.0 * (s + s * (p / q)) - _PIO2_LO)
+        hw = _high_word(s)
+        c = (t - hw * hw) / (s + hw)
+        pp = 2.0 * s * (p / q) - (_PIO2_LO - 2.0 * c)
+        qq = _PIO4_HI - 2.0 * hw
+        mid = _PIO4_HI - (pp - qq)
+        big = np.where(ax >= 0.975, near_one, mid)
+        big = np.where(np.signbit(x), -big, big)
+        r = np.where(ax < 0.5, np.where(ax < 2.0 ** -27, x, small), big)
+        r = np.where(ax == 1.0, x * _PIO2_HI + x * _PIO2_LO, r)
+        return np.where(ax > 1.0, np.nan, r)
+
+
+def _acos(x: np.ndarray) -> np.ndarray:
+    ax = np.abs(x)
+    with np.errstate(all="ignore"):
+        p, q = _pq(x * x)
+        small = _PIO2_HI - (x - (_PIO2_LO - x * (p / q)))
+        small = np.where(ax <= 2.0 ** -57, _PIO2_HI + _PIO2_LO, small)
+        zn = (1.0 + x) * 0.5
+        p, q = _pq(zn)
+        s = np.sqrt(zn)
+        neg = PI - 2.0 * (s + ((p / q) * s - _PIO2_LO))
+        zp = (1.0 - x) * 0.5
+        p, q = _pq(zp)
+        s = np.sqrt(zp)
+        df = _high_word(s)
+        c = (zp - df * df) / (s + df)
+        pos = 2.0 * (df + ((p / q) * s + c))
+        r = np.where(ax < 0.5, small, np.where(x < 0.0, neg, pos))
+        r = np.where(x == 1.0, 0.0, np.where(x == -1.0, PI + 2.0 * _PIO2_LO, r))
+        return np.where(ax > 1.0, np.nan, r)
+
+
+def arcsin(x):
+    a, scalar = _arr(x)
+    return _out(_asin(np.atleast_1d(a)).reshape(a.shape), scalar)
+
+
+def arccos(x):
+    a, scalar = _arr(x)
+    return _out(_acos(np.atleast_1d(a)).reshape(a.shape), scalar)
+
+
+def exp(x):
+    a, scalar = _arr(x)
+    x1 = np.atleast_1d(a)
+    with np.errstate(all="ignore"):
+        k = np.rint(x1 * _INVLN2)
+        k = np.where(np.isfinite(k), k, 0.0)
+        hi = x1 - k * _LN2_HI
+        lo = k * _LN2_LO
+        r = hi - lo
+        t = r * r
+        c = r - t * (_P[0] + t * (_P[1] + t * (_P[2] + t * (_P[3] + t * _P[4]))))
+        y0 = 1.0 - ((r * c) / (c - 2.0) - r)
+        y = 1.0 - ((lo - (r * c) / (2.0 - c)) - hi)
+        ki = k.astype(np.int64)
+        # 2**k in two steps, so that k down to -1074 (a subnormal result) scales without overflow
+        half = ki // 2
+        y = np.ldexp(np.ldexp(y, half), ki - half)
+        out = np.where(k == 0.0, y0, y)
+        out = np.where(x1 > _EXP_HI, np.inf, np.where(x1 < _EXP_LO, 0.0, out))
+        out = np.where(np.isnan(x1), np.nan, out)
+    return _out(out.reshape(a.shape), scalar)
+
+
+def _log(x: np.ndarray) -> np.ndarray:
+    with np.errstate(all="ignore"):
+        m, e = np.frexp(x)           # x = m * 2**e, m in [0.5, 1): exact
+        low = m < _SQRT_HALF
+        m = np.where(low, m * 2.0, m)
+        k = (e - low).astype(np.float64)
+        f = m - 1.0
+        s = f / (2.0 + f)
+        z = s * s
+        w = z * z
+        t1 = w * (_LG[1] + w * (_LG[3] + w * _LG[5]))
+        t2 = z * (_LG[0] + w * (_LG[2] + w * (_LG[4] + w * _LG[6])))
+        r = t2 + t1
+        hfsq = 0.5 * f * f
+        k0 = f - (hfsq - s * (hfsq + r))
+        kn = k * _LN2_HI - ((hfsq - (s * (hfsq + r) + k * _LN2_LO)) - f)
+        out = np.where(k == 0.0, k0, kn)
+        out = np.where(x == 0.0, -np.inf, np.where(x < 0.0, np.nan, out))
+        return np.where(np.isposinf(x), np.inf, np.where(np.isnan(x), np.nan, out))
+
+
+def log(x):
+    a, scalar = _arr(x)
+    return _out(_log(np.atleast_1d(a)).reshape(a.shape), scalar)
+
+
+def log2(x):
+    """Base-2 logarithm: the exponent plus log(mantissa) / ln 2, the mantissa in [sqrt(1/2), sqrt(2))
+    so that neither part cancels the other; exact for powers of two."""
+    a, scalar = _arr(x)
+    x1 = np.atleast_1d(a)
+    with np.errstate(all="ignore"):
+        m, e = np.frexp(x1)
+        low = m < _SQRT_HALF
+        out = (e - low).astype(np.float64) + _log(np.where(low, m * 2.0, m)) / _LN2
+        out = np.where(x1 > 0.0, out, _log(x1))
+        out = np.where(np.isposinf(x1), np.inf, out)
+    return _out(out.reshape(a.shape), scalar)
+
+
+def radians(x):
+    a, scalar = _arr(x)
+    return _out(a * _DEG, scalar)
+
+
+def degrees(x):
+    a, scalar = _arr(x)
+    return _out(a * (180.0 / PI), scalar)
+
+
+# --- sums of products in a fixed order (no BLAS) ---------------------------------------------------
+
+def dot(a, b):
+    """Sum of products over the last axis, left to right (broadcasting); a scalar for two vectors."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    n = a.shape[-1]
+    if b.shape[-1] != n:
+        raise ValueError(f"dot: last axes differ ({a.shape} and {b.shape})")
+    s = a[..., 0] * b[..., 0]
+    for k in range(1, n):
+        s = s + a[..., k] * b[..., k]
+    return float(s) if np.ndim(s) == 0 else s
+
+
+def norm(v, axis=None, keepdims: bool = False):
+    """Euclidean length: of the whole array (axis None, numpy's default) or along `axis`, as the
+    square root of the squares summed in index order (no BLAS)."""
+    v = np.asarray(v, dtype=np.float64)
+    if axis is None:
+        flat = v.reshape(-1)
+        s = flat[0] * flat[0] if flat.size else 0.0
+        for k in range(1, flat.size):
+            s = s + flat[k] * flat[k]
+        out = np.sqrt(np.float64(s))
+        return np.full((1,) * v.ndim, out) if keepdims else float(out)
+    v = np.moveaxis(v, axis, -1)
+    s = dot(v, v)
+    out = np.sqrt(s)
+    if keepdims:
+        out = np.expand_dims(out, axis)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def matmul(a, b):
+    """`a @ b` with each entry summed in index order (no BLAS): (.., n, k) @ (.., k, m), a (k,) vector
+    on either side as numpy treats it."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.ndim == 1 and b.ndim == 1:
+        return dot(a, b)
+    if b.ndim == 1:        # (.., n, k) @ (k,) -> (.., n)
+        return dot(a, b)
+    if a.ndim == 1:        # (k,) @ (.., k, m) -> (.., m)
+        return matmul(a[None, :], b)[..., 0, :]
+    k = a.shape[-1]
+    if b.shape[-2] != k:
+        raise ValueError(f"matmul: inner sizes differ ({a.shape} @ {b.shape})")
+    out = a[..., :, 0, None] * b[..., 0, None, :]
+    for i in range(1, k):
+        out = out + a[..., :, i, None] * b[..., i, None, :]
+    return out
+
+
+def apply(rotation, points):
+    """Rows of `points` (n, 3) transformed by the 3x3 `rotation`: points @ rotation.T, in fixed order."""
+    return matmul(np.asarray(points, dtype=np.float64), np.asarray(rotation, dtype=np.float64).T)
+
+
+def cross(a, b):
+    """Cross product over the last axis (written out; numpy's is the same products)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def det3(m) -> float:
+    """Determinant of a 3x3 matrix by cofactors of its first row (no LAPACK)."""
+    m = np.asarray(m, dtype=np.float64)
+    return float(m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+                 - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+                 + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+
+
+def hypot(x, y):
+    """sqrt(x*x + y*y), scaled by the larger magnitude so that neither overflows nor underflows."""
+    xa, sx = _arr(x)
+    ya, sy = _arr(y)
+    ax, ay = np.abs(xa), np.abs(ya)
+    big = np.maximum(ax, ay)
+    with np.errstate(all="ignore"):
+        small = np.minimum(ax, ay) / np.where(big > 0.0, big, 1.0)
+        out = np.where(big > 0.0, big * np.sqrt(1.0 + small * small), 0.0)
+        out = np.where(np.isinf(ax) | np.isinf(ay), np.inf, out)
+    return _out(out, sx and sy)
+
+
+def power(x, y):
+    """x ** y for x >= 0 as exp(y * log(x)) (colour transfer curves): within a few ulp, machine-free."""
+    xa, sx = _arr(x)
+    ya, sy = _arr(y)
+    with np.errstate(all="ignore"):
+        out = np.where(xa == 0.0, np.where(ya > 0.0, 0.0, np.where(ya == 0.0, 1.0, np.inf)),
+                       exp(ya * log(np.where(xa > 0.0, xa, 1.0))))
+        out = np.where(xa < 0.0, np.nan, out)
+    return _out(np.asarray(out, dtype=np.float64), sx and sy)
