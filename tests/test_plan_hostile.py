@@ -5,12 +5,13 @@ alias bombs, oversized files, and plans that expand to more scenes than anything
 from __future__ import annotations
 
 import itertools
+import re
 import tracemalloc
 
 import pytest
 
 from allo_usd.core.errors import PlanError
-from allo_usd.plan.io import MAX_PLAN_BYTES, load_plan, make_plan, save_plan
+from allo_usd.plan.io import MAX_DEPTH, MAX_PLAN_BYTES, load_plan, make_plan, save_plan
 from allo_usd.plan.model import MAX_PLAN_SCENES, demo_plan, paper_plan
 from allo_usd.plan.settings import PRESETS
 
@@ -122,12 +123,15 @@ def test_a_yaml_alias_bomb_is_refused(tmp_path):
 @pytest.mark.parametrize("suffix, text", [
     (".yaml", "name: " + "[" * 50_000 + "]" * 50_000),    # libyaml's node builder would crash the process
     (".yaml", "name: x\nposes: " + "{a: " * 20_000 + "1" + "}" * 20_000),
+    (".yaml", "name: x\nposes:\n" + "".join(" " * i + "a:\n" for i in range(1, 60)) + " " * 60 + "1\n"),  # block
     (".toml", "name = " + "[" * 50_000 + "]" * 50_000),
 ])
 def test_deep_nesting_is_a_plan_error(tmp_path, suffix, text):
     path = tmp_path / f"plan{suffix}"
     path.write_text(text)
-    with pytest.raises(PlanError, match=r"not valid (YAML|TOML).*(nested|recursion)"):
+    # the project's own words (allo_usd.plan.io), whichever check refused it: ours, PyYAML's or Python's
+    with pytest.raises(PlanError, match=rf"plan{re.escape(suffix)} is not valid (YAML|TOML): values nested too "
+                                        rf"deeply \(over {MAX_DEPTH} levels.*; fix: "):
         load_plan(path)
 
 

@@ -87,6 +87,14 @@ def load_plan(path: Path) -> Plan:
         raise PlanError(f"plan {path} uses a YAML alias ({exc}); a plan may not, since aliases can expand "
                         "without bound; fix: write the value out where it is used") from None
     except Exception as exc:  # tomllib.TOMLDecodeError, yaml.YAMLError, a date out of range, deep nesting
+        # Nesting is named in our words, whichever check refused it first: ours (_TooDeep), the parser's
+        # own limit (libyaml's scanner looks ahead past MAX_DEPTH) or Python's (tomllib recurses).
+        line = exc.line if isinstance(exc, _TooDeep) else _deep_line(text)
+        if line is not None or isinstance(exc, RecursionError):
+            where = f", at line {line}" if line is not None else ""
+            raise PlanError(f"{path} is not valid {fmt.upper()}: values nested too deeply (over {MAX_DEPTH} levels"
+                            f"{where}; a plan's values nest at most 5 deep); fix: check it is a plan file, e.g. "
+                            "from `allo-usd plan --paper`") from None
         raise PlanError(f"{path} is not valid {fmt.upper()}: {_cut(str(exc))}; fix the syntax") from None
     if not isinstance(data, dict):
         raise PlanError(f"{path} holds no table of plan fields; fix: start from `allo-usd plan --paper`")
@@ -95,6 +103,42 @@ def load_plan(path: Path) -> Plan:
 
 class _AliasFound(Exception):
     pass
+
+
+class _TooDeep(Exception):
+    def __init__(self, line: int):
+        super().__init__(line)
+        self.line = line
+
+
+def _deep_line(text: str) -> int | None:
+    """The line where `[`/`{` nesting first goes over MAX_DEPTH outside quotes and comments (TOML, YAML
+    flow collections), or None. Asked only of text a parser refused: it decides whether the refusal
+    is named as nesting, so the message does not depend on the parser's wording."""
+    depth, line, quote, escaped, comment = 0, 1, "", False, False
+    for ch in text:
+        if ch == "\n":
+            line, comment = line + 1, False
+        if comment:
+            continue
+        if quote:
+            if escaped:
+                escaped = False
+            elif ch == "\\" and quote == '"':
+                escaped = True
+            elif ch == quote:
+                quote = ""
+        elif ch in "\"'":
+            quote = ch
+        elif ch == "#":
+            comment = True
+        elif ch in "[{":
+            depth += 1
+            if depth > MAX_DEPTH:
+                return line
+        elif ch in "]}":
+            depth = max(depth - 1, 0)
+    return None
 
 
 def _parse(text: str, fmt: str):
@@ -112,7 +156,7 @@ def _parse(text: str, fmt: str):
         if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
             depth += 1
             if depth > MAX_DEPTH:   # libyaml's node builder recurses in C: far deeper, it crashes the process
-                raise ValueError(f"values nested over {MAX_DEPTH} deep at line {event.start_mark.line + 1}")
+                raise _TooDeep(event.start_mark.line + 1)
         elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
             depth -= 1
     return yaml.load(text, Loader=loader)

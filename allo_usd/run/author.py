@@ -45,6 +45,7 @@ from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_p
                                   write_pose_layer, write_sky_layer)
 from allo_usd.core.camera_model import DEFAULT_CAMERA
 from allo_usd.core.files import atomic_directory, file_problem, write_text_atomic
+from allo_usd.core.provenance import TREE_VERSIONS, record_tree_versions
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
 from allo_usd.core.timefmt import format_utc
 from allo_usd.plan.model import Plan
@@ -613,7 +614,7 @@ TREE_PLAN = "plan.toml"            # the plan a tree was authored from (its reco
 TREE_LOCK = ".allo-author.lock"    # one author run at a time per tree (core.files.RunLock)
 # What authoring writes at the top of a tree (plan.toml aside): `replace` removes exactly these.
 TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "hazards", "schema", "counts.csv", "skipped.csv", "reserves.csv",
-                POSE_INPUTS)
+                POSE_INPUTS, TREE_VERSIONS)
 _TRASH = re.compile(r"^\.replaced\.[a-z0-9_]{8}$")   # a replace's trash (mkdtemp), left if the run was killed
 # Plan fields the tree checks by content, not by name: the base stage's path and the station's
 # source (stages/ must be a byte copy of the plan's stage, or built from the same model file).
@@ -827,6 +828,7 @@ def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
         copy_schema(out_dir)   # for other USD tools (allo_usd.usd.compose); this process uses the package's
         if not same:
             save_plan(given, out_dir / TREE_PLAN)
+        record_tree_versions(out_dir)   # versions.json: the library versions of each run (never in a layer)
         yield ctx
 
 
@@ -838,7 +840,8 @@ def author(plan: Plan, out_dir: Path, limit: int | None = None, progress: bool =
     tree may hold scenes beyond the first `limit`: their reserves).
 
     The tree is self-contained (allo_usd.usd.compose): its own base stage in `out_dir/stages`,
-    shared `sky/` and `poses/` layers, `scenes/`, `plan.toml` (the plan as given), `skipped.csv`
+    shared `sky/` and `poses/` layers, `scenes/`, `plan.toml` (the plan as given), `versions.json` (the
+    library versions of each authoring run: allo_usd.core.provenance), `skipped.csv`
     (every skipped depth and why; a reserve depth carries its group number in `reserve`),
     `reserves.csv` (per reserve group used: its (day, pose) and the depths authored and skipped)
     and, once finished, `counts.csv`: per split/kind and per anomaly asset, `planned`, `authored`,

@@ -10,6 +10,7 @@ The demo authors exactly as a plan does (allo_usd.usd.compose), into a self-cont
     OUT/layers/sky/, poses/         the shared day and camera-sample layers they stack
     OUT/layers/stages/              the tree's own byte copy of the base stage and its assets
     OUT/layers/schema/              the Allo*API schemas' plugin, for PXR_PLUGINPATH_NAME
+    OUT/layers/versions.json        the library versions of each run that authored it (core.provenance)
     OUT/renders/                    PNG, EXR, mask and JSON per scene
     OUT/contact_sheet.png
     OUT/dataset/                    the renders as an MVTec AD tree (allo_usd.output.dataset)
@@ -132,6 +133,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     `device` is the Cycles device (allo_usd.blender.device: auto, cpu, gpu)."""
     from tqdm import tqdm
 
+    from allo_usd.core.provenance import record_tree_versions
     from allo_usd.output.dataset import read_pixels
     from allo_usd.run.job import render_layer
     from allo_usd.run.worker import output_to
@@ -145,6 +147,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     tree.mkdir(parents=True, exist_ok=True)
     stage = copy_base_stage(base_stage, tree)
     copy_schema(tree)
+    record_tree_versions(tree)   # the library versions of this run, beside the layers (never in them)
     orbit = Orbit()
     sky = compute_sky(default_epochs(), orbit)
     inputs = scene_inputs(stage, sky, format_utc(orbit.perilune_epoch), track_sun=DEMO_TRACK_SUN)

@@ -11,8 +11,11 @@ systems that ignore case). Then no name of one layer can be a name of another
 **Identity.** A render's identity is the SHA-256 of a canonical JSON of its inputs and of the
 versions that affect pixels: every file its composition read (allo_usd.usd.dependencies.walk:
 each layer of the stack, the referenced assets, the textures), as {path relative to the layer's
-directory: sha256}, and allo-usd's, bpy's and usd-core's versions (read from package metadata:
-the parent never imports bpy). The render's JSON records "identity", "inputs" and "versions";
+directory: sha256}, and allo-usd's, bpy's, usd-core's and numpy's versions (read from package
+metadata: the parent never imports bpy; numpy draws the sensor noise, whose Generator streams a numpy
+release may change, and encodes sRGB). Other libraries (image encoders, the plan's numerics) are
+recorded in the JSON's "libraries" (allo_usd.core.provenance), not in the identity: a new version of
+one does not re-render finished scenes. The render's JSON records "identity", "inputs" and "versions";
 the manifest row records "identity". A scene is done only while the identity recomputed from the
 recorded inputs' current bytes matches: the recorded inputs are the complete list of what the
 render read, so if none of their bytes changed, a new walk would read the same files. File
@@ -116,16 +119,15 @@ def file_sha256(path: str | Path) -> str | None:
 
 @functools.cache
 def render_versions() -> dict[str, str]:
-    """The package versions that affect pixels (from package metadata: importing bpy is not needed)."""
-    from importlib.metadata import PackageNotFoundError, version
+    """The package versions that affect pixels (from package metadata: importing bpy is not needed):
+    allo-usd, the renderer (bpy), what a layer composes to (usd-core) and numpy (sensor noise, sRGB)."""
+    from allo_usd.core.provenance import installed_version
 
     def installed(name: str) -> str:
-        try:
-            return version(name)
-        except PackageNotFoundError:
-            return "not installed"
+        return installed_version(name) or "not installed"
 
-    return {"allo_usd": __version__, "bpy": installed("bpy"), "usd-core": installed("usd-core")}
+    return {"allo_usd": __version__, "bpy": installed("bpy"), "usd-core": installed("usd-core"),
+            "numpy": installed("numpy")}
 
 
 def render_identity(inputs: dict[str, str], versions: dict[str, str] | None = None) -> str:
