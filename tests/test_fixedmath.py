@@ -226,3 +226,19 @@ def _quat(r):
     n = math.sqrt(((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3])
     q = [c / n for c in q]
     return q if q[0] >= 0 else [-c for c in q]
+
+
+def test_srgb8_codes_are_the_transfer_rounded_and_decided_by_comparisons():
+    """The PNG's 8-bit codes: the IEC 61966-2-1 curve rounded to the nearest level, decided by
+    comparing each value with the 255 level thresholds (no CPU-dependent `power` per pixel)."""
+    from allo_usd.output.writers import _SRGB8_THRESHOLDS, linear_to_srgb8
+
+    c = np.concatenate([RNG.random(50_000) ** 3, RNG.random(1000) * 1e-3, [0.0, 1.0, 0.0031308]])
+    s = np.array([12.92 * v if v <= 0.0031308 else 1.055 * math.pow(v, 1 / 2.4) - 0.055 for v in c])
+    want = np.rint(s * 255.0)
+    got = linear_to_srgb8(c).astype(np.float64)
+    near = np.abs(s * 255.0 - np.floor(s * 255.0) - 0.5) < 1e-9     # within rounding of a half level
+    assert np.array_equal(got[~near], want[~near]) and np.abs(got - want).max() <= 1
+    assert np.all(np.diff(_SRGB8_THRESHOLDS) > 0) and len(_SRGB8_THRESHOLDS) == 255
+    assert linear_to_srgb8(np.array([np.nan, -1.0, np.inf, 2.0, _SRGB8_THRESHOLDS[99]])).tolist() == [0, 0, 255, 255, 100]
+    assert linear_to_srgb8(np.zeros((2, 3, 3), dtype=np.float32)).shape == (2, 3, 3)

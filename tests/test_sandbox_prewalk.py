@@ -148,10 +148,10 @@ def test_syntax_error_keeps_usds_file_line_col(layer):
     bad = layer.parent / "bad.usda"
     bad.write_text('#usda 1.0\ndef Xform "World" {\n    double3 xformOp:translate = (1, 2\n}\n')
     add_sublayer(layer, "./bad.usda")
-    with pytest.raises(LayerError, match=r"bad.usda:4:1: parse error matching Sdf_TextFileFormatParser"):
+    with pytest.raises(LayerError, match=r"bad\.usda:4:1: "):
         read_scene(layer)
     layer.write_text(layer.read_text() + "\ndef Xform (\n")  # the scene layer itself
-    with pytest.raises(LayerError, match=r"s.usda:\d+:\d+: parse error") as info:
+    with pytest.raises(LayerError, match=r"s\.usda:\d+:\d+: ") as info:
         read_scene(layer)
     assert "pxrInternal" not in str(info.value)
 

@@ -353,5 +353,5 @@ def test_too_many_colours_and_a_name_too_long_are_plan_errors(tmp_path):
     with pytest.raises(ValueError, match="colour variants, above the 32"):
         hazard(tmp_path / "b.stl", colors={f"c{i}": (0.5, 0.5, 0.5) for i in range(33)})
     long = tmp_path / ("x" * 300 + ".stl")
-    with pytest.raises(PlanError, match=r"cannot be read \(File name too long\); fix"):
+    with pytest.raises(PlanError, match=r"cannot be read \(.+\); fix"):
         author_plan(_plan(long), tmp_path / "tree", progress=False)

@@ -23,6 +23,11 @@ The device changes a render's noise pattern and last bits, not what the scene me
 recorded in each render's JSON (`record`), not in the layer, and not in the render identity
 (allo_usd.run.manifest): a scene rendered on the CPU counts as done on a GPU machine too
 (re-render with --force). Determinism per device: README "GPU rendering".
+
+The JSON also records the CPU kernel Cycles renders with (`cycles_cpu`: "AVX2" or "default", by
+Cycles' own rule from the CPU flags, which it records too): two machines with the same
+kernel and Blender build give the same bytes, others differ in the last bits (README "Re-rendering
+on another machine", docs/bench_rerender.md). It is not in the render identity either.
 """
 
 from __future__ import annotations
@@ -192,4 +197,84 @@ def record(device: Device) -> dict:
            "blender": blender_version()}
     if device.notice:
         rec["notice"] = device.notice
+    return rec
+
+
+# ---------------------------------------------------------------- the CPU kernel Cycles renders with
+
+# Cycles 5.0 (x86-64) has two CPU kernels and picks one per process, when its first CPU render
+# builds the kernel table (ccl::Device::get_cpu_kernels(), a function-local static):
+# "AVX2" when the CPU passes Cycles' AVX2 test (SSE4.2, AVX with OS support, F16C, AVX2, FMA, BMI1,
+# BMI2: ccl::system_cpu_support_avx2) and CYCLES_CPU_NO_AVX2 is unset, otherwise "default" (compiled
+# for Blender's baseline, -march=x86-64-v2 in bpy 5.0.1: SSE4.2). The two kernels round differently
+# (FMA), so images differ in the last bits (docs/bench_rerender.md). Embree and OpenImageDenoise,
+# which ship with Blender, pick their own instruction sets from the same CPU flags (this bpy's Embree
+# has SSE2, AVX and AVX2 code; its OIDN names SSE4.1, AVX2 and AVX-512); CYCLES_CPU_NO_AVX2 changes
+# neither.
+CYCLES_AVX2_FLAGS = ("sse4_2", "avx", "f16c", "avx2", "fma", "bmi1", "bmi2")   # /proc/cpuinfo names
+RECORDED_FLAGS = ("sse4_1", "sse4_2", "avx", "avx2", "fma", "f16c", "bmi1", "bmi2",
+                  "avx512f", "avx512dq", "avx512bw", "avx512vl")
+NO_AVX2_ENV = "CYCLES_CPU_NO_AVX2"
+_CPU_FLAGS: tuple[str, ...] | None = None
+
+
+def cpu_flags() -> tuple[str, ...]:
+    """The instruction-set flags of RECORDED_FLAGS this CPU has, as /proc/cpuinfo lists them (what
+    Cycles' AVX2 test, Embree and OIDN look at); () where there is no /proc/cpuinfo."""
+    global _CPU_FLAGS
+    if _CPU_FLAGS is None:
+        found: set[str] = set()
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+                for line in fh:
+                    if line.lower().startswith("flags"):
+                        found = set(line.partition(":")[2].split())
+                        break
+        except OSError:
+            pass
+        _CPU_FLAGS = tuple(f for f in RECORDED_FLAGS if f in found)
+    return _CPU_FLAGS
+
+
+def build_march() -> str | None:
+    """The instruction set Blender is compiled for (-march of bpy.app.build_cxxflags): what Cycles'
+    "default" CPU kernel runs (x86-64-v2 in bpy 5.0.1); None if the flags do not say."""
+    import re
+
+    import bpy
+
+    flags = bpy.app.build_cxxflags
+    flags = flags.decode("utf-8", "replace") if isinstance(flags, bytes) else str(flags)
+    found = re.findall(r"-march=(\S+)", flags)
+    return found[-1] if found else None
+
+
+def cycles_kernel(flags: tuple[str, ...] | None = None) -> str:
+    """The CPU kernel Cycles picks on this machine: "AVX2" when the CPU has every flag of
+    CYCLES_AVX2_FLAGS (Cycles' own test, ccl::system_cpu_support_avx2) and CYCLES_CPU_NO_AVX2 is unset,
+    else "default". tests/test_rerender_record.py checks it against Cycles' report in-process
+    (`_cycles.system_info()`), which is not called here: it also initialises the GPU libraries."""
+    import os
+
+    flags = cpu_flags() if flags is None else flags
+    capable = platform.machine().lower() in ("x86_64", "amd64") and all(f in flags for f in CYCLES_AVX2_FLAGS)
+    return "AVX2" if capable and NO_AVX2_ENV not in os.environ else "default"
+
+
+def cycles_cpu() -> dict:
+    """What a render's JSON records as "cycles_cpu": the CPU kernel Cycles used and what decides it.
+
+    - `kernel`: "AVX2" or "default", as Cycles names its CPU kernels (`cycles_kernel`);
+    - `build_march`: what the "default" kernel (and the rest of Blender) is compiled for;
+    - `cpu_flags`: the CPU's SSE4/AVX/AVX2/FMA/F16C/BMI/AVX-512 flags (Embree and OIDN pick their own
+      code paths from these);
+    - `env`: CYCLES_CPU_NO_AVX2, only when it is set.
+    Two renders of a layer give the same bytes when `kernel`, the AVX2/AVX-512 flags and the Blender
+    build match (README "Re-rendering on another machine")."""
+    import os
+
+    flags = cpu_flags()
+    rec = {"cpu": cpu_model(), "kernel": cycles_kernel(flags), "build_march": build_march(), "cpu_flags": list(flags)}
+    if NO_AVX2_ENV in os.environ:
+        rec["env"] = {NO_AVX2_ENV: os.environ[NO_AVX2_ENV]}
     return rec

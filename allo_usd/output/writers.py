@@ -13,17 +13,29 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from allo_usd.core import fixedmath as fm
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import atomic_path
 
 MASK_PALETTE = np.array([[0, 0, 0], [70, 130, 255], [255, 40, 40]], dtype=np.uint8)
 
 
+def _srgb8_thresholds() -> np.ndarray:
+    """The 255 linear values where the 8-bit sRGB code steps up: the inverse IEC 61966-2-1 transfer of
+    each half-way level (k - 0.5) / 255, in float64 with core.fixedmath's power."""
+    s = (np.arange(1, 256, dtype=np.float64) - 0.5) / 255.0
+    return np.where(s <= 0.04045, s / 12.92, fm.power((s + 0.055) / 1.055, 2.4))
+
+
+_SRGB8_THRESHOLDS = _srgb8_thresholds()
+
+
 def linear_to_srgb8(rgb: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 transfer on clipped linear values, rounded to 8 bits (no dither)."""
-    c = np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
-    return np.rint(s * 255.0).astype(np.uint8)
+    """IEC 61966-2-1 transfer on clipped linear values, rounded to 8 bits (no dither): each value's code
+    is the number of level thresholds it reaches, so the PNG is decided by comparisons alone, the same
+    on every CPU (numpy's `power` rounds by CPU: SVML on AVX-512)."""
+    c = np.clip(np.nan_to_num(np.asarray(rgb, dtype=np.float64), nan=0.0), 0.0, 1.0)
+    return np.searchsorted(_SRGB8_THRESHOLDS, c, side="right").astype(np.uint8)
 
 
 def write_png(path: Path, array: np.ndarray) -> Path:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd import __version__
+from allo_usd.core.provenance import library_versions
 from allo_usd.output.annotations import image_annotations
 from allo_usd.output.writers import (write_exr, write_instance_png, write_json, write_mask_png, write_rgb_exr,
                                     write_rgb_png)
@@ -80,7 +81,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     from allo_usd.usd.dependencies import walk
     from allo_usd.usd.read import read_scene
 
-    from allo_usd.blender.device import check_device, record, select
+    from allo_usd.blender.device import check_device, cycles_cpu, record, select
 
     check_output_names([layer])
     device = check_device(device)
@@ -125,8 +126,10 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         "identity": render_identity(inputs),
         "inputs": inputs,
         "versions": render_versions(),
+        "libraries": library_versions(),   # every library that computes values, and the lock (core.provenance)
         "package_version": __version__,
         "device": record(used),
+        "cycles_cpu": cycles_cpu(),   # the CPU kernel Cycles used and the CPU flags that pick it
         "render_seconds": round(result.seconds, 3),
         "resolution": list(desc.render.resolution),
         "class_pixels": {"background": int(counts[0]), "station_and_bodies": int(counts[1]),
