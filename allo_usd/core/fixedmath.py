@@ -353,16 +353,17 @@ def norm(v, axis=None, keepdims: bool = False):
     """Euclidean length: of the whole array (axis None, numpy's default) or along `axis`, as the
     square root of the squares summed in index order (no BLAS)."""
     v = np.asarray(v, dtype=np.float64)
-    if axis is None:
-        flat = v.reshape(-1)
-        s = flat[0] * flat[0] if flat.size else 0.0
-        for k in range(1, flat.size):
-            s = s + flat[k] * flat[k]
-        out = np.sqrt(np.float64(s))
-        return np.full((1,) * v.ndim, out) if keepdims else float(out)
-    v = np.moveaxis(v, axis, -1)
-    s = dot(v, v)
-    out = np.sqrt(s)
+    with np.errstate(over="ignore", invalid="ignore"):   # a huge vector's length is inf, as BLAS gives it
+        if axis is None:
+            flat = v.reshape(-1)
+            s = flat[0] * flat[0] if flat.size else 0.0
+            for k in range(1, flat.size):
+                s = s + flat[k] * flat[k]
+            out = np.sqrt(np.float64(s))
+            return np.full((1,) * v.ndim, out) if keepdims else float(out)
+        v = np.moveaxis(v, axis, -1)
+        s = dot(v, v)
+        out = np.sqrt(s)
     if keepdims:
         out = np.expand_dims(out, axis)
     return float(out) if np.ndim(out) == 0 else out
