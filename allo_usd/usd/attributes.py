@@ -125,9 +125,17 @@ SENSOR_ATTRIBUTES = {a.field: (a.name, a.sdf_type) for a in SENSOR}
     ("allo:anomaly:predictedAreaFraction", "double"))
 ANOMALY_PREFIX = "allo:anomaly:"
 
-# ---------------------------------------------------------------- AlloCameraPoseAPI (rig cameras)
-POSE_INDEX, POSE_SPLIT = CAMERA_POSE = _group(
-    "AlloCameraPoseAPI", RIG_POSES, ("allo:pose:index", "int"), ("allo:pose:split", "token"))
+# ---------------------------------------------------------------- AlloCameraPoseAPI (rig poses)
+# A base pose is an Xform, not a UsdGeom.Camera (a composed scene offers outside tools one camera, the
+# render camera): its transform is the pose, and these record the lens its view was chosen through, in
+# UsdGeom.Camera's units (tenths of a scene unit; clipping range in metres).
+(POSE_INDEX, POSE_SPLIT, POSE_FOCAL_LENGTH, POSE_HORIZONTAL_APERTURE, POSE_VERTICAL_APERTURE,
+ POSE_HORIZONTAL_APERTURE_OFFSET, POSE_VERTICAL_APERTURE_OFFSET, POSE_CLIPPING_RANGE) = CAMERA_POSE = _group(
+    "AlloCameraPoseAPI", RIG_POSES, ("allo:pose:index", "int"), ("allo:pose:split", "token"),
+    ("allo:pose:focalLength", "float"), ("allo:pose:horizontalAperture", "float"),
+    ("allo:pose:verticalAperture", "float"), ("allo:pose:horizontalApertureOffset", "float"),
+    ("allo:pose:verticalApertureOffset", "float"), ("allo:pose:clippingRange", "float2"))
+POSE_LENS = CAMERA_POSE[2:]
 
 # ---------------------------------------------------------------- AlloJointAPI (station joints)
 # An articulated joint of the procedural station (an Xform whose one named xformOp, e.g.

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd.core.camera_model import CLIPPING_RANGE_M
+from allo_usd.core.camera_model import CLIPPING_RANGE_M, DEFAULT_CAMERA, CameraModel
 from allo_usd.core.constants import EXPOSURE, FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM
 from allo_usd.core.geometry import matrix_to_quat
 from allo_usd.assets.mesh import Asset
@@ -89,8 +89,10 @@ def define_camera(stage, path: str):
 
 def write_base_stage(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
                      anomalies: dict[str, dict[str, Asset]], poses: list[CameraPose],
-                     station_doc: str = "") -> Path:
-    """Write every asset and `base.usda` into `stages_dir`; returns the base stage path."""
+                     station_doc: str = "", lens: CameraModel = DEFAULT_CAMERA,
+                     size: tuple[int, int] | None = None) -> Path:
+    """Write every asset and `base.usda` into `stages_dir`; returns the base stage path. `lens`, `size`:
+    the camera and image size the rig's views were chosen through, recorded on each pose (define_rig)."""
     from pxr import Usd
 
     schema.register()
@@ -105,7 +107,7 @@ def write_base_stage(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
     stage = Usd.Stage.Open(layer)
     define_world(stage)
     define_sky(stage, bodies)
-    define_rig(stage, poses)
+    define_rig(stage, poses, lens, size)
     define_render_camera(stage, poses[0])
     define_render_settings(stage)
     commit_layer(layer, tmp, path)
@@ -182,18 +184,41 @@ def define_sky(stage, bodies: dict[str, Asset]) -> None:
         prim.GetAttribute(A.RAY_VISIBILITY.name).Set("cameraOnly" if name == "Sun" else "noShadow")
 
 
-def define_rig(stage, poses: list[CameraPose]) -> None:
-    """The base camera poses, one camera each, recording index and split."""
+def rig_lens_values(lens: CameraModel = DEFAULT_CAMERA, size: tuple[int, int] | None = None) -> list:
+    """[(AlloCameraPoseAPI lens attribute, value)] of `lens`, in UsdGeom.Camera's units (tenths of a scene
+    unit); the aperture offsets only when the principal point is off centre (they need the image width)."""
+    from pxr import Gf
+
+    values = [(A.POSE_FOCAL_LENGTH, lens.focal_length_mm / 100.0),
+              (A.POSE_HORIZONTAL_APERTURE, lens.sensor_width_mm / 100.0),
+              (A.POSE_VERTICAL_APERTURE, lens.sensor_height_mm / 100.0),
+              (A.POSE_CLIPPING_RANGE, Gf.Vec2f(*map(float, lens.clipping_range_m)))]
+    if tuple(lens.principal_point_offset_px) != (0.0, 0.0) and size is not None:
+        h_off, v_off = lens.aperture_offsets_mm(size[0])
+        values += [(A.POSE_HORIZONTAL_APERTURE_OFFSET, h_off / 100.0), (A.POSE_VERTICAL_APERTURE_OFFSET, v_off / 100.0)]
+    return values
+
+
+def define_rig(stage, poses: list[CameraPose], lens: CameraModel = DEFAULT_CAMERA,
+               size: tuple[int, int] | None = None) -> None:
+    """The base camera poses: one Xform each (not a UsdGeom.Camera: a composed scene offers outside tools
+    one camera, /World/Camera), its transform the pose, AlloCameraPoseAPI recording index, split and the
+    lens the views were chosen through."""
     from pxr import UsdGeom
 
     rig = UsdGeom.Scope.Define(stage, layout.RIG)
-    rig.GetPrim().SetDocumentation("Base camera poses: 1-40 train, 41-50 test (paper Table II).")
+    rig.GetPrim().SetDocumentation("Base camera poses: 1-40 train, 41-50 test (paper Table II). Each is an Xform "
+                                   "(the camera looks down its -Z, +Y up) whose AlloCameraPoseAPI records the lens; "
+                                   "the scene's one camera is /World/Camera.")
+    lens_values = rig_lens_values(lens, size)
     for pose in poses:
-        cam = define_camera(stage, layout.rig_pose_path(pose.index))
-        set_pose(cam.GetPrim(), pose.position, pose.rotation)
-        schema.apply(cam.GetPrim(), "AlloCameraPoseAPI")
-        cam.GetPrim().GetAttribute(A.POSE_INDEX.name).Set(pose.index)
-        cam.GetPrim().GetAttribute(A.POSE_SPLIT.name).Set(pose.split)
+        prim = UsdGeom.Xform.Define(stage, layout.rig_pose_path(pose.index)).GetPrim()
+        set_pose(prim, pose.position, pose.rotation)
+        schema.apply(prim, "AlloCameraPoseAPI")
+        prim.GetAttribute(A.POSE_INDEX.name).Set(pose.index)
+        prim.GetAttribute(A.POSE_SPLIT.name).Set(pose.split)
+        for attr, value in lens_values:
+            prim.GetAttribute(attr.name).Set(value)
 
 
 def define_render_camera(stage, first: CameraPose) -> None:

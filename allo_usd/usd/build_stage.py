@@ -60,4 +60,4 @@ def build_base_stage(out: Path, station_source: str | None = None, units: str = 
     station, fixtures, doc = station_and_fixtures(station_source, units, up_axis)
     poses = base_poses(fixtures, *station.triangle_soup(), lens, size)
     anomalies = {name: {v: build_anomaly(name, v) for v in variants} for name, variants in ANOMALY_VARIANTS.items()}
-    return write_base_stage(out, station, build_bodies(), anomalies, poses, station_doc=doc)
+    return write_base_stage(out, station, build_bodies(), anomalies, poses, station_doc=doc, lens=lens, size=size)

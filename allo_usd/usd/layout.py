@@ -9,7 +9,7 @@ WORLD = f"/{WORLD_NAME}"                # scene identity (AlloSceneAPI)
 STATION = f"{WORLD}/Station"            # references ./station/Station.usda
 SKY = f"{WORLD}/Sky"                    # the bodies and their sun lamps
 STATION_SUN = f"{SKY}/SunLight"         # the sun lamp that lights the station (not the bodies)
-RIG = f"{WORLD}/Rig"                    # base camera poses
+RIG = f"{WORLD}/Rig"                    # base camera poses (Xforms: a scene has one camera, CAMERA)
 CAMERA = f"{WORLD}/Camera"              # the render camera
 INSPECTION_LIGHT = f"{CAMERA}/InspectionLight"
 ANOMALY = f"{WORLD}/Anomaly"
@@ -32,7 +32,7 @@ def body_sun_path(body: str) -> str:
 
 
 def rig_pose_path(index: int) -> str:
-    """A base camera pose's prim (e.g. /World/Rig/Pose07)."""
+    """A base camera pose's prim (e.g. /World/Rig/Pose07): an Xform with AlloCameraPoseAPI, not a camera."""
     return f"{RIG}/Pose{index:02d}"
 
 
