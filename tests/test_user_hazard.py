@@ -56,8 +56,9 @@ def hazard(path, **kw) -> AnomalyChoice:
     ({"colors": {"default": (1, 0, 0)}}, "not allowed"),
     ({"colors": {"red": (1.5, 0, 0)}}, "not a linear RGB"),
     ({"colors": {"red": (float("nan"), 0, 0)}}, "not a linear RGB"),
-    ({"variants": ["blue"]}, "must be distinct names among default, red"),
-    ({"variants": []}, "must be distinct names"),
+    ({"variants": ["blue"]}, "variant 'blue' is not defined"),
+    ({"variants": []}, "variants is empty; fix: list some of default, red"),
+    ({"variants": ["red", "red"]}, "variant 'red' is listed twice"),
 ])
 def test_plan_refuses_bad_hazards_naming_the_fix(tmp_path, kw, words):
     with pytest.raises(ValueError) as e:

@@ -103,6 +103,7 @@ __all__ = [
     "SUPPORTED_EXTENSIONS",
     "UNIT_SCALES",
     "UP_AXIS_ROTATIONS",
+    "check_options",
     "guess_unit",
     "import_mesh",
     "import_mesh_report",
@@ -275,20 +276,35 @@ def _check_path(path: Path) -> str:
     return fmt
 
 
+def check_options(units: str = "auto", up_axis: str = "auto") -> tuple[str, str]:
+    """(units, up_axis) normalised ('MM' -> 'mm', '+Z' -> 'z'; 'auto' stays), or an ImportOptionError naming
+    the values allowed (what `allo-usd asset import` checks before it reads the file)."""
+    return _check_units(units), _check_axis_name(up_axis)
+
+
+_AXIS_ORDER = ("x", "y", "z", "-x", "-y", "-z")   # how the allowed axes are listed
+
+
 def _check_units(units: str) -> str:
     u = str(units).strip().lower()
     if u != "auto" and u not in UNIT_SCALES:
-        raise ImportOptionError(f"units must be 'auto' or one of {sorted(UNIT_SCALES)}, got {units!r}")
+        raise ImportOptionError(f"units {str(units)[:40]!r} is not one of {', '.join(UNIT_SCALES)} or auto; fix: give the "
+                                "file's length unit (--units; units in a plan), e.g. mm for a CAD export")
+    return u
+
+
+def _check_axis_name(up_axis: str) -> str:
+    u = str(up_axis).strip().lower().lstrip("+")
+    if u != "auto" and u not in UP_AXIS_ROTATIONS:
+        raise ImportOptionError(f"up axis {str(up_axis)[:40]!r} is not one of {', '.join(_AXIS_ORDER)} or auto (the "
+                                "format's); fix: give the file axis that points up (--up-axis; up_axis in a plan), "
+                                "e.g. y for glTF and most OBJ files, z for STL")
     return u
 
 
 def _check_up_axis(up_axis: str, fmt: str) -> str:
-    u = str(up_axis).strip().lower().lstrip("+")
-    if u == "auto":
-        return _AUTO_UP[fmt]
-    if u not in UP_AXIS_ROTATIONS:
-        raise ImportOptionError(f"up_axis must be 'auto' or one of {sorted(UP_AXIS_ROTATIONS)}, got {up_axis!r}")
-    return u
+    u = _check_axis_name(up_axis)
+    return _AUTO_UP[fmt] if u == "auto" else u
 
 
 def _check_rotation(rotation) -> np.ndarray:

@@ -7,11 +7,15 @@ quality preset fills it, or the default does. Hostile files fail fast, as PlanEr
 MAX_PLAN_BYTES is refused before it is parsed, text that is not UTF-8 is named as such, YAML
 aliases (the "billion laughs" expansion) and nesting deeper than MAX_DEPTH are refused, and validation messages show at most
 MAX_ERRORS problems, each value cut short; the plan's size in scenes is bounded when it is
-validated (allo_usd.plan.model.MAX_PLAN_SCENES)."""
+validated (allo_usd.plan.model.MAX_PLAN_SCENES). A parser's refusal is one line naming the line and
+column (YAML's own messages span several). A written TOML plan lists its anomalies as an array of
+tables, one `[[anomalies.assets]]` block each, so a block of one's own (README, Your own hazards)
+can be appended to it; appending one to an inline `assets = [...]` is named as such."""
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -95,7 +99,10 @@ def load_plan(path: Path) -> Plan:
             raise PlanError(f"{path} is not valid {fmt.upper()}: values nested too deeply (over {MAX_DEPTH} levels"
                             f"{where}; a plan's values nest at most 5 deep); fix: check it is a plan file, e.g. "
                             "from `allo-usd plan --paper`") from None
-        raise PlanError(f"{path} is not valid {fmt.upper()}: {_cut(str(exc))}; fix the syntax") from None
+        inline = _inline_extended(exc) if fmt == "toml" else None
+        if inline is not None:
+            raise PlanError(f"{path} is not valid TOML: {inline}") from None
+        raise PlanError(f"{path} is not valid {fmt.upper()}: {_cut(_parser_message(exc))}; fix the syntax") from None
     if not isinstance(data, dict):
         raise PlanError(f"{path} holds no table of plan fields; fix: start from `allo-usd plan --paper`")
     return make_plan(data, str(path))
@@ -103,6 +110,40 @@ def load_plan(path: Path) -> Plan:
 
 class _AliasFound(Exception):
     pass
+
+
+_IMMUTABLE = re.compile(r"Cannot mutate immutable namespace \(([^)]*)\) \(at line (\d+), column \d+\)")
+
+
+def _inline_extended(exc: Exception) -> str | None:
+    """tomllib's "Cannot mutate immutable namespace" (a `[[t.k]]` or `[t.k]` header after `k = [...]` or
+    `k = {...}` was written inline under [t]) in words that say what happened and how to mend it; else None."""
+    found = _IMMUTABLE.search(str(exc))
+    if found is None:
+        return None
+    keys = [k.strip().strip("'\"") for k in found.group(1).split(",") if k.strip()]
+    dotted, last, line = ".".join(keys), keys[-1] if keys else "", found.group(2)
+    table = ".".join(keys[:-1])
+    where = f" under [{table}]" if table else ""
+    return (f"line {line} adds a table to {dotted}, which is written inline earlier ({last} = [...]{where}), and "
+            f"TOML cannot extend an inline array or table; fix: write each entry of {dotted} as its own [[{dotted}]] "
+            "block with its keys on the lines below (as `allo-usd plan` writes plans), or put the new entry inside "
+            "the inline array")
+
+
+def _parser_message(exc: Exception) -> str:
+    """A parser's refusal as one line: PyYAML's marked errors as "PROBLEM at line L, column C (CONTEXT at
+    line L, column C)" (its own text spans four lines and names "<unicode string>"), others with their
+    whitespace runs joined."""
+    problem = getattr(exc, "problem", None)
+    mark = getattr(exc, "problem_mark", None)
+    if problem and mark is not None:
+        text = f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+        context, cmark = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+        if context:
+            text += f" ({context}" + (f" at line {cmark.line + 1}, column {cmark.column + 1}" if cmark else "") + ")"
+        return " ".join(text.split())
+    return " ".join(str(exc).split())
 
 
 class _TooDeep(Exception):
@@ -178,14 +219,46 @@ def save_plan(plan: Plan, path: Path) -> Path:
     path = Path(path)
     data = plan_data(plan)
     if _format(path) == "toml":
-        import tomli_w
-
-        text = tomli_w.dumps(data)
+        text = toml_text(data)
     else:
         import yaml
 
         text = yaml.safe_dump(data, sort_keys=False)
     return write_text_atomic(path, text)
+
+
+def toml_text(data: dict) -> str:
+    """`data` as TOML (tomli_w), with anomalies.assets as an array of tables: one [[anomalies.assets]]
+    block per asset (a colour table as its [anomalies.assets.colors] sub-table), which tomli_w would
+    write inline (`assets = [{ id = "power_drill" }]`) when short. A user can then append a
+    [[anomalies.assets]] block of their own at the end of the file; after an inline array that is
+    a TOML error. Other tables are written by tomli_w as before, in the same order."""
+    import tomli_w
+
+    anomalies = data.get("anomalies")
+    assets = anomalies.get("assets") if isinstance(anomalies, dict) else None
+    if not assets:
+        return tomli_w.dumps(data)
+    chunks = []
+    plain = {k: v for k, v in data.items() if not isinstance(v, dict)}
+    if plain:
+        chunks.append(tomli_w.dumps(plain))
+    for key, value in data.items():
+        if not isinstance(value, dict):
+            continue
+        if key != "anomalies":
+            chunks.append(tomli_w.dumps({key: value}))
+            continue
+        rest = {k: v for k, v in value.items() if k != "assets"}
+        if rest:
+            chunks.append(tomli_w.dumps({key: rest}))
+        for asset in assets:
+            block = "[[anomalies.assets]]\n" + tomli_w.dumps({k: v for k, v in asset.items() if not isinstance(v, dict)})
+            for k, v in asset.items():
+                if isinstance(v, dict):
+                    block += f"\n[anomalies.assets.{k}]\n" + tomli_w.dumps(v)
+            chunks.append(block)
+    return "\n".join(chunks)
 
 
 def schema_text() -> str:

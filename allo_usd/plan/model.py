@@ -250,9 +250,24 @@ class AnomalyChoice(_Model):
                                  "fix: three numbers in 0..1, e.g. [0.8, 0.05, 0.05]")
         allowed = self.user_variants()
         bad = [v for v in self.variants or () if v not in allowed]
-        if bad or (self.variants is not None and (not self.variants or len(set(self.variants)) != len(self.variants))):
-            raise ValueError(f"anomaly {self.id!r}: variants {_short(self.variants)} must be distinct names among "
-                             f"{', '.join(allowed)}; fix: list some of those, or leave variants out for all")
+        if bad:
+            names = ", ".join(_short(v) for v in bad[:5]) + (", ..." if len(bad) > 5 else "")
+            colours = (f"colors defines {', '.join(repr(c) for c in self.colors)}" if self.colors
+                       else "the plan gives it no colors")
+            example = bad[0] if isinstance(bad[0], str) and re.fullmatch(r"^[a-z][a-z0-9_]{0,31}$", bad[0]) else "red"
+            raise ValueError(f"anomaly {self.id!r}: variant{'s' if len(bad) > 1 else ''} {names} "
+                             f"{'are' if len(bad) > 1 else 'is'} not defined: a hazard of your own has the variant "
+                             f"{USER_VARIANT!r} (the file's own materials) and one per name in its colors, and "
+                             f"{colours}; fix: define {'them' if len(bad) > 1 else 'it'} in colors, e.g. colors = "
+                             f"{{ {example} = [0.8, 0.05, 0.05] }} (linear RGB in 0..1), or leave "
+                             f"{'them' if len(bad) > 1 else 'it'} out of variants")
+        if self.variants is not None and not self.variants:
+            raise ValueError(f"anomaly {self.id!r}: variants is empty; fix: list some of {', '.join(allowed)}, or leave "
+                             "variants out for all")
+        twice = sorted({v for v in self.variants or () if self.variants.count(v) > 1})
+        if twice:
+            raise ValueError(f"anomaly {self.id!r}: variant {_short(twice[0])} is listed twice in variants; fix: list "
+                             "each once")
         return self
 
     def user_variants(self) -> tuple[str, ...]:
@@ -295,8 +310,12 @@ class Anomalies(_Model):
     @field_validator("assets")
     @classmethod
     def _assets(cls, v: list[AnomalyChoice]) -> list[AnomalyChoice]:
-        if len({a.id for a in v}) != len(v):
-            raise ValueError("an anomaly id is listed twice; fix: list each id once, with its variants")
+        ids = [a.id for a in v]
+        if len(set(ids)) != len(ids):
+            twice = next(i for n, i in enumerate(ids) if i in ids[:n])
+            demo = " (a plan from `allo-usd plan --demo` lists it already)" if twice == "power_drill" else ""
+            raise ValueError(f"anomaly id {_short(twice)} is listed twice{demo}; fix: list each id once, with its "
+                             "variants")
         return v
 
     def user_hazards(self) -> list[AnomalyChoice]:

@@ -2,6 +2,11 @@
 
 ``write_sky_report(sky, csv_path, png_path)`` is what ``allo-usd sky`` calls. Matplotlib is
 driven through its object API on an Agg canvas, so the global backend is left alone.
+
+The table has one row per epoch of the Sky (a render day). The distance panel does not join those
+rows: the orbit's 6.56-day period is close to a whole number of days and a perilune pass lasts
+hours, so daily samples alias it into a slow false wave that misses perilune. It draws
+``distance_curve`` instead, the same orbit model sampled every DISTANCE_STEP_S, and marks the epochs.
 """
 
 from __future__ import annotations
@@ -9,6 +14,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +23,7 @@ from allo_usd.core.errors import SkyInputError
 from allo_usd.core.files import atomic_path
 from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.sky.model import BODIES, Sky
+from allo_usd.core import fixedmath as fm
 
 CSV_COLUMNS = (
     "date",
@@ -30,6 +37,27 @@ CSV_COLUMNS = (
     "earth_angular_diameter_deg",
     "moon_angular_diameter_deg",
 )
+
+
+DISTANCE_STEP_S = 900.0   # the distance panel's sampling: 15 min, about 630 samples per orbit
+
+
+def distance_curve(sky: Sky, step_s: float = DISTANCE_STEP_S) -> tuple[list[datetime], np.ndarray]:
+    """(UTC times, station-Moon distance in km) from the earliest to the latest epoch of `sky`, every
+    `step_s` seconds and at the latest epoch: what the plot's distance panel draws as its line. The distance is
+    the orbit model's (allo_usd.sky.orbit: the ellipse's radius, which the Earth-Moon frame's turning
+    does not change), so at the sky's own epochs it is the table's `station_moon_distance_km`."""
+    if not (math.isfinite(step_s) and step_s > 0):
+        raise SkyInputError(f"step_s must be a positive number of seconds, got {step_s!r}")
+    epochs = [parse_utc(e, "epoch") for e in sky.epochs]
+    start, end = min(epochs), max(epochs)
+    span = (end - start).total_seconds()
+    offsets = np.arange(0.0, span, step_s) if span > 0 else np.zeros(0)
+    offsets = np.append(offsets, span)
+    since = (start - sky.orbit.perilune_epoch).total_seconds() + offsets
+    position, _ = sky.orbit.rotating_state(since)
+    times = [start + timedelta(seconds=float(o)) for o in offsets]
+    return times, fm.norm(position, axis=1) / 1e3
 
 
 def _rows(sky: Sky) -> list[list[str]]:
@@ -87,10 +115,14 @@ def sky_figure(sky: Sky):
     )
 
     ax = axes[0]
-    ax.plot(dates, np.asarray(sky.station_moon_distance_m) / 1e3, ".-", ms=3, lw=0.6)
+    times, km = distance_curve(sky)
+    ax.plot(times, km, "-", lw=0.5, color="C0", label=f"orbit, every {DISTANCE_STEP_S / 60:g} min")
+    ax.plot(dates, np.asarray(sky.station_moon_distance_m) / 1e3, ".", ms=4, color="C1",
+            label="table epochs (render days, 00:00 UTC)")
     ax.axhline(o.perilune_radius_m / 1e3, color="0.6", lw=0.8, ls="--")
     ax.axhline(o.apolune_radius_m / 1e3, color="0.6", lw=0.8, ls="--")
     ax.set_ylabel("station-Moon\ndistance (km)")
+    ax.legend(loc="lower right", fontsize=8)
 
     ax = axes[1]
     irr = np.asarray(sky.sun_irradiance_w_m2)

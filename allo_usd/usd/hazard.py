@@ -40,6 +40,7 @@ from allo_usd.core import fixedmath as fm
 
 SOURCE_MARKER = "source.json"
 SIZE_M = (0.01, 20.0)                 # a hazard's largest extent, metres (a tool .. a loose panel)
+STATION_SIZE_M = (0.01, 500.0)        # `asset import --label station`: the ISS, the largest built, is 109 m
 MAX_TRIANGLES = 2_000_000             # after triangulation (the built-in hazards have < 20k)
 MAX_FILE_BYTES = 512 << 20
 
@@ -141,14 +142,25 @@ def load_hazard(path: Path, name: str, units: str | None, up_axis: str | None) -
     if n > MAX_TRIANGLES:
         raise PlanError(f"anomaly {name!r}: {path} has {n:,} faces, above the {MAX_TRIANGLES:,} a hazard may have; "
                         "fix: decimate it")
-    lo, hi = asset.bounds()
-    extent = hi - lo
-    if not (np.isfinite(extent).all() and SIZE_M[0] <= extent.max() <= SIZE_M[1]):
-        raise PlanError(f"anomaly {name!r}: {path} measures {extent.max():.4g} m along its longest side with units "
-                        f"{info['unit']!r}, outside the {SIZE_M[0]:g}-{SIZE_M[1]:g} m a hazard near the station may "
-                        "measure; fix: give the unit the file is in (units = \"mm\", \"cm\", \"in\", ...)")
+    extent = check_size(asset, path, name, info["unit"])
     info["extentM"] = [round(float(e), 6) for e in extent]
     return asset, info
+
+
+def check_size(asset: Asset, path: Path, name: str, unit: str, what: str = "anomaly", size_m=SIZE_M,
+               kind: str = "a hazard near the station", give: str = 'units = "mm", "cm", "in", ...',
+               read_as: str = "") -> np.ndarray:
+    """The asset's bounding-box extent (metres), or a PlanError naming the unit it was read with when its
+    longest side is outside `size_m`: almost always a unit mistake. The one size check of a plan's
+    hazards (load_hazard) and of `allo-usd asset import` (which gives `kind`, `give` as its options and
+    `read_as`, how a unit it did not get was chosen)."""
+    lo, hi = asset.bounds()
+    extent = hi - lo
+    if not (np.isfinite(extent).all() and size_m[0] <= extent.max() <= size_m[1]):
+        raise PlanError(f"{what} {name!r}: {path} measures {extent.max():.4g} m along its longest side with units "
+                        f"{unit!r}{read_as}, outside the {size_m[0]:g}-{size_m[1]:g} m {kind} may measure; fix: give "
+                        f"the unit the file is in ({give})")
+    return extent
 
 
 def import_model(path: Path, name: str | None, units: str | None, up_axis: str | None,
