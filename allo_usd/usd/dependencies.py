@@ -18,8 +18,20 @@ by USD's own resolver, as `Usd.Stage.Open` will. Each file must then
 - hold at most MAX_LAYER_BYTES (a layer) or MAX_ASSET_BYTES (an asset): a sparse 2 GB
   sublayer once cost a worker 4.3 GB of memory;
 - for a layer, end in a USD layer extension (.usda, .usdc, .usd).
-Value clips and package (.usdz) paths are refused: no ALLO layer uses them and the walk does
-not follow them. A refused file is named with the rule it breaks, never with its content.
+Value clips are refused: no ALLO layer uses them and the walk does not follow them. So is a
+path into a package (.usdz) named by a layer outside it.
+
+**A package as the scene** (`allo-usd pack`, allo_usd.usd.pack). A .usdz given as the scene layer
+is one file whose contents are its own: the package itself must pass the rules above (roots,
+regular file, at most MAX_PACKAGE_BYTES) and hold entries USD can read in place (stored, not
+encrypted, the first one a layer); then every path its layers name must resolve inside that same
+package (`PKG[entry]`, an entry it holds, within the layer or asset size bound; a layer entry
+with a layer extension). A path outside the package, into another package, or into a package
+inside it is refused. The walk then lists the package file alone: its bytes are every input.
+Blender reads textures from files only: the reader reads a packaged one through a copy
+(`unpacked_file`) in a private temporary directory, removed when the process exits.
+
+A refused file is named with the rule it breaks, never with its content.
 
 The walk returns the files it read, root first (depth first, each file once): the inputs of a
 render, whose checksums make its identity (allo_usd.run.manifest.render_identity). A layer's
@@ -33,19 +45,25 @@ window, it does not close it), and what a custom ArResolver would resolve differ
 
 from __future__ import annotations
 
+import atexit
+import hashlib
 import os
 import re
+import shutil
+import tempfile
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from allo_usd.core.errors import LayerError
-from allo_usd.core.files import file_problem
+from allo_usd.core.files import file_problem, write_bytes_atomic
 from allo_usd.usd.safety import allowed_roots, inside, reject
 
 MAX_LAYER_BYTES = 256 << 20   # a scene layer is < 4 KB; the base stage's largest .usdc is a few MB
 MAX_ASSET_BYTES = 256 << 20   # a texture; the shipped ones are < 1 MB
 LAYER_EXTENSIONS = (".usda", ".usdc", ".usd")
+PACKAGE_EXTENSION = ".usdz"   # a scene packed into one file (allo_usd.usd.pack)
+MAX_PACKAGE_BYTES = 1 << 30   # a packed scene: its layers, assets and textures (the demo's: about 5.5 MB)
 CACHE_SIZE = 4096             # layers whose direct dependencies are remembered (LRU)
 
 LAYER, ASSET = "layer", "asset"
@@ -70,6 +88,76 @@ class Walk:
 
 
 _NAMED: OrderedDict[tuple, tuple[_Named, ...]] = OrderedDict()
+_ENTRIES: OrderedDict[tuple, dict] = OrderedDict()
+
+
+def is_package(path: str | Path) -> bool:
+    """A package (.usdz) by its name, which is how USD picks the file format."""
+    return os.path.splitext(str(path))[1].lower() == PACKAGE_EXTENSION
+
+
+@dataclass(frozen=True)
+class Package:
+    """The package a walk started from: its real path and its entries {name: uncompressed size}."""
+    real: str
+    entries: dict
+
+
+def _package(real: str, layer_path) -> Package:
+    """The package at `real` (already checked as a bounded regular file inside the roots), with
+    the entries USD would read from it; a LayerError when USD could not read it in place."""
+    from pxr import Sdf
+
+    key = stat_key(real)
+    entries = _ENTRIES.get(key)
+    if entries is None:
+        fix = "pack the scene again with `allo-usd pack LAYER --out SCENE.usdz`"
+        zf = Sdf.ZipFile.Open(real)
+        names = list(zf.GetFileNames()) if zf else []
+        if not names:
+            raise LayerError(f"{layer_path} is not a readable USD package (no zip entries USD can list); {fix}")
+        entries = {}
+        for name in names:
+            info = zf.GetFileInfo(name)
+            if info.compressionMethod != 0 or info.encrypted:
+                raise LayerError(f"{layer_path}: entry {name} of the package is compressed or encrypted, which USD "
+                                 f"cannot read in place (a .usdz stores its files as they are); {fix}")
+            entries[name] = info.uncompressedSize
+        if os.path.splitext(names[0])[1].lower() not in LAYER_EXTENSIONS:
+            raise LayerError(f"{layer_path}: the first entry of the package, {names[0]}, is not a USD layer (the "
+                             f"first entry is the scene layer); {fix}")
+        _ENTRIES[key] = entries
+        while len(_ENTRIES) > 64:
+            _ENTRIES.popitem(last=False)
+    return Package(real, entries)
+
+
+def _check_packaged(kind: str, what: str, path: str, layer_path, package: Package) -> str:
+    """The key (`REAL.usdz[entry]`) of a path a packaged layer names if it may be read: an entry
+    of the package itself, within its size bound; else a LayerError naming the rule."""
+    from pxr import Ar
+
+    fix = ("a package (.usdz) may use only the files it holds: pack the scene with `allo-usd pack LAYER --out "
+           "SCENE.usdz`, which takes in every file the scene reads")
+    if not Ar.IsPackageRelativePath(path):
+        raise LayerError(f"{layer_path}: {what} {path} lies outside the package; {fix}")
+    outer, inner = Ar.SplitPackageRelativePathOuter(path)
+    if os.path.realpath(outer) != package.real:
+        raise LayerError(f"{layer_path}: {what} {path} lies in another package, outside this one; {fix}")
+    if Ar.IsPackageRelativePath(inner):
+        raise LayerError(f"{layer_path}: {what} {path} lies in a package inside the package, which allo-usd does "
+                         f"not follow; {fix}")
+    size = package.entries.get(inner)
+    if size is None:
+        raise LayerError(f"{layer_path}: {what} {path} is not an entry of the package; {fix}")
+    limit = MAX_LAYER_BYTES if kind == LAYER else MAX_ASSET_BYTES
+    if size > limit:
+        raise LayerError(f"{layer_path}: {what} {path} holds {size:,} bytes, over the {limit >> 20:,} MiB allowed; a "
+                         "layer may only use bounded files: fix the layer")
+    if kind == LAYER and os.path.splitext(inner)[1].lower() not in LAYER_EXTENSIONS:
+        raise LayerError(f"{layer_path}: {what} {path} is not a USD layer (its name must end in "
+                         f"{', '.join(LAYER_EXTENSIONS)}); point the layer at a USD file")
+    return f"{package.real}[{inner}]"
 
 
 def stat_key(real: str) -> tuple:
@@ -78,16 +166,19 @@ def stat_key(real: str) -> tuple:
     return real, st.st_mtime_ns, st.st_size, st.st_ino
 
 
-def _check(kind: str, what: str, path: str, layer_path, roots) -> str:
-    """The real path of `path` if it may be read as a `kind`; else a LayerError naming the rule."""
+def _check(kind: str, what: str, path: str, layer_path, roots, package_root: bool = False) -> str:
+    """The real path of `path` if it may be read as a `kind`; else a LayerError naming the rule.
+    `package_root`: `path` is the scene itself and may be a package (.usdz)."""
     real = os.path.realpath(path)
     if not inside(real, roots):
         reject(what, path, layer_path, roots)
-    problem = file_problem(real, MAX_LAYER_BYTES if kind == LAYER else MAX_ASSET_BYTES)
+    packaged = package_root and is_package(path)
+    problem = file_problem(real, MAX_PACKAGE_BYTES if packaged else MAX_LAYER_BYTES if kind == LAYER
+                           else MAX_ASSET_BYTES)
     if problem:
         raise LayerError(f"{layer_path}: {what} {path} {problem}; a layer may only use bounded regular files: fix the "
                          "layer (restore the file, point it at another, or remove the path)")
-    if kind == LAYER and os.path.splitext(path)[1].lower() not in LAYER_EXTENSIONS:
+    if kind == LAYER and not packaged and os.path.splitext(path)[1].lower() not in LAYER_EXTENSIONS:
         raise LayerError(f"{layer_path}: {what} {path} is not a USD layer (its name must end in "
                          f"{', '.join(LAYER_EXTENSIONS)}); point the layer at a USD file")
     return real
@@ -147,8 +238,9 @@ def _asset_values(spec) -> list:
     return [v.path for v in out if v is not None and v.path]
 
 
-def _named(layer, layer_path) -> tuple[_Named, ...]:
-    """Every file `layer` names, in order: sublayers, then references and payloads, then assets."""
+def _named(layer, layer_path, packaged: bool = False) -> tuple[_Named, ...]:
+    """Every file `layer` names, in order: sublayers, then references and payloads, then assets.
+    `packaged`: the layer lies in the package being walked, whose paths are package-relative."""
     from pxr import Sdf
 
     def named(kind: str, what: str, raw: str) -> _Named:
@@ -157,7 +249,7 @@ def _named(layer, layer_path) -> tuple[_Named, ...]:
                              "allo-usd does not follow (its value is only known to the stage that opens it); write "
                              "the path itself")
         identifier = layer.ComputeAbsolutePath(raw)
-        if "[" in identifier and identifier.endswith("]"):
+        if not packaged and "[" in identifier and identifier.endswith("]"):
             raise LayerError(f"{layer_path}: {what} {raw} in {layer.identifier} is inside a package (.usdz); "
                              "unpack it and refer to the files themselves")
         return _Named(kind, what, identifier)
@@ -178,15 +270,15 @@ def _named(layer, layer_path) -> tuple[_Named, ...]:
     return tuple(out)
 
 
-def _cached_named(real: str, identifier: str, layer_path, opened: list) -> tuple[_Named, ...]:
-    key = stat_key(real)
+def _cached_named(key: tuple, identifier: str, layer_path, opened: list, packaged: bool = False
+                  ) -> tuple[_Named, ...]:
     hit = _NAMED.get(key)
     if hit is not None:
         _NAMED.move_to_end(key)
         return hit
     layer = _open(identifier, layer_path)
     opened.append(layer)
-    found = _named(layer, layer_path)
+    found = _named(layer, layer_path, packaged)
     _NAMED[key] = found
     while len(_NAMED) > CACHE_SIZE:
         _NAMED.popitem(last=False)
@@ -195,40 +287,93 @@ def _cached_named(real: str, identifier: str, layer_path, opened: list) -> tuple
 
 def check_root(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> str:
     """The real path of a scene layer that may be opened (its roots, a regular file, its size, a
-    layer extension), without opening it; else a LayerError naming the rule."""
-    return _check(LAYER, "scene layer", os.path.abspath(layer_path), layer_path, allowed_roots(layer_path, extra))
+    layer extension, or a package: .usdz), without opening it; else a LayerError naming the rule."""
+    return _check(LAYER, "scene layer", os.path.abspath(layer_path), layer_path, allowed_roots(layer_path, extra),
+                  package_root=True)
 
 
 def walk(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> Walk:
     """Check every file the composition of `layer_path` reads, before USD opens it (see the module
     doc); raise LayerError for the first refused one. A file USD cannot resolve is skipped (the
-    stage's composition errors report it), unless its path is absolute and outside the roots."""
+    stage's composition errors report it), unless its path is absolute and outside the roots.
+    A package (.usdz) is walked inside itself: its files are the package alone."""
     from pxr import Ar
 
     resolver = Ar.GetResolver()
     layer_path = Path(layer_path)
     roots = allowed_roots(layer_path, extra)
     result, seen = Walk(), set()
-    stack = [(LAYER, "scene layer", os.path.abspath(layer_path))]  # depth first, without a recursive closure
+    root = os.path.abspath(layer_path)
+    package = None
+    if is_package(root):
+        real = _check(LAYER, "scene layer", root, layer_path, roots, package_root=True)
+        package = _package(real, layer_path)
+        result.files.append(real)
+    stack = [(LAYER, "scene layer", root)]  # depth first, without a recursive closure
     while stack:  # (a closure calling itself is a reference cycle: it would keep the opened layers alive)
         kind, what, path = stack.pop()
-        real = _check(kind, what, path, layer_path, roots)
-        if real in seen:
+        if package is None:
+            real = key = _check(kind, what, path, layer_path, roots)
+        else:
+            real = key = package.real if path == root else _check_packaged(kind, what, path, layer_path, package)
+        if key in seen:
             continue
-        seen.add(real)
-        result.files.append(real)
+        seen.add(key)
+        if package is None:
+            result.files.append(real)
         if kind != LAYER:
             continue
         children = []
-        for n in _cached_named(real, path, layer_path, result.layers):
+        cache_key = stat_key(real) if package is None else (*stat_key(package.real), key)
+        for n in _cached_named(cache_key, path, layer_path, result.layers, package is not None):
             resolved = str(resolver.Resolve(n.identifier))
             if resolved:
                 children.append((n.kind, n.what, resolved))
+            elif package is not None and os.path.isabs(n.identifier) and not Ar.IsPackageRelativePath(n.identifier):
+                _check_packaged(n.kind, n.what, n.identifier, layer_path, package)  # outside: refused
             elif os.path.isabs(n.identifier) and not inside(n.identifier, roots):
                 reject(n.what, n.identifier, layer_path, roots)
         stack += reversed(children)
     return result
 
 
-__all__ = ["walk", "check_root", "Walk", "stat_key", "tf_message", "MAX_LAYER_BYTES", "MAX_ASSET_BYTES",
-           "LAYER_EXTENSIONS"]
+_UNPACKED: tuple[int, Path] | None = None  # (pid, directory) of this process's copies
+
+
+def _unpack_dir() -> Path:
+    global _UNPACKED
+    if _UNPACKED is None or _UNPACKED[0] != os.getpid():
+        path = Path(tempfile.mkdtemp(prefix="allo-usdz-"))
+        atexit.register(shutil.rmtree, path, True)
+        _UNPACKED = (os.getpid(), path)
+    return _UNPACKED[1]
+
+
+def unpacked_file(resolved: str, where: str = "") -> str:
+    """The entry `PKG.usdz[entry]` (a path USD resolved) as a file of its own, for a reader that
+    reads files only (Blender's image loader): a copy under this process's private temporary
+    directory, named by its SHA-256 and keeping the entry's file name. The entry must be stored in
+    place and at most MAX_ASSET_BYTES (the walk checked both; checked again here)."""
+    from pxr import Ar, Sdf
+
+    outer, inner = Ar.SplitPackageRelativePathOuter(resolved)
+    zf = Sdf.ZipFile.Open(outer) if outer else None
+    info = zf.GetFileInfo(inner) if zf else None
+    at = f" ({where})" if where else ""
+    if info is None or Ar.IsPackageRelativePath(inner):
+        raise LayerError(f"{resolved}{at} is not an entry of its package; pack the scene again with `allo-usd pack`")
+    if info.compressionMethod != 0 or info.encrypted or info.uncompressedSize > MAX_ASSET_BYTES:
+        raise LayerError(f"{resolved}{at} is compressed, encrypted or over {MAX_ASSET_BYTES >> 20} MiB; pack the "
+                         "scene again with `allo-usd pack`")
+    data = bytes(zf.GetFile(inner))
+    name = Path(inner).name
+    if name in ("", ".", "..") or "\0" in name:
+        name = "entry"
+    dest = _unpack_dir() / hashlib.sha256(data).hexdigest() / name
+    if not dest.is_file():
+        write_bytes_atomic(dest, data)
+    return str(dest)
+
+
+__all__ = ["walk", "check_root", "Walk", "stat_key", "tf_message", "is_package", "unpacked_file",
+           "MAX_LAYER_BYTES", "MAX_ASSET_BYTES", "MAX_PACKAGE_BYTES", "LAYER_EXTENSIONS", "PACKAGE_EXTENSION"]

@@ -350,8 +350,9 @@ def check_texture_file(path: str, where) -> None:
 
 
 def _read_texture(material_path: str, prim) -> tuple[str, tuple[float, float, float]]:
-    """(file, colour scale) of the UsdUVTexture a diffuseColor is connected to."""
-    from pxr import Sdf, UsdShade
+    """(file, colour scale) of the UsdUVTexture a diffuseColor is connected to; an entry of a package
+    (a .usdz scene) is read through a copy of it (allo_usd.usd.dependencies.unpacked_file)."""
+    from pxr import Ar, Sdf, UsdShade
 
     tex = UsdShade.Shader(prim)
     where = prim.GetPath()
@@ -366,6 +367,10 @@ def _read_texture(material_path: str, prim) -> tuple[str, tuple[float, float, fl
     if not texture:
         raise LayerError(f"material {material_path}: texture {asset} does not resolve to a file; restore the "
                          "asset's textures/ folder")
+    if texture.endswith("]") and Ar.IsPackageRelativePath(texture):  # PKG.usdz[entry]: Blender reads files only
+        from allo_usd.usd.dependencies import unpacked_file
+
+        texture = unpacked_file(texture, f"{where}.inputs:file")
     check_texture_file(texture, f"{where}.inputs:file")
     scale = tex.GetInput("scale").Get() if tex.GetInput("scale") else None
     colour = (1.0, 1.0, 1.0) if scale is None else _vector(scale, f"{where}.inputs:scale", 4, 0.0, MAX_COLOUR)[:3]
@@ -916,6 +921,38 @@ def read_rig(base_stage: str | Path) -> list:
     if not poses:
         raise LayerError(f"{base_stage} has no camera poses under {layout.RIG}; regenerate the base stage")
     return sorted(poses, key=lambda p: p.index)
+
+
+def read_rig_lens(base_stage: str | Path, width: int | None = None):
+    """The lens the rig's views were chosen through (core.camera_model.CameraModel), as each pose's
+    AlloCameraPoseAPI records it in UsdGeom.Camera's units (the poses are Xforms, not cameras). The
+    principal-point offset is in pixels of a `width`-pixel image (needs `width` when one is recorded)."""
+    from allo_usd.core.camera_model import CameraModel
+
+    stage = open_stage(base_stage)
+    found = set()
+    for prim in stage.GetPrimAtPath(layout.RIG).GetChildren():
+        if prim.HasAPI("AlloCameraPoseAPI"):
+            found.add(tuple(tuple(v) if hasattr(v, "__len__") else v
+                            for v in (prim.GetAttribute(a.name).Get() for a in A.POSE_LENS)))
+    if len(found) != 1:
+        raise LayerError(f"{base_stage}: the rig's poses record {len(found)} different lenses under {layout.RIG} "
+                         "(one expected); regenerate the base stage")
+    from decimal import Decimal
+
+    def mm(v) -> float:  # tenths of a unit (a float32) -> mm, from its shortest decimal: 0.36 -> 36.0, not 36.0000014
+        return float(Decimal(str(np.float32(v))) * 100)
+
+    *lens, clip = next(iter(found))
+    focal, h_ap, v_ap, h_off, v_off = (mm(v) for v in lens)
+    offset = (0.0, 0.0)
+    if (h_off, v_off) != (0.0, 0.0):
+        if width is None:
+            raise LayerError(f"{base_stage}: the rig's lens has a principal-point offset; give the image width")
+        px_per_mm = width / h_ap
+        offset = (-h_off * px_per_mm + 0.0, v_off * px_per_mm + 0.0)
+    clip = tuple(float(Decimal(str(np.float32(c)))) for c in clip)
+    return CameraModel(focal, h_ap, v_ap, clip, offset)
 
 
 def read_triangles(layer_path: str | Path, root: str, variant: str | None = None,

@@ -21,7 +21,13 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
   `ALLO_ASSET_ROOTS`, so render workers inherit them.
 
 Paths are compared after resolving symbolic links, so a link inside a root that points outside
-it is rejected too. allo_usd.usd.dependencies applies these roots (and the file-type and size
+it is rejected too.
+
+A package (.usdz, `allo-usd pack`) opened as the scene is one file whose contents are its own:
+every layer and asset of its stage must lie inside that package (`PKG[entry]`), whatever the
+roots say; the package file itself must lie inside the roots.
+
+allo_usd.usd.dependencies applies these roots (and the file-type and size
 rules) to every file before USD opens it; `check_stage` checks the composed stage again after.
 Blender never auto-runs scripts (`blender.build.reset`), so a layer can only ever bring data,
 never code.
@@ -144,17 +150,44 @@ def reject(what: str, path: str, layer_path, roots) -> None:
                      f"({', '.join(map(str, roots))}); {fix}")
 
 
+def in_package(path: str, package: str) -> bool:
+    """`path` is the package (real path `package`) or an entry of it (`PKG[entry]`, not nested)."""
+    from pxr import Ar
+
+    if not Ar.IsPackageRelativePath(path):
+        return os.path.realpath(path) == package
+    outer, inner = Ar.SplitPackageRelativePathOuter(path)
+    return os.path.realpath(outer) == package and not Ar.IsPackageRelativePath(inner)
+
+
+def reject_outside_package(what: str, path: str, layer_path) -> None:
+    raise LayerError(f"{layer_path}: {what} {path} lies outside the package; a package (.usdz) may use only the "
+                     "files it holds: pack the scene with `allo-usd pack LAYER --out SCENE.usdz`, which takes in "
+                     "every file the scene reads")
+
+
 def check_stage(stage, layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> None:
-    """Raise LayerError if any layer in the stack or any asset-valued attribute leaves the roots."""
+    """Raise LayerError if any layer in the stack or any asset-valued attribute leaves the roots
+    (for a package, the package)."""
     from pxr import Sdf, Usd
 
     roots = allowed_roots(layer_path, extra)
+    package = os.path.realpath(layer_path) if str(layer_path).lower().endswith(".usdz") else None
+
+    def outside(path: str) -> bool:
+        return not in_package(path, package) if package else not inside(path, roots)
+
+    def refuse(what: str, path: str) -> None:
+        if package:
+            reject_outside_package(what, path, layer_path)
+        reject(what, path, layer_path, roots)
+
     for layer in stage.GetUsedLayers():
         if layer.anonymous:
             continue
         real = layer.realPath
-        if real and not inside(real, roots):
-            reject("layer", real, layer_path, roots)
+        if real and outside(real):
+            refuse("layer", real)
     asset_types = (Sdf.ValueTypeNames.Asset, Sdf.ValueTypeNames.AssetArray)
     for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
         for attr in prim.GetAttributes():
@@ -165,7 +198,7 @@ def check_stage(stage, layer_path: str | Path, extra: tuple[str | Path, ...] = (
                 if asset is None:
                     continue
                 resolved = asset.resolvedPath
-                if resolved and not inside(resolved, roots):
-                    reject(f"asset {attr.GetPath()} =", resolved, layer_path, roots)
-                elif not resolved and asset.path and os.path.isabs(asset.path) and not inside(asset.path, roots):
-                    reject(f"asset {attr.GetPath()} =", asset.path, layer_path, roots)
+                if resolved and outside(resolved):
+                    refuse(f"asset {attr.GetPath()} =", resolved)
+                elif not resolved and asset.path and os.path.isabs(asset.path) and outside(asset.path):
+                    refuse(f"asset {attr.GetPath()} =", asset.path)
