@@ -11,12 +11,21 @@ The public API, in the order data flows (everything else is internal and may cha
     summary = allo_usd.render("out/tree", "out/renders", workers=2)  # many layers: local pool or Dask
     allo_usd.assemble_dataset(["out/renders"], "out/dataset")         # MVTec-AD layout + manifest
 
-Names resolve on first use, so `import allo_usd` loads neither pxr nor bpy.
+Names resolve on first use, so `import allo_usd` loads neither pxr nor bpy. Blender's own output
+(its log lines, "Saved: ...", the GPU probe's CUEW/HIPEW warnings) goes to a log file, as from the
+command line: OUT/logs/render.log for render_layer, OUT/logs/worker-N.log for render's workers, and
+for render_scene (no output directory) $TMPDIR/allo-usd-UID/render.log; `log=` picks another file.
+`render(..., workers=N)` starts its workers as their own programs, so a script that calls it needs
+no `if __name__ == "__main__":` guard.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
+import sys
+import tempfile
+from pathlib import Path
 
 __version__ = "0.1.0"
 
@@ -32,8 +41,8 @@ _API = {
     "author_scene": ("allo_usd.run.author", "author_scene"),
     "read_scene": ("allo_usd.usd.read", "read_scene"),
     "SceneDescription": ("allo_usd.usd.description", "SceneDescription"),
-    "render_scene": ("allo_usd.blender.render", "render_scene"),
-    "render_layer": ("allo_usd.run.job", "render_layer"),
+    "render_scene": (__name__, "render_scene"),   # defined below: Blender's output to a log file
+    "render_layer": (__name__, "render_layer"),
     "render": ("allo_usd.run.dispatch", "dispatch"),
     "assemble_dataset": ("allo_usd.output.dataset", "assemble"),
     "AlloError": ("allo_usd.core.errors", "AlloError"),
@@ -54,3 +63,43 @@ def __getattr__(name: str):
 
 def __dir__() -> list[str]:
     return sorted(__all__)
+
+
+def render_scene(desc, workdir=None, *, log=None):
+    """Build `desc` (a SceneDescription) in Blender and render it with Cycles: a RenderResult of
+    arrays (rgb linear, mask, depth), no files (allo_usd.blender.render.render_scene). Blender's own
+    output goes to `log`, by default $TMPDIR/allo-usd-UID/render.log, not to the terminal."""
+    if log is None:
+        user = os.getuid() if hasattr(os, "getuid") else "user"
+        log = Path(tempfile.gettempdir()) / f"allo-usd-{user}" / "render.log"
+    return _logged(log, "allo_usd.blender.render", "render_scene", desc, workdir)
+
+
+def render_layer(layer, out_dir, *args, log=None, **kwargs) -> dict:
+    """Render one scene layer into `out_dir`: PNG, EXR, mask and the JSON metadata it returns (the
+    arguments of allo_usd.run.job.render_layer: force, threads, device, passes, ...). Blender's own
+    output goes to `log`, by default OUT_DIR/logs/render.log (as `allo-usd render LAYER`), not to the
+    terminal; a device notice (an `auto` without a GPU) is shown once on stderr."""
+    return _logged(Path(out_dir) / "logs" / "render.log" if log is None else log, "allo_usd.run.job", "render_layer",
+                   layer, out_dir, *args, **kwargs)
+
+
+def _logged(log, module: str, name: str, *args, **kwargs):
+    """module.name(*args, **kwargs) with this process's stdout and stderr (file descriptors: Blender
+    prints from C) appended to `log` (allo_usd.run.worker.output_to, what the CLI uses); the device
+    notices printed meanwhile are shown on stderr afterwards, once each, as the CLI does."""
+    from allo_usd.run.worker import output_to
+
+    shown = set(_notices())
+    try:
+        with output_to(Path(log)):  # the imports too: bpy may print as it loads
+            return getattr(importlib.import_module(module), name)(*args, **kwargs)
+    finally:
+        for text in _notices():
+            if text not in shown:
+                print(f"note: {text}", file=sys.stderr, flush=True)
+
+
+def _notices() -> list[str]:
+    device = sys.modules.get("allo_usd.blender.device")  # not loaded: no notice yet (and bpy stays unloaded)
+    return device.noticed() if device is not None else []

@@ -1018,7 +1018,7 @@ def _runner(ctx: AuthorContext, plan: Plan, out_dir: Path, sky, workers: int):
 
     mpctx = mp.get_context("spawn")
     stop = mpctx.Event()
-    with _single_threaded_numerics(), \
+    with _single_threaded_numerics(), _caller_main_hidden(), \
             ProcessPoolExecutor(workers, mp_context=mpctx, initializer=_init,
                                 initargs=(plan.model_dump_json(), str(out_dir), sky, stop)) as pool:
         try:
@@ -1030,6 +1030,28 @@ def _runner(ctx: AuthorContext, plan: Plan, out_dir: Path, sky, workers: int):
 
 
 _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextmanager
+def _caller_main_hidden():
+    """While the pool lives, spawned workers do not run the caller's script. multiprocessing's spawn
+    re-imports `__main__` in every child (from its __spec__ name or its __file__), so a script without
+    an `if __name__ == "__main__":` guard would author again in each worker, recursively. The workers
+    need nothing from it (their functions and initializer live here), so the two attributes spawn
+    reads are hidden while workers start, and put back after."""
+    import sys
+
+    main = sys.modules.get("__main__")
+    saved = {k: main.__dict__[k] for k in ("__spec__", "__file__") if main is not None and k in main.__dict__}
+    if main is not None:
+        main.__dict__.pop("__file__", None)
+        if "__spec__" in saved:
+            main.__spec__ = None
+    try:
+        yield
+    finally:
+        if main is not None:
+            main.__dict__.update(saved)
 
 
 @contextmanager

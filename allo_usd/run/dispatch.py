@@ -19,9 +19,10 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock, ensure_output_dir
-from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, clean_stale, compact_manifest, is_done,
-                                   load_manifest)
-from allo_usd.run.worker import worker_main, render_task
+from allo_usd.core.files import relpath
+from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, clean_stale, compact_manifest,
+                                   done_record, index_row, is_verified, load_manifest)
+from allo_usd.run.worker import WorkerProcess, check_hook, render_task
 from allo_usd.usd.safety import ENV_ROOTS, tree_roots
 from allo_usd.usd.sniff import refusal
 
@@ -57,23 +58,28 @@ class Summary:
 
 # ---------------------------------------------------------------- which layers
 
+SUPPORT_DIRS = ("sky", "poses", "stages", "schema", "hazards")  # a tree's shared layers (allo_usd.usd.compose)
+
+
 def _is_scene_layer(path: Path) -> bool | None:
-    """Scene layers carry customLayerData.allo.sceneId; shared sublayers do not and are skipped.
-    A file that is not even USD is kept, so the reader reports it instead of hiding it. None for
-    a path that is not a regular file (a FIFO, a device): it is never opened for reading, and
-    only the first 16 KiB of a regular file are read (allo_usd.usd.sniff)."""
+    """The one rule for what `render DIR` renders (allo_usd.usd.sniff.is_scene_layer: a layer whose
+    own layer metadata holds customLayerData.allo.sceneId)."""
     from allo_usd.usd.sniff import is_scene_layer
 
     return is_scene_layer(path)
 
 
 def _scene_layers_under(root: Path) -> list[Path]:
-    """Every scene layer (.usda, .usdc, .usd) below `root`, recursively, skipping hidden
-    directories; in an authored plan's tree (plan.toml beside scenes/) only scenes/ is searched:
-    sky/, poses/ and stages/ hold shared sublayers, and a paper plan has ~39,000 pose layers not
-    worth opening. A layer name that is not a regular file (a FIFO, a device) is kept unopened: the
-    dispatcher records it as a failed layer."""
+    """Every scene layer (.usda, .usdc, .usd; _is_scene_layer) and scene package (.usdz: `allo-usd
+    pack`) below `root`, recursively, skipping
+    hidden directories. In an authored tree the support folders are not even searched: in a plan's
+    tree (plan.toml beside scenes/) only scenes/ is; in a tree that holds stages/base.usda (the
+    demo's OUT/layers) not its sky/, poses/, stages/, schema/ and hazards/ (shared sublayers, the
+    base stage's assets, the schema plugin; a paper plan has ~39,000 pose layers not worth opening).
+    A layer name that is not a regular file (a FIFO, a device) is kept unopened: the dispatcher
+    records it as a failed layer."""
     from allo_usd.usd.compose import SCENE_DIR
+    from allo_usd.usd.safety import is_authored_tree
     from allo_usd.usd.sniff import LAYER_SUFFIXES
 
     found = []
@@ -82,8 +88,10 @@ def _scene_layers_under(root: Path) -> list[Path]:
         if SCENE_DIR in dirnames and (here / "plan.toml").is_file():
             dirnames[:] = [SCENE_DIR]
         else:
-            dirnames[:] = [d for d in dirnames if not d.startswith(".")]
-        found += [here / f for f in filenames if f.lower().endswith(LAYER_SUFFIXES) and not f.startswith(".")]
+            support = SUPPORT_DIRS if is_authored_tree(here) else ()
+            dirnames[:] = [d for d in dirnames if not d.startswith(".") and d not in support]
+        found += [here / f for f in filenames
+                  if f.lower().endswith((*LAYER_SUFFIXES, ".usdz")) and not f.startswith(".")]
     # A name that is not a regular file is kept (never opened): dispatch records it in failed.jsonl.
     return [p for p in sorted(found) if _is_scene_layer(p) is not False]
 
@@ -138,25 +146,25 @@ def core_sets(workers: int, threads: int, cores: list[int] | None = None) -> lis
 
 
 class _Worker:
-    def __init__(self, ctx, env: dict, cores: tuple[int, ...] | None = None, index: int = 0,
+    """One local worker: its own `python -m allo_usd.run.worker` process (never the caller's
+    `__main__` again, so an unguarded script works), and the task it holds."""
+
+    def __init__(self, env: dict, cores: tuple[int, ...] | None = None, index: int = 0,
                  out_dir: Path | None = None, before_render: Hook | None = None):
         self.cores, self.index = cores, index
         self.log = None if out_dir is None else Path(out_dir) / LOGS / f"worker-{index}.log"
-        self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=worker_main, daemon=True, name=f"allo-render-worker-{index}",
-                                args=(child, env, os.getpid(), cores, None if self.log is None else str(self.log),
-                                      index, before_render, None if out_dir is None else str(out_dir)))
-        self.proc.start()
-        child.close()
+        self.proc = WorkerProcess(env=env, parent_pid=os.getpid(), cores=cores,
+                                  log=None if self.log is None else str(self.log), index=index,
+                                  before_render=before_render, out_dir=None if out_dir is None else str(out_dir))
+        self.conn = self.proc.conn
         self.task: _Task | None = None
         self.sent: float = 0.0              # when the task was sent (monotonic)
         self.started: float | None = None   # when the worker said it took it
 
     def kill(self) -> None:
-        if self.proc.is_alive():
-            self.proc.kill()
+        self.proc.kill()
         self.proc.join(5)
-        self.conn.close()
+        self.proc.close()  # its connection and pidfd
 
 
 def time_limit(layer: Path, timeout: float | None = None) -> float:
@@ -198,21 +206,63 @@ def _death_reason(code: int | None) -> str:
     return f"worker exited with status {code}"
 
 
-class _Run:
-    """Book-keeping shared by both backends: manifest, failures, progress, retries."""
+PROGRESS_INTERVAL_S = 30.0  # at most one progress line per this many seconds when stderr is not a terminal
 
-    def __init__(self, out_dir: Path, total: int, retries: int, progress: bool | None, summary: Summary):
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    h, rest = divmod(seconds, 3600)
+    return f"{h}h{rest // 60:02d}m" if h else f"{rest // 60}m{rest % 60:02d}s"
+
+
+class _Run:
+    """Book-keeping shared by both backends: manifest, failures, progress, retries.
+
+    Progress: a tqdm bar on a terminal (`progress` None and stderr a TTY, or True); where stderr is
+    not a terminal (a pipe, nohup, a CI log) and `progress` is None, one plain line at most every
+    `interval` seconds (done, failed, rate, ETA; also while a long scene renders, so a log shows
+    the run is alive) and a final line when the run ends (not before an error's or Ctrl-C's own
+    one line); `progress` False: nothing."""
+
+    def __init__(self, out_dir: Path, total: int, retries: int, progress: bool | None, summary: Summary,
+                 interval: float = PROGRESS_INTERVAL_S):
         from tqdm.auto import tqdm
 
         self.out_dir, self.retries, self.summary = out_dir, retries, summary
-        disable = (not sys.stderr.isatty()) if progress is None else not progress
+        tty = sys.stderr.isatty()
+        disable = (not tty) if progress is None else not progress
         self.bar = tqdm(total=total, unit="scene", desc="render", disable=disable, dynamic_ncols=True,
                         file=sys.stderr)
+        self.lines = progress is None and not tty  # plain progress lines instead of the bar
+        self.total, self.interval = total, interval
+        self.t0 = self.last = time.monotonic()
+
+    def line(self, final: bool = False) -> str:
+        """One progress line: scenes done of all (rendered, already done, failed), time, rate, ETA."""
+        s, elapsed = self.summary, time.monotonic() - self.t0
+        worked = len(s.rendered) + len(s.failed)   # this run's scenes (the skipped ones cost nothing)
+        text = (f"render: {worked + len(s.skipped)}/{self.total + len(s.skipped)} scenes done ({len(s.rendered)} "
+                f"rendered, {len(s.skipped)} already done, {len(s.failed)} failed), {_duration(elapsed)}")
+        if worked and elapsed > 0:
+            rate = worked / elapsed
+            text += f", {rate * 3600:.0f} scenes/h"
+            if not final and worked < self.total:
+                text += f", ETA {_duration((self.total - worked) / rate)}"
+        elif not final and self.total:
+            text += ", ETA after the first scene"
+        return text
+
+    def poll(self) -> None:
+        """Print a progress line when `interval` seconds passed since the last (plain lines only)."""
+        if self.lines and time.monotonic() - self.last >= self.interval:
+            self.last = time.monotonic()
+            print(self.line(), file=sys.stderr, flush=True)
 
     def ok(self, task: _Task, result: dict) -> None:
         row = {k: v for k, v in result.items() if k not in ("status", "device_notice")}
         self.note(result.get("device_notice"))
-        row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                   layer_relative=relpath(task.layer, self.out_dir))
         append_jsonl(self.out_dir / MANIFEST, row)
         self.summary.rendered.append(task.scene)
         self._tick()
@@ -267,26 +317,30 @@ class _Run:
     def _tick(self) -> None:
         self.bar.set_postfix(ok=len(self.summary.rendered), failed=len(self.summary.failed), refresh=False)
         self.bar.update(1)
+        self.poll()
 
-    def close(self) -> None:
+    def close(self, last_line: bool = True) -> None:
+        """Close the bar; print the final plain line when `last_line` (a run that ended: an error or
+        Ctrl-C says what happened in its own one line)."""
         self.bar.close()
+        if self.lines and last_line:
+            print(self.line(final=True), file=sys.stderr, flush=True)
 
 
 def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict,
                before_render: Hook | None = None, timeout: float | None = None, device: str = "auto") -> None:
-    import multiprocessing
     from multiprocessing.connection import wait
 
-    ctx = multiprocessing.get_context("spawn")
+    check_hook(before_render)  # one line now, not a worker death per attempt
     pending = deque(tasks)
     n = min(workers, len(tasks))
-    pool = [_Worker(ctx, env, cores, i, out_dir, before_render) for i, cores in enumerate(core_sets(n, threads))]
+    pool = [_Worker(env, cores, i, out_dir, before_render) for i, cores in enumerate(core_sets(n, threads))]
 
     def replace(i: int, w: _Worker) -> None:
         w.kill()
         clean_stale(out_dir, pid=w.proc.pid)  # its half-written temporaries, not its neighbours'
         # after the cleanup: a reused pid keeps its files
-        pool[i] = _Worker(ctx, env, w.cores, w.index, out_dir, before_render)
+        pool[i] = _Worker(env, w.cores, w.index, out_dir, before_render)
 
     try:
         while pending or any(w.task for w in pool):
@@ -300,7 +354,8 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                     w.conn.send({"layer": str(w.task.layer), "out_dir": str(out_dir), "threads": threads,
                                  "roots": env.get(ENV_ROOTS, ""), "device": device})
             busy = [w for w in pool if w.task]
-            wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=1.0)
+            wait([w.conn for w in busy] + [w.proc.sentinel for w in busy if w.proc.sentinel is not None], timeout=1.0)
+            run.poll()
             for i, w in enumerate(pool):
                 if w.task is None:
                     continue
@@ -406,6 +461,7 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
                 done = completed.next_batch(block=False)
                 if not done:
                     time.sleep(0.25)
+                run.poll()
                 for fut in done:
                     if fut not in futures:  # cancelled after its time ran out
                         continue
@@ -466,7 +522,7 @@ def _restart_worker(client, address: str) -> None:
 def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
              retries: int = 2, progress: bool | None = None, extra_roots: tuple = (),
              before_render: Hook | None = None, timeout: float | None = None, trees: tuple = (),
-             device: str = "auto") -> Summary:
+             device: str = "auto", progress_interval: float = PROGRESS_INTERVAL_S) -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
 
     `workers` local processes (default: the cores this process may use) with `threads` Cycles
@@ -482,6 +538,11 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     `device` is the Cycles device of every worker: 'auto' (a GPU when Cycles finds one, else the CPU
     with a notice, in Summary.notes and shown once), 'cpu' or 'gpu' (a machine without a GPU stops
     the run with DeviceError); see allo_usd.blender.device.
+    `progress` None shows a bar on a terminal and, where stderr is not one (a pipe, nohup, a CI log),
+    a plain line at most every `progress_interval` seconds and a final one; True the bar, False nothing.
+    A scene is skipped when done by the rule every entry point shares (allo_usd.run.manifest.is_done:
+    its render JSON, or a verified manifest row); one another entry point rendered (render_layer, the
+    demo) gets its manifest row from its JSON.
     """
     from allo_usd.blender.device import check_device
 
@@ -510,11 +571,17 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
             why = refusal(layer)
             if why:  # found by the scan: never opened, recorded as failed
                 unusable.append((_Task(layer), why))
-            elif is_done(layer, out_dir, done):
+            # is_done's rule in its two halves: a verified manifest row, else the render's own JSON
+            elif is_verified(done.get(layer.stem), layer, out_dir):
                 summary.skipped.append(layer.stem)
+            elif (meta := done_record(layer, out_dir, strict=True)) is not None:
+                summary.skipped.append(layer.stem)  # rendered by another entry point: the index catches up
+                append_jsonl(out_dir / MANIFEST, {**index_row(layer, out_dir, meta),
+                                                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
             else:
                 tasks.append(_Task(layer))
-        run = _Run(out_dir, len(tasks) + len(unusable), retries, progress, summary)
+        run = _Run(out_dir, len(tasks) + len(unusable), retries, progress, summary, progress_interval)
+        ended = False  # the run's last progress line only for a run that ended (not for an error's one line)
         for task, why in unusable:
             run.fail(task, "layer", why)
         try:
@@ -525,10 +592,11 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
                 n = max(1, workers or cores)
                 _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env, before_render,
                            timeout, device)
+            ended = True
         except KeyboardInterrupt:
             summary.interrupted = True
         finally:
-            run.close()
+            run.close(last_line=ended)
             clean_stale(out_dir)
             try:
                 compact_manifest(out_dir)

@@ -22,8 +22,9 @@ from allo_usd.output.annotations import image_annotations
 from allo_usd.output.writers import (write_exr, write_instance_png, write_json, write_mask_png, write_rgb_exr,
                                     write_rgb_png)
 from allo_usd.plan.settings import canonical_passes
-from allo_usd.run.manifest import (check_output_names, file_sha256, input_hashes, is_done, output_paths,
-                                   render_identity, render_versions)
+from allo_usd.core.files import relpath
+from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, done_record, file_sha256, index_row,
+                                   input_hashes, output_paths, outputs_sha256, render_identity, render_versions)
 from allo_usd.usd.read import layer_outputs
 
 
@@ -60,7 +61,7 @@ def object_pixels(ids: np.ndarray, objects: tuple[str, ...]) -> dict:
 
 def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
                  workdir: Path | None = None, session=None, save_blend: Path | None = None,
-                 device: str = "auto", passes: tuple[str, ...] | None = None) -> dict:
+                 device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON).
 
     `threads` overrides the layer's allo:render:threads for this process only (the layer is not
@@ -74,9 +75,13 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     `passes` (allo_usd.plan.settings.PASSES) replaces the passes the layer orders for this run: the JSON
     records both ("passes" written, "layer_passes"), and a render with other passes than its layer's
     is never skipped as done.
+    A scene is skipped (its JSON returned) when done by the rule every entry point shares
+    (allo_usd.run.manifest.done_record: the JSON beside the outputs is the record), whoever rendered
+    it. A render into a folder that holds a dispatcher's manifest.jsonl appends the scene's row there
+    (`index`; the dispatcher's workers pass False: their parent writes the row), so the index never
+    names outputs that a later render replaced.
     """
     import dataclasses
-    import json
 
     from allo_usd.usd.dependencies import walk
     from allo_usd.usd.read import read_scene
@@ -88,9 +93,9 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     passes = None if passes is None else canonical_passes(passes)
     if passes is not None and passes == layer_outputs(layer):
         passes = None  # what the layer orders anyway
-    if not force and save_blend is None and passes is None and is_done(layer, out_dir):
-        meta = json.loads(output_paths(layer, out_dir)["meta"].read_text())
-        if meta.get("passes", meta.get("layer_passes")) == meta.get("layer_passes"):  # not an override's render
+    if not force and save_blend is None and passes is None:
+        meta = done_record(layer, out_dir)  # the rule every entry point uses (allo_usd.run.manifest.is_done)
+        if meta is not None:
             return meta
     used = select(device)
     read = walk(layer)  # checked before USD opens a file; kept open so read_scene parses no layer twice
@@ -121,7 +126,8 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         write_instance_png(paths["instance"], result.ids)
     counts = np.bincount(result.mask.ravel(), minlength=3)
     meta = {
-        "layer": str(Path(layer).resolve()),
+        "layer": str(Path(layer).resolve()),   # where it was rendered from (this machine's path)
+        "layer_relative": relpath(Path(layer), Path(out_dir)),  # from the render folder: moves with the tree
         "layer_sha256": file_sha256(layer),
         "identity": render_identity(inputs),
         "inputs": inputs,
@@ -141,10 +147,13 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         "scene": desc.meta,
         "effects": effects,
         "files": {k: p.name for k, p in paths.items()},
+        "outputs_sha256": outputs_sha256(paths),  # what is_done checks: the JSON alone vouches for its outputs
         # K, pose, clipping, the anomaly's box and place, the bodies in view (conventions: output/annotations.py)
         "annotations": image_annotations(desc, result.mask),
     }
     write_json(paths["meta"], meta)
+    if index and (Path(out_dir) / MANIFEST).is_file():  # a dispatcher's folder: its index follows the record
+        append_jsonl(Path(out_dir) / MANIFEST, index_row(layer, out_dir, meta))
     return meta
 
 

@@ -15,8 +15,11 @@ directory: sha256}, and allo-usd's, bpy's, usd-core's and numpy's versions (read
 metadata: the parent never imports bpy; numpy draws the sensor noise, whose Generator streams a numpy
 release may change, and encodes sRGB). Other libraries (image encoders, the plan's numerics) are
 recorded in the JSON's "libraries" (allo_usd.core.provenance), not in the identity: a new version of
-one does not re-render finished scenes. The render's JSON records "identity", "inputs" and "versions";
-the manifest row records "identity". A scene is done only while the identity recomputed from the
+one does not re-render finished scenes. The render's JSON records "identity", "inputs", "versions" and
+"outputs_sha256" (each output's checksum); the manifest row records "identity". The JSON, written last
+beside its outputs, is the record: a scene is done for every entry point when its JSON verifies
+(done_record), whichever rendered it; the manifest is an index the dispatcher keeps up with it
+(index_row). A scene is done only while the identity recomputed from the
 recorded inputs' current bytes matches: the recorded inputs are the complete list of what the
 render read, so if none of their bytes changed, a new walk would read the same files. File
 checksums are cached per process by (real path, mtime_ns, size, inode), so the shared sky, pose
@@ -180,22 +183,77 @@ def _meta(path: Path) -> dict:
 
 def is_done(layer: Path, out_dir: Path, manifest: dict[str, dict] | None = None) -> bool:
     """True when `out_dir` holds every output of `layer` rendered from the current bytes of
-    everything its composition read, with the current package versions (its identity).
+    everything its composition read, with the current package versions (its identity): the one
+    rule of "done" for `allo-usd render LAYER`, render_layer, the dispatcher's resume and the demo,
+    whichever of them rendered the scene (done_record).
 
-    With a `manifest` (scene name -> row, from load_manifest: a dispatch run) the scene must have
-    a row there, and every output's checksum and the identity must match it. Without one (a
-    single layer, the demo) every output must exist and the identity recomputed from the inputs
-    its metadata JSON (written last) records must match the one recorded there."""
-    if manifest is not None:
-        return is_verified(manifest.get(Path(layer).stem), layer, out_dir)
+    `manifest` (scene name -> row, from load_manifest: a dispatch run) is an index, not the record:
+    a verified row (is_verified) says done at once; otherwise the render's JSON decides. The JSON
+    is required to checksum its outputs then (a record written before JSONs did is done only with
+    a matching row, so the dispatcher never trusts outputs nothing checksummed)."""
     if refusal(layer):  # not safe to read for its output names (a FIFO or device would block the check)
         return False  # the render says what is wrong with it
+    row = None if manifest is None else manifest.get(Path(layer).stem)
+    if manifest is not None and is_verified(row, layer, out_dir):
+        return True
+    return done_record(layer, out_dir, strict=manifest is not None) is not None
+
+
+def done_record(layer: Path, out_dir: Path, strict: bool = False) -> dict | None:
+    """The render JSON of `layer` in `out_dir` when it records a finished render of the layer's
+    current bytes, else None. The JSON (written last, beside its outputs) is the source of truth:
+
+    - it names the layer's current bytes (`layer_sha256`) and was not rendered with other passes
+      than its layer orders (`passes` == `layer_passes`: a `--passes` override is never done);
+    - every output the layer orders exists, with the checksum the JSON records (`outputs_sha256`);
+    - the identity recomputed from the current bytes of the inputs it records is its `identity`.
+
+    A JSON without `outputs_sha256` (written before JSONs carried them) is accepted on the
+    outputs' presence alone unless `strict` (the dispatcher: it re-renders such a scene unless
+    its manifest row checksums the outputs, is_done)."""
+    if refusal(layer):
+        return None
+    stem_problem = _stem_problem(Path(layer))
+    if stem_problem:
+        raise LayerError(stem_problem)
+    meta = _meta(Path(out_dir) / f"{Path(layer).stem}.json")
+    identity = meta.get("identity")
+    if not identity or not isinstance(identity, str):
+        return None
+    # the layer's bytes first: the layer is read for its output names only when it holds what was rendered
+    if meta.get("layer_sha256") != file_sha256(layer):
+        return None
+    if meta.get("passes", meta.get("layer_passes")) != meta.get("layer_passes"):
+        return None  # rendered with other passes than the layer orders (render_layer(passes=...))
     paths = output_paths(layer, out_dir)
     if not all(p.is_file() for p in paths.values()):
-        return False
-    meta = _meta(paths["meta"])
-    identity = meta.get("identity")
-    return bool(identity) and current_identity(layer, meta.get("inputs")) == identity
+        return None
+    sums = meta.get("outputs_sha256")
+    if isinstance(sums, dict) and sums:
+        names = {p.name for k, p in paths.items() if k != "meta"}
+        if set(sums) != names or not all(file_sha256(Path(out_dir) / n) == sums[n] for n in names):
+            return None
+    elif strict:
+        return None
+    return meta if current_identity(layer, meta.get("inputs")) == identity else None
+
+
+def outputs_sha256(paths: dict[str, Path]) -> dict[str, str]:
+    """{file name: sha256} of a render's outputs (output_paths without the JSON): what the JSON records."""
+    return {p.name: file_sha256(p) for k, p in paths.items() if k != "meta"}
+
+
+def index_row(layer: Path, out_dir: Path, meta: dict) -> dict:
+    """The manifest row of a scene whose render JSON `meta` is verified (done_record), for a scene
+    another entry point rendered (render_layer, `allo-usd render LAYER`, the demo): the index
+    catches up with the record instead of the scene rendering again."""
+    files = {p.name: file_sha256(p) for p in output_paths(layer, out_dir).values()}
+    return {"scene": Path(layer).stem, "layer": str(Path(layer).resolve()),
+            "layer_relative": relpath(Path(layer), Path(out_dir)), "layer_sha256": meta["layer_sha256"],
+            "identity": meta["identity"], "files": files, "render_seconds": meta.get("render_seconds"),
+            "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", Path(layer).stem),
+            "device": {k: (meta.get("device") or {}).get(k) for k in ("used", "backend", "gpus", "cpu_model")},
+            "indexed_from": "json"}
 
 
 def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
@@ -213,6 +271,8 @@ def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
                for name, digest in files.items()):
         return False
     meta = _meta(paths["meta"])
+    if meta.get("passes", meta.get("layer_passes")) != meta.get("layer_passes"):
+        return False  # a `--passes` override's render (indexed by render_layer): not the layer's own outputs
     return meta.get("identity") == row["identity"] and current_identity(layer, meta.get("inputs")) == row["identity"]
 
 

@@ -64,7 +64,7 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
 
             _SESSION = Session()  # one Blender scene per process, patched from scene to scene
         meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=render_workdir(out_p), session=_SESSION,
-                            device=device)
+                            device=device, index=False)  # the parent writes the manifest row
     except DiskFullError as exc:
         return error("disk_full", exc, prefix=False)
     except RenderFailedError as exc:  # not the layer's fault: retried
@@ -154,7 +154,9 @@ def _flush_c_stdio() -> None:
 @contextmanager
 def output_to(log: Path):
     """Send this process's stdout and stderr (file descriptors, so Blender's C output too) to
-    `log` for the block, then restore them (the single-layer `allo-usd render LAYER`)."""
+    `log` for the block, then restore them (the single-layer `allo-usd render LAYER`, the demo, and
+    the public allo_usd.render_layer and render_scene)."""
+    _flush_c_stdio()  # what C printed before the block stays where it was going
     for stream in (sys.stdout, sys.stderr):
         stream.flush()
     saved = os.dup(1), os.dup(2)
@@ -217,7 +219,7 @@ def own_tmpdir(out_dir: Path) -> Path:
 
 
 def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
-                log: str | None = None, index: int = 0, before_render: Callable[[str], None] | None = None,
+                log: str | None = None, index: int = 0, before_render: Callable[[str], None] | bytes | None = None,
                 out_dir: str | None = None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
     _die_with_parent(parent_pid)
@@ -225,6 +227,10 @@ def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None 
         _send_output_to(Path(log))
         print(f"--- allo-usd render worker {index}, pid {os.getpid()}, started "
               f"{time.strftime('%Y-%m-%dT%H:%M:%S%z')} ---", flush=True)
+    if isinstance(before_render, bytes):  # pickled by WorkerProcess: unpickled here, so a failure is in the log
+        import pickle
+
+        before_render = pickle.loads(before_render)
     if cores:  # before bpy: TBB sizes its pool from the affinity mask when it starts
         os.sched_setaffinity(0, cores)
     os.environ.update(env)
@@ -242,3 +248,109 @@ def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None 
             return
         conn.send({"status": "started"})  # the parent's time limit for this task starts now
         conn.send(render_task(**msg, before_render=before_render))
+
+
+# ---------------------------------------------------------------- starting a local worker
+
+def check_hook(before_render: Callable[[str], None] | None) -> None:
+    """A local worker is a fresh `python -m allo_usd.run.worker` that never imports the caller's
+    `__main__` (a script need not guard itself), so a `before_render` hook must live in a module
+    it can import: refuse one defined in `__main__`, at once and in one line."""
+    fn = before_render
+    while fn is not None and hasattr(fn, "func"):  # functools.partial, possibly nested
+        fn = fn.func
+    if fn is not None and getattr(fn, "__module__", None) == "__main__":
+        raise AlloError(f"before_render={getattr(fn, '__qualname__', fn)!r} is defined in __main__, which local "
+                        "render workers never import; move it into a module of its own and import it from there")
+
+
+class WorkerProcess:
+    """A local pool worker, started as its own program: `python -m allo_usd.run.worker FD`, with FD
+    one end of a socket pair that both sides wrap in a multiprocessing Connection (pickled
+    messages, as a Pipe). The child never imports the caller's `__main__` (multiprocessing's spawn
+    does, so an unguarded script ran itself again in every worker). Its first message is the
+    parent's sys.path and worker_main's arguments; the hook travels pickled and is unpickled after
+    the worker's output went to its log. Offers the part of multiprocessing.Process the
+    dispatcher uses: pid, sentinel (a pidfd, or None where there is none: the connection's EOF
+    then tells of a death), is_alive, kill, join, exitcode."""
+
+    def __init__(self, *, env: dict, parent_pid: int, cores: tuple[int, ...] | None, log: str | None, index: int,
+                 before_render: Callable[[str], None] | None, out_dir: str | None):
+        import pickle
+        import socket
+        import subprocess
+        from multiprocessing.connection import Connection
+        from multiprocessing.spawn import get_executable
+
+        start = {"sys_path": list(sys.path), "env": env, "parent_pid": parent_pid, "cores": cores, "log": log,
+                 "index": index, "out_dir": out_dir,  # a hook that does not pickle fails here, before a start
+                 "before_render": None if before_render is None else pickle.dumps(before_render)}
+        ours, theirs = socket.socketpair()
+        try:
+            self.popen = subprocess.Popen(
+                [get_executable(), *subprocess._args_from_interpreter_flags(), "-m", "allo_usd.run.worker",
+                 str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+        finally:
+            theirs.close()
+        self.conn = Connection(ours.detach())
+        self.pid = self.popen.pid
+        try:
+            self.sentinel = os.pidfd_open(self.pid)
+        except (AttributeError, OSError):
+            self.sentinel = None
+        try:
+            self.conn.send(start)
+        except OSError:
+            pass  # it died at start-up: the dispatcher sees a dead worker
+
+    @property
+    def exitcode(self) -> int | None:
+        return self.popen.poll()
+
+    def is_alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def kill(self) -> None:
+        if self.popen.poll() is None:
+            try:
+                self.popen.kill()
+            except ProcessLookupError:
+                pass
+
+    def join(self, timeout: float | None = None) -> None:
+        import subprocess
+
+        try:
+            self.popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            pass
+
+    def close(self) -> None:
+        """The connection and the pidfd (after kill and join)."""
+        self.conn.close()
+        if self.sentinel is not None:
+            os.close(self.sentinel)
+            self.sentinel = None
+
+
+def _child_main(fd: int) -> None:
+    """The worker side of WorkerProcess: the parent's sys.path first (so that the modules it names,
+    a hook's too, import here as there), then worker_main."""
+    from multiprocessing.connection import Connection
+
+    os.set_inheritable(fd, False)  # Blender's own subprocesses must not hold the parent's line open
+    conn = Connection(fd)
+    try:
+        start = conn.recv()
+    except (EOFError, OSError):
+        return
+    sys.path[:] = start.pop("sys_path")
+    worker_main(conn, **start)
+
+
+if __name__ == "__main__":  # `python -m allo_usd.run.worker FD` (WorkerProcess)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
+    from allo_usd.run.worker import _child_main as _main  # the module under its own name: one copy of its state
+
+    _main(int(sys.argv[1]))

@@ -40,17 +40,36 @@ def refusal(path: Path) -> str | None:
 
 
 def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
-    """True for a scene layer (customLayerData.allo.sceneId), False for a shared sublayer; None
-    when `path` must not be opened (`refusal`: a FIFO, a device, a link outside). A file that
-    is neither USD text nor crate is True, so the reader reports it instead of hiding it. Reads
-    at most HEAD_BYTES of a text layer; a crate layer's customLayerData is read by Sdf, which
-    maps the file and reads only the fields it needs."""
+    """The one rule for what `render DIR` renders: a scene layer is a layer whose own layer metadata
+    holds customLayerData.allo.sceneId, as every layer `allo-usd author` and the demo write for a
+    scene does, and no sky, pose, stage, asset or schema layer does. For a text layer only the
+    layer-metadata block (the parenthesised block after `#usda 1.0`, before any prim) counts: a
+    `string allo:sceneId` property further down (the schema's generatedSchema.usda, a sky layer's
+    record) does not make a scene. A binary crate's customLayerData is read by Sdf. A file that is
+    not even USD, or whose metadata does not parse, is kept, so the reader reports it instead of
+    hiding it. None for a path that is not a regular file (a FIFO, a device): it is never opened for
+    reading, and only the first 16 KiB of a regular file are read ."""
     if head is None:
         head = None if refusal(path) else read_head(path, HEAD_BYTES)
     if head is None:
         return None
     if head.startswith(TEXT_MAGIC):
-        return re.search(rb"\bsceneId\s*=", head) is not None
+        block = _layer_metadata(head.decode("utf-8", errors="replace"))
+        if block is None:  # the metadata does not end within the head: its look decides
+            return re.search(rb"\bsceneId\s*=", head) is not None
+        if "sceneId" not in block:
+            return False
+        load_pxr()
+        from pxr import Sdf, Tf
+
+        try:
+            layer = Sdf.Layer.CreateAnonymous(".usda")
+            if not layer.ImportFromString(f"#usda 1.0\n{block}\n"):
+                return True  # broken metadata: the reader says what is wrong
+        except Tf.ErrorException:
+            return True
+        allo = layer.customLayerData.get("allo")
+        return isinstance(allo, dict) and "sceneId" in allo
     if head.startswith(CRATE_MAGIC):
         load_pxr()
         from pxr import Sdf, Tf
@@ -61,6 +80,65 @@ def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
             return True  # a broken crate: let the reader say what is wrong
         return bool(layer) and "sceneId" in dict(layer.customLayerData.get("allo", {}))
     return True
+
+
+def _layer_metadata(text: str) -> str | None:
+    """The layer-metadata block of a text layer's head (from `(` to its `)`, strings, asset paths and
+    comments skipped), "" when the layer has none, None when it does not end within `text`."""
+    i, n = text.find("\n") + 1, len(text)
+    if i == 0:
+        return None
+    while i < n:  # whitespace and comments before the block
+        if text[i].isspace():
+            i += 1
+        elif text[i] == "#" or text.startswith("//", i):
+            end = text.find("\n", i)
+            if end < 0:
+                return None
+            i = end + 1
+        elif text.startswith("/*", i):
+            end = text.find("*/", i + 2)
+            if end < 0:
+                return None
+            i = end + 2
+        else:
+            break
+    if i >= n:
+        return None
+    if text[i] != "(":
+        return ""
+    depth, j = 0, i
+    while j < n:
+        c = text[j]
+        if c in "\"'@":
+            quote = c * 3 if text.startswith(c * 3, j) else c
+            k = j + len(quote)
+            while k < n and not text.startswith(quote, k):
+                k += 2 if text[k] == "\\" and c != "@" else 1
+            if k >= n:
+                return None
+            j = k + len(quote)
+            continue
+        if c == "#" or text.startswith("//", j):
+            end = text.find("\n", j)
+            if end < 0:
+                return None
+            j = end + 1
+            continue
+        if text.startswith("/*", j):
+            end = text.find("*/", j + 2)
+            if end < 0:
+                return None
+            j = end + 2
+            continue
+        if c == "(":
+            depth += 1
+        elif c == ")":
+            depth -= 1
+            if depth == 0:
+                return text[i:j + 1]
+        j += 1
+    return None
 
 
 def render_cost(path: Path) -> tuple[int, int] | None:
