@@ -46,8 +46,8 @@ def _show_device_notes() -> None:
 
 @app.command()
 def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
-                                         help="A scene layer (.usda, .usdc or .usd), a directory of them, or a plan "
-                                              "(.toml/.yaml)."),
+                                         help="A scene layer (.usda, .usdc or .usd), a packed scene (.usdz, "
+                                              "`allo-usd pack`), a directory of layers, or a plan (.toml/.yaml)."),
            out: Path = typer.Option(Path("out/render"), "--out", help="Output directory."),
            force: bool = typer.Option(False, help="Re-render a single layer even if its outputs exist."),
            workers: int = typer.Option(0, "--workers", show_default=False,
@@ -83,6 +83,7 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
     Each scene on a worker has a time limit (--timeout); past it the scene is retried, then failed.
     A layer reads only files in its own folder, the package's stages/ and, for a scene layer of an
     authored tree, that tree's authored folders; --tree OUT grants a tree to a layer of your own.
+    A packed scene (.usdz, `allo-usd pack`) renders as its layer would and reads only its own files.
     --device picks the Cycles device (auto, cpu, gpu); the JSON of each render records it.
     """
     from allo_usd.usd.safety import trees_granted
@@ -107,14 +108,14 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
         if value < 0:
             raise AlloError(f"{name} {value:g} is negative; pass 0 for the default or a positive number")
     suffix = source.suffix.lower()
-    is_layer = suffix in LAYER_SUFFIXES and source.exists() and not source.is_dir()
+    is_layer = suffix in (*LAYER_SUFFIXES, ".usdz") and source.exists() and not source.is_dir()  # .usdz: a pack
     single = is_layer and scheduler is None and not workers
     if save_blend is not None and not single:
         raise AlloError("--save-blend saves the Blender scene of one layer: pass a single .usda layer (or .usdc, "
                         ".usd; without --workers or --scheduler)")
     if not (source.is_dir() or is_layer or (source.is_file() and suffix in (".toml", ".yaml", ".yml"))):
-        raise AlloError(f"{source} does not exist or is not a layer (.usda, .usdc, .usd), a directory of layers or "
-                        "a plan (.toml/.yaml); check the path")
+        raise AlloError(f"{source} does not exist or is not a layer (.usda, .usdc, .usd, or a .usdz package), a "
+                        "directory of layers or a plan (.toml/.yaml); check the path")
     if passes is not None and (source.is_dir() or (is_layer and not single)):
         raise AlloError("--passes overrides the passes of a single layer (rendered in this process) or of a plan's "
                         "layers; a directory's layers record their own: render a plan with --passes, or set "
@@ -175,6 +176,28 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
 
 
 @app.command()
+def pack(layer: Path = typer.Argument(..., help="Scene layer (.usda, .usdc or .usd)."),
+         out: Path = typer.Option(..., "--out", metavar="SCENE.usdz", help="The package to write (.usdz)."),
+         force: bool = typer.Option(False, "--force", help="Replace SCENE.usdz if it exists as a regular file (never "
+                                    "a symbolic link or anything else)."),
+         trees: list[Path] = _tree_option()):
+    """Pack one scene into one file: the layer and every layer, asset and texture it composes, as a USD
+    package (.usdz) that opens anywhere and renders the same images and masks (`allo-usd render
+    SCENE.usdz`). To send one sample to a colleague or attach it to a bug report.
+
+    The layer passes the render's sandbox first; a file it names outside its roots, or in metadata
+    only, is refused. The package is written whole or not at all; an existing SCENE.usdz is
+    replaced only with --force."""
+    from allo_usd.usd.pack import pack as pack_scene
+    from allo_usd.usd.safety import trees_granted
+
+    with trees_granted(trees or ()):
+        done = pack_scene(layer, out, replace=force)
+    typer.echo(f"{layer} -> {out}: {done['files']} files, {done['bytes']:,} bytes; render it with "
+               f"`allo-usd render {out} --out DIR`")
+
+
+@app.command()
 def demo(out: Path = typer.Option(Path("out/demo"), "--out",
                                   help="Output directory: the plan, its layers, the renders and the contact sheet."),
          width: int = typer.Option(480, help="Image width in pixels."),
@@ -228,14 +251,27 @@ def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ, STL or US
 
     The orientation and unit are the format's (glTF is +Y up and metres by specification; USD
     says both) or --up-axis / --units; never guessed from the file name (NASA's ISS_2016.glb:
-    --up-axis=-z)."""
+    --up-axis=-z). The result must measure what its label may (anomaly: 1 cm to 20 m, as a plan's
+    own hazards; station: 1 cm to 500 m): a size outside is a unit mistake, named with the unit read."""
+    from allo_usd.assets.importer import check_options
+
+    units, up_axis = check_options(units, up_axis)   # before anything is read: the allowed values, named
     ensure_output_dir(out)
     from allo_usd.usd.asset import write_asset
-    from allo_usd.usd.hazard import import_model
+    from allo_usd.usd.hazard import SIZE_M, STATION_SIZE_M, check_size, import_model
 
     asset, info = import_model(file, None, units, up_axis, what="model")
+    fmt = info["format"]
+    read_as = ("" if units != "auto" else " (the file's metersPerUnit)" if fmt == "usd"
+               else " (--units auto: guessed from its size)" if info["unit"] != "m"
+               else " (glTF's unit by specification)" if fmt == "gltf"
+               else f" (--units auto: an {fmt.upper()} file does not say its unit)")
+    hazard = label == "anomaly"
+    extent = check_size(asset, file, file.stem, info["unit"], "model", SIZE_M if hazard else STATION_SIZE_M,
+                        "a hazard near the station" if hazard else "a station", "--units mm, cm, in, ...", read_as)
     path = write_asset(asset, out, label)
-    typer.echo(f"{file} -> {path} (unit {info['unit']}, up axis {info['upAxis']}, {info['triangles']} triangles)")
+    typer.echo(f"{file} -> {path} (unit {info['unit']}, up axis {info['upAxis']}, {info['triangles']} triangles, "
+               + " x ".join(f"{e:.4g}" for e in extent) + " m)")
 
 
 @app.command()
@@ -339,7 +375,8 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
 
 @app.command()
 def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml)."),
-           out: Path = typer.Option(Path("out/dataset"), "--out", help="Output directory for the layers."),
+           out: Path = typer.Option(Path("out/layers"), "--out", help="Output directory for the layers (the authored "
+                                    "tree; `allo-usd dataset` writes the dataset)."),
            limit: int = typer.Option(None, "--limit", show_default=False,
                                      help="Author only the first N scenes of the plan (and the reserve scenes that "
                                           "top up their skipped depths). Default: every scene."),
@@ -381,7 +418,7 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
         raise SystemExit(1)
 
 
-_PXR_COMMANDS = {"render", "inspect", "diff", "demo", "author", "asset"}
+_PXR_COMMANDS = {"render", "inspect", "diff", "demo", "author", "asset", "pack"}
 
 
 def version_line() -> str:
