@@ -1,9 +1,14 @@
 """Test helpers shared by the test modules (`from helpers import ...`): a tiny station and
-anomaly set, and scene specs over the tiny base stage that conftest.py's `tiny_base` builds."""
+anomaly set, scene specs over the tiny base stage that conftest.py's `tiny_base` builds, and the
+command line run as a user runs it (`sandboxed_cli`, `one_line_error`)."""
 
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -47,3 +52,29 @@ def make_spec(anomaly: bool = False, resolution=(64, 36), samples=4, seed=7, **k
         anomaly=AnomalySpec("Crate", "blue", (8.0, 4.0, 2.5), np.eye(3)) if anomaly else None,
     )
     return spec if not kw else SceneSpec(**{**spec.__dict__, **kw})
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def sandboxed_cli(*args, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """`allo-usd ARGS` in a subprocess without ALLO_ASSET_ROOTS (conftest sets it to pytest's whole
+    temp dir): a layer reaches only what it is granted."""
+    from allo_usd.usd.safety import ENV_ROOTS
+
+    env = {**{k: v for k, v in os.environ.items() if k != ENV_ROOTS}, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-c", "from allo_usd.cli import main; main()", *map(str, args)],
+                          capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
+
+
+def one_line_error(r: subprocess.CompletedProcess, *words: str, hidden: str) -> str:
+    """The command failed with exit 2 and one `error: ...` line holding `words`, and never printed
+    the text `hidden` (a file outside the sandbox)."""
+    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
+    lines = [x for x in r.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert hidden not in r.stdout + r.stderr
+    return lines[0]
+

@@ -11,13 +11,13 @@ import os
 import re
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pxr import Sdf, Usd
 
+from helpers import one_line_error as _one_line_error, sandboxed_cli
 from allo_usd.core.errors import LayerError
 from allo_usd.plan.model import Quality, demo_plan
 from allo_usd.run.author import author_scene
@@ -51,24 +51,12 @@ def without(args: list[str], name: str) -> list[str]:
     return args[:i] + args[i + 2:]
 
 
-def env() -> dict:
-    """No ALLO_ASSET_ROOTS (conftest sets it to pytest's whole temp dir): only what the layer is granted."""
-    return {**{k: v for k, v in os.environ.items() if k != ENV_ROOTS}, "PYTHONPATH": str(ROOT)}
-
-
 def cli(*args, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", "from allo_usd.cli import main; main()", *map(str, args)],
-                          capture_output=True, text=True, env=env(), cwd=cwd, timeout=600)
+    return sandboxed_cli(*args, cwd=cwd)
 
 
 def one_line_error(r: subprocess.CompletedProcess, *words: str) -> str:
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    lines = [x for x in r.stderr.splitlines() if x.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    assert CANARY not in r.stdout + r.stderr
-    return lines[0]
+    return _one_line_error(r, *words, hidden=CANARY)
 
 
 @pytest.fixture(scope="module")

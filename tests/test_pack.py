@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from pxr import Sdf
 
+from helpers import one_line_error as _one_line_error, sandboxed_cli
 from allo_usd.core.errors import AlloError, LayerError
 from allo_usd.plan.model import Quality, demo_plan
 from allo_usd.run.author import author_scene
@@ -31,19 +32,11 @@ SECRET = "TOPSECRET_4711"
 
 
 def cli(*args, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    env = {**{k: v for k, v in os.environ.items() if k != ENV_ROOTS}, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-c", "from allo_usd.cli import main; main()", *map(str, args)],
-                          capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
+    return sandboxed_cli(*args, cwd=cwd)
 
 
 def one_line_error(r: subprocess.CompletedProcess, *words: str) -> str:
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
-    lines = [x for x in r.stderr.splitlines() if x.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    assert SECRET not in r.stdout + r.stderr
-    return lines[0]
+    return _one_line_error(r, *words, hidden=SECRET)
 
 
 @pytest.fixture(scope="module")
