@@ -1,7 +1,8 @@
 """Accuracy vs time of Cycles settings on one demo view; picks presets from the Pareto front.
 
     .venv/bin/python scripts/bench_accuracy.py [--phase all|reference|sweep|presets|report]
-        [--layer out/demo/layers/d045_p42_power_drill_z0.usda] [--ref-samples 2048]
+        [--layer out/demo/layers/d045_p42_power_drill_z0.usda] [--ref-samples 2048] [--out docs]
+        [--cache out/bench]
 
 Renders a reference (no denoise, its own seed) cached as out/bench/reference_<spp>.exr, then a
 sweep (samples x denoiser, adaptive threshold, max bounces, half resolution) and the presets of
@@ -366,7 +367,10 @@ def report(rows: dict, out: Path, meta: dict) -> None:
         ax.axvline(0.6 * p["seconds"], color="red", ls="--", lw=0.8)
         ax.axhline(40.0, color="gray", ls=":", lw=0.8)
         ax.axhline(p["psnr_srgb8"] - 1.0, color="gray", ls="--", lw=0.8)
-    ax.set_xscale("log")
+    if sweep or presets:  # a log axis needs points: a reference alone leaves the plot empty
+        ax.set_xscale("log")
+    else:
+        ax.text(0.5, 0.5, "no sweep or preset rows yet", transform=ax.transAxes, ha="center", color="gray")
     ax.set_xlabel("render CPU seconds (log)")
     ax.set_ylabel("PSNR vs reference, 8-bit sRGB (dB)")
     ax.set_title(f"Cycles CPU, {meta['resolution'][0]}x{meta['resolution'][1]}, reference {meta['ref_samples']} spp")
@@ -378,13 +382,17 @@ def report(rows: dict, out: Path, meta: dict) -> None:
 
 
 def main(argv=None) -> int:
+    global BENCH, ROWS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--phase", default="all", choices=["all", "reference", "sweep", "presets", "report"])
     ap.add_argument("--layer", default=str(ROOT / "out/demo/layers/d045_p42_power_drill_z0.usda"))
     ap.add_argument("--ref-samples", type=int, default=4096)
     ap.add_argument("--out", default=str(ROOT / "docs"))
     ap.add_argument("--redo", action="store_true", help="re-render sweep rows already cached")
+    ap.add_argument("--cache", default=str(BENCH), help="where the reference and the rows are cached (default out/bench)")
     args = ap.parse_args(argv)
+    BENCH = Path(args.cache)
+    ROWS = BENCH / "accuracy_rows.json"
 
     from allo_usd.usd.read import read_scene
 

@@ -180,6 +180,7 @@ def main() -> None:
                   f"- scene layers: {sizes(list((out / 'scenes').rglob('*.usda')))}",
                   f"- pose layers: {sizes(list((out / 'poses').rglob('*.usda')))}",
                   f"- sky layers: {sizes(list((out / 'sky').rglob('*.usda')))}", ""]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))
     print("\n".join(lines))
 

@@ -14,8 +14,8 @@ with Cycles, and compares it with the project's own render of the same layer:
 
 Run as a benchmark, it measures what the importer's departures from the spec (light linking and
 `allo:rayVisibility` ignored, the DistantLight intensity factor, ...) cost on a normal day and on
-eclipse days, and writes docs/bench_light_linking.md and .png. tests/test_outside_client.py loads
-this file for the same functions.
+eclipse days, and writes docs/bench_light_linking.md and .png (or into --out).
+tests/test_outside_client.py loads this file for the same functions.
 
     PYTHONPATH=. python scripts/bench_light_linking.py [--size 96x54] [--samples 16]
 """
@@ -295,6 +295,7 @@ def main(argv=None) -> None:
     p.add_argument("--samples", type=int, default=16, help="Cycles samples, both renders (default 16)")
     p.add_argument("--poses", default="3,17", help="demo camera poses, comma-separated (default 3,17)")
     p.add_argument("--work", type=Path, default=ROOT / "out" / "bench_light_linking", help="scratch folder")
+    p.add_argument("--out", type=Path, default=ROOT / "docs", help="where bench_light_linking.md/.png go (default docs)")
     a = p.parse_args(argv)
     if a.child:
         return _child(json.loads(a.child))
@@ -307,16 +308,16 @@ def main(argv=None) -> None:
                 row.update(case=label, day=day, pose=pose)
                 rows.append(row)
                 print(json.dumps({k: v for k, v in row.items() if k != "lights"}), flush=True)
-    write_report(rows, (w, h), a.samples)
+    write_report(rows, (w, h), a.samples, a.out)
 
 
-def write_report(rows: list[dict], size, samples: int) -> None:
+def write_report(rows: list[dict], size, samples: int, docs: Path = ROOT / "docs") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    docs = ROOT / "docs"
+    docs.mkdir(parents=True, exist_ok=True)
     raw = [r for r in rows if not r["undo"]]
     fixed = {(r["day"], r["pose"]): r for r in rows if r["undo"]}
     lines = ["# What an outside USD client sees: Blender 5.0.1's own importer vs allo-usd's render",

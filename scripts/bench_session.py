@@ -207,17 +207,22 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench_session")
     ap.add_argument("--docs", type=Path, default=ROOT / "docs")
     ap.add_argument("--replot", action="store_true", help="rewrite the docs from OUT/results.json only")
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke run: preview scenes 64x36 at 2 samples, memory scenes 32x18 at 1 sample, no denoise")
     args = ap.parse_args()
     if args.replot:
         results = json.loads((args.out / "results.json").read_text())
         write_docs(results, args.docs, len(results["memory"]["rss_mb"]))
         return
+    if args.scenes < 10:
+        ap.error("--scenes must be at least 10 (memory growth is measured from scene 10)")
     args.out.mkdir(parents=True, exist_ok=True)
     load0 = os.getloadavg()
     t0 = time.perf_counter()
-    preview = author_layers(args.out / "preview", (480, 270), 64, True)
+    preview = author_layers(args.out / "preview", *(((64, 36), 2, False) if args.quick else ((480, 270), 64, True)))
     tiny = author_layers(args.out / "tiny", (64, 36), 1, False)
-    many = distinct_layers(args.out / "many", args.scenes, (160, 90), 8, True)
+    many = distinct_layers(args.out / "many", args.scenes,
+                           *(((32, 18), 1, False) if args.quick else ((160, 90), 8, True)))
     author_s = time.perf_counter() - t0
     print(f"authored {len(preview)} + {len(tiny)} + {len(many)} layers in {author_s:.1f} s", flush=True)
     switch = bench_switch(preview, args.repeats)
@@ -229,7 +234,7 @@ def main() -> None:
           f"{memory['growth_10_to_end']:+.1%}", flush=True)
     load1 = os.getloadavg()
     results = {"switch": switch, "identity": identity, "memory": memory, "load_before": load0, "load_after": load1,
-               "cpu_count": os.cpu_count(), "layers": len(many)}
+               "cpu_count": os.cpu_count(), "layers": len(many), "quick": args.quick}
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
     write_docs(results, args.docs, args.scenes)
 
@@ -261,6 +266,7 @@ def write_docs(r: dict, docs: Path, n: int) -> None:
     ax2.set_title("switch vs render (median)")
     ax2.tick_params(axis="x", labelsize=7)
     fig.tight_layout()
+    docs.mkdir(parents=True, exist_ok=True)
     fig.savefig(docs / "bench_session.png", dpi=110)
 
     la, lb = r["load_before"], r["load_after"]
@@ -322,6 +328,9 @@ scratch with `render_scene`: RGB float arrays and masks equal for
   load average of 3-6 measured 9.3 s warm vs 12.2 s cold, a quieter one 5.6 vs 5.9 s): with
   this station the render itself dominates. The switch itself is ~12 ms in both.
 """
+    if r.get("quick"):  # the sizes written above are the full run's
+        md = md.replace("\n\n", "\n\n**Quick smoke run (`--quick`): preview scenes 64x36 at 2 samples, memory scenes "
+                        "32x18 at 1 sample, no denoising; the sizes stated below are the full run's.**\n\n", 1)
     (docs / "bench_session.md").write_text(md)
     print(md)
 

@@ -29,7 +29,7 @@ def make_layers(root: Path, n: int, resolution, samples: int, mask_only: bool = 
     from allo_usd.core.geometry import look_at
     from allo_usd.core.paths import BASE_STAGE
     from allo_usd.scene.spec import BodySpec, CameraSpec, SceneSpec, SunSpec
-    from allo_usd.plan.settings import RenderSpec
+    from allo_usd.plan.settings import DEFAULT_PASSES, RenderSpec
 
     sun = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
     bodies = {"Sun": BodySpec(tuple(sun * 1.496e11), 6.9634e8), "Moon": BodySpec((0.0, 0.0, -7.0e6), 1.7374e6),
@@ -44,7 +44,7 @@ def make_layers(root: Path, n: int, resolution, samples: int, mask_only: bool = 
                          sun=SunSpec(tuple(sun), 1361.0, 1361.0, 0.533, 1.496e11), bodies=bodies,
                          render=RenderSpec(tuple(resolution), preset="bench", samples=samples,
                                            exposure=0.9 * math.pi / 1361.0, seed=1, denoise=False,
-                                           mask_only=mask_only))
+                                           passes=("mask",) if mask_only else DEFAULT_PASSES))
         layers.append(write_scene_layer(spec, root / f"bench_{i:02d}.usda", BASE_STAGE))
     return layers
 
