@@ -19,7 +19,6 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock, ensure_output_dir
-from allo_usd.core.files import relpath
 from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, clean_stale, compact_manifest,
                                    done_record, index_row, is_verified, load_manifest)
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
@@ -261,8 +260,7 @@ class _Run:
     def ok(self, task: _Task, result: dict) -> None:
         row = {k: v for k, v in result.items() if k not in ("status", "device_notice")}
         self.note(result.get("device_notice"))
-        row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                   layer_relative=relpath(task.layer, self.out_dir))
+        row.update(attempts=task.attempts, finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         append_jsonl(self.out_dir / MANIFEST, row)
         self.summary.rendered.append(task.scene)
         self._tick()

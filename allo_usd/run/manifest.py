@@ -243,17 +243,25 @@ def outputs_sha256(paths: dict[str, Path]) -> dict[str, str]:
     return {p.name: file_sha256(p) for k, p in paths.items() if k != "meta"}
 
 
+def manifest_row(layer: Path, out_dir: Path, meta: dict) -> dict:
+    """The manifest row of a scene whose render JSON is `meta`: what is_verified checks (identity,
+    each output's checksum, the JSON's included) and what a reader of the index wants to see. The
+    checksums come from file_sha256's per-process cache, so the outputs render_layer has just
+    hashed for `outputs_sha256` are not read again."""
+    files = {p.name: file_sha256(p) for p in output_paths(layer, out_dir).values()}
+    return {"scene": Path(layer).stem, "layer": str(Path(layer).resolve()), "layer_sha256": meta["layer_sha256"],
+            "identity": meta["identity"],  # what the render read and the versions
+            "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", Path(layer).stem),
+            "files": files, "render_seconds": meta.get("render_seconds"),
+            "device": {k: (meta.get("device") or {}).get(k) for k in ("used", "backend", "gpus", "cpu_model")},
+            "layer_relative": relpath(Path(layer), Path(out_dir))}
+
+
 def index_row(layer: Path, out_dir: Path, meta: dict) -> dict:
     """The manifest row of a scene whose render JSON `meta` is verified (done_record), for a scene
     another entry point rendered (render_layer, `allo-usd render LAYER`, the demo): the index
     catches up with the record instead of the scene rendering again."""
-    files = {p.name: file_sha256(p) for p in output_paths(layer, out_dir).values()}
-    return {"scene": Path(layer).stem, "layer": str(Path(layer).resolve()),
-            "layer_relative": relpath(Path(layer), Path(out_dir)), "layer_sha256": meta["layer_sha256"],
-            "identity": meta["identity"], "files": files, "render_seconds": meta.get("render_seconds"),
-            "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", Path(layer).stem),
-            "device": {k: (meta.get("device") or {}).get(k) for k in ("used", "backend", "gpus", "cpu_model")},
-            "indexed_from": "json"}
+    return {**manifest_row(layer, out_dir, meta), "indexed_from": "json"}
 
 
 def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:

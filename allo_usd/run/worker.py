@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
-from allo_usd.core.files import DISK_FULL_ERRNOS, sha256_file
-from allo_usd.run.manifest import WORKDIR, output_paths
+from allo_usd.core.files import DISK_FULL_ERRNOS
+from allo_usd.run.manifest import WORKDIR, manifest_row
 from allo_usd.usd.safety import ENV_ROOTS
 
 
@@ -78,13 +78,8 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which retries it unless the disk is full
         full = disk_full_error(exc, out_p)
         return error("disk_full", full, prefix=False) if full is not None else error("error", exc)
-    files = {p.name: sha256_file(p) for p in output_paths(layer_p, out_p).values()}
-    return {"status": "ok", "scene": scene, "layer": str(layer_p.resolve()), "layer_sha256": meta["layer_sha256"],
-            "identity": meta["identity"],  # what the render read and the versions (allo_usd.run.manifest)
-            "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", scene),
-            "files": files, "render_seconds": meta["render_seconds"], "worker": f"{os.uname().nodename}:{os.getpid()}",
-            "full_build": bool(_SESSION.last.full_build),
-            "device": {k: meta["device"][k] for k in ("used", "backend", "gpus", "cpu_model")},
+    return {"status": "ok", **manifest_row(layer_p, out_p, meta),   # the row the dispatcher appends
+            "worker": f"{os.uname().nodename}:{os.getpid()}", "full_build": bool(_SESSION.last.full_build),
             "device_notice": meta["device"].get("notice"),  # the dispatcher shows it once per run
             "cores": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
 
