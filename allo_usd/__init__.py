@@ -21,11 +21,18 @@ no `if __name__ == "__main__":` guard.
 
 from __future__ import annotations
 
-import importlib
-import os
-import sys
-import tempfile
-from pathlib import Path
+from allo_usd.core.interrupts import Held as _Held
+
+# A Ctrl-C while `allo-usd` starts (this package, then the command line's imports: typer) ends the
+# command with one line and exit 130 (allo_usd.cli._loaded) instead of a traceback: held from here.
+# Imported by anything else, the package hands a Ctrl-C that came meanwhile on at its end.
+_LOADING = _Held().start()
+
+import importlib  # noqa: E402
+import os  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -72,7 +79,7 @@ def render_scene(desc, workdir=None, *, log=None):
     if log is None:
         user = os.getuid() if hasattr(os, "getuid") else "user"
         log = Path(tempfile.gettempdir()) / f"allo-usd-{user}" / "render.log"
-    return _logged(log, "allo_usd.blender.render", "render_scene", desc, workdir)
+    return _logged(log, "allo_usd.blender.render", "render_scene", desc, workdir, first="bpy")
 
 
 def render_layer(layer, out_dir, *args, log=None, **kwargs) -> dict:
@@ -84,15 +91,20 @@ def render_layer(layer, out_dir, *args, log=None, **kwargs) -> dict:
                    layer, out_dir, *args, **kwargs)
 
 
-def _logged(log, module: str, name: str, *args, **kwargs):
+def _logged(log, module: str, name: str, *args, first: str | None = None, **kwargs):
     """module.name(*args, **kwargs) with this process's stdout and stderr (file descriptors: Blender
     prints from C) appended to `log` (allo_usd.run.worker.output_to, what the CLI uses); the device
-    notices printed meanwhile are shown on stderr afterwards, once each, as the CLI does."""
+    notices printed meanwhile are shown on stderr afterwards, once each, as the CLI does. `first` is a
+    library imported before, with Ctrl-C held (bpy swallows one that lands while it loads:
+    allo_usd.core.interrupts)."""
+    from allo_usd.core.interrupts import import_held
     from allo_usd.run.worker import output_to
 
     shown = set(_notices())
     try:
         with output_to(Path(log)):  # the imports too: bpy may print as it loads
+            if first is not None:
+                import_held(first)
             return getattr(importlib.import_module(module), name)(*args, **kwargs)
     finally:
         for text in _notices():
@@ -103,3 +115,7 @@ def _logged(log, module: str, name: str, *args, **kwargs):
 def _notices() -> list[str]:
     device = sys.modules.get("allo_usd.blender.device")  # not loaded: no notice yet (and bpy stays unloaded)
     return device.noticed() if device is not None else []
+
+
+if Path(getattr(sys, "argv", None) and sys.argv[0] or "").name != "allo-usd":   # not the console script
+    _LOADING.release()

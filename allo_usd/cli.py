@@ -3,14 +3,23 @@
 from __future__ import annotations
 
 import errno
+import math
 import sys
 from pathlib import Path
 
-import typer
+import allo_usd
+from allo_usd.core.interrupts import Held
 
-from allo_usd.core.errors import AlloError
-from allo_usd.core.files import ensure_output_dir, ensure_output_file
-from allo_usd.plan.settings import PASSES, canonical_passes
+# a Ctrl-C while the command line loads (typer: ~0.3 s) ends it with exit 130 (_loaded); the console
+# script's hold began in allo_usd/__init__.py
+_LOADING = allo_usd._LOADING if allo_usd._LOADING.active else Held().start()
+
+import typer  # noqa: E402 - after the hold above
+
+from allo_usd.core.errors import AlloError  # noqa: E402
+from allo_usd.core.files import ensure_output_dir, ensure_output_file  # noqa: E402
+from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX, resolution_problem  # noqa: E402
+from allo_usd.plan.settings import PASSES, canonical_passes  # noqa: E402
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
                   help="Author, record and render the ALLO lunar-orbit anomaly dataset as USD layers.")
@@ -20,6 +29,69 @@ app.add_typer(asset_app, name="asset")
 TREE_HELP = ("An authored tree (the OUT of `allo-usd author`) whose scenes/, sky/, poses/ and stages/ your layer may "
              "read, for a layer of your own outside the tree that sublayers one of its scene layers (repeatable; "
              "nothing else of OUT is granted). ALLO_ASSET_ROOTS lists further allowed directories.")
+
+
+# ---------------------------------------------------------------- numbers given on the command line
+# Every numeric option is parsed here, not by typer (whose error is a box that does not say what was
+# given): the text as given must be a finite number in the option's range, else one AlloError line
+# that prints it ("--timeout nan is not a number of seconds > 0; fix: ...").
+
+MAX_PROCESSES = 1024   # --workers and --threads: more is a typo (each render worker is a Blender process)
+MAX_RETRIES = 100
+
+
+def _as_given(text) -> str:
+    shown = str(text).strip()
+    return shown if len(shown) <= 40 else shown[:40] + "..."
+
+
+def _whole(option: str, low, high, fix: str):
+    """A typer parser: the text given as a whole number in low..high (high None: no upper bound; a
+    function: a bound from a module not worth importing for --help), else an AlloError that prints
+    the text."""
+    def parse(text):
+        bottom, top = (low() if callable(low) else low), (high() if callable(high) else high)
+        if isinstance(text, int) and not isinstance(text, bool):
+            value = text   # the option's default
+        else:
+            try:
+                value = int(str(text).strip(), 10)
+            except ValueError:
+                value = None
+        if value is None or value < bottom or (top is not None and value > top):
+            sign = "negative: " if value is not None and value < 0 else ""
+            span = f"from {bottom} to {top}" if top is not None else f">= {bottom}"
+            raise AlloError(f"{option} {_as_given(text)} is {sign}not a whole number {span}; fix: {fix}")
+        return value
+    return parse
+
+
+def _timeout_seconds(text):
+    """--timeout: seconds, finite and > 0 (NaN would turn the limit off: it compares false with every
+    time); leaving the option out keeps the default limit from each layer's size."""
+    try:
+        value = float(str(text).strip())
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        sign = "negative: " if value < 0 else ""
+        raise AlloError(f"--timeout {_as_given(text)} is {sign}not a number of seconds > 0; fix: give the seconds one "
+                        "scene may take on a worker (e.g. --timeout 600), or leave --timeout out for 120 s + 5e-5 s "
+                        "per pixel x sample of each layer")
+    return value
+
+
+def _render_samples_max() -> int:
+    from allo_usd.usd.read import RENDER_SAMPLES
+
+    return RENDER_SAMPLES[1]
+
+
+def _sky_bounds() -> tuple[int, int, int]:
+    """(first year, last year, most days) a sky table may ask for: inside DE421's coverage."""
+    from allo_usd.sky.ephemeris_range import DE421_END_TDB_JD, DE421_END_UTC, DE421_START_TDB_JD, DE421_START_UTC
+
+    return int(DE421_START_UTC[:4]) + 1, int(DE421_END_UTC[:4]), int(DE421_END_TDB_JD - DE421_START_TDB_JD)
 
 
 def _tree_option():
@@ -49,23 +121,38 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                          help="A scene layer (.usda, .usdc or .usd), a packed scene (.usdz, "
                                               "`allo-usd pack`), a directory of layers, or a plan (.toml/.yaml)."),
            out: Path = typer.Option(Path("out/render"), "--out", help="Output directory."),
-           force: bool = typer.Option(False, help="Re-render a single layer even if its outputs exist."),
-           workers: int = typer.Option(0, "--workers", show_default=False,
+           force: bool = typer.Option(False, help="Re-render a single layer even if its outputs exist, and "
+                                      "replace an existing --save-blend FILE (a regular file only)."),
+           workers: int = typer.Option(0, "--workers", show_default=False, metavar="N",
+                                       parser=_whole("--workers", 0, MAX_PROCESSES, "pass 0 (or leave it out) for "
+                                                     "one worker per usable core, or a number of worker processes"),
                                        help="Local worker processes. Default (or 0): one per core this process may "
                                             "use; a single layer without --workers renders in this process."),
            scheduler: str = typer.Option(None, "--scheduler", show_default=False,
                                          help="Dask scheduler address (tcp://host:8786). Default: a local pool."),
-           threads: int = typer.Option(0, "--threads", show_default=False,
+           threads: int = typer.Option(0, "--threads", show_default=False, metavar="N",
+                                       parser=_whole("--threads", 0, MAX_PROCESSES, "pass 0 (or leave it out) for "
+                                                     "the usable cores // workers, or Cycles threads per worker"),
                                        help="Cycles threads per worker. Default (or 0): the usable cores // workers "
                                             "(a single layer: all of them)."),
-           retries: int = typer.Option(2, "--retries", help="Retries of a task whose worker crashed or timed out."),
-           timeout: float = typer.Option(0, "--timeout", metavar="SECONDS", show_default=False,
-                                         help="Time limit of one scene on a worker, after which the worker is killed "
-                                              "and the scene retried. Default (or 0): 120 s + 5e-5 s per pixel x "
-                                              "sample of the layer."),
+           retries: int = typer.Option(2, "--retries", metavar="N",
+                                       parser=_whole("--retries", 0, MAX_RETRIES, "give how many more times a "
+                                                     "scene whose worker crashed or timed out is tried, e.g. 2"),
+                                       help="Retries of a task whose worker crashed or timed out."),
+           verify: bool = typer.Option(False, "--verify", show_default=False,
+                                       help="Read and checksum every finished output instead of trusting the size, mtime "
+                                            "and inode its manifest row recorded, and render again what fails (after "
+                                            "a disk error, or a tree copied without its mtimes; a single layer is "
+                                            "always checked this way)."),
+           timeout: float = typer.Option(None, "--timeout", metavar="SECONDS", show_default=False,
+                                         parser=_timeout_seconds,
+                                         help="Time limit of one scene on a worker (seconds > 0), after which the "
+                                              "worker is killed and the scene retried. Default: 120 s + 5e-5 s per "
+                                              "pixel x sample of the layer."),
            save_blend: Path = typer.Option(None, "--save-blend", metavar="FILE", show_default=False,
                                            help="A single layer only: also save the Blender scene it builds as "
-                                                "FILE (.blend), to open what Blender got."),
+                                                "FILE (.blend), to open what Blender got. An existing FILE is "
+                                                "replaced only with --force; a link or a non-file never."),
            trees: list[Path] = _tree_option(),
            device: str = _device_option(None, " Default: a plan's render.device, else auto."),
            passes: str = typer.Option(None, "--passes", metavar="P1,P2", show_default=False,
@@ -90,12 +177,13 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
 
     with trees_granted(trees or ()):
         _render(source, out, force, workers, scheduler, threads, retries, timeout, save_blend, device,
-                None if passes is None else canonical_passes([p.strip() for p in passes.split(",") if p.strip()]))
+                None if passes is None else canonical_passes([p.strip() for p in passes.split(",") if p.strip()]),
+                verify)
 
 
 def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str | None, threads: int, retries: int,
             timeout: float, save_blend: Path | None, device: str | None = None,
-            passes: tuple[str, ...] | None = None) -> None:
+            passes: tuple[str, ...] | None = None, verify: bool = False) -> None:
     import warnings
 
     from allo_usd.blender.device import check_device
@@ -104,15 +192,26 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
     device = None if device is None else check_device(device)
 
     for name, value in (("--workers", workers), ("--threads", threads), ("--retries", retries),
-                        ("--timeout", timeout)):
+                        ("--timeout", timeout or 0)):   # the command line's parsers refuse these first
         if value < 0:
             raise AlloError(f"{name} {value:g} is negative; pass 0 for the default or a positive number")
+    if scheduler is not None:   # a malformed address is one line before anything starts (unreachable: dispatch)
+        from allo_usd.run.dispatch import scheduler_problem
+
+        why = scheduler_problem(scheduler)
+        if why:
+            raise AlloError(f"--scheduler {why}; fix: give the address `dask scheduler` prints, e.g. "
+                            "--scheduler tcp://HOST:8786, or leave it out for a local pool")
     suffix = source.suffix.lower()
     is_layer = suffix in (*LAYER_SUFFIXES, ".usdz") and source.exists() and not source.is_dir()  # .usdz: a pack
     single = is_layer and scheduler is None and not workers
     if save_blend is not None and not single:
         raise AlloError("--save-blend saves the Blender scene of one layer: pass a single .usda layer (or .usdc, "
                         ".usd; without --workers or --scheduler)")
+    if save_blend is not None:   # before anything is written or rendered (allo_usd.blender.debug)
+        from allo_usd.blender.debug import check_blend_target
+
+        save_blend = check_blend_target(save_blend, replace=force)
     if not (source.is_dir() or is_layer or (source.is_file() and suffix in (".toml", ".yaml", ".yml"))):
         raise AlloError(f"{source} does not exist or is not a layer (.usda, .usdc, .usd, or a .usdz package), a "
                         "directory of layers or a plan (.toml/.yaml); check the path")
@@ -124,16 +223,22 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
     if single:
         _render_one(source, out, force, threads, save_blend, device or "auto", passes)
         return
-    from allo_usd.run.dispatch import author_and_dispatch, dispatch
+    from allo_usd.run.dispatch import author_and_dispatch, connect_scheduler, dispatch
 
-    kwargs = dict(workers=workers or None, scheduler=scheduler, threads=threads or None, retries=retries,
-                  timeout=timeout or None)
-    with warnings.catch_warnings(record=True) as notes:
-        warnings.simplefilter("always")
-        if source.is_dir() or is_layer:
-            summary = dispatch(source, out, device=device or "auto", **kwargs)
-        else:
-            summary = author_and_dispatch(source, out, device=device, passes=passes, **kwargs)
+    # connected before the scan: an unreachable scheduler is one line within SCHEDULER_CONNECT_S
+    client = None if scheduler is None else connect_scheduler(scheduler)
+    kwargs = dict(workers=workers or None, scheduler=client, threads=threads or None, retries=retries,
+                  timeout=timeout or None, verify=verify)
+    try:
+        with warnings.catch_warnings(record=True) as notes:
+            warnings.simplefilter("always")
+            if source.is_dir() or is_layer:
+                summary = dispatch(source, out, device=device or "auto", **kwargs)
+            else:
+                summary = author_and_dispatch(source, out, device=device, passes=passes, **kwargs)
+    finally:
+        if client is not None:
+            client.close()
     _notes(notes)
     typer.echo(f"{source} -> {out}: {summary}")
     for row in summary.failed:
@@ -200,15 +305,24 @@ def pack(layer: Path = typer.Argument(..., help="Scene layer (.usda, .usdc or .u
 @app.command()
 def demo(out: Path = typer.Option(Path("out/demo"), "--out",
                                   help="Output directory: the plan, its layers, the renders and the contact sheet."),
-         width: int = typer.Option(480, help="Image width in pixels."),
-         height: int = typer.Option(270, help="Image height in pixels."),
-         samples: int = typer.Option(32, help="Cycles samples per pixel."),
+         width: int = typer.Option(480, metavar="PIXELS", help="Image width in pixels.",
+                                   parser=_whole("--width", MIN_SIDE_PX, MAX_SIDE_PX, "give an image width in pixels, "
+                                                 "e.g. --width 480")),
+         height: int = typer.Option(270, metavar="PIXELS", help="Image height in pixels.",
+                                    parser=_whole("--height", MIN_SIDE_PX, MAX_SIDE_PX, "give an image height in "
+                                                  "pixels, e.g. --height 270")),
+         samples: int = typer.Option(32, metavar="N", help="Cycles samples per pixel.",
+                                     parser=_whole("--samples", 1, _render_samples_max, "give Cycles samples per "
+                                                   "pixel, e.g. --samples 32")),
          device: str = _device_option("auto")):
     """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet."""
     from allo_usd.blender.device import check_device
     from allo_usd.run.demo import run_demo
 
     device = check_device(device)
+    why = resolution_problem(width, height)
+    if why:
+        raise AlloError(f"--width {width} --height {height}: {why}")
     ensure_output_dir(out)
     try:
         sheet = run_demo(out, (width, height), samples, device=device)
@@ -223,8 +337,12 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out",
 
 @app.command()
 def sky(out: Path = typer.Option(Path("out/sky"), "--out", help="Output directory for SKY_YEAR.csv and .png."),
-        year: int = typer.Option(2030, help="The year whose 1 January (00:00 UTC) starts the table."),
-        days: int = typer.Option(365, help="Days in the table, one row per day at 00:00 UTC.")):
+        year: int = typer.Option(2030, metavar="YEAR", help="The year whose 1 January (00:00 UTC) starts the table.",
+                                 parser=_whole("--year", lambda: _sky_bounds()[0], lambda: _sky_bounds()[1],
+                                               "give a year the ephemeris (DE421) covers, e.g. --year 2030")),
+        days: int = typer.Option(365, metavar="N", help="Days in the table, one row per day at 00:00 UTC.",
+                                 parser=_whole("--days", 1, lambda: _sky_bounds()[2],
+                                               "give the number of days in the table, e.g. --days 365"))):
     """Write a year's sky table (CSV) and plot (PNG): distance, irradiance, eclipses, angular sizes."""
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
@@ -271,6 +389,8 @@ def asset_import(file: Path = typer.Argument(..., help="glTF/GLB, OBJ, STL or US
                         "a hazard near the station" if hazard else "a station", "--units mm, cm, in, ...", read_as)
     path = write_asset(asset, out, label)
     typer.echo(f"{file} -> {path} (unit {info['unit']}, up axis {info['upAxis']}, {info['triangles']} triangles, "
+               + (f"{info['droppedTriangles']} dropped (non-finite, out of range or zero area), "
+                  if info["droppedTriangles"] else "")
                + " x ".join(f"{e:.4g}" for e in extent) + " m)")
 
 
@@ -336,13 +456,17 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
                                 defects=defects)
         except KeyboardInterrupt as exc:
             _notes(notes)
-            typer.echo(f"interrupted: {exc or 'before any file was placed; re-run the same command'}", err=True)
+            typer.echo(f"interrupted: {str(exc) or 'before any file was placed; re-run the same command'}",
+                       err=True)   # a bare KeyboardInterrupt says nothing (and is truthy)
             raise SystemExit(130) from None
     _notes(notes)
     folders = Counter("/".join(r["image"].split("/")[1:3]) for r in read_manifest(manifest)
                       if r["category"] == category)   # SPLIT/FOLDER: train/good, test/good, test/<defect>
     order = sorted(folders, key=lambda k: (k != "train/good", k != "test/good", k))
     typer.echo(f"{out / category}: " + ", ".join(f"{k} {folders[k]}" for k in order) + f"; manifest {manifest}")
+    from allo_usd.output.annotation_files import summary_line
+
+    typer.echo(summary_line(out))   # COCO, BOP, passes (allo_usd.output.annotation_files)
     if any(issubclass(w.category, RefusedRenders) for w in notes):
         raise SystemExit(1)  # like `render` with failures: the rest is assembled, the refused ones are named
 
@@ -377,10 +501,15 @@ def plan_cmd(out: Path = typer.Option(..., "--out", help="Plan file to write (.t
 def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml)."),
            out: Path = typer.Option(Path("out/layers"), "--out", help="Output directory for the layers (the authored "
                                     "tree; `allo-usd dataset` writes the dataset)."),
-           limit: int = typer.Option(None, "--limit", show_default=False,
+           limit: int = typer.Option(None, "--limit", show_default=False, metavar="N",
+                                     parser=_whole("--limit", 0, None, "give the number of scenes to author, 0 or "
+                                                   "more, or leave --limit out for every scene"),
                                      help="Author only the first N scenes of the plan (and the reserve scenes that "
                                           "top up their skipped depths). Default: every scene."),
-           workers: int = typer.Option(None, "--workers", show_default=False,
+           workers: int = typer.Option(None, "--workers", show_default=False, metavar="N",
+                                       parser=_whole("--workers", 1, MAX_PROCESSES, "give the number of authoring "
+                                                     "processes, or leave --workers out for 2 on large plans, "
+                                                     "else 1"),
                                        help="Processes. Default: 2 for large plans, else 1."),
            replace: bool = typer.Option(False, "--replace", help="OUT was authored from another plan: delete "
                                         "its layers (scenes/, sky/, poses/, stages/, the CSVs) and author this one."),
@@ -508,6 +637,19 @@ def main() -> None:
         typer.secho(line, fg=typer.colors.RED, err=True)
         raise SystemExit(2) from None
 
+
+def _loaded() -> None:
+    """Put back the SIGINT handler held while this module loaded. A Ctrl-C that came meanwhile ends
+    `allo-usd` (the console script, or `python -m allo_usd.cli`) with the one line and exit 130;
+    imported by anything else, the module hands it to the handler it displaced (Python's: a
+    KeyboardInterrupt), as if nothing had held it."""
+    command = __name__ == "__main__" or Path(sys.argv[0] if sys.argv else "").name == "allo-usd"
+    if _LOADING.release(deliver=not command):
+        typer.echo(_INTERRUPTED, err=True)
+        raise SystemExit(130)
+
+
+_loaded()
 
 if __name__ == "__main__":
     main()

@@ -22,8 +22,11 @@ Layout under OUT (the test renders each folder as one run):
     names_mask/   a.usda and a_mask.usda (a's mask and a_mask's image would both be a_mask.png)
     names_case/   Sc.usda and sc.usda
     resume/       a scene over a shared sky/d000.usda (the test edits the sun, then re-renders)
-    plans/        hostile plan files (alias bomb, binary, far dates, absurd sizes, a 1e9-scene plan)
-    dataset/      render records: a split "../../escaped", files naming /etc/hostname, an empty folder
+    plans/        hostile plan files (alias bomb, binary, far dates, absurd sizes, a 1e9-scene plan);
+                  plans/poses/ their hostile pose files (a FIFO, a link to /dev/zero, deep JSON)
+    linktree/     plan.toml, hazards -> ../outside, and scenes/x/hazard_link.usda reading through it
+    dataset/      render records: a split "../../escaped", files naming /etc/hostname, an empty folder,
+                  r0.json as a FIFO, a link to /dev/zero, nested 100,000 deep, 2 GB sparse
     cli/          a file given as --out, a .usdc layer
 """
 
@@ -353,6 +356,19 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
                   forbidden=(tree / "private" / "secret.usda",))
     w.cases[-1] = Case(**{**w.cases[-1].__dict__, "argv": ("render", str(layer))})
 
+    # ---- a tree's own folder linked out of it grants nothing (issue 25): hazards/ -> outside/
+    tree = out / "linktree"
+    tree.mkdir()
+    (tree / "plan.toml").write_text('name = "hostile"\n')
+    os.symlink(outside, tree / "hazards")
+    folder = tree / "scenes" / "x"
+    folder.mkdir(parents=True)
+    layer = w.bad(folder, "hazard_link", "sandbox", CLI_ERROR,
+                  lambda t: with_sublayer(t, "../../hazards/secret.usda"), run="single",
+                  note="linktree/hazards is a link to outside/; the layer sublayers hazards/secret.usda",
+                  forbidden=(secret,))
+    w.cases[-1] = Case(**{**w.cases[-1].__dict__, "argv": ("render", str(layer))})
+
     # ---- names whose outputs would collide
     for folder_name, stems in (("names_mask", ("a", "a_mask")), ("names_case", ("Sc", "sc"))):
         d = out / folder_name
@@ -415,6 +431,22 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
           ("author", str(big), "--out", str(out / "plan_out" / "oversize"), "--no-progress", "--limit", "1"),
           "a 64 MB plan file (valid TOML)")
 
+    # ---- plans whose pose file is hostile (issue 25): the read gate refuses it unopened / unparsed
+    poses = plans / "poses"
+    poses.mkdir()
+    os.mkfifo(poses / "fifo.csv")
+    os.symlink("/dev/zero", poses / "zero.csv")
+    (poses / "deep.json").write_text('[{"name": "a", "split": "train", "position": ' + "[" * 100_000 +
+                                     "]" * 100_000 + "}]\n")
+    for name, note, unopened in (("fifo.csv", "a FIFO as poses.file", True),
+                                 ("zero.csv", "poses.file linked to /dev/zero", True),
+                                 ("deep.json", "a pose JSON nested 100,000 deep", False)):
+        path = plans / f"poses_{Path(name).stem}.toml"
+        path.write_text(good.replace("[poses]\n", f'[poses]\nfile = "{poses / name}"\n'))
+        w.add(f"plan_poses_{Path(name).stem}", "plan", CLI_ERROR, "plan", (path, poses / name),
+              ("author", str(path), "--out", str(out / "plan_out" / f"poses_{Path(name).stem}"), "--no-progress",
+               "--limit", "1"), note, forbidden=(poses / name,) if unopened else ())
+
     # ---- dataset: render records that point outside the dataset
     ds = out / "dataset"
     (ds / "empty").mkdir(parents=True)
@@ -429,6 +461,20 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
         w.add(f"dataset_{name}", "dataset", CLI_REFUSED, "dataset", (d,),
               ("dataset", str(d), "--out", str(out / "dataset_out" / name)),
               f"a render JSON with {'split ../../escaped' if scene else 'file names /etc/hostname'}")
+
+    # ---- render records the read gate refuses unopened / unparsed (issue 25): left out with a note
+    for name, make, note in (
+            ("fifo_record", lambda f: os.mkfifo(f), "a FIFO named r0.json"),
+            ("zero_record", lambda f: os.symlink("/dev/zero", f), "r0.json linked to /dev/zero"),
+            ("deep_record", lambda f: f.write_text("[" * 100_000 + "]" * 100_000), "r0.json nested 100,000 deep"),
+            ("big_record", lambda f: (f.write_bytes(b"{}"), os.truncate(f, SPARSE_BYTES)),
+             "a 2 GB sparse r0.json (too big, not 'no record')")):
+        d = ds / name
+        d.mkdir()
+        make(d / "r0.json")
+        w.add(f"dataset_{name}", "dataset", CLI_REFUSED, "dataset", (d / "r0.json",),
+              ("dataset", str(d), "--out", str(out / "dataset_out" / name)), note,
+              forbidden=(d / "r0.json",) if name in ("fifo_record", "zero_record") else ())
 
     # ---- command lines
     cli = out / "cli"

@@ -107,7 +107,7 @@ def test_oversized_sublayer_is_refused_unread(layer, capfd):
     with open(big, "wb") as f:  # sparse: no disk used, but a reader would allocate all of it
         f.truncate(MAX_LAYER_BYTES + 1)
     add_sublayer(layer, "./big.usda")
-    refused(layer, rf"big.usda holds {MAX_LAYER_BYTES + 1:,} bytes, over the 256 MiB allowed", capfd)
+    refused(layer, rf"big.usda is too big \({MAX_LAYER_BYTES + 1:,} bytes > 256 MiB allowed\)", capfd)
 
 
 def test_non_layer_file_as_sublayer_is_refused(layer, capfd):

@@ -61,10 +61,14 @@ Materials:
 * A textured material on a part without UVs keeps no texture; its base_color becomes the factor
   times the texture's mean linear colour.
 
-Cleaning: triangles with a non-finite vertex or zero area (area <= 1e-12 * longest edge^2, a
-scale-free test that also catches collinear float noise) are dropped, then unused vertices.
-A file whose triangles are all degenerate raises DegenerateMeshError; a file with no triangle
-mesh at all (empty, or garbage trimesh reads as nothing) raises AssetError.
+Cleaning: triangles with a non-finite vertex, a vertex index outside the mesh's points, or zero
+area (area <= 1e-12 * longest edge^2, a scale-free test that also catches collinear float noise)
+are dropped, then unused vertices. Every dropped triangle is counted (ImportReport.
+dropped_triangles, a hazard's droppedTriangles): the file's triangles are counted as trimesh
+parsed them, before its own processing (which silently removes faces touching a NaN or infinite
+vertex in OBJ and STL files) runs, so those count too. A file whose triangles are all degenerate
+raises DegenerateMeshError; a file with no triangle mesh at all (empty, or garbage trimesh reads
+as nothing) raises AssetError.
 
 ISS_2016.glb (NASA, /work/shared/assets; see its README): 30,000 triangles in one mesh, one
 PBR material (baseColorTexture 1024x1024 JPEG, metallic 0, roughness 0.5, double sided),
@@ -93,6 +97,7 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd.core.errors import AssetError, DegenerateMeshError, ImportOptionError
+from allo_usd.core.interrupts import interrupt_held
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.core import fixedmath as fm
 
@@ -148,7 +153,8 @@ class ImportReport:
     transform: 4x4 float64, file world coordinates -> asset metres (p_out = M @ [p, 1]),
     i.e. [scale * rotation | offset]. rotation: R_user @ U (3x3, no scale). offset: the translation added last (metres, output
     frame; zero with recenter=False). source_extent: bounding-box size in file units and
-    axes. triangles: kept; dropped_triangles: degenerate or non-finite ones removed.
+    axes. triangles: kept; dropped_triangles: the file's triangles (as parsed) not kept:
+    non-finite, an index out of range or zero area (kept_triangles).
     """
 
     asset: Asset
@@ -191,8 +197,9 @@ def import_mesh_report(path, *, units: str = "auto", up_axis: str = "auto", name
             or max_texture_size < 1:
         raise ImportOptionError(f"max_texture_size must be a positive integer, got {max_texture_size!r}")
 
-    scene = _load_scene(path, fmt)
-    groups, n_in = _collect(scene, path, fmt)
+    with interrupt_held():   # trimesh's imports and loaders catch BaseException: a Ctrl-C waits for them
+        scene, parsed = _load_scene(path, fmt)
+        groups, n_in = _collect(scene, path, fmt, parsed)
 
     # clean in file units (the degeneracy test is scale free)
     kept_total = 0
@@ -337,6 +344,9 @@ def _resolve_units(units: str, largest: float, path: Path) -> tuple[str, float, 
 # ----------------------------------------------------------------------------- reading
 
 def _load_scene(path: Path, fmt: str):
+    """(trimesh Scene, {geometry name: its triangle count as the file gives it}). trimesh's own
+    processing (NaN/inf removal, vertex merging; OBJ and STL only, as `trimesh.load` would run it)
+    runs after the count, so the faces it removes are counted as dropped."""
     import trimesh
 
     if path.suffix.lower() == ".gltf":  # trimesh's own error for bad JSON is misleading
@@ -345,16 +355,25 @@ def _load_scene(path: Path, fmt: str):
         except (ValueError, UnicodeDecodeError) as e:
             raise AssetError(f"{path}: not a glTF file, its JSON does not parse: {e}") from e
     try:
-        scene = trimesh.load(str(path), force="scene")
+        scene = trimesh.load(str(path), force="scene", process=False)
+        if not isinstance(scene, trimesh.Scene):
+            raise AssetError(f"{path}: trimesh returned {type(scene).__name__}, not a scene")
+        parsed = {}
+        for key, geom in scene.geometry.items():
+            if isinstance(geom, trimesh.Trimesh):
+                parsed[key] = len(geom.faces)
+                if fmt != "gltf":   # trimesh.load processes OBJ and STL meshes (its glTF loader does not)
+                    geom.process()
+    except AssetError:
+        raise
     except Exception as e:  # trimesh raises many types on bad input
         raise AssetError(f"{path}: trimesh could not read it as {fmt}: {type(e).__name__}: {e}") from e
-    if not isinstance(scene, trimesh.Scene):
-        raise AssetError(f"{path}: trimesh returned {type(scene).__name__}, not a scene")
-    return scene
+    return scene, parsed
 
 
-def _collect(scene, path: Path, fmt: str) -> tuple[list[dict], int]:
-    """World-space float64 triangles from every mesh instance, grouped by material."""
+def _collect(scene, path: Path, fmt: str, parsed: dict | None = None) -> tuple[list[dict], int]:
+    """World-space float64 triangles from every mesh instance, grouped by material, and the number
+    of triangles the instances had as parsed (`parsed`: per geometry, before trimesh's processing)."""
     import trimesh
     from trimesh.visual.texture import TextureVisuals
 
@@ -363,13 +382,19 @@ def _collect(scene, path: Path, fmt: str) -> tuple[list[dict], int]:
     for node in scene.graph.nodes_geometry:
         matrix, geom_name = scene.graph[node]
         geom = scene.geometry.get(geom_name)
-        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+        if not isinstance(geom, trimesh.Trimesh):
+            continue
+        n_in += (parsed or {}).get(geom_name, len(geom.faces))
+        if len(geom.faces) == 0:
             continue
         has_normals = _has_file_normals(geom)
         m = np.asarray(matrix, dtype=np.float64)
         verts = np.asarray(geom.vertices, dtype=np.float64)
         pts = fm.apply(m[:3, :3], verts) + m[:3, 3]
-        faces = np.asarray(geom.faces, dtype=np.int64)
+        faces = np.asarray(geom.faces, dtype=np.int64).reshape(-1, 3)
+        faces = faces[((faces >= 0) & (faces < len(verts))).all(axis=1)]   # an index outside: dropped, counted
+        if not len(faces):
+            continue
         if fm.det3(m[:3, :3]) < 0:  # mirrored instance: keep faces counter-clockwise
             faces = faces[:, ::-1]
         visual = geom.visual
@@ -386,7 +411,6 @@ def _collect(scene, path: Path, fmt: str) -> tuple[list[dict], int]:
             label = getattr(material, "name", None) if material is not None else DEFAULT_MATERIAL.name
             g = groups[key] = {"material": material, "label": label, "chunks": []}
         g["chunks"].append((pts, faces, uv, has_normals))
-        n_in += len(faces)
     if n_in == 0:
         raise AssetError(f"{path}: no triangle mesh found; the {fmt} file is empty or trimesh could not "
                          f"make sense of it (corrupt file?)")
@@ -423,15 +447,25 @@ def _is_placeholder(material) -> bool:
     return material is None or (isinstance(material, SimpleMaterial) and material.name is None)
 
 
-def _clean(g: dict) -> None:
-    """Drop non-finite and zero-area triangles, then unused vertices (in place)."""
-    p, f = g["points"], g["faces"]
-    tri = p[f]
-    finite = np.isfinite(tri).all(axis=(1, 2))
+def kept_triangles(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Which triangles (faces: (M, 3) vertex indices into points (N, 3)) an import keeps: every
+    index inside the points, every vertex finite, and a non-zero area (the scale-free test of the
+    module doc). The one rule of every importer (mesh files here, USD hazards in
+    allo_usd.usd.hazard), so each counts the same triangles as dropped."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    inside = ((f >= 0) & (f < len(points))).all(axis=1)
+    tri = np.asarray(points, dtype=np.float64)[np.where(inside[:, None], f, 0)]
+    finite = inside & np.isfinite(tri).all(axis=(1, 2))
     tri = np.where(finite[:, None, None], tri, 0.0)
     area2 = fm.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     edge2 = (np.diff(tri[:, [0, 1, 2, 0]], axis=1) ** 2).sum(axis=2).max(axis=1)
-    keep = finite & (area2 > 2.0 * _DEGENERATE_REL_AREA * edge2) & (area2 > 0.0)
+    return finite & (area2 > 2.0 * _DEGENERATE_REL_AREA * edge2) & (area2 > 0.0)
+
+
+def _clean(g: dict) -> None:
+    """Drop the triangles `kept_triangles` refuses, then unused vertices (in place)."""
+    p, f = g["points"], g["faces"]
+    keep = kept_triangles(p, f)
     f = f[keep]
     if g["uv"] is not None:
         g["uv"] = g["uv"].reshape(-1, 3, 2)[keep].reshape(-1, 2)

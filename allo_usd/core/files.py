@@ -41,11 +41,17 @@ def temp_name_re(pid: int | None = None) -> re.Pattern:
 def temp_beside(path: Path, suffix: str = "") -> Path:
     """A new, empty temporary file beside `path`, named for this process (temp_name_re) and ending
     in `suffix` or `path`'s suffix (some writers choose the format by it)."""
+    fd, tmp = _open_temp_beside(path, suffix)
+    os.close(fd)
+    return tmp
+
+
+def _open_temp_beside(path: Path, suffix: str = "") -> tuple[int, Path]:
+    """temp_beside's file, still open: (descriptor, path)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=suffix or path.suffix)
-    os.close(fd)
-    return Path(tmp)
+    return fd, Path(tmp)
 
 
 def _failed(exc: BaseException, tmp: Path, path: Path) -> None:
@@ -85,17 +91,36 @@ def atomic_path(path: Path, suffix: str = "", mode: int | None = 0o644):
 
 
 def write_text_atomic(path: Path, text: str, **open_args) -> Path:
-    """Write `text` whole or not at all (a reader never sees a partial file); `open_args` as for open()."""
+    """Write `text` whole or not at all (a reader never sees a partial file); `open_args` as for open().
+    Without them the text is written as UTF-8 through write_bytes_atomic's one descriptor (authoring
+    writes ~92,000 files: a second open in text mode cost as much as building a layer), the same bytes
+    on every machine whatever its locale."""
+    if not open_args:
+        return write_bytes_atomic(path, text.encode("utf-8"))
     with atomic_path(path) as tmp:
         with open(tmp, "w", **open_args) as f:
             f.write(text)
     return Path(path)
 
 
-def write_bytes_atomic(path: Path, data: bytes) -> Path:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return Path(path)
+def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> Path:
+    """Write `data` whole or not at all: into atomic_path's temporary through the descriptor that
+    created it (made `mode` there), then renamed over `path`. A full disk raises DiskFullError."""
+    path = Path(path)
+    fd, tmp = _open_temp_beside(path)
+    try:
+        try:
+            os.fchmod(fd, mode)
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+        finally:
+            os.close(fd)
+    except BaseException as exc:
+        _failed(exc, tmp, path)
+        raise
+    commit_temp(tmp, path, None)
+    return path
 
 
 # a directory temporary after ".DEST": ".PID.XXXXXXXX" (atomic_directory) or ".<32 hex>.tmp" (earlier versions)
@@ -170,20 +195,208 @@ class RunLock:
         os.close(self.fd)
 
 
-def file_problem(path: str | Path, limit: int) -> str | None:
-    """Why `path` may not be read as a bounded regular file, or None if it may: missing or
-    unreadable, not a regular file (a FIFO would block its reader, a device never ends), or more
-    than `limit` bytes. Uses os.stat only (symlinks followed): nothing is opened. The text follows
-    the path in a message ("PATH is not a regular file ..."); the caller adds the fix."""
+# ------------------------------------------------------------------ the read gate
+#
+# Every file the project reads from a user (a pose file, a render record NAME.json, a plan, and,
+# through allo_usd.usd.dependencies, every layer and texture a scene names) passes one rule, checked
+# by os.stat before anything is opened: missing or unreadable, outside the allowed roots (where the
+# caller has roots), not a regular file (a FIFO would block its reader, a device such as /dev/zero
+# never ends, a directory is no file), or more than `limit` bytes. A file that passes is then read
+# through a non-blocking descriptor, checked again as a regular file (a swap between the stat and the
+# open), for at most limit + 1 bytes: one that grew past the bound meanwhile is refused too. JSON
+# nested deeper than MAX_JSON_DEPTH is refused: json.loads's RecursionError on a few thousand levels,
+# or the parsed value's depth (read_user_json). A refusal names the file and the rule, never the
+# file's content.
+
+MAX_JSON_DEPTH = 64   # a render record nests 5 levels, a pose file 3
+MAX_RECORD_BYTES = 4 << 20   # a render record NAME.json (allo_usd.run.job writes a few KB)
+
+
+class InputRefused(AlloError, ValueError):
+    """A user's file the read gate refused. `kind` names the rule (missing, unreadable, outside,
+    not_regular, too_big, grew, not_utf8, too_deep, not_json), `reason` is the text that follows the
+    file's name ("is too big (N bytes > LIMIT)"); the message is one line with the fix."""
+
+    def __init__(self, message: str, kind: str, reason: str):
+        super().__init__(message)
+        self.kind, self.reason = kind, reason
+
+
+def _bound(limit: int) -> str:
+    """A byte bound in words: 256 MiB, 64 KiB or 1,000 bytes."""
+    for unit, shift in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
+        if limit >= 1 << shift and limit % (1 << shift) == 0:
+            return f"{limit >> shift:,} {unit}"
+    return f"{limit:,} bytes"
+
+
+def _inside_roots(real: str, roots) -> bool:
+    real_path = Path(real)
+    for r in roots:
+        r = Path(os.path.realpath(r))
+        if real_path == r or r in real_path.parents:
+            return True
+    return False
+
+
+def input_problem(path: str | Path, limit: int, roots=None) -> tuple[str, str] | None:
+    """(kind, reason) of why `path` may not be read as a bounded regular file, or None if it may
+    (the gate's rule, module comment above). os.stat only (symlinks followed): nothing is opened.
+    `roots`: directories the file's real path must lie in (None: no such rule)."""
+    if roots is not None:
+        real = os.path.realpath(path)
+        if not _inside_roots(real, roots):
+            return "outside", (f"resolves to {real}, outside {', '.join(str(r) for r in roots)} (a symbolic link "
+                               "out of its folder)")
     try:
         st = os.stat(path)
+    except FileNotFoundError:
+        return "missing", "does not exist"
     except OSError as exc:
-        return f"cannot be read ({exc.strerror})"
+        return "unreadable", f"cannot be read ({exc.strerror})"
     if not stat.S_ISREG(st.st_mode):
-        return "is not a regular file (a directory, FIFO, device or socket)"
+        return "not_regular", "is not a regular file (a directory, FIFO, device or socket)"
     if st.st_size > limit:
-        return f"holds {st.st_size:,} bytes, over the {limit >> 20:,} MiB allowed"
+        return "too_big", f"is too big ({st.st_size:,} bytes > {_bound(limit)} allowed)"
     return None
+
+
+def file_problem(path: str | Path, limit: int) -> str | None:
+    """Why `path` may not be read as a bounded regular file, or None if it may: input_problem's
+    reason without roots ("cannot be read (...)" for a missing file too). The text follows the path
+    in a message ("PATH is not a regular file ..."); the caller adds the fix."""
+    found = input_problem(path, limit)
+    if found is None:
+        return None
+    kind, reason = found
+    return "cannot be read (No such file or directory)" if kind == "missing" else reason
+
+
+def _refuse(path, kind: str, reason: str, what: str, fix, error):
+    hint = fix.get(kind, fix.get("", "")) if isinstance(fix, dict) else fix
+    message = f"{what} {path} {reason}" + (f"; fix: {hint}" if hint else "")
+    if error is None:
+        return InputRefused(message, kind, reason)
+    return error(message)
+
+
+def _bounded_read(path: str | Path, limit: int) -> bytes | None:
+    """At most limit + 1 bytes of a regular file, read through a non-blocking descriptor; None when
+    what was opened is not a regular file (swapped after the stat)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        chunks, size = [], 0
+        while size <= limit:
+            chunk = os.read(fd, min(limit + 1 - size, 1 << 20))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
+def read_user_bytes(path: str | Path, limit: int, what: str, fix: str | dict = "", roots=None,
+                    error: type[Exception] | None = None) -> bytes:
+    """The bytes of a user's file through the read gate (module comment above), or a one-line
+    error "WHAT PATH REASON; fix: FIX" (`fix` may map a kind to its own fix, "" the default): an
+    `error` instance when given (PlanError, LayerError), else InputRefused."""
+    found = input_problem(path, limit, roots)
+    if found is not None:
+        raise _refuse(path, *found, what, fix, error)
+    try:
+        data = _bounded_read(path, limit)
+    except FileNotFoundError:
+        raise _refuse(path, "missing", "does not exist", what, fix, error) from None
+    except OSError as exc:
+        raise _refuse(path, "unreadable", f"cannot be read ({exc.strerror})", what, fix, error) from None
+    if data is None:
+        raise _refuse(path, "not_regular", "is not a regular file (a directory, FIFO, device or socket)", what, fix,
+                      error)
+    if len(data) > limit:
+        raise _refuse(path, "grew", f"is too big (it grew past {_bound(limit)} while it was read)", what, fix, error)
+    return data
+
+
+def read_user_text(path: str | Path, limit: int, what: str, fix: str | dict = "", roots=None,
+                   error: type[Exception] | None = None) -> str:
+    """read_user_bytes decoded as UTF-8 (a byte-order mark is dropped); bytes that are not UTF-8
+    are refused naming the first bad byte's offset."""
+    data = read_user_bytes(path, limit, what, fix, roots, error)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise _refuse(path, "not_utf8", f"is not UTF-8 text (byte {exc.start} is not)", what, fix, error) from None
+
+
+_JSON_STRING = re.compile(r'"(?:[^"\\\n]|\\.)*"')
+
+
+def json_too_deep(text: str, max_depth: int = MAX_JSON_DEPTH) -> int | None:
+    """The line where JSON `text` nests arrays and objects deeper than `max_depth`, or None. Brackets
+    inside strings do not count. A scan, not a parse (numpy over the text's bytes: 16 MB of '['
+    in well under a second), so it is safe to ask before json.loads, which recurses."""
+    if text.count("[") + text.count("{") <= max_depth:
+        return None
+    import numpy as np
+
+    blank = _JSON_STRING.sub(lambda m: " " * len(m.group()), text).encode()   # brackets are ASCII bytes
+    codes = np.frombuffer(blank, dtype=np.uint8)
+    at = np.flatnonzero((codes == 0x5B) | (codes == 0x7B) | (codes == 0x5D) | (codes == 0x7D))
+    depth = np.cumsum(np.where((codes[at] == 0x5B) | (codes[at] == 0x7B), 1, -1).astype(np.int8), dtype=np.int32)
+    over = np.flatnonzero(depth > max_depth)
+    if over.size == 0:
+        return None
+    return blank.count(b"\n", 0, int(at[over[0]])) + 1
+
+
+def _nests_over(value, max_depth: int) -> bool:
+    """Does a parsed JSON value nest arrays and objects deeper than `max_depth`? (the depth
+    json_too_deep counts: the outermost array or object is level 1)"""
+    stack = [(value, 1)]
+    while stack:
+        v, depth = stack.pop()
+        children = v.values() if isinstance(v, dict) else v
+        if depth > max_depth:
+            return True
+        stack.extend((c, depth + 1) for c in children if isinstance(c, (dict, list)))
+    return False
+
+
+def read_user_json(path: str | Path, limit: int, what: str, fix: str | dict = "", roots=None,
+                   error: type[Exception] | None = None, max_depth: int = MAX_JSON_DEPTH):
+    """read_user_text parsed as JSON, refused when nested deeper than `max_depth` (kind too_deep,
+    naming the line) or when it is not JSON (kind not_json, naming line and column).
+
+    Parsed first: json.loads raises RecursionError on deep nesting (its C scanner counts its
+    recursion) and nothing else is at risk in a text already bounded by `limit`, so a record is
+    parsed once and its depth read from the parsed value; the bracket scan (json_too_deep, ~2 ms
+    a render record) runs only for a text that is refused, to name the line."""
+    import json
+
+    text = read_user_text(path, limit, what, fix, roots, error)
+
+    def too_deep():
+        line = json_too_deep(text, max_depth)
+        where = f" (at line {line})" if line is not None else ""
+        return _refuse(path, "too_deep", f"nests values over {max_depth} levels deep{where}", what, fix, error)
+
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        if json_too_deep(text, max_depth) is not None:   # deep before it is broken: depth is the rule it breaks
+            raise too_deep() from None
+        raise _refuse(path, "not_json", f"is not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})",
+                      what, fix, error) from None
+    except RecursionError:
+        raise too_deep() from None
+    if isinstance(value, (dict, list)) and text.count("[") + text.count("{") > max_depth \
+            and _nests_over(value, max_depth):
+        raise too_deep()
+    return value
 
 
 def read_head(path: Path, limit: int = 16384) -> bytes | None:

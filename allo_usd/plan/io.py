@@ -70,21 +70,17 @@ def _format(path: Path) -> str:
 def load_plan(path: Path) -> Plan:
     path = Path(path)
     fmt = _format(path)
-    if not path.is_file():
-        raise PlanError(f"plan {path} does not exist; fix: write one with `allo-usd plan --paper --out {path}`")
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read(MAX_PLAN_BYTES + 1)
-    except OSError as exc:
-        raise PlanError(f"plan {path} cannot be read ({exc.strerror}); fix: check its permissions") from None
-    if len(raw) > MAX_PLAN_BYTES:
-        raise PlanError(f"plan {path} is over {MAX_PLAN_BYTES:,} bytes, far more than any plan needs; fix: check "
-                        "it is the plan file (the paper's plan is under 1 KB)")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise PlanError(f"plan {path} is not UTF-8 text (byte {exc.start} is not); fix: give a {fmt.upper()} "
-                        "plan file, e.g. from `allo-usd plan --paper`") from None
+    from allo_usd.core.files import read_user_text
+
+    # the project's read gate: a FIFO, device or directory is refused by os.stat before any open, and a
+    # file over the bound is refused before it is read (and read no further than the bound)
+    text = read_user_text(path, MAX_PLAN_BYTES, "plan", {
+        "missing": f"write one with `allo-usd plan --paper --out {path}`",
+        "too_big": "check it is the plan file (the paper's plan is under 1 KB)",
+        "grew": "check it is the plan file (the paper's plan is under 1 KB)",
+        "not_regular": "pass a plan file (TOML or YAML), not a FIFO, device or directory",
+        "not_utf8": f"give a {fmt.upper()} plan file, e.g. from `allo-usd plan --paper`",
+        "": "check its permissions"}, error=PlanError)
     try:
         data = _parse(text, fmt)
     except _AliasFound as exc:

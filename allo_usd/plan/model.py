@@ -504,6 +504,12 @@ class Camera(_Model):
         if not CLIP_M[0] <= near < far <= CLIP_M[1]:
             raise ValueError(f"clipping_range_m = ({near:g}, {far:g}) must be near < far within {CLIP_M[0]:g}..{CLIP_M[1]:g} m "
                              "(what the layer reader passes to Blender); fix: e.g. clipping_range_m = [0.05, 1e12]")
+        import numpy as np
+
+        if not np.float32(near) < np.float32(far):   # the layer stores them as float32 (UsdGeom.Camera's float2)
+            raise ValueError(f"clipping_range_m = ({near!r}, {far!r}): near and far are the same number as the layer "
+                             "stores them (32-bit floats, about 7 digits), so the reader would refuse every scene; "
+                             "fix: move far further from near, e.g. far = 2 x near")
         return v
 
     @field_validator("principal_point_offset_px")

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd.core.errors import PlanError
+from allo_usd.core.files import MAX_JSON_DEPTH, input_problem, json_too_deep, read_user_bytes
 
 CSV_COLUMNS = ("name", "split", "x", "y", "z", "qw", "qx", "qy", "qz")
 JSON_KEYS = ("name", "split", "position", "orientation_wxyz")
@@ -176,6 +177,10 @@ def _read_json(r: _Reader, text: str) -> None:
     if text[i] != "[":
         raise r.fail(_line_of(text, i), "the file is not a JSON list",
                      'write a list: [{"name": ..., "split": ..., "position": [...], "orientation_wxyz": [...]}, ...]')
+    deep = json_too_deep(text, MAX_JSON_DEPTH)   # json.loads recurses: a RecursionError on a few thousand levels
+    if deep is not None:
+        raise r.fail(deep, f"values nested over {MAX_JSON_DEPTH} levels deep", "a pose file is a list of objects "
+                     'holding lists of numbers: [{"name": ..., "position": [x, y, z], ...}]')
     try:
         json.loads(text)
     except json.JSONDecodeError as exc:
@@ -231,28 +236,31 @@ _CACHE: dict[tuple, PoseFile] = {}
 
 def read_pose_file(path: str | Path) -> PoseFile:
     """Read and check a pose file (see the module doc); raises PlanError naming FILE:LINE and the fix.
-    Cached by (path, size, mtime), since a plan is validated more than once."""
+    Read through the project's read gate (core.files.read_user_bytes): a FIFO, a device such as
+    /dev/zero, a directory or a file over MAX_POSE_FILE_BYTES is refused by os.stat before it is
+    opened, and the read stops at the bound. Cached by (path, size, mtime), since a plan is
+    validated more than once."""
     p = Path(path)
     if p.suffix.lower() not in SUFFIXES:
         raise PlanError(f"poses.file {str(path)!r} is neither .csv nor .json; fix: name the pose file .csv or .json")
-    try:
-        st = p.stat()
-        key = (str(p.resolve()), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+    fix = {"missing": "give poses.file relative to the directory you run allo-usd in (or an absolute path)",
+           "too_big": f"at most {MAX_POSES:,} poses, one per line",
+           "not_regular": "point poses.file at a regular CSV or JSON file (not a FIFO, device or directory)",
+           "": "check the path and its permissions"}
+    key = None
+    if input_problem(p, MAX_POSE_FILE_BYTES) is None:   # by os.stat alone: a FIFO is never opened
+        try:
+            st = p.stat()
+            key = (str(p.resolve()), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+        except OSError:   # gone since: the read below says so
+            pass
         if key in _CACHE:
             return _CACHE[key]
-        if st.st_size > MAX_POSE_FILE_BYTES:
-            raise PlanError(f"pose file {path} is over {MAX_POSE_FILE_BYTES:,} bytes; fix: at most {MAX_POSES:,} "
-                            "poses, one per line")
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise PlanError(f"pose file {path} does not exist; fix: give poses.file relative to the directory you run "
-                        "allo-usd in (or an absolute path)") from None
-    except OSError as exc:
-        raise PlanError(f"pose file {path} cannot be read ({exc.strerror}); fix: check the path and its "
-                        "permissions") from None
+    data = read_user_bytes(p, MAX_POSE_FILE_BYTES, "pose file", fix, error=PlanError)
     poses = parse_pose_file(data, str(path), p.suffix)
     out = PoseFile(p.name, hashlib.sha256(data).hexdigest(), tuple(poses))
-    _CACHE[key] = out
+    if key is not None:
+        _CACHE[key] = out
     return out
 
 

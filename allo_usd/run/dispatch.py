@@ -8,6 +8,8 @@ one alone. How the two backends stay crash-safe is described in docs/dispatch.md
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 import signal
 import sys
@@ -19,10 +21,10 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock, ensure_output_dir
-from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, clean_stale, compact_manifest,
-                                   done_record, index_row, is_verified, load_manifest)
+from allo_usd.run.manifest import (MANIFEST, append_jsonl, append_rows, check_output_names, clean_stale,
+                                   compact_manifest, load_manifest, resume_check)
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
-from allo_usd.usd.safety import ENV_ROOTS, tree_roots
+from allo_usd.usd.safety import ENV_ROOTS, roots_cached, tree_roots
 from allo_usd.usd.sniff import refusal
 
 Hook = Callable[[str], None]
@@ -105,7 +107,8 @@ def find_layers(source: str | Path | list) -> list[Path]:
     else:
         source = Path(source)
         if source.is_dir():
-            layers = _scene_layers_under(source)
+            with roots_cached():   # one allowed_roots per folder for the scan's refusal checks
+                layers = _scene_layers_under(source)
             if not layers:
                 raise AlloError(f"no scene layers under {source} (a scene layer is a .usda whose customLayerData "
                                 "holds allo.sceneId; sky/, poses/ and stages/ layers are shared sublayers, not "
@@ -166,20 +169,43 @@ class _Worker:
         self.proc.close()  # its connection and pidfd
 
 
+def check_timeout(timeout, name: str = "timeout=") -> float | None:
+    """`timeout` as seconds (finite and > 0), or None for time_limit's formula (None, or 0 from the
+    API); anything else (NaN, which compares false with every limit and so turned the limit off, an
+    infinity, a negative number, a bool or a string) is an AlloError that prints what was given."""
+    number = isinstance(timeout, numbers.Real) and not isinstance(timeout, bool)
+    if timeout is None or (number and timeout == 0):
+        return None
+    if not number or not (math.isfinite(timeout) and timeout > 0):
+        raise AlloError(f"{name}{timeout!r} is not a number of seconds > 0; fix: give the seconds one attempt at a "
+                        "scene may take, or None for the limit from each layer's size")
+    return float(timeout)
+
+
 def time_limit(layer: Path, timeout: float | None = None) -> float:
-    """Seconds one attempt at `layer` may take: `timeout` when given (> 0), else the default
-    formula from the layer's pixels and samples (TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * cost)."""
-    if timeout:
-        return float(timeout)
+    """Seconds one attempt at `layer` may take: `timeout` when given (> 0, check_timeout), else the
+    default formula from the layer's pixels and samples (TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * cost)."""
+    timeout = check_timeout(timeout)
+    if timeout is not None:
+        return timeout
     from allo_usd.usd.sniff import render_cost
 
     cost = render_cost(layer)
     return TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * (cost[0] * cost[1] if cost else TIMEOUT_FALLBACK_COST)
 
 
+def seconds_text(seconds: float) -> str:
+    """A time limit as the user gave it, not rounded away: 0.5 -> "0.5 s", 600 -> "600 s", the default
+    formula's 120.2304 -> "120.2 s" (to 0.1 s from 1 s up, 3 significant digits below)."""
+    text = f"{seconds:.3g}" if seconds < 1 else f"{seconds:.1f}"
+    if "." in text and "e" not in text:
+        text = text.rstrip("0").rstrip(".")
+    return f"{text} s"
+
+
 def _timeout_reason(limit: float) -> str:
-    return (f"no result within the time limit of {limit:.0f} s; the worker was killed (raise the limit with "
-            "`render --timeout SECONDS`, or check the layer's sublayers: a FIFO or a hung mount blocks a reader)")
+    return (f"no result within the time limit of {seconds_text(limit)}; the worker was killed (raise the limit "
+            "with `render --timeout SECONDS`, or check the layer's sublayers: a FIFO or a hung mount blocks a reader)")
 
 
 @dataclass
@@ -433,7 +459,7 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
     stuck thread holds that process's bpy lock) and the attempt counted as a timeout."""
     from distributed import Client, as_completed
 
-    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    client = scheduler if isinstance(scheduler, Client) else connect_scheduler(scheduler)
     roots = env.get(ENV_ROOTS, "")
     held = False
     try:
@@ -490,6 +516,50 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
             client.close()
 
 
+SCHEDULER_CONNECT_S = 5.0   # how long connecting to a --scheduler may take (distributed's default: 30 s)
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss")
+
+
+def scheduler_problem(address) -> str | None:
+    """Why `address` is not a Dask scheduler address one can connect to from another process, or
+    None: SCHEME://HOST:PORT (tcp, tls, ws or wss; a bare HOST:PORT is tcp) with a port 1-65535, as
+    distributed parses it. Checked before anything renders, without connecting."""
+    from distributed.comm import get_address_host_port, parse_address
+    from distributed.comm.registry import get_backend
+
+    shown = str(address)[:200]
+    try:
+        scheme, _ = parse_address(str(address))
+        if scheme not in SCHEDULER_SCHEMES:
+            return f"{shown!r} is not a {', '.join(SCHEDULER_SCHEMES)} address"
+        get_backend(scheme)
+        host, port = get_address_host_port(str(address))
+    except (ValueError, TypeError) as exc:
+        return f"{shown!r} is not a scheduler address ({exc})"
+    if not host or not 1 <= int(port) <= 65535:
+        return f"{shown!r} has no host or a port outside 1-65535"
+    return None
+
+
+def connect_scheduler(address):
+    """A distributed Client of the scheduler at `address` (an address, or a cluster object such as a
+    LocalCluster), or an AlloError in one line: a malformed address at once (scheduler_problem), one
+    that does not answer as a Dask scheduler within SCHEDULER_CONNECT_S (refused, unroutable, or
+    something else listening there: distributed then reads garbage and may raise MemoryError)."""
+    from distributed import Client
+
+    fix = "fix: give the address `dask scheduler` prints, e.g. --scheduler tcp://HOST:8786, or leave it out for a local pool"
+    why = scheduler_problem(address) if isinstance(address, str) else None   # else a cluster object
+    if why:
+        raise AlloError(f"--scheduler {why}; {fix}")
+    try:
+        return Client(address, timeout=SCHEDULER_CONNECT_S)
+    except Exception as exc:  # noqa: BLE001 - OSError (refused, timed out), or garbage read from a non-Dask server
+        raise AlloError(f"--scheduler {str(address)[:200]}: no Dask scheduler answered within "
+                        f"{seconds_text(SCHEDULER_CONNECT_S)} ({type(exc).__name__}: {str(exc)[:200]}); fix: start "
+                        "one there (`dask scheduler`) and its workers, or check the address") from None
+
+
 def _overdue(client, futures: dict, started: dict) -> list:
     """Futures past their task's limit, counted from when each was first seen processing (noted in
     `started`); the scheduler's processing list is asked only while some future has no start yet."""
@@ -520,7 +590,7 @@ def _restart_worker(client, address: str) -> None:
 def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
              retries: int = 2, progress: bool | None = None, extra_roots: tuple = (),
              before_render: Hook | None = None, timeout: float | None = None, trees: tuple = (),
-             device: str = "auto", progress_interval: float = PROGRESS_INTERVAL_S) -> Summary:
+             device: str = "auto", progress_interval: float = PROGRESS_INTERVAL_S, verify: bool = False) -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
 
     `workers` local processes (default: the cores this process may use) with `threads` Cycles
@@ -538,9 +608,12 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     the run with DeviceError); see allo_usd.blender.device.
     `progress` None shows a bar on a terminal and, where stderr is not one (a pipe, nohup, a CI log),
     a plain line at most every `progress_interval` seconds and a final one; True the bar, False nothing.
-    A scene is skipped when done by the rule every entry point shares (allo_usd.run.manifest.is_done:
-    its render JSON, or a verified manifest row); one another entry point rendered (render_layer, the
-    demo) gets its manifest row from its JSON.
+    A scene is skipped when done by the rule every entry point shares (allo_usd.run.manifest.is_done,
+    resume_check: a verified manifest row, else its render JSON); one another entry point rendered
+    (render_layer, the demo) gets its manifest row from its JSON. A row's outputs are trusted on their
+    recorded size, mtime and inode (the quick check: nothing is read); `verify` reads and checksums
+    every output instead, re-renders what fails and records the stat of what passes (after a disk
+    error, or a tree copied without its mtimes).
     """
     from allo_usd.blender.device import check_device
 
@@ -549,8 +622,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
     if workers is not None and workers < 0:
         raise AlloError(f"workers={workers}: pass a number of worker processes >= 1 (or 0 for one per core)")
-    if timeout is not None and timeout < 0:
-        raise AlloError(f"timeout={timeout}: pass seconds > 0, or 0 for the default limit from each layer's size")
+    timeout = check_timeout(timeout)   # NaN would turn the limit off (it compares false with every time)
     extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
     layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
     ensure_output_dir(out_dir, "output directory")
@@ -564,20 +636,24 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         (out_dir / FAILED).unlink(missing_ok=True)  # failures of this run only; earlier ones are retried
         compact_manifest(out_dir)
         done = load_manifest(out_dir)
-        tasks, unusable = [], []
+        tasks, unusable, caught_up = [], [], []
+        roots_seen: dict = {}   # allowed_roots per layer folder, for this decision only (a worker checks afresh)
         for layer in layers:
-            why = refusal(layer)
+            with roots_cached(roots_seen):
+                why = refusal(layer)
             if why:  # found by the scan: never opened, recorded as failed
                 unusable.append((_Task(layer), why))
-            # is_done's rule in its two halves: a verified manifest row, else the render's own JSON
-            elif is_verified(done.get(layer.stem), layer, out_dir):
+                continue
+            # is_done's rule: the manifest row's quick check (every byte with `verify`), else the render's JSON
+            finished, row = resume_check(layer, out_dir, done.get(layer.stem), verify)
+            if finished:
                 summary.skipped.append(layer.stem)
-            elif (meta := done_record(layer, out_dir, strict=True)) is not None:
-                summary.skipped.append(layer.stem)  # rendered by another entry point: the index catches up
-                append_jsonl(out_dir / MANIFEST, {**index_row(layer, out_dir, meta),
-                                                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+                if row is not None:  # the index catches up: a scene another entry point rendered, or new stat
+                    caught_up.append(row if "finished" in row else
+                                     {**row, "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
             else:
                 tasks.append(_Task(layer))
+        append_rows(out_dir / MANIFEST, caught_up)  # one write and one fsync, before anything renders
         run = _Run(out_dir, len(tasks) + len(unusable), retries, progress, summary, progress_interval)
         ended = False  # the run's last progress line only for a run that ended (not for an error's one line)
         for task, why in unusable:

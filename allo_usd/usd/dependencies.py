@@ -33,6 +33,12 @@ Blender reads textures from files only: the reader reads a packaged one through 
 
 A refused file is named with the rule it breaks, never with its content.
 
+**A user's USD hazard** (allo_usd.usd.hazard: a plan's `[[anomalies.assets]] file = "x.usda"`,
+`allo-usd asset import x.usda`) is walked by `walk_hazard` with the same rules before USD opens
+it; only its roots differ (`hazard_roots`): the folder that holds the hazard file, and
+ALLO_ASSET_ROOTS, never the project's stages/ or a tree. A refusal says so and how to fix it.
+The layers it found (`Walk.layer_files`) are the hazard's inputs, checksummed in its record.
+
 The walk returns the files it read, root first (depth first, each file once): the inputs of a
 render, whose checksums make its identity (allo_usd.run.manifest.render_identity). A layer's
 own list of what it names is cached per process by (real path, mtime_ns, size, inode), so the
@@ -82,9 +88,28 @@ class _Named:
 @dataclass
 class Walk:
     """What `walk` found: the files read (real paths, root first) and the Sdf layers it opened
-    for this walk (keep them alive across Usd.Stage.Open and USD parses none of them twice)."""
+    for this walk (keep them alive across Usd.Stage.Open and USD parses none of them twice).
+    `kinds`: each file's kind (LAYER or ASSET), by real path."""
     files: list[str] = field(default_factory=list)
     layers: list = field(default_factory=list)
+    kinds: dict = field(default_factory=dict)
+
+    def layer_files(self) -> list[str]:
+        """The files the composition reads as layers (root first): what a stage is made of."""
+        return [f for f in self.files if self.kinds.get(f) == LAYER]
+
+
+@dataclass(frozen=True)
+class _Rules:
+    """Who is walked and how a refusal reads: `root` names the root file in messages, `refuse`
+    raises for a path outside the roots (what, path, layer_path, roots), `reopen` is the fix of
+    a file USD cannot parse."""
+    root: str = "scene layer"
+    refuse: object = reject
+    reopen: str = "re-author it with `allo-usd author` or restore it from the plan"
+
+
+_SCENE = _Rules()
 
 
 _NAMED: OrderedDict[tuple, tuple[_Named, ...]] = OrderedDict()
@@ -166,12 +191,13 @@ def stat_key(real: str) -> tuple:
     return real, st.st_mtime_ns, st.st_size, st.st_ino
 
 
-def _check(kind: str, what: str, path: str, layer_path, roots, package_root: bool = False) -> str:
+def _check(kind: str, what: str, path: str, layer_path, roots, package_root: bool = False,
+           refuse=reject) -> str:
     """The real path of `path` if it may be read as a `kind`; else a LayerError naming the rule.
     `package_root`: `path` is the scene itself and may be a package (.usdz)."""
     real = os.path.realpath(path)
     if not inside(real, roots):
-        reject(what, path, layer_path, roots)
+        refuse(what, path, layer_path, roots)
     packaged = package_root and is_package(path)
     problem = file_problem(real, MAX_PACKAGE_BYTES if packaged else MAX_LAYER_BYTES if kind == LAYER
                            else MAX_ASSET_BYTES)
@@ -213,16 +239,16 @@ def _used_by(identifier: str, layer_path) -> str:
     return identifier if same else f"{identifier} (used by {layer_path})"
 
 
-def _open(identifier: str, layer_path):
+def _open(identifier: str, layer_path, fix: str = _SCENE.reopen):
     from pxr import Sdf, Tf
 
     try:
         layer = Sdf.Layer.FindOrOpen(identifier)
     except Tf.ErrorException as exc:
         raise LayerError(f"{_used_by(identifier, layer_path)} is not a readable USD layer ({tf_message(exc)}); "
-                         "re-author it with `allo-usd author` or restore it from the plan") from None
+                         f"{fix}") from None
     if layer is None:
-        raise LayerError(f"{_used_by(identifier, layer_path)} could not be opened as a USD layer; re-author it")
+        raise LayerError(f"{_used_by(identifier, layer_path)} could not be opened as a USD layer; {fix}")
     return layer
 
 
@@ -270,13 +296,13 @@ def _named(layer, layer_path, packaged: bool = False) -> tuple[_Named, ...]:
     return tuple(out)
 
 
-def _cached_named(key: tuple, identifier: str, layer_path, opened: list, packaged: bool = False
-                  ) -> tuple[_Named, ...]:
+def _cached_named(key: tuple, identifier: str, layer_path, opened: list, packaged: bool = False,
+                  fix: str = _SCENE.reopen) -> tuple[_Named, ...]:
     hit = _NAMED.get(key)
     if hit is not None:
         _NAMED.move_to_end(key)
         return hit
-    layer = _open(identifier, layer_path)
+    layer = _open(identifier, layer_path, fix)
     opened.append(layer)
     found = _named(layer, layer_path, packaged)
     _NAMED[key] = found
@@ -297,23 +323,64 @@ def walk(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> Walk:
     doc); raise LayerError for the first refused one. A file USD cannot resolve is skipped (the
     stage's composition errors report it), unless its path is absolute and outside the roots.
     A package (.usdz) is walked inside itself: its files are the package alone."""
+    layer_path = Path(layer_path)
+    return _walk(layer_path, allowed_roots(layer_path, extra), _SCENE)
+
+
+def hazard_roots(hazard_path: str | Path) -> tuple[Path, ...]:
+    """Where a user's USD hazard may reach: the folder that holds it (as named, and after symbolic
+    links, if the file itself is a link), and the directories of ALLO_ASSET_ROOTS (a user's own
+    grant). Never the project's stages/ or an authored tree: a hazard is the user's own file."""
+    from allo_usd.usd.safety import ENV_ROOTS
+
+    given = os.path.abspath(hazard_path)
+    roots = [os.path.dirname(given), os.path.dirname(os.path.realpath(given))]
+    roots += [p for p in os.environ.get(ENV_ROOTS, "").split(os.pathsep) if p]
+    out: list[Path] = []
+    for r in roots:
+        real = Path(os.path.realpath(r))
+        if real not in out:
+            out.append(real)
+    return tuple(out)
+
+
+def _refuse_for_hazard(what: str, path: str, hazard_path, roots) -> None:
+    from allo_usd.usd.safety import ENV_ROOTS
+
+    raise LayerError(f"{hazard_path}: {what} {path} resolves outside the hazard's folder "
+                     f"({', '.join(map(str, roots))}); move the file beside the hazard (a hazard may use only the "
+                     f"files in its own folder and below), or add its directory to {ENV_ROOTS}")
+
+
+_HAZARD = _Rules("hazard", _refuse_for_hazard, "re-export the hazard from its tool or restore the file")
+
+
+def walk_hazard(hazard_path: str | Path) -> Walk:
+    """`walk` for a user's USD hazard (allo_usd.usd.hazard): the same rules (regular files by stat,
+    size bounds, layer extensions, no variable expressions, no value clips, a package only
+    itself), with the hazard's own roots (`hazard_roots`), checked before USD opens any file."""
+    hazard_path = Path(hazard_path)
+    return _walk(hazard_path, hazard_roots(hazard_path), _HAZARD)
+
+
+def _walk(layer_path: Path, roots: tuple[Path, ...], rules: _Rules) -> Walk:
+    """The walk itself (see `walk`), from `layer_path` within `roots`, refusing as `rules` say."""
     from pxr import Ar
 
     resolver = Ar.GetResolver()
-    layer_path = Path(layer_path)
-    roots = allowed_roots(layer_path, extra)
     result, seen = Walk(), set()
     root = os.path.abspath(layer_path)
     package = None
     if is_package(root):
-        real = _check(LAYER, "scene layer", root, layer_path, roots, package_root=True)
+        real = _check(LAYER, rules.root, root, layer_path, roots, package_root=True, refuse=rules.refuse)
         package = _package(real, layer_path)
         result.files.append(real)
-    stack = [(LAYER, "scene layer", root)]  # depth first, without a recursive closure
+        result.kinds[real] = LAYER
+    stack = [(LAYER, rules.root, root)]  # depth first, without a recursive closure
     while stack:  # (a closure calling itself is a reference cycle: it would keep the opened layers alive)
         kind, what, path = stack.pop()
         if package is None:
-            real = key = _check(kind, what, path, layer_path, roots)
+            real = key = _check(kind, what, path, layer_path, roots, refuse=rules.refuse)
         else:
             real = key = package.real if path == root else _check_packaged(kind, what, path, layer_path, package)
         if key in seen:
@@ -321,18 +388,19 @@ def walk(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> Walk:
         seen.add(key)
         if package is None:
             result.files.append(real)
+            result.kinds[real] = kind
         if kind != LAYER:
             continue
         children = []
         cache_key = stat_key(real) if package is None else (*stat_key(package.real), key)
-        for n in _cached_named(cache_key, path, layer_path, result.layers, package is not None):
+        for n in _cached_named(cache_key, path, layer_path, result.layers, package is not None, rules.reopen):
             resolved = str(resolver.Resolve(n.identifier))
             if resolved:
                 children.append((n.kind, n.what, resolved))
             elif package is not None and os.path.isabs(n.identifier) and not Ar.IsPackageRelativePath(n.identifier):
                 _check_packaged(n.kind, n.what, n.identifier, layer_path, package)  # outside: refused
             elif os.path.isabs(n.identifier) and not inside(n.identifier, roots):
-                reject(n.what, n.identifier, layer_path, roots)
+                rules.refuse(n.what, n.identifier, layer_path, roots)
         stack += reversed(children)
     return result
 
@@ -375,5 +443,5 @@ def unpacked_file(resolved: str, where: str = "") -> str:
     return str(dest)
 
 
-__all__ = ["walk", "check_root", "Walk", "stat_key", "tf_message", "is_package", "unpacked_file",
-           "MAX_LAYER_BYTES", "MAX_ASSET_BYTES", "MAX_PACKAGE_BYTES", "LAYER_EXTENSIONS", "PACKAGE_EXTENSION"]
+__all__ = ["walk", "walk_hazard", "hazard_roots", "check_root", "Walk", "stat_key", "tf_message", "is_package",
+           "unpacked_file", "MAX_LAYER_BYTES", "MAX_ASSET_BYTES", "MAX_PACKAGE_BYTES", "LAYER_EXTENSIONS", "PACKAGE_EXTENSION"]

@@ -6,18 +6,28 @@ A plan's anomaly list may name a glTF/GLB, OBJ, STL or USD file next to the buil
     OUT/hazards/<id>/<id>.usda               the asset interface (class label anomaly, a `variant` set)
     OUT/hazards/<id>/<id>/<variant>.usdc     one geometry file per variant (+ textures/)
     OUT/hazards/<id>/source.json             what it was made from: file name, sha256, units, up axis,
-                                             colours (a re-run checks it; a changed file is refused)
+                                             colours, and for a USD file the sha256 of every other
+                                             layer it composes (a re-run checks it; a changed file is
+                                             refused); and what came of it (`converted`: triangles
+                                             kept and dropped)
 
 Mesh files go through the importer of `allo-usd asset import` (allo_usd.assets.importer, with
 the plan's units and up axis, never guessed); a USD file is read with pxr (its meshes with their
 world transforms, each mesh's bound UsdPreviewSurface constant colour, metallic and roughness,
 else its displayColor), scaled by its metersPerUnit and turned from its upAxis, both of which a
-plan may also state (they must then agree with the file). Either way the asset is recentred on
-its bounding-box centre (the placement code takes that as the object's origin) and must measure
-1 cm to 20 m: anything else is almost always a unit mistake. Variants: `default` keeps the
-file's materials; each of the plan's `colors` sets every material's base colour (a texture is
-multiplied by it). The tree's copy is written to a temporary folder and renamed, so a killed run
-leaves nothing half-made, and the same file gives the same bytes wherever the tree is authored.
+plan may also state (they must then agree with the file). Before USD opens a USD hazard, every
+file its composition reads is checked (allo_usd.usd.dependencies.walk_hazard: the rules of a
+scene layer, within the hazard's own folder), so a sublayer, reference or payload outside it, a
+FIFO, a variable expression or a value clip is refused by name, never read. Either way the
+asset is recentred on its bounding-box centre (the placement code takes that as the object's
+origin) and must measure 1 cm to 20 m: anything else is almost always a unit mistake.
+Variants: `default` keeps the file's materials; each of the plan's `colors` sets every
+material's base colour (a texture is multiplied by it). Triangles the conversion drops (a
+non-finite vertex, an index outside the points, zero area: allo_usd.assets.importer.
+kept_triangles) are counted, and the count is recorded (droppedTriangles in the layer's
+provenance, `converted` in source.json). The tree's copy is written to a temporary folder and
+renamed, so a killed run leaves nothing half-made, and the same file gives the same bytes
+wherever the tree is authored.
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ from allo_usd.usd.compose import HAZARD_DIR
 from allo_usd.core import fixedmath as fm
 
 SOURCE_MARKER = "source.json"
+CONVERTED = "converted"               # source.json's record of what the conversion made (not compared)
 SIZE_M = (0.01, 20.0)                 # a hazard's largest extent, metres (a tool .. a loose panel)
 STATION_SIZE_M = (0.01, 500.0)        # `asset import --label station`: the ISS, the largest built, is 109 m
 MAX_TRIANGLES = 2_000_000             # after triangulation (the built-in hazards have < 20k)
@@ -55,7 +66,9 @@ def hazard_asset_path(out_dir: Path, asset: str) -> Path:
 
 
 def made_from(choice) -> dict:
-    """What a hazard's conversion depends on (recorded in source.json, compared on every run)."""
+    """What a hazard's conversion depends on (recorded in source.json, compared on every run): for a
+    USD file also `composes`, the sha256 of every other layer its composition reads (when there are
+    any), so an edit to a sublayer is caught like an edit to the file itself."""
     source = Path(choice.file)
     problem = file_problem(source, MAX_FILE_BYTES)
     if problem:
@@ -64,9 +77,38 @@ def made_from(choice) -> dict:
         raise PlanError(f"anomaly {choice.id!r}: file {_short_path(source)} {problem}; fix: give the path of your "
                         "hazard's model file (relative to the working directory), at most "
                         f"{MAX_FILE_BYTES >> 20} MiB (decimate a larger one)")
-    return {"id": choice.id, "source": source.name, "sha256": sha256_file(source), "units": choice.units,
-            "up_axis": choice.up_axis, "colors": {k: list(v) for k, v in (choice.colors or {}).items()},
-            "variants": list(choice.user_variants())}
+    out = {"id": choice.id, "source": source.name, "sha256": sha256_file(source), "units": choice.units,
+           "up_axis": choice.up_axis, "colors": {k: list(v) for k, v in (choice.colors or {}).items()},
+           "variants": list(choice.user_variants())}
+    if source.suffix.lower() in HAZARD_USD_SUFFIXES:
+        composes = composed_layers(usd_hazard_walk(source, choice.id), source)
+        if composes:
+            out["composes"] = composes
+    return out
+
+
+def usd_hazard_walk(path: Path, name: str, what: str = "anomaly"):
+    """Every file a USD hazard's composition reads, checked before USD opens any of them
+    (allo_usd.usd.dependencies.walk_hazard), or a PlanError naming the refused path and the rule.
+    Registers the allo-usd schema first: pxr reads schema plugins once, on the first stage."""
+    from allo_usd.core.errors import LayerError
+    from allo_usd.usd import schema
+    from allo_usd.usd.dependencies import walk_hazard
+
+    schema.register()
+    try:
+        return walk_hazard(path)
+    except LayerError as exc:
+        raise PlanError(f"{what} {name!r}: {exc}") from None
+
+
+def composed_layers(walked, source: Path) -> dict[str, str]:
+    """{path relative to the hazard's folder: sha256} of every layer `walked` (usd_hazard_walk)
+    read besides the hazard file itself (a package is one file: none)."""
+    import os
+
+    base = os.path.realpath(os.path.dirname(os.path.abspath(source)))   # where USD anchors its relative paths
+    return {os.path.relpath(f, base): sha256_file(Path(f)) for f in walked.layer_files()[1:]}
 
 
 def _short_path(path: Path) -> str:
@@ -87,14 +129,18 @@ def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
                 recorded = json.loads(marker.read_text())
             except (OSError, ValueError):
                 recorded = None
+            if isinstance(recorded, dict):   # `converted` says what came out, not what it was made from
+                recorded = {k: v for k, v in recorded.items() if k != CONVERTED}
             if recorded != want:
                 raise PlanError(f"{root} was made from {recorded or 'an unreadable record'}, not from {want} "
                                 f"(the hazard's file or options changed since its scenes were authored); fix: author "
                                 "into a new output directory, or author with --replace")
         else:
             with atomic_directory(root) as tmp:
-                convert_hazard(choice, tmp, want["sha256"])
-                (tmp / SOURCE_MARKER).write_text(json.dumps(want, indent=1, sort_keys=True) + "\n")
+                _, info = _convert(choice, tmp, want["sha256"])
+                converted = {"triangles": info["triangles"], "droppedTriangles": info["droppedTriangles"]}
+                (tmp / SOURCE_MARKER).write_text(json.dumps({**want, CONVERTED: converted}, indent=1,
+                                                            sort_keys=True) + "\n")
         out[choice.id] = path
     return out
 
@@ -102,6 +148,11 @@ def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
 def convert_hazard(choice, directory: Path, sha256: str | None = None) -> Path:
     """Write `choice`'s asset (every variant) into `directory`; returns the interface layer. `sha256`:
     the source file's, if already computed (made_from)."""
+    return _convert(choice, directory, sha256)[0]
+
+
+def _convert(choice, directory: Path, sha256: str | None = None) -> tuple[Path, dict]:
+    """convert_hazard, also returning what the conversion used and made (load_hazard's info)."""
     from allo_usd.usd.asset import write_variant_asset
 
     source = Path(choice.file)
@@ -113,8 +164,9 @@ def convert_hazard(choice, directory: Path, sha256: str | None = None) -> Path:
                   "packageVersion": __version__}
     doc = (f"allo-usd hazard {choice.id!r} converted from {source.name} (sha256 {provenance['sha256'][:12]}..., "
            f"unit {info['unit']}, up axis {info['upAxis']})")
-    return write_variant_asset(variants, directory, choice.id, "anomaly", doc=doc,
+    path = write_variant_asset(variants, directory, choice.id, "anomaly", doc=doc,
                                custom={"allo": {"hazard": _layer_data(provenance)}})
+    return path, info
 
 
 def _layer_data(value):
@@ -198,28 +250,35 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
                     what: str = "anomaly") -> tuple[Asset, dict]:
     """A USD file's meshes as an Asset (see the module doc): world transforms, metersPerUnit and upAxis
     from the file (or the plan, which must then agree), one part per mesh with its bound constant
-    material. Textures are not carried over."""
+    material. Textures are not carried over. Every file the stage reads is checked before USD
+    opens it (usd_hazard_walk); the stage must compose without errors, and every layer it used must
+    be one the walk checked."""
     from pxr import Tf, Usd, UsdGeom
 
-    from allo_usd.assets.importer import UP_AXIS_ROTATIONS
+    from allo_usd.assets.importer import UP_AXIS_ROTATIONS, kept_triangles
     from allo_usd.assets.mesh import fan_triangulate
     from allo_usd.core.errors import LayerError
+    from allo_usd.usd.dependencies import tf_message
     from allo_usd.usd.read import MAX_PRIMS, mesh_topology, world_matrix
 
     def fail(why: str) -> PlanError:
         return PlanError(f"{what} {name!r}: {path} {why}")
 
+    walked = usd_hazard_walk(path, name, what)   # its Sdf layers stay open for the stage: each is parsed once
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        raise fail(f"is not a readable USD file ({str(exc).strip().splitlines()[-1][:200]}); fix: re-export it") from None
+        raise fail(f"is not a readable USD file ({tf_message(exc)[:200]}); fix: re-export it") from None
     if stage is None:
         raise fail("could not be opened as a USD stage; fix: re-export it")
+    _check_composed(stage, walked, fail)
+    composes = composed_layers(walked, path)
+    del walked
     scale, unit = _usd_units(stage, units, fail)
     up = _usd_up_axis(stage, up_axis, fail)
     rot = UP_AXIS_ROTATIONS[up]
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
-    parts, materials, seen = [], {}, set()
+    parts, materials, seen, n_in = [], {}, set(), 0
     # Instanced meshes count (instance proxies); guide and proxy purposes are not the object itself.
     prims = Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
     for count, prim in enumerate(prims, 1):
@@ -237,9 +296,14 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
         except LayerError as exc:
             raise fail(f"has a mesh this importer refuses: {exc}") from None
         tris = fan_triangulate(counts, indices)
+        n_in += len(tris)
+        pts = fm.apply(rot, (fm.apply(m[:3, :3], points.astype(np.float64)) + m[:3, 3]) * scale)
+        keep = kept_triangles(pts, tris)   # the importer's rule: zero-area ones are dropped, and counted
+        if not keep.all():   # then unused points go, as the importer's (a mesh without drops keeps its points)
+            used, inverse = np.unique(tris[keep], return_inverse=True)
+            pts, tris = pts[used], inverse.reshape(-1, 3)
         if not len(tris):
             continue
-        pts = fm.apply(rot, (fm.apply(m[:3, :3], points.astype(np.float64)) + m[:3, 3]) * scale)
         mat = _usd_material(prim, materials)
         base = _NAME.sub("_", prim.GetName()) or "mesh"
         part_name, k = base, 2
@@ -256,9 +320,38 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
     centre = (lo + hi) / 2
     parts = [replace(p, points=p.points - centre) for p in parts]
     asset = Asset(name, tuple(parts), tuple(materials.values()))
+    kept = int(sum(p.face_counts.size for p in parts))
     info = {"format": "usd", "unit": unit, "unitScale": scale, "upAxis": up,
-            "triangles": int(sum(p.face_counts.size for p in parts)), "droppedTriangles": 0}
+            "triangles": kept, "droppedTriangles": n_in - kept}
+    if composes:   # every other layer it was made from (a single-file hazard's record is as before)
+        info["composes"] = composes
     return asset, info
+
+
+def _check_composed(stage, walked, fail) -> None:
+    """The stage composed without errors and read no layer the walk did not check (a second line
+    of defence behind usd_hazard_walk)."""
+    import os
+
+    from allo_usd.usd.safety import in_package
+
+    errors = stage.GetCompositionErrors()
+    if errors:
+        try:
+            first = " ".join(str(errors[0]).split())[:300]
+        except UnicodeDecodeError:
+            first = "an error whose text is not UTF-8"
+        raise fail(f"does not compose ({len(errors)} composition error(s), the first: {first}); fix: restore the "
+                   "files it names or correct their paths")
+    checked = set(walked.layer_files())
+    package = walked.files[0] if walked.files and walked.files[0].lower().endswith(".usdz") else None
+    for layer in stage.GetUsedLayers():
+        real = layer.realPath
+        if layer.anonymous or not real:
+            continue
+        if not (in_package(real, package) if package else os.path.realpath(real) in checked):
+            raise fail(f"read {real}, a layer the hazard's check did not pass; fix: keep every file the hazard "
+                       "uses beside it and name them by relative paths")
 
 
 def _usd_units(stage, units: str | None, fail) -> tuple[float, str]:

@@ -21,6 +21,7 @@ from allo_usd.core.camera_model import CLIP_M, LENS_MM, MAX_SHIFT, SENSOR_MM
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import file_problem
 from allo_usd.core.limits import resolution_problem
+from allo_usd.core.scene_labels import SPLITS, VARIANTS, label_problem
 from allo_usd.usd.base_stage import RENDER_VARS
 from allo_usd.plan.settings import DEFAULT_PASSES
 from allo_usd.core import fixedmath as fm
@@ -29,6 +30,10 @@ from allo_usd.core import fixedmath as fm
 # Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
 MAX_POSITION_M = 1e12          # any prim, from the station at the origin (the Sun is ~1.5e11 m away)
 MAX_CAMERA_DISTANCE_M = 1e4    # the camera, from the station (ALLO cameras sit within ~70 m of it)
+# |aperture offset| may pass MAX_SHIFT x its aperture by this fraction (then it is read as the edge): a
+# plan's principal point at the image's edge, stored as float32 offset and aperture (and a sensor whose
+# width and height a plan may give with their aspect 1e-6 off the image's), lands within it.
+OFFSET_TOLERANCE = 4e-6
 
 # What the reader lets through to Blender (docs/reliability.md, section 2). Each range lies
 # inside the hard limits of the bpy RNA property the value ends in, so Blender never clamps a value the
@@ -531,14 +536,30 @@ def read_mesh(prim, cache, materials: dict, checked: set | None = None) -> MeshD
                     _class_id(prim), _ray_visibility(prim))
 
 
+def as_stored(bounds: tuple[float, float]) -> tuple[float, float]:
+    """`bounds` widened to what a float attribute can hold of them: the float32 at or just outside
+    each end. A layer stores a lens value as a float32, so a plan's edge (focal_length_mm = 1, stored as
+    0.0099999998 scene units) must pass. The plan's bounds and the reader's then agree at every edge
+    (tests/test_camera_bounds.py); `snap` brings such a value back to the edge before it reaches Blender."""
+    lo, hi = float(np.float32(bounds[0])), float(np.float32(bounds[1]))
+    return min(lo, bounds[0]), max(hi, bounds[1])
+
+
+def snap(value: float, bounds: tuple[float, float]) -> float:
+    """`value`, within as_stored(bounds), moved onto `bounds` if the float32 rounding put it just outside."""
+    return min(max(value, bounds[0]), bounds[1])
+
+
 def _millimetres(value, what: str, bounds: tuple[float, float], blender: str) -> float:
-    """A lens value in tenths of a scene unit (metres: 100 mm per unit), in mm within `bounds`."""
+    """A lens value in tenths of a scene unit (metres: 100 mm per unit), in mm within `bounds` (a
+    float32 just outside an edge, as a plan's edge is stored, is read as the edge: as_stored, snap)."""
     v = _number(value, what)
+    lo, hi = as_stored((bounds[0] / 100.0, bounds[1] / 100.0))
     mm = v * 100.0
-    if not bounds[0] <= mm <= bounds[1]:
+    if not lo <= v <= hi:
         raise LayerError(f"{what} = {value!r} ({mm:.3g} mm) is outside {_range(bounds[0] / 100, bounds[1] / 100)} "
                          f"({_range(*bounds, 'mm')}, within Blender's {blender}, which would clamp it); fix the layer")
-    return mm
+    return snap(mm, bounds)
 
 
 def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
@@ -556,16 +577,19 @@ def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
     height = _millimetres(cam.GetVerticalApertureAttr().Get(), f"{where}.verticalAperture", SENSOR_MM,
                           "Camera.sensor_height")
     near, far = _vector(cam.GetClippingRangeAttr().Get(), f"{where}.clippingRange", 2)
-    if not CLIP_M[0] <= near < far <= CLIP_M[1]:
+    clip_lo, clip_hi = as_stored(CLIP_M)
+    if not clip_lo <= near < far <= clip_hi:
         raise LayerError(f"{where}.clippingRange = ({near:g}, {far:g}) must be near < far within "
                          f"{_range(*CLIP_M, 'm')} (Blender's Camera.clip_start/clip_end); fix the layer")
+    near, far = snap(near, CLIP_M), snap(far, CLIP_M)
     offsets = []
     for attr, aperture in ((cam.GetHorizontalApertureOffsetAttr(), width), (cam.GetVerticalApertureOffsetAttr(), height)):
         mm = _number(attr.Get(), f"{where}.{attr.GetName()}") * 100.0
-        if not abs(mm) <= MAX_SHIFT * aperture:
+        edge = MAX_SHIFT * aperture
+        if not abs(mm) <= edge * (1.0 + OFFSET_TOLERANCE):
             raise LayerError(f"{where}.{attr.GetName()} = {attr.Get()!r} ({mm:.3g} mm) puts the principal point outside "
                              f"the image (|offset| <= {MAX_SHIFT:g} x the {aperture:.3g} mm aperture); fix the layer")
-        offsets.append(mm + 0.0)
+        offsets.append(snap(mm, (-edge, edge)) + 0.0)
     m = world_matrix(cache, prim, MAX_CAMERA_DISTANCE_M, checked)
     return CameraDesc(m, focal, width, height, (near, far), str(where), *offsets)
 
@@ -812,7 +836,27 @@ def read_meta(stage) -> dict:
     if anomaly and anomaly.IsActive():
         meta["anomaly"] = {a.GetName().split(":")[-1]: a.Get() for a in anomaly.GetAttributes()
                            if a.GetName().startswith(A.ANOMALY_PREFIX)}
+        meta["anomaly_model"] = anomaly_model(stage, anomaly)
+    problem = label_problem(meta, required=False)   # dataset's check (core.scene_labels): never record what it refuses
+    if problem:
+        raise LayerError(f"{stage.GetRootLayer().identifier}: {problem} ({layout.WORLD}'s {A.SPLIT.name}, "
+                         f"{A.VARIANT.name} and {layout.ANOMALY}'s {A.ANOMALY_PREFIX}* attributes); fix the layer: "
+                         f"{A.SPLIT.name} is {' or '.join(SPLITS)}, {A.VARIANT.name} {' or '.join(VARIANTS)}")
     return meta
+
+
+def anomaly_model(stage, prim) -> dict:
+    """The anomaly's model frame for its pose (output.annotations): the prim's local-to-world (column
+    vectors; its meshes' points map into this frame) and the file its strongest reference or payload
+    names, relative to the root layer's directory (None when it is authored inline)."""
+    from pxr import Usd, UsdGeom
+
+    m = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()), dtype=np.float64).T
+    ref = next((spec.layer.ComputeAbsolutePath(r.assetPath) for spec in prim.GetPrimStack()
+                for r in (*spec.referenceList.GetAddedOrExplicitItems(), *spec.payloadList.GetAddedOrExplicitItems())
+                if r.assetPath), None)
+    here = Path(stage.GetRootLayer().realPath or ".").parent
+    return {"reference": None if not ref else os.path.relpath(ref, here), "local_to_world": m.tolist()}
 
 
 def _world(stage, layer_path):

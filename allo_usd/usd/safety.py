@@ -9,7 +9,9 @@ elsewhere on the machine: no sublayer, reference, payload or texture may resolve
   enclosing directory holding a `plan.toml` (allo_usd.usd.compose: OUT/plan.toml beside
   OUT/scenes/, OUT/sky/, OUT/poses/, OUT/stages/, OUT/hazards/), those authored folders, and nothing else
   of OUT. A `plan.toml` in some ancestor of an unrelated layer (~/plan.toml over
-  ~/Downloads/x.usda) makes no root: that would open ~ to it;
+  ~/Downloads/x.usda) makes no root: that would open ~ to it. A tree one of whose own folders
+  (those, and schema/) is a symbolic link grants nothing: its layers are refused, exactly as
+  `--tree` refuses such a tree (linked_folders), since `hazards -> /` would open every file;
 - the directories named in the environment variable `ALLO_ASSET_ROOTS` (os.pathsep-separated).
   The dispatcher sets it to the directories of the layers it renders and the plan's output
   directory, so worker processes inherit the same rule;
@@ -36,7 +38,9 @@ never code.
 from __future__ import annotations
 
 import os
+import stat
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 from allo_usd.core.errors import LayerError
@@ -50,6 +54,22 @@ def _tree_folders(tree: Path) -> tuple[Path, ...]:
     from allo_usd.usd.compose import HAZARD_DIR, POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR
 
     return tuple(tree / d for d in (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR, HAZARD_DIR))
+
+
+def linked_folders(tree: str | Path) -> list[tuple[Path, Path]]:
+    """(folder, target) of each of a tree's own folders that is a symbolic link (to anywhere): the
+    folders it grants (_tree_folders) and schema/, which `author` writes and compares. `tree` is a
+    real path. A tree with one is granted nothing, whether the user names it (`--tree`, tree_roots)
+    or a layer lies in it (allowed_roots): a `hazards -> /` link would otherwise open every file."""
+    from allo_usd.usd.compose import SCHEMA_DIR
+
+    tree = Path(tree)
+    found = []
+    for folder in (*_tree_folders(tree), tree / SCHEMA_DIR):
+        target = Path(os.path.realpath(folder))
+        if target != folder:
+            found.append((folder, target))
+    return found
 
 
 def is_authored_tree(path: str | Path) -> bool:
@@ -71,14 +91,10 @@ def tree_roots(tree: str | Path, option: str = "--tree") -> tuple[Path, ...]:
         raise LayerError(f"{option} {tree} is not an authored tree (it holds neither plan.toml nor stages/base.usda); "
                          "pass the folder `allo-usd author` wrote (OUT, not a folder inside it), or add the "
                          f"directory your layer needs to {ENV_ROOTS}")
-    roots = []
-    for folder in _tree_folders(real):
-        target = Path(os.path.realpath(folder))
-        if target != folder:
-            raise LayerError(f"{option} {tree}: {folder} is a symbolic link to {target}; a tree grants only its own "
-                             f"folders: replace the link with the folder's files, or add {target} to {ENV_ROOTS}")
-        roots.append(target)
-    return tuple(roots)
+    for folder, target in linked_folders(real):
+        raise LayerError(f"{option} {tree}: {folder} is a symbolic link to {target}; a tree grants only its own "
+                         f"folders: replace the link with the folder's files, or add {target} to {ENV_ROOTS}")
+    return _tree_folders(real)
 
 
 @contextmanager
@@ -121,10 +137,47 @@ def _plan_root(layer_path: Path) -> Path | None:
     return None
 
 
+_ROOTS_CACHE: ContextVar[dict | None] = ContextVar("allo_roots_cache", default=None)
+
+
+@contextmanager
+def roots_cached(cache: dict | None = None):
+    """For the block, in this thread only, allowed_roots answers from `cache` (a new one if None;
+    pass the same dict to blocks of one decision to share it): computed once per
+    (layer folder, extra roots, ALLO_ASSET_ROOTS, working directory) instead of ~20 realpath calls a
+    layer. For a decision over many layers of one tree (the dispatcher's scan and resume check: the
+    paper plan's 51,409 layers lie in a few folders). A tree folder turned into a symbolic link
+    during the block is still refused where it matters: a render worker (another process or
+    thread) checks its layer afresh. A layer that is itself a symbolic link is never cached (its
+    tree is its target's)."""
+    token = _ROOTS_CACHE.set({} if cache is None else cache)
+    try:
+        yield
+    finally:
+        _ROOTS_CACHE.reset(token)
+
+
+def _roots_key(layer_path: str | Path, extra) -> tuple | None:
+    try:
+        if stat.S_ISLNK(os.lstat(layer_path).st_mode):
+            return None
+    except OSError:
+        return None
+    return (os.getcwd(), str(Path(layer_path).parent), tuple(map(str, extra)), os.environ.get(ENV_ROOTS, ""))
+
+
 def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> tuple[Path, ...]:
+    cache = _ROOTS_CACHE.get()
+    key = _roots_key(layer_path, extra) if cache is not None else None
+    if key is not None and key in cache:
+        return cache[key]
     roots = [STAGES, Path(layer_path).parent, *extra]
     plan_root = _plan_root(Path(layer_path))
     if plan_root is not None:  # a plan's output tree (open_tree writes plan.toml at its top): its authored folders
+        for folder, target in linked_folders(plan_root):   # refused as `--tree` refuses them (tree_roots)
+            raise LayerError(f"{layer_path}: its authored tree {plan_root} has {folder.name}/ as a symbolic link to "
+                             f"{target}, and a tree's layers may read only the tree's own folders; fix: replace the "
+                             "link with the folder's files")
         roots += _tree_folders(plan_root)
     roots += [Path(p) for p in os.environ.get(ENV_ROOTS, "").split(os.pathsep) if p]
     out = []
@@ -132,12 +185,21 @@ def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) ->
         real = Path(os.path.realpath(r))
         if real not in out:
             out.append(real)
-    return tuple(out)
+    out = tuple(out)
+    if key is not None:
+        cache[key] = out
+    return out
 
 
 def inside(path: str, roots: tuple[Path, ...]) -> bool:
-    real = Path(os.path.realpath(path))
-    return any(real == r or r in real.parents for r in roots)
+    """Does the real path of `path` lie in (or equal) one of `roots` (real paths)? Compared as
+    strings: a root's path and a separator prefix the path of everything below it."""
+    real = os.path.realpath(path)
+    for r in roots:
+        top = str(r)
+        if real == top or real.startswith(top if top.endswith(os.sep) else top + os.sep):
+            return True
+    return False
 
 
 def reject(what: str, path: str, layer_path, roots) -> None:

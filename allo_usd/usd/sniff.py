@@ -1,17 +1,16 @@
 """Cheap looks at a layer file before anything opens it for real: is it a scene layer (text
 .usda, or a binary crate .usdc/.usd), what a render of it costs (pixels x samples), and pxr
 loaded once with Ctrl-C held back (pxr's module loader swallows a KeyboardInterrupt that lands
-while it imports its C++ modules, and leaves pxr half-loaded)."""
+while it imports its C++ modules, and leaves pxr half-loaded: allo_usd.core.interrupts)."""
 
 from __future__ import annotations
 
+import importlib
 import re
-import signal
-import threading
-from contextlib import contextmanager
 from pathlib import Path
 
 from allo_usd.core.files import read_head
+from allo_usd.core.interrupts import interrupt_held
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 
@@ -39,6 +38,17 @@ def refusal(path: Path) -> str | None:
     return None
 
 
+# The layer-metadata block every layer `allo-usd author` and the demo write for a scene starts with
+# (Sdf's text export): customLayerData holding only allo, whose entries are one-line strings and
+# numbers, sceneId among them. A head that starts so is a scene layer with no USD parse (~1 ms a layer,
+# most of a 51,409-scene resume check's budget); any other shape, or a second customLayerData in the
+# head, takes the parse below.
+_ALLO_ENTRY = rb'            [a-z0-9]+ \w+ = (?:"[^"\\\n]*"|-?[0-9][0-9.e+-]*)\n'
+_AUTHORED_HEAD = re.compile(rb'#usda 1\.0\n\(\n    customLayerData = \{\n        dictionary allo = \{\n'
+                            rb'(?:' + _ALLO_ENTRY + rb')*            string sceneId = "[^"\\\n]*"\n'
+                            rb'(?:' + _ALLO_ENTRY + rb')*        \}\n    \}\n')
+
+
 def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
     """The one rule for what `render DIR` renders: a scene layer is a layer whose own layer metadata
     holds customLayerData.allo.sceneId, as every layer `allo-usd author` and the demo write for a
@@ -54,6 +64,8 @@ def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
     if head is None:
         return None
     if head.startswith(TEXT_MAGIC):
+        if _AUTHORED_HEAD.match(head) and head.count(b"customLayerData") == 1:
+            return True
         block = _layer_metadata(head.decode("utf-8", errors="replace"))
         if block is None:  # the metadata does not end within the head: its look decides
             return re.search(rb"\bsceneId\s*=", head) is not None
@@ -167,32 +179,15 @@ def render_cost(path: Path) -> tuple[int, int] | None:
 _LOADED = False
 
 
-@contextmanager
-def _interrupt_held():
-    """Hold SIGINT for the block (main thread only) and raise KeyboardInterrupt after it if one came."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught = []
-    previous = signal.signal(signal.SIGINT, lambda sig, frame: caught.append(sig))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught and previous not in (signal.SIG_IGN, None):
-        raise KeyboardInterrupt
-
-
 def load_pxr() -> None:
     """Import the pxr modules this package uses, once, with Ctrl-C held back until they are in: a
     KeyboardInterrupt raised while pxr's loader imports a C++ module's Python wrappers is caught
-    and printed as a warning by that loader (the command would run on, with pxr half-loaded)."""
+    and printed as a warning by that loader (the command would run on, with pxr half-loaded);
+    allo_usd.core.interrupts.interrupt_held delivers it after the imports."""
     global _LOADED
     if _LOADED:
         return
-    import importlib
-
-    with _interrupt_held():
+    with interrupt_held():
         for name in PXR_MODULES:
             importlib.import_module(f"pxr.{name}")
     _LOADED = True
