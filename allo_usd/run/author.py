@@ -41,8 +41,8 @@ from dataclasses import asdict, dataclass, field
 from itertools import groupby, islice
 from pathlib import Path
 
-from allo_usd.usd.compose import (pose_layer_path, scene_layer_path, sky_layer_path, write_composed_scene,
-                                  write_pose_layer, write_sky_layer)
+from allo_usd.usd.compose import (TreeLinks, pose_layer_path, scene_layer_path, sky_layer_path,
+                                  write_composed_scene, write_pose_layer, write_sky_layer)
 from allo_usd.core.camera_model import DEFAULT_CAMERA
 from allo_usd.core.files import atomic_directory, file_problem, write_text_atomic
 from allo_usd.core.provenance import TREE_VERSIONS, record_tree_versions
@@ -88,6 +88,7 @@ class AuthorContext:
         self.effects = EffectsSpec(**plan.effects.model_dump())
         self._sky_cache: dict[int, tuple] = {}
         self._sun_and_bodies = sun_and_bodies
+        self.links = TreeLinks()   # the relative paths written into scene layers, each directory resolved once
 
     def sky(self, day: int):
         if day not in self._sky_cache:
@@ -213,7 +214,7 @@ def write_sample(ctx: AuthorContext, keys: list[SceneKey], resolved: Resolved) -
                           effects=ctx.effects, anomaly=a, sky=ctx.sky(key.day))
         write_composed_scene(spec, path, pose_layer=pose_path, sky_layer=sky_layer_path(ctx.out_dir, key.day),
                              base_stage=ctx.base_stage, root=ctx.out_dir,
-                             anomaly_asset=None if key.asset is None else ctx.hazards.get(key.asset))
+                             anomaly_asset=None if key.asset is None else ctx.hazards.get(key.asset), links=ctx.links)
     return rows
 
 
@@ -745,11 +746,13 @@ def with_tree_poses(plan: Plan, out_dir: Path) -> tuple[Plan, Path | None]:
     from the plan's pose file (sha256) is refused, so pose layers of old poses never mix with new ones."""
     if plan.poses.file is None:
         return plan, None
-    from allo_usd.core.files import sha256_file, write_bytes_atomic
+    from allo_usd.core.files import read_user_bytes, sha256_file, write_bytes_atomic
+    from allo_usd.plan.posefile import MAX_POSE_FILE_BYTES
 
     src = Path(plan.poses.file)
     pose_file = plan.poses.pose_file()   # read and checked (PlanError naming FILE:LINE)
-    data = src.read_bytes()
+    data = read_user_bytes(src, MAX_POSE_FILE_BYTES, "pose file", "re-run when it is no longer replaced",
+                           error=PlanError)   # the gate again: a file swapped for a FIFO since is refused, not read
     now = hashlib.sha256(data).hexdigest()
     if now != pose_file.sha256:
         raise PlanError(f"pose file {src} changed while it was read; fix: re-run when it is no longer edited")

@@ -2,9 +2,9 @@
 LAYER`, the dispatcher's resume and the demo, so they never disagree about what to skip.
 
 **Output names.** A layer STEM writes STEM.png, STEM.exr, STEM_mask.png, STEM_depth.exr,
-STEM_normal.exr, STEM_instance.png (those of its passes) and STEM.json. They are collision-free by
-construction: a stem ending in a reserved suffix (`_mask`, `_depth`, `_normal`, `_instance`, in any
-case) is refused, and so are two stems of one run equal up to case (file
+STEM_normal.exr, STEM_instance.png, STEM_amodal.png (those of its passes) and STEM.json. They are
+collision-free by construction: a stem ending in a reserved suffix (`_mask`, `_depth`, `_normal`,
+`_instance`, `_amodal`, in any case) is refused, and so are two stems of one run equal up to case (file
 systems that ignore case). Then no name of one layer can be a name of another
 (tests/test_render_identity.py checks every pair).
 
@@ -45,9 +45,9 @@ from allo_usd.usd.sniff import refusal
 
 MANIFEST = "manifest.jsonl"
 WORKDIR = ".allo-tmp"  # Blender's render files, one directory per worker pid
-RESERVED_SUFFIXES = ("_mask", "_depth", "_normal", "_instance")  # what output_paths appends to a stem
+RESERVED_SUFFIXES = ("_mask", "_depth", "_normal", "_instance", "_amodal")  # what output_paths appends to a stem
 PASS_FILES = {"rgb": ".png", "exr": ".exr", "mask": "_mask.png", "depth": "_depth.exr", "normal": "_normal.exr",
-              "instance": "_instance.png"}  # pass -> what output_paths appends to a stem
+              "instance": "_instance.png", "amodal": "_amodal.png"}  # pass -> what output_paths appends to a stem
 
 
 def _stem_problem(layer: Path) -> str | None:
@@ -57,8 +57,8 @@ def _stem_problem(layer: Path) -> str | None:
         return None
     return (f"{layer}: a layer named ...{suffix} (in any case) is refused, since its outputs could take the "
             f"names of a layer {Path(layer).stem[:-len(suffix)]}.usda's {suffix[1:]} (outputs are STEM.png, "
-            f"STEM.exr, STEM_mask.png, STEM_depth.exr, STEM_normal.exr, STEM_instance.png, STEM.json); rename the "
-            f"layer so that its name does not end "
+            f"STEM.exr, STEM_mask.png, STEM_depth.exr, STEM_normal.exr, STEM_instance.png, STEM_amodal.png, "
+            f"STEM.json); rename the layer so that its name does not end "
             f"in {' or '.join(RESERVED_SUFFIXES)}")
 
 
@@ -97,27 +97,42 @@ _SHA256: dict[tuple, str] = {}
 _SHA256_BOUND = 1 << 20  # entries (~200 B each); a paper plan's resume needs ~100,000
 
 
-def file_sha256(path: str | Path) -> str | None:
+def file_sha256(path: str | Path, fresh: bool = False) -> str | None:
     """SHA-256 of a regular file, cached per process by (path, mtime_ns, size, inode, device); None
     for a missing or non-regular file (never opened: a FIFO or a device would block or never end).
-    One os.stat per call (it follows symbolic links: a link pointed elsewhere changes the inode)."""
+    One os.stat per call (it follows symbolic links: a link pointed elsewhere changes the inode).
+    `fresh` reads the bytes even when the cache holds this stat (`render --verify`: a file edited
+    in place with its mtime put back keeps its stat, not its bytes)."""
+    return hashed(path, fresh)[0]
+
+
+def hashed(path: str | Path, fresh: bool = False) -> tuple[str | None, os.stat_result | None]:
+    """file_sha256 and the os.stat it was keyed by (None, None for a missing or non-regular file),
+    so that a manifest row records the stat of exactly the bytes it checksums."""
     path = os.path.abspath(path)
     try:
         st = os.stat(path)
     except OSError:
-        return None
+        return None, None
     if not stat.S_ISREG(st.st_mode):
-        return None
+        return None, None
     key = (path, st.st_mtime_ns, st.st_size, st.st_ino, st.st_dev)
-    digest = _SHA256.get(key)
+    digest = None if fresh else _SHA256.get(key)
     if digest is None:
         if len(_SHA256) >= _SHA256_BOUND:
             _SHA256.clear()
         try:
             digest = _SHA256[key] = sha256_file(Path(path))
         except OSError:
-            return None
-    return digest
+            return None, None
+    return digest, st
+
+
+def stat_record(st: os.stat_result) -> dict[str, int]:
+    """What the quick check compares (is_verified): a rewrite changes the size or the mtime, a
+    replacement (os.replace of a new file) the inode. Not ctime: restoring an mtime by hand, or a
+    hard link made elsewhere, changes it without changing a byte."""
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "ino": st.st_ino}
 
 
 @functools.cache
@@ -174,29 +189,57 @@ def current_identity(layer: Path, inputs) -> str | None:
 
 
 def _meta(path: Path) -> dict:
+    """A render record NAME.json read through the read gate (core.files.read_user_json: a FIFO or
+    /dev/zero named NAME.json is never opened, a huge or deeply nested one never parsed), or {}
+    when it cannot be used: the scene then counts as not done and renders again."""
+    from allo_usd.core.files import MAX_RECORD_BYTES, InputRefused, read_user_json
+
     try:
-        meta = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        meta = read_user_json(path, MAX_RECORD_BYTES, "render record")
+    except InputRefused:
         return {}
     return meta if isinstance(meta, dict) else {}
 
 
-def is_done(layer: Path, out_dir: Path, manifest: dict[str, dict] | None = None) -> bool:
+def is_done(layer: Path, out_dir: Path, manifest: dict[str, dict] | None = None, verify: bool = False) -> bool:
     """True when `out_dir` holds every output of `layer` rendered from the current bytes of
     everything its composition read, with the current package versions (its identity): the one
     rule of "done" for `allo-usd render LAYER`, render_layer, the dispatcher's resume and the demo,
     whichever of them rendered the scene (done_record).
 
     `manifest` (scene name -> row, from load_manifest: a dispatch run) is an index, not the record:
-    a verified row (is_verified) says done at once; otherwise the render's JSON decides. The JSON
-    is required to checksum its outputs then (a record written before JSONs did is done only with
-    a matching row, so the dispatcher never trusts outputs nothing checksummed)."""
+    the dispatcher's rule applies (resume_check: the row's quick check, or every byte with `verify`;
+    else the render's JSON). The JSON is required to checksum its outputs then (a record written
+    before JSONs did is done only with a matching row, so the dispatcher never trusts outputs
+    nothing checksummed)."""
     if refusal(layer):  # not safe to read for its output names (a FIFO or device would block the check)
         return False  # the render says what is wrong with it
-    row = None if manifest is None else manifest.get(Path(layer).stem)
-    if manifest is not None and is_verified(row, layer, out_dir):
-        return True
-    return done_record(layer, out_dir, strict=manifest is not None) is not None
+    if manifest is None:
+        return done_record(layer, out_dir) is not None
+    return resume_check(layer, out_dir, manifest.get(Path(layer).stem), verify)[0]
+
+
+def resume_check(layer: Path, out_dir: Path, row: dict | None, verify: bool = False) -> tuple[bool, dict | None]:
+    """The dispatcher's decision for one layer with its manifest row (None: no row): (done, a row to
+    append to the manifest, or None).
+
+    A row that verifies (check_row: quick, or every byte with `verify`) says done; the row to append
+    then is its upgrade when the outputs' stat changed (an old row, a copied tree). Otherwise the
+    render's JSON decides (done_record, strict), for a scene another entry point rendered or whose
+    row was lost: the index catches up with an index_row. Not when the row indexes that very render
+    (the same identity and layer bytes): its outputs just failed the row's check (truncated,
+    rewritten, touched or replaced since), and the row's stat, not the JSON's checksums, is what a
+    resume trusts, so the scene renders again."""
+    kept = check_row(row, layer, out_dir, verify)
+    if kept is not None:
+        return True, (None if kept is row else kept)
+    meta = done_record(layer, out_dir, strict=True)
+    if meta is None:
+        return False, None
+    if isinstance(row, dict) and (row.get("identity"), row.get("layer_sha256")) == (meta["identity"],
+                                                                                  meta.get("layer_sha256")):
+        return False, None
+    return True, index_row(layer, out_dir, meta)
 
 
 def done_record(layer: Path, out_dir: Path, strict: bool = False) -> dict | None:
@@ -245,14 +288,19 @@ def outputs_sha256(paths: dict[str, Path]) -> dict[str, str]:
 
 def manifest_row(layer: Path, out_dir: Path, meta: dict) -> dict:
     """The manifest row of a scene whose render JSON is `meta`: what is_verified checks (identity,
-    each output's checksum, the JSON's included) and what a reader of the index wants to see. The
-    checksums come from file_sha256's per-process cache, so the outputs render_layer has just
-    hashed for `outputs_sha256` are not read again."""
-    files = {p.name: file_sha256(p) for p in output_paths(layer, out_dir).values()}
+    each output's checksum and the stat it was taken at, the JSON's included) and what a reader of
+    the index wants to see. The checksums come from file_sha256's per-process cache, so the outputs
+    render_layer has just hashed for `outputs_sha256` are not read again."""
+    files, stats = {}, {}
+    for p in output_paths(layer, out_dir).values():
+        files[p.name], st = hashed(p)
+        if st is not None:
+            stats[p.name] = stat_record(st)
     return {"scene": Path(layer).stem, "layer": str(Path(layer).resolve()), "layer_sha256": meta["layer_sha256"],
             "identity": meta["identity"],  # what the render read and the versions
             "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", Path(layer).stem),
-            "files": files, "render_seconds": meta.get("render_seconds"),
+            "files": files, "stat": stats,  # the quick check's evidence (is_verified)
+            "render_seconds": meta.get("render_seconds"),
             "device": {k: (meta.get("device") or {}).get(k) for k in ("used", "backend", "gpus", "cpu_model")},
             "layer_relative": relpath(Path(layer), Path(out_dir))}
 
@@ -264,24 +312,67 @@ def index_row(layer: Path, out_dir: Path, meta: dict) -> dict:
     return {**manifest_row(layer, out_dir, meta), "indexed_from": "json"}
 
 
-def is_verified(row: dict | None, layer: Path, out_dir: Path) -> bool:
-    """The manifest row matches the current layer, every output exists with its checksum, and the
-    identity recomputed from the inputs the (verified) metadata JSON records is the row's. The
-    layer's bytes are compared first, by a checksum that opens regular files only: a layer is read
-    for its output names only when it holds the bytes a worker rendered (and so checked)."""
+def is_verified(row: dict | None, layer: Path, out_dir: Path, verify: bool = False) -> bool:
+    """check_row found the row true (quick check of the outputs, or every byte with `verify`)."""
+    return check_row(row, layer, out_dir, verify) is not None
+
+
+def check_row(row: dict | None, layer: Path, out_dir: Path, verify: bool = False) -> dict | None:
+    """The manifest row when it matches the current layer, every output and the identity recomputed
+    from the inputs the (verified) metadata JSON records; else None. The returned row is a new one,
+    with the outputs' current stat, when that differs from the recorded one (an old row without
+    stat, a tree copied with its mtimes): the caller appends it, so the next run is quick again.
+
+    The layer's bytes are compared first, by a checksum that opens regular files only: a layer is
+    read for its output names only when it holds the bytes a worker rendered (and so checked). The
+    inputs are always checked by checksum (per-process cache: a tree's shared files once a run).
+
+    Outputs, the quick check (make, rsync, git's index): an output whose size, mtime_ns and inode
+    are those the row recorded is trusted without being read; one whose size or mtime differs fails
+    (re-rendered: truncated, rewritten, touched, replaced by a new file); one with only another
+    inode (copied with its mtime kept, `cp -a`, `rsync -a`, a backup restored) is hashed and kept if
+    its checksum is the row's. A row without stat (written before rows had it) is hashed. `verify`
+    reads every output's bytes, ignoring stat and the checksum cache (`render --verify`: after a
+    disk error, or a copy that did not keep mtimes)."""
     if not isinstance(row, dict) or not row.get("identity") or row.get("layer_sha256") != file_sha256(layer):
-        return False
-    files = row.get("files") or {}
-    paths = output_paths(layer, out_dir)
-    if set(files) != {p.name for p in paths.values()}:
-        return False
-    if not all((Path(out_dir) / name).is_file() and file_sha256(Path(out_dir) / name) == digest
-               for name, digest in files.items()):
-        return False
-    meta = _meta(paths["meta"])
+        return None
+    files = row.get("files")
+    if not isinstance(files, dict):
+        return None
+    stem = Path(layer).stem
+    meta = _meta(Path(out_dir) / f"{stem}.json")  # trusted below only if its stat (or checksum) is the row's
+    passes = meta.get("layer_passes")
+    named = ({f"{stem}{PASS_FILES[p]}" for p in passes} | {f"{stem}.json"}
+             if isinstance(passes, list) and all(isinstance(p, str) and p in PASS_FILES for p in passes) else None)
+    # the outputs the layer orders: as its JSON names them (the layer's bytes are the rendered ones), else
+    # read from the layer (an Sdf parse, ~2 ms: only when the two disagree)
+    if set(files) != named and set(files) != {p.name for p in output_paths(layer, out_dir).values()}:
+        return None
+    recorded = row.get("stat") if isinstance(row.get("stat"), dict) else {}
+    now = {}
+    for name, digest in files.items():
+        path, was = os.path.join(out_dir, name), recorded.get(name)   # a str: no Path built per output
+        if verify or not isinstance(was, dict):
+            got, st = hashed(path, fresh=verify)
+            if got is None or got != digest:
+                return None
+        else:
+            try:
+                st = os.stat(path)
+            except OSError:
+                return None
+            if not stat.S_ISREG(st.st_mode) or st.st_size != was.get("size") or st.st_mtime_ns != was.get("mtime_ns"):
+                return None
+            if st.st_ino != was.get("ino"):  # the same size and mtime in another file: its bytes decide
+                got, st = hashed(path)
+                if got is None or got != digest:
+                    return None
+        now[name] = stat_record(st)
     if meta.get("passes", meta.get("layer_passes")) != meta.get("layer_passes"):
-        return False  # a `--passes` override's render (indexed by render_layer): not the layer's own outputs
-    return meta.get("identity") == row["identity"] and current_identity(layer, meta.get("inputs")) == row["identity"]
+        return None  # a `--passes` override's render (indexed by render_layer): not the layer's own outputs
+    if meta.get("identity") != row["identity"] or current_identity(layer, meta.get("inputs")) != row["identity"]:
+        return None
+    return row if now == recorded else {**row, "stat": now}
 
 
 # ---------------------------------------------------------------- manifest.jsonl
@@ -308,7 +399,15 @@ def append_jsonl(path: Path, row: dict) -> None:
     """One os.write of one line on an O_APPEND descriptor, then fsync: a crash loses at most the line.
     A line torn by an earlier crash is ended first, so it cannot swallow this one; a write cut
     short by a full disk is truncated away, so the file never ends in half a line."""
-    data = (json.dumps(row, sort_keys=True) + "\n").encode()
+    append_rows(path, [row])
+
+
+def append_rows(path: Path, rows: list[dict]) -> None:
+    """append_jsonl for many rows in one write and one fsync (a resume that upgrades or indexes
+    thousands of rows: one fsync each would cost minutes). A crash loses at most the last line."""
+    if not rows:
+        return
+    data = "".join(json.dumps(row, sort_keys=True) + "\n" for row in rows).encode()
     fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
     try:
         size = os.fstat(fd).st_size

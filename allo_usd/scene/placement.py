@@ -258,7 +258,11 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
         a_owner, a_dist = anomaly.first_hit(o, d)
     else:
         position, rotation = np.asarray(pose[0], dtype=np.float64), np.asarray(pose[1], dtype=np.float64)
-        a_owner, a_dist = anomaly.first_hit(fm.matmul(o - position, rotation), fm.matmul(d, rotation))
+        if rays is None:   # pixel_rays: every ray starts at the camera, so it is moved once (the same bits)
+            origin = fm.matmul(np.asarray(cam_pos, dtype=np.float64)[None] - position, rotation)
+            a_owner, a_dist = anomaly.first_hit(np.broadcast_to(origin, d.shape), fm.matmul(d, rotation))
+        else:
+            a_owner, a_dist = anomaly.first_hit(fm.matmul(o - position, rotation), fm.matmul(d, rotation))
     hit = a_owner > 0
     if not hit.any():
         return 0.0

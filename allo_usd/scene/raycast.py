@@ -131,13 +131,18 @@ class RayScene:
 
     def hits(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int = 100) -> np.ndarray:
         """Ray index of every surface crossing (one entry per crossing), stepping past each hit face."""
+        out = [crossed for crossed, _ in self._crossings(origins, dirs, max_hits)]
+        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+
+    def _crossings(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int):
+        """`hits` one step at a time: per step, (the rays that crossed a surface, the rays still
+        going); a ray missing from the second has crossed its last surface."""
         o = np.array(origins, dtype=np.float64)
         d = _unitize(np.asarray(dirs, dtype=np.float64))[0]
         base = max(_RAY_OFFSET_FLOOR, self.scale * _RAY_OFFSET_FACTOR)
         offsets = d * base
         last = np.full(len(o), -1, dtype=np.int64)
         live = np.arange(len(o))
-        out = []
         for _ in range(max_hits):
             prim = self._run(o[live], d[live])
             hit = prim != -1
@@ -149,22 +154,34 @@ class RayScene:
             ok_rays, ok_tri, dupe_rays = rays[~dupe], tri[~dupe], rays[dupe]
             valid, t = self._plane_distance(ok_tri, o[ok_rays], d[ok_rays])
             ok_rays = ok_rays[valid]
-            out.append(ok_rays)
             o[ok_rays] = o[ok_rays] + d[ok_rays] * t[:, None] + offsets[ok_rays]
             offsets[ok_rays] = d[ok_rays] * base
             offsets[dupe_rays] *= 2.0
             o[dupe_rays] += offsets[dupe_rays]
             live = np.concatenate([ok_rays, dupe_rays])
-        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+            yield ok_rays, live
 
     def inside(self, point: np.ndarray) -> bool:
         """Parity test: a point is enclosed when most of 7 rays cross the surface an odd number of
-        times (a majority vote tolerates small holes in non-watertight meshes)."""
-        dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
-                         [0.577, 0.577, 0.577]], dtype=np.float64)
-        origins = np.repeat(np.asarray(point, dtype=np.float64)[None], len(dirs), 0)
-        crossings = np.bincount(self.hits(origins, dirs), minlength=len(dirs))
+        times (a majority vote tolerates small holes in non-watertight meshes). The rays are followed
+        only until the vote is decided: once 4 rays that have crossed their last surface agree, the
+        rest cannot change the outcome (`hits` would follow every ray to its end)."""
+        n = len(_PARITY_DIRS)
+        origins = np.repeat(np.asarray(point, dtype=np.float64)[None], n, 0)
+        crossings = np.zeros(n, dtype=np.int64)
+        done = np.ones(n, dtype=bool)
+        for crossed, live in self._crossings(origins, _PARITY_DIRS, 100):
+            crossings += np.bincount(crossed, minlength=n)
+            done[:] = True
+            done[live] = False
+            odd = crossings % 2 == 1
+            if int((done & odd).sum()) >= 4 or int((done & ~odd).sum()) > n - 4:
+                break
         return int((crossings % 2 == 1).sum()) >= 4
+
+
+_PARITY_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
+                         [0.577, 0.577, 0.577]], dtype=np.float64)   # inside's seven rays (made unit by hits)
 
 
 def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None,

@@ -202,12 +202,14 @@ def perturbation_matrix(angles) -> np.ndarray:
     return fm.matmul(fm.matmul(rot_z(yaw), rot_y(pitch)), rot_x(roll))
 
 
+_CLEARANCE_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
+                            [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], dtype=np.float64)
+_CLEARANCE_DIRS /= fm.norm(_CLEARANCE_DIRS, axis=1, keepdims=True)   # once: every camera sample probes these
+
+
 def too_close(scene: RayScene, p: np.ndarray, clearance: float = CLEARANCE_M) -> bool:
     """True if p is within `clearance` of the station or enclosed by it (parity vote)."""
-    dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
-                     [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], dtype=np.float64)
-    dirs /= fm.norm(dirs, axis=1, keepdims=True)
-    owner, dist = scene.first_hit(np.repeat(p[None], len(dirs), 0), dirs)
+    owner, dist = scene.first_hit(np.repeat(p[None], len(_CLEARANCE_DIRS), 0), _CLEARANCE_DIRS)
     return bool((dist < clearance).any() or scene.inside(p))
 
 

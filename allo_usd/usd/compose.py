@@ -140,12 +140,51 @@ def write_pose_layer(path: Path, *, pose: int, camera: CameraSpec, seed: int, se
                        f"allo-usd camera sample {sample_id}")
 
 
+class TreeLinks:
+    """`allo_usd.core.files.relpath` for the many layers of one authoring run, each directory resolved
+    once. relpath resolves both ends with every symlink followed: about 1 ms for the three or four
+    paths of each scene layer, the largest single cost of a normal scene. A layer's directory is one
+    of a handful (scenes/SPLIT/KIND, poses/sSEED, sky, stages, ...), so its resolution is kept; the
+    file itself is resolved in full when it is a symlink, so the result is relpath's in every case
+    (tests/test_author_speed.py compares them, symlinked trees included)."""
+
+    def __init__(self):
+        self._dirs: dict[str, str] = {}
+
+    def _real_dir(self, d: str) -> str:
+        real = self._dirs.get(d)
+        if real is None:
+            real = self._dirs[d] = os.path.realpath(d)
+        return real
+
+    @staticmethod
+    def _absolute(path) -> str:
+        """`path` made absolute but not normalised, as realpath takes it (it resolves a link before the
+        ".." after it)."""
+        p = os.fspath(path)
+        return p if os.path.isabs(p) else os.path.join(os.getcwd(), p)
+
+    def real(self, path) -> str:
+        """os.path.realpath(path), its directory's resolution cached."""
+        p = self._absolute(path)
+        d, name = os.path.split(p)
+        if name in ("", ".", "..") or os.path.islink(p):
+            return os.path.realpath(p)
+        return os.path.join(self._real_dir(d), name)
+
+    def relpath(self, target, start) -> str:
+        """`allo_usd.core.files.relpath(target, start)` (the same string)."""
+        rel = Path(os.path.relpath(self.real(target), self._real_dir(self._absolute(start)))).as_posix()
+        return rel if rel.startswith(".") else f"./{rel}"
+
+
 def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_layer: Path,
-                         base_stage: Path, root: Path | None = None, anomaly_asset: Path | None = None) -> Path:
+                         base_stage: Path, root: Path | None = None, anomaly_asset: Path | None = None,
+                         links: TreeLinks | None = None) -> Path:
     """A scene layer holding only its own opinions, stacked on its pose, sky and base layers.
     With `root` (the top of the output tree), every file the layer names must lie inside it.
     `anomaly_asset`: the interface layer of a plan's own hazard (allo_usd.usd.hazard), else the base
-    stage's built-in asset is referenced."""
+    stage's built-in asset is referenced. `links`: a run's TreeLinks (the same paths, computed faster)."""
     validate_spec(spec)
     path = Path(path)
     base_stage = check_base_stage(base_stage)
@@ -162,7 +201,8 @@ def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_l
             if os.path.commonpath([top, os.path.abspath(t)]) != top:
                 raise LayerError(f"{path} would refer to {t}, outside its tree {root}; fix: copy the base stage "
                                  f"into the tree first (allo_usd.usd.compose.copy_base_stage)")
-    ref = "" if spec.anomaly is None else relpath(targets[3], here)
-    sublayers = [relpath(pose_layer, here), relpath(sky_layer, here), relpath(base_stage, here)]
+    rel = relpath if links is None else links.relpath
+    ref = "" if spec.anomaly is None else rel(targets[3], here)
+    sublayers = [rel(pose_layer, here), rel(sky_layer, here), rel(base_stage, here)]
     return write_layer(path, scene_prims(spec, ref), sublayers, scene_custom(spec),
                        f"allo-usd scene {spec.scene_id}")

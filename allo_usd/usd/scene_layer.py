@@ -310,6 +310,22 @@ def merge_prims(*groups: list[Prim]) -> list[Prim]:
     return list(merged.values())
 
 
+_VALUE_TYPES: dict[str, tuple] = {}
+
+
+def _value_type(type_name: str) -> tuple:
+    """(Sdf value type, variability) of a Prim attribute's type name ("double3", "uniform token[]"),
+    looked up once per name: a layer authors a few dozen attributes, a plan ~90,000 layers."""
+    found = _VALUE_TYPES.get(type_name)
+    if found is None:
+        from pxr import Sdf
+
+        uniform = type_name.startswith("uniform ")
+        found = _VALUE_TYPES[type_name] = (Sdf.ValueTypeNames.Find(type_name.removeprefix("uniform ")),
+                                           Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying)
+    return found
+
+
 def layer_text(prims: list[Prim], sublayers: list[str], custom: dict, doc: str) -> str:
     """The .usda text of a layer holding `prims` (Sdf API inside one change block)."""
     from pxr import Sdf
@@ -336,11 +352,8 @@ def layer_text(prims: list[Prim], sublayers: list[str], custom: dict, doc: str) 
             if prim.active is not None:
                 spec.active = prim.active
             for name, (type_name, value) in prim.attrs.items():
-                uniform = type_name.startswith("uniform ")
-                vtype = Sdf.ValueTypeNames.Find(type_name.removeprefix("uniform "))
-                attr = Sdf.AttributeSpec(spec, name, vtype,
-                                         Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying)
-                attr.default = value
+                vtype, variability = _value_type(type_name)
+                Sdf.AttributeSpec(spec, name, vtype, variability).default = value
             for name, targets in prim.rels.items():
                 rel = Sdf.RelationshipSpec(spec, name, custom=False)
                 rel.targetPathList.explicitItems = [Sdf.Path(t) for t in targets]
