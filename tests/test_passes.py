@@ -99,7 +99,7 @@ def test_rendering_writes_exactly_the_layers_passes(geometry):
     layer, meta, out = geometry
     stem = layer.stem
     assert _written(out) == {f"{stem}{s}" for s in (".png", ".exr", "_mask.png", "_depth.exr", "_normal.exr",
-                                                     "_instance.png", ".json")}
+                                                     "_instance.png", "_amodal.png", ".json")}
     assert meta["passes"] == meta["layer_passes"] == list(PASSES)
 
 

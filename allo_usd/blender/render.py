@@ -8,6 +8,9 @@ checked after every render: less free than the file Blender just wrote (or no fr
 the file may be cut short and our outputs would not fit either, so DiskFullError stops the run.
 Any other failure to get an image is RenderFailedError, which the dispatcher retries: it is not
 the layer's fault.
+
+With the `amodal` pass, render_current renders a second time right after the main render: the
+anomaly alone, mask-only (blender.amodal.anomaly_alone, which puts the scene back afterwards).
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ class RenderResult:
     ids: np.ndarray | None = None      # (H, W) uint16 object id (build.object_ids), 0 background
     objects: tuple[str, ...] = ()      # prim path of object id 1, 2, ...
     normal: np.ndarray | None = None   # (H, W, 3) float32 world-space normal, when the layer asks for it
+    amodal: np.ndarray | None = None   # (H, W) uint8 0/2: the anomaly alone (blender.amodal), when asked for
+    amodal_seconds: float = 0.0        # that second render's time
 
 
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
@@ -94,7 +99,12 @@ def unreadable_render_file(out: Path, desc_layer: str, problem: str) -> Exceptio
     return RenderFailedError(f"the render of {desc_layer} {problem}; the dispatcher retries it")
 
 
-def render_current(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
+def render_channels(desc: SceneDescription, workdir: Path | None = None,
+                    missing=lambda ch: None) -> tuple[dict[str, np.ndarray], float]:
+    """Render the current Blender scene to a multilayer EXR in a temporary folder under `workdir`; return
+    its channels and the render's seconds. `missing(channels)` names a pass the caller needs that the
+    file lacks (None: none), checked while the file is there: unreadable_render_file decides disk full
+    or retriable failure."""
     import time
 
     import bpy
@@ -118,27 +128,57 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
             ch = read_multilayer_exr(out)
         except Exception as exc:  # noqa: BLE001 - OpenEXR raises plain exceptions for cut-short files
             raise unreadable_render_file(out, desc.layer, f"cannot be read ({type(exc).__name__}: {exc})") from exc
-        from allo_usd.blender.compositor import has_compositor
+        problem = missing(ch)
+        if problem:
+            raise unreadable_render_file(out, desc.layer, f"has no {problem} pass (channels: {sorted(ch)})")
+    return ch, seconds
 
-        layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
-        r, g, b = (ch.get(f"{layer}.{c}") for c in "RGB")
-        if r is None:
-            raise unreadable_render_file(out, desc.layer, f"has no {layer} pass (channels: {sorted(ch)})")
-        index = _find(ch, "IndexOB.X", "Object Index.X", "IndexOB.V")
-        if index is None:
-            raise unreadable_render_file(out, desc.layer, f"has no object index pass (channels: {sorted(ch)})")
-    rgb = np.stack([r, g, b], axis=-1).astype(np.float32)  # EXR rows run top-down, like PNG
+
+INDEX_CHANNELS = ("IndexOB.X", "Object Index.X", "IndexOB.V")
+
+
+def no_object_index(ch: dict[str, np.ndarray]) -> str | None:
+    """render_channels' `missing` for a render that needs only the object index pass."""
+    return None if _find(ch, *INDEX_CHANNELS) is not None else "object index"
+
+
+def object_index(desc: SceneDescription, ch: dict[str, np.ndarray]) -> np.ndarray:
+    """The object index pass of a render's channels (checked present by render_channels' `missing`), as
+    uint16 object ids (build.object_ids)."""
+    return np.clip(np.rint(_find(ch, *INDEX_CHANNELS)), 0, len(object_ids(desc))).astype(np.uint16)
+
+
+def render_current(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
+    from allo_usd.blender.compositor import has_compositor
+
+    layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
+    wants_normal = "normal" in desc.render.outputs
+
+    def missing(ch) -> str | None:
+        if f"{layer}.R" not in ch:
+            return layer
+        if no_object_index(ch):
+            return "object index"
+        if wants_normal and any(_find(ch, f"Normal.{c}") is None for c in "XYZ"):
+            return "normal"
+        return None
+
+    ch, seconds = render_channels(desc, workdir, missing)
+    rgb = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1).astype(np.float32)  # EXR rows run top-down
     table = object_ids(desc)
     classes = np.array([0] + [c for _, c in table], dtype=np.uint8)   # object id -> class id
-    ids = np.clip(np.rint(index), 0, len(table)).astype(np.uint16)
+    ids = object_index(desc, ch)
     depth = _find(ch, "Depth.Z", "Depth.V") if "depth" in desc.render.outputs else None
-    normal = None
-    if "normal" in desc.render.outputs:
-        nx, ny, nz = (_find(ch, f"Normal.{c}") for c in "XYZ")
-        if nx is None:
-            raise unreadable_render_file(out, desc.layer, f"has no normal pass (channels: {sorted(ch)})")
-        normal = np.stack([nx, ny, nz], axis=-1).astype(np.float32)
-    return RenderResult(rgb, classes[ids], depth, seconds, ids=ids, objects=tuple(p for p, _ in table), normal=normal)
+    normal = np.stack([_find(ch, f"Normal.{c}") for c in "XYZ"], axis=-1).astype(np.float32) if wants_normal else None
+    amodal, amodal_seconds = None, 0.0
+    if "amodal" in desc.render.outputs:   # a second render: the anomaly alone (the scene is restored after it)
+        from allo_usd.blender.amodal import amodal_mask, anomaly_alone
+
+        with anomaly_alone():
+            ch, amodal_seconds = render_channels(desc, workdir, no_object_index)
+        amodal = amodal_mask(desc, object_index(desc, ch))
+    return RenderResult(rgb, classes[ids], depth, seconds, ids=ids, objects=tuple(p for p, _ in table), normal=normal,
+                        amodal=amodal, amodal_seconds=amodal_seconds)
 
 
 def render_scene(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:

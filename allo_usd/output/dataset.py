@@ -48,6 +48,12 @@ Why these choices:
   anomalib's recursive glob would otherwise load as an image) and indexed images that no row
   lists. Ctrl-C stops after the scene in hand (a second Ctrl-C stops at once, still safely)
   and raises AssemblyInterrupted; manifest.parquet is rewritten when a run ends.
+- Re-runs cost what changed (issue 26): a record that passed check_render is trusted while it and
+  the image and mask it names keep the stat (size, mtime_ns, inode) recorded then, in
+  annotations/records.json's state (make's and the render manifest's quick check: a re-render
+  replaces the files, an edit changes size or mtime), so its mask is not decoded again; a split's
+  contact sheets are redrawn only when the rows they are drawn from changed; an unchanged row is
+  not placed again (_unchanged), and annotation records are recomputed only for changed rows.
 - Manifest paths (image, mask, allo_mask) are relative to OUT, so the tree moves as a whole;
   source and layer name the render record and scene layer it came from (absolute: they lie
   outside OUT). Lines end in LF. The run's lock file (LOCK) is removed when the run ends.
@@ -60,7 +66,6 @@ import importlib.util
 import json
 import os
 import re
-import shutil
 import signal
 import threading
 import warnings
@@ -71,25 +76,21 @@ import numpy as np
 from PIL import Image
 
 from allo_usd.core.errors import AlloError
-from allo_usd.core.files import RunLock, atomic_path, sha256_file
-from allo_usd.output.annotations import ANNOTATION_COLUMNS, CAMERA_COLUMNS, annotation_columns
-from allo_usd.output.contact import read_pixels, split_sheets
+from allo_usd.core.files import MAX_RECORD_BYTES, InputRefused, RunLock, atomic_path, read_user_json, sha256_file
+from allo_usd.core.scene_labels import SPLITS, VARIANTS, label_problem
+from allo_usd.output.annotations import annotation_columns
+from allo_usd.output.contact import PER_SHEET, read_pixels, sheet_paths, split_sheets
+from allo_usd.output.annotation_files import compute_record, load_cache, write_annotation_files
+from allo_usd.output.dataset_files import COLUMNS, FOLDERS, Refused, inside, place, real_folder, source_file
+from allo_usd.output.pass_files import PASS_COLUMNS, pass_columns, passes_missing, place_passes
 from allo_usd.output.writers import write_png
 
 LAYOUTS = ("mvtec",)
 DEFECTS = ("per-asset", "merged")   # one test/<asset>/ folder per anomaly asset, or one test/anomaly/
 MERGED = "anomaly"                  # the defect folder of every anomaly with defects="merged"
 NORMAL = "good"                     # the folder MVTec loaders read as normal
-# Manifest columns, in groups; a new group is a tuple here and a function in _row.
-FILE_COLUMNS = ("category", "index", "name", "image", "mask", "allo_mask", "split", "kind")
-SCENE_COLUMNS = ("scene_id", "pose", "day", "epoch", "anomaly_asset", "anomaly_variant", "depth_index",
-                 "depth_offset", "anomaly_fraction")
-PROVENANCE_COLUMNS = ("seed", "plan_seed", "seed_path", "layer", "layer_sha256", "sha256", "source")
-# CAMERA_COLUMNS and ANNOTATION_COLUMNS (K, pose, clipping; anomaly box and place, pixel counts, bodies
-# in view) are defined beside the JSON block they flatten: allo_usd.output.annotations.
-COLUMNS = FILE_COLUMNS + SCENE_COLUMNS + CAMERA_COLUMNS + ANNOTATION_COLUMNS + PROVENANCE_COLUMNS
 MANIFEST = "manifest.csv"
-FILE_KEYS = ("allo_mask", "mask", "image")  # placement order: the image, which loaders glob, comes last
+FILE_KEYS = PASS_COLUMNS + ("allo_mask", "mask", "image")  # placement order: the image, which loaders glob, last
 # Temporaries of core.files.atomic_path (mkstemp: .NAME.<8 chars>.SUFFIX) and of earlier place() (.NAME.<32 hex>.tmp).
 TEMPORARY = re.compile(r"^\..+\.(?:[0-9a-f]{32}\.tmp|[a-z0-9_]{8}\.(?:png|csv|parquet|json|tmp))$")
 INDEXED = re.compile(r"^\d{6}_.+\.png$")
@@ -106,32 +107,16 @@ def plan_seed(seed_path: str) -> int | str:
     return int(head) if head.isdigit() else ""
 
 
-def place(src: Path, dst: Path, link: bool = True) -> str:
-    """Put src at dst atomically: a hard link if allowed and possible, else a copy. Returns how."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if dst.exists():
-        same = os.path.samefile(src, dst)
-        if (link and same) or (not link and not same and sha256_file(src) == sha256_file(dst)):
-            return "kept"  # a copy run replaces earlier links by copies, and keeps equal copies
-    if link:
-        try:
-            with atomic_path(dst, suffix=".tmp", mode=None) as tmp:  # never chmod the linked source
-                tmp.unlink()
-                os.link(src, tmp)
-            return "link"
-        except OSError:  # other file system, or links not allowed: copy instead
-            pass
-    with atomic_path(dst, suffix=".tmp") as tmp:  # .tmp: no loader globbing *.png sees it
-        shutil.copyfile(src, tmp)
-    return "copy"
-
-
 class RefusedRenders(UserWarning):
     """Render records refused as untrustworthy (left out of the dataset; `allo-usd dataset` exits 1)."""
 
 
-def scan(render_dirs, progress: bool = False) -> list[tuple[Path, dict]]:
-    """(json path, metadata) of every finished scene in the render directories, by name."""
+def scan(render_dirs, progress: bool = False, refused: list | None = None) -> list[tuple[Path, dict]]:
+    """(json path, metadata) of every finished scene in the render directories, by name. Each
+    NAME.json is read through the read gate (core.files.read_user_json): a FIFO, a device such as
+    /dev/zero, a directory, a link out of its render folder, a file over MAX_RECORD_BYTES or JSON
+    nested over MAX_JSON_DEPTH is never parsed; it is appended to `refused` as "PATH: why" (left out
+    with a warning, like a record check_render refuses). A file that is not JSON is not ours: skipped."""
     from tqdm import tqdm
 
     found: dict[str, tuple[Path, dict]] = {}
@@ -141,9 +126,13 @@ def scan(render_dirs, progress: bool = False) -> list[tuple[Path, dict]]:
         for meta_path in tqdm(sorted(d.glob("*.json")), desc=f"reading {d.name}", unit="file", disable=not progress,
                               leave=False):
             try:
-                meta = json.loads(meta_path.read_text())
-            except (json.JSONDecodeError, UnicodeDecodeError):
-                continue  # not ours: job.py writes its JSON atomically, so it is never partial
+                meta = read_user_json(meta_path, MAX_RECORD_BYTES, "render record", roots=(d,))
+            except InputRefused as exc:
+                if exc.kind in ("not_json", "not_utf8", "missing"):
+                    continue  # not ours (job.py writes its JSON atomically, so it is never partial), or gone
+                if refused is not None:
+                    refused.append(f"{meta_path}: {exc.reason}")
+                continue
             if not isinstance(meta, dict) or "scene" not in meta or "files" not in meta:
                 continue  # not a render record (e.g. a plan or report beside the renders)
             name = meta_path.stem
@@ -212,35 +201,14 @@ def remove_unlisted(out: Path, category: str, rows) -> list[str]:
     return gone
 
 
-SPLITS = ("train", "test")                     # a render's scene split, and the dataset's split folders
-VARIANTS = {"normal": "good", "anomaly": "anomaly"}   # a render's scene variant -> the row's kind
+# SPLITS (a scene's split, the split folders) and VARIANTS (a scene's variant -> the row's kind): core.scene_labels
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")    # a scene name, the category: a plain file name
-TOKEN = re.compile(r"^[A-Za-z0-9_-]+$")               # an anomaly asset or variant
-
-
-class Refused(Exception):
-    """Why a render record is left out of the dataset (its JSON contradicts itself or its files)."""
 
 
 def _count(value) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise Refused(f"class_pixels holds {value!r}, not a pixel count")
     return value
-
-
-def source_file(render_dir: Path, name) -> Path:
-    """`name` from a render JSON's "files" as a file of `render_dir`: a plain name (no separator,
-    not . or ..) of a regular file whose real path lies in the render directory itself."""
-    if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name \
-            or "\0" in name:
-        raise Refused(f"file name {name!r} is not a plain file name in its render directory")
-    path = render_dir / name
-    real = os.path.realpath(path)
-    if os.path.dirname(real) != os.path.realpath(render_dir):
-        raise Refused(f"file {name!r} resolves to {real}, outside its render directory {render_dir}")
-    if not os.path.isfile(real):
-        raise Refused(f"file {name!r} is missing or not a regular file")
-    return path
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -264,16 +232,10 @@ def check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int]]:
         raise Refused(f"scene name {name!r} is not a plain name ([A-Za-z0-9_.-])")
     if not isinstance(scene, dict) or not isinstance(files, dict):
         raise Refused("its JSON has no scene or files table")
-    if scene.get("split") not in SPLITS:
-        raise Refused(f"split {scene.get('split')!r} is not one of {', '.join(SPLITS)}")
-    if scene.get("variant") not in VARIANTS:
-        raise Refused(f"variant {scene.get('variant')!r} is not one of {', '.join(VARIANTS)}")
+    problem = label_problem(scene)   # the reader's check too: render never records what is refused here
+    if problem:
+        raise Refused(problem)
     anomaly = scene.get("anomaly")
-    if scene["variant"] == "normal" and anomaly:
-        raise Refused("a normal scene that records an anomaly")
-    if anomaly is not None and (not isinstance(anomaly, dict) or not all(
-            TOKEN.match(str(anomaly.get(k, ""))) for k in ("asset", "assetVariant"))):
-        raise Refused(f"anomaly {anomaly!r} does not name an asset and variant ([A-Za-z0-9_-])")
     src = meta_path.parent
     rgb, mask = (source_file(src, files.get(k)) for k in ("rgb", "mask"))
     size = image_size(rgb)
@@ -315,17 +277,6 @@ def all_black(path: Path, size: tuple[int, int]) -> bool:
     return not read_pixels(path).any()
 
 
-def _inside(out: Path, rel: str) -> Path:
-    """`out / rel`, refused (AlloError) unless its real path stays inside `out`: nothing is written
-    or removed outside the dataset, whatever the manifest says or a symlinked folder points at."""
-    path = Path(out) / rel
-    top, real = os.path.realpath(out), os.path.realpath(path)
-    if Path(rel).is_absolute() or os.path.commonpath([top, real]) != top:
-        raise AlloError(f"{path} resolves to {real}, outside the dataset {out} (a symlinked folder, or a manifest "
-                        f"row naming another place); fix: remove it, or assemble into a fresh --out")
-    return path
-
-
 def folder(scene: dict, kind: str, defects: str) -> str:
     """The folder of a scene's image under its split: `good` for a normal one, else its anomaly's
     asset (defects="per-asset") or `anomaly` (defects="merged")."""
@@ -358,7 +309,7 @@ def scene_columns(name: str, meta: dict) -> dict:
 def from_root(path, out: Path) -> str:
     """`path` relative to the dataset root `out` (symlinks resolved), so the manifest holds no
     machine's absolute paths and stays right when the dataset and its renders move together."""
-    return os.path.relpath(Path(path).resolve(), Path(out).resolve()) if path else ""
+    return os.path.relpath(os.path.realpath(path), real_folder(out)) if path else ""
 
 
 def provenance_columns(meta_path: Path, meta: dict, out: Path) -> dict:
@@ -373,18 +324,25 @@ def provenance_columns(meta_path: Path, meta: dict, out: Path) -> dict:
 
 def _row(category, index, name, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> dict:
     """The manifest row of one scene (its files are placed by _place_row)."""
-    return (file_columns(category, index, name, meta["scene"]["split"], kind, where)
+    files = file_columns(category, index, name, meta["scene"]["split"], kind, where)
+    return (files | pass_columns(files["image"], meta_path, meta)   # depth/, normal/, instance/ (output.pass_files)
             | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out))
 
 
-def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> None:
-    """Put one scene's files in the tree: 3-class mask, binary ground truth, then the image."""
+def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> np.ndarray | None:
+    """Put one scene's files in the tree: its passes, 3-class mask, binary ground truth, then the
+    image. Returns the 3-class mask when it was decoded (an anomaly's, for its ground truth), so its
+    annotation record is computed from it rather than from a second decode."""
     src = meta_path.parent
+    place_passes(row, meta_path, meta, out, link)
     mask_src, rgb_src = (source_file(src, meta["files"][k]) for k in ("mask", "rgb"))
-    place(mask_src, _inside(out, row["allo_mask"]), link)
+    place(mask_src, inside(out, row["allo_mask"]), link)
+    pixels = None
     if row["mask"]:
-        write_png(_inside(out, row["mask"]), np.where(read_pixels(mask_src) == 2, 255, 0).astype(np.uint8))
-    place(rgb_src, _inside(out, row["image"]), link)
+        pixels = read_pixels(mask_src)
+        write_png(inside(out, row["mask"]), (pixels == 2).astype(np.uint8) * np.uint8(255))
+    place(rgb_src, inside(out, row["image"]), link)
+    return pixels
 
 
 def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> bool:
@@ -394,6 +352,8 @@ def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, ou
     split = meta["scene"]["split"]
     if isinstance(meta.get("annotations"), dict) and not old.get("fx"):
         return False  # a row from before the camera/annotation columns: fill them in
+    if passes_missing(old, meta_path, meta, out):
+        return False  # a pass the row lacks (a row from before the pass columns, or a file gone)
     if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (
             from_root(meta_path, out), meta.get("layer_sha256", ""), kind, split,
             file_columns(old["category"], int(old["index"]), old["name"], split, kind, where)["image"]):
@@ -410,11 +370,11 @@ def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, ou
 def _remove_files(out: Path, row: dict) -> None:
     for key in FILE_KEYS:
         if row.get(key):
-            _inside(out, row[key]).unlink(missing_ok=True)
+            inside(out, row[key]).unlink(missing_ok=True)
 
 
 def _complete(out: Path, row: dict) -> bool:
-    return all(_inside(out, row[k]).is_file() for k in FILE_KEYS if row.get(k))
+    return all(inside(out, row[k]).is_file() for k in FILE_KEYS if row.get(k))
 
 
 @contextmanager
@@ -481,8 +441,12 @@ def assemble(render_dirs, out_dir, layout: str = "mvtec", link: bool = True, cat
     if defects not in DEFECTS:
         raise AlloError(f"unknown defects layout {defects!r}; choose one of {', '.join(DEFECTS)}")
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    with _Lock(out_dir, LOCK, "dataset"):
-        return _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene, defects)
+    token = FOLDERS.set({})   # this run's folders' real paths (real_folder)
+    try:
+        with _Lock(out_dir, LOCK, "dataset"):
+            return _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene, defects)
+    finally:
+        FOLDERS.reset(token)
 
 
 def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene, defects) -> Path:
@@ -495,13 +459,16 @@ def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progres
     out.mkdir(parents=True, exist_ok=True)
     manifest = out / MANIFEST
     rows = _clean_tree(out, manifest, category)
-    todo = _plan_rows(render_dirs, progress, rows, category, link, out, defects)
-    placed, stop_now = _place_all(todo, rows, manifest, out, category, link, progress, on_scene)
+    cache = load_cache(out)   # annotations/records.json: the annotation records and the dataset's state
+    state = cache.get("state") if isinstance(cache.get("state"), dict) else {}
+    todo, checks = _plan_rows(render_dirs, progress, rows, category, link, out, defects, state.get("checks"))
+    early: dict[str, dict] = {}   # annotation records computed at placement from the mask in hand
+    placed, stop_now = _place_all(todo, rows, manifest, out, category, link, progress, on_scene, early)
     if stop_now:
         write_manifest(manifest, list(rows.values()))
         raise AssemblyInterrupted(f"interrupted after {placed} of {len(todo)} scenes; {manifest} lists every file "
                                   "in the tree; re-run the same command to add the rest")
-    _finish(out, manifest, rows, category, sheet_limit)
+    _finish(out, manifest, rows, category, sheet_limit, cache, {**state, "checks": checks}, early)
     return manifest
 
 
@@ -517,29 +484,64 @@ def _clean_tree(out: Path, manifest: Path, category: str) -> dict[tuple, dict]:
     return rows
 
 
+def _stat_of(path) -> list[int]:
+    st = os.stat(path)
+    return [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev]
+
+
+def _check(meta_path: Path, meta: dict, prior) -> tuple[str, tuple[int, int], dict | None]:
+    """check_render's (kind, size) of a record, and the evidence to keep for the next run: the stat
+    (size, mtime_ns, inode, device) of the record, its image and its mask, taken before the check.
+    An earlier run's answer (`prior`) stands while all three stats are the ones it recorded (the
+    quick check of make, rsync and the render manifest: a rewrite changes size or mtime, a
+    re-render replaces the files), so a re-run does not read every image header and decode every
+    anomalous mask again; the file-name rules (source_file) are applied every time."""
+    files = meta.get("files")
+    try:
+        evidence = {"json": _stat_of(meta_path), **{k: _stat_of(source_file(meta_path.parent, files.get(k)))
+                                                    for k in ("rgb", "mask")}}
+    except (Refused, OSError, AttributeError):
+        evidence = None   # check_render says why
+    if evidence is not None and isinstance(prior, dict) and all(prior.get(k) == v for k, v in evidence.items()):
+        kind, size = prior.get("kind"), prior.get("size")
+        if kind in VARIANTS.values() and isinstance(size, list) and len(size) == 2 \
+                and all(isinstance(v, int) and not isinstance(v, bool) for v in size):
+            return kind, (size[0], size[1]), prior
+    kind, size = check_render(meta_path, meta)
+    return kind, size, (None if evidence is None else {**evidence, "kind": kind, "size": list(size)})
+
+
 def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, link, out: Path,
-               defects: str) -> list[tuple]:
+               defects: str, checked=None) -> tuple[list[tuple], dict]:
     """(name, meta path, meta, kind, index, folder) of each render to place: new scenes get the
     next free indices, changed or moved ones keep theirs, unchanged linked ones are skipped; the
     rest are reported. An anomaly asset named like the normal folder stops the run.
     Render records that check_render refuses are left out with a warning; renders of another
-    resolution than the rest (or than the category's images already in the tree) stop the run."""
+    resolution than the rest (or than the category's images already in the tree) stop the run.
+    With them, the records' check evidence ({record path from OUT: _check's}) for records.json's state;
+    `checked` is the last run's."""
+    checked = checked if isinstance(checked, dict) else {}
+    evidence: dict[str, dict] = {}
     next_index = 1 + max((int(r["index"]) for r in rows.values() if r["category"] == category), default=-1)
-    found = scan(render_dirs, progress)
-    if not found:
+    refused: list[str] = []   # "JSON: why" of each record left out (the read gate's, then check_render's)
+    found = scan(render_dirs, progress, refused)
+    if not found and not refused:
         raise AlloError(f"no renders in {', '.join(map(str, render_dirs))}: no NAME.json render record there; fix: "
                         "pass the directories `allo-usd render` wrote (its --out; for a plan, OUT/renders)")
-    left_out, mask_only, refused, todo, sizes, dark, black = [], [], [], [], {}, [], []
+    left_out, mask_only, todo, sizes, dark, black = [], [], [], {}, [], []
     for meta_path, meta in found:
         name = meta_path.stem
         if isinstance(meta.get("files"), dict) and "rgb" not in meta["files"]:
             mask_only.append(name)
             continue
+        key = os.path.relpath(os.path.abspath(meta_path), os.path.abspath(out))   # no machine's path in the state
         try:
-            kind, size = check_render(meta_path, meta)
+            kind, size, proof = _check(meta_path, meta, checked.get(key))
         except Refused as exc:
             refused.append(f"{meta_path}: {exc}")
             continue
+        if proof is not None:
+            evidence[key] = proof
         kind = _kind(meta["scene"], meta, kind)
         if kind is None:
             left_out.append(name)
@@ -561,8 +563,9 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
         todo.append((name, meta_path, meta, kind, index, where))
     _one_resolution(sizes, rows, category, out)
     if refused:
-        warnings.warn(f"{len(refused)} render(s) refused and left out, their JSON contradicting itself or naming "
-                      f"files outside its render directory: {'; '.join(refused[:5])}", RefusedRenders, stacklevel=3)
+        warnings.warn(f"{len(refused)} render(s) refused and left out, their JSON unreadable (not a regular file, too "
+                      f"big, too deep), contradicting itself or naming files outside its render directory: "
+                      f"{'; '.join(refused[:5])}", RefusedRenders, stacklevel=3)
     if left_out:
         warnings.warn(f"{len(left_out)} scene(s) left out (anomalous in the train split, or anomaly not visible): "
                       f"{', '.join(left_out[:10])}", stacklevel=3)
@@ -578,7 +581,7 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
         warnings.warn(f"{len(black)} scene(s) have an all-black image (an umbra scene without the inspection light "
                       f"is black in the PNG, lit only in the EXR; otherwise a failed render): {', '.join(black[:10])}",
                       stacklevel=3)
-    return todo
+    return todo, evidence
 
 
 def _one_resolution(sizes: dict[tuple, list[str]], rows: dict[tuple, dict], category: str, out: Path) -> None:
@@ -586,7 +589,7 @@ def _one_resolution(sizes: dict[tuple, list[str]], rows: dict[tuple, dict], cate
     themselves, and against an image the category already holds."""
     held = next((r for r in rows.values() if r["category"] == category and _complete(out, r)), None)
     try:
-        size = image_size(_inside(out, held["image"])) if held is not None else None
+        size = image_size(inside(out, held["image"])) if held is not None else None
     except Refused:
         size = None   # unreadable: its render replaces it, or _finish drops it
     if size is not None:
@@ -598,7 +601,7 @@ def _one_resolution(sizes: dict[tuple, list[str]], rows: dict[tuple, dict], cate
 
 
 def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: Path, category: str, link,
-               progress, on_scene) -> tuple[int, bool]:
+               progress, on_scene, early: dict | None = None) -> tuple[int, bool]:
     """(scenes placed, stopped early) after placing `todo` in batches, each batch's rows written to the
     manifest before any of its files exists, so an interrupted run leaves a manifest listing every
     file; on a stop, rows not placed go back to what the manifest said before."""
@@ -625,7 +628,9 @@ def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: 
                         break
                     key = in_hand = (category, name)
                     old = ahead[key]
-                    _place_row(row, meta_path, meta, out, link)
+                    pixels = _place_row(row, meta_path, meta, out, link)
+                    if pixels is not None and early is not None:
+                        early[f"{category}/{name}"] = compute_record(out, row, pixels)
                     if old:
                         _remove_files(out, {k: old[k] for k in FILE_KEYS if old.get(k) and old[k] != str(row[k])})
                     del ahead[key]
@@ -649,9 +654,22 @@ def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: 
     return placed, stop_now
 
 
-def _finish(out: Path, manifest: Path, rows: dict[tuple, dict], category: str, sheet_limit) -> None:
-    """Drop rows whose files are gone (and not re-rendered), write the final manifest and redraw
-    the category's contact sheets, so the tree ends complete and consistent."""
+def _sheet_key(category: str, split: str, rows: list[dict], limit) -> str:
+    """What a split's contact sheets are drawn from (every row shown or counted in the header, with
+    its image's checksum): equal keys draw equal sheets."""
+    import hashlib
+
+    shown = sorted((r["image"], r["allo_mask"], r["kind"], str(r["index"]), r["name"], str(r["anomaly_fraction"]),
+                    r.get("sha256", "")) for r in rows)
+    text = json.dumps([category, split, limit, PER_SHEET, shown], separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _finish(out: Path, manifest: Path, rows: dict[tuple, dict], category: str, sheet_limit, cache: dict,
+            state: dict, early: dict | None = None) -> None:
+    """Drop rows whose files are gone (and not re-rendered), write the final manifest, redraw the
+    category's contact sheets whose rows changed (the rows each was drawn from are kept in the
+    state), then the annotation files with the state, so the tree ends complete and consistent."""
     gone = [key for key, r in rows.items() if not _complete(out, r)]
     if gone:
         warnings.warn(f"{len(gone)} manifest row(s) dropped: their files are missing and their renders were not "
@@ -661,12 +679,23 @@ def _finish(out: Path, manifest: Path, rows: dict[tuple, dict], category: str, s
     all_rows = list(rows.values())
     write_manifest(manifest, all_rows)
     remove_empty_folders(out, category)
-    sheets = _inside(out, "contact_sheets")
+    sheets = inside(out, "contact_sheets")
+    drawn = dict(state.get("sheets") or {}) if isinstance(state.get("sheets"), dict) else {}
     for split in SPLITS:
         picked = [r for r in all_rows if r["category"] == category and r["split"] == split]
         if picked:
+            key, name = _sheet_key(category, split, picked, sheet_limit), f"{category}/{split}"
+            pages = -(-min(len(picked), sheet_limit) // PER_SHEET)
+            if drawn.get(name) == key and all(p.is_file() for p in sheet_paths(sheets, category, split, pages)):
+                continue   # drawn from these very rows by an earlier run
             sheets.mkdir(exist_ok=True)
+            drawn.pop(name, None)
             split_sheets(out, picked, sheets, category, split, sheet_limit)
+            drawn[name] = key
+        else:
+            drawn.pop(f"{category}/{split}", None)
+    # COCO, BOP, instances.json (allo_usd.output.annotation_files), and the state for the next run
+    write_annotation_files(out, all_rows, cache, {**state, "sheets": drawn}, early)
 
 
 def remove_empty_folders(out: Path, category: str) -> None:

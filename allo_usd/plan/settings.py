@@ -25,8 +25,10 @@ DEVICES = ("auto", "cpu", "gpu")
 # rgb STEM.png (8-bit sRGB), exr STEM.exr (linear, half), mask STEM_mask.png (uint8 class 0/1/2),
 # depth STEM_depth.exr (float32 metres along the view axis), normal STEM_normal.exr (float32 world-space
 # unit normals X, Y, Z), instance STEM_instance.png (uint16 object id, 0 background; the id -> prim table
-# is in the render's JSON). Without rgb and exr the render is mask-like: 1 sample, no bounces.
-PASSES = ("rgb", "exr", "mask", "depth", "normal", "instance")
+# is in the render's JSON), amodal STEM_amodal.png (uint8 0/2: the anomaly's full silhouette, as if
+# nothing hid it; a second, mask-only render of the anomaly alone: allo_usd.blender.amodal). Without rgb
+# and exr the render is mask-like: 1 sample, no bounces.
+PASSES = ("rgb", "exr", "mask", "depth", "normal", "instance", "amodal")
 DEFAULT_PASSES = ("rgb", "exr", "mask")
 COLOR_PASSES = ("rgb", "exr")
 

@@ -11,9 +11,10 @@ The demo authors exactly as a plan does (allo_usd.usd.compose), into a self-cont
     OUT/layers/stages/              the tree's own byte copy of the base stage and its assets
     OUT/layers/schema/              the Allo*API schemas' plugin, for PXR_PLUGINPATH_NAME
     OUT/layers/versions.json        the library versions of each run that authored it (core.provenance)
-    OUT/renders/                    PNG, EXR, mask and JSON per scene
+    OUT/renders/                    PNG, EXR, mask, depth, instance ids and JSON per scene (demo_passes)
     OUT/contact_sheet.png
-    OUT/dataset/                    the renders as an MVTec AD tree (allo_usd.output.dataset)
+    OUT/dataset/                    the renders as an MVTec AD tree, with COCO, BOP, depth/ and instance/
+                                    (allo_usd.output.dataset)
     OUT/logs/demo.log               what Blender printed while rendering
 
 Every path in a layer is relative and stays inside OUT/layers, the directory a scene layer lies
@@ -51,11 +52,22 @@ DEMO_SEED = 2030
 DEMO_TRACK_SUN = True   # as demo_plan: the arrays face each day's Sun (allo_usd.scene.tracking)
 
 
+def demo_passes() -> tuple[str, ...]:
+    """The demo's render passes: colour and mask, plus depth and instance ids (and the anomaly's
+    amodal mask where the renderer has that pass), so that the demo dataset shows depth/, instance/,
+    instances.json and BOP's depth PNGs and masks. Depth and instance ids come from the same Cycles
+    render (no extra samples); the amodal pass is one mask-only sample of the anomaly alone."""
+    from allo_usd.run.manifest import PASS_FILES
+
+    return ("rgb", "exr", "mask", "depth", "instance") + (("amodal",) if "amodal" in PASS_FILES else ())
+
+
 def demo_spec(inputs: SceneInputs, index: int, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> SceneSpec:
     """Demo scene `index` of DEMO_SCENES, fully resolved."""
     from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
-    render = RenderSpec(resolution=tuple(resolution), preset="demo", samples=samples, exposure=EXPOSURE)
+    render = RenderSpec(resolution=tuple(resolution), preset="demo", samples=samples, exposure=EXPOSURE,
+                        passes=demo_passes())
     day, pose, anomaly = DEMO_SCENES[index]
     if anomaly is not None:
         name = anomaly[0] if anomaly[0] in ANOMALY_VARIANTS else sorted(ANOMALY_VARIANTS)[index]

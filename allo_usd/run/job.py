@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd import __version__
+from allo_usd.core.interrupts import import_held
 from allo_usd.core.provenance import library_versions
 from allo_usd.output.annotations import image_annotations
 from allo_usd.output.writers import (write_exr, write_instance_png, write_json, write_mask_png, write_rgb_exr,
@@ -69,7 +70,10 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     image for any thread count. `workdir` holds Blender's temporary render file. `session` (an
     allo_usd.blender.session.Session) keeps the Blender scene warm and applies only what differs
     from its previous scene; the files are byte-identical to a from-scratch build. `save_blend`
-    also saves the built Blender scene there as a .blend (before rendering), to open what Blender got.
+    also saves the built Blender scene there as a .blend (before rendering), to open what Blender got:
+    checked before anything else (allo_usd.blender.debug.check_blend_target: an existing file is
+    replaced only with `force`; a link, a directory, a device or another extension never) and written
+    atomically.
     `device` is 'auto', 'cpu' or 'gpu' (allo_usd.blender.device.select: probed once per process; 'gpu'
     without a GPU is a DeviceError before the layer is read).
     `passes` (allo_usd.plan.settings.PASSES) replaces the passes the layer orders for this run: the JSON
@@ -90,6 +94,10 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
 
     check_output_names([layer])
     device = check_device(device)
+    if save_blend is not None:
+        from allo_usd.blender.debug import check_blend_target
+
+        save_blend = check_blend_target(save_blend, replace=force)
     passes = None if passes is None else canonical_passes(passes)
     if passes is not None and passes == layer_outputs(layer):
         passes = None  # what the layer orders anyway
@@ -97,6 +105,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         meta = done_record(layer, out_dir)  # the rule every entry point uses (allo_usd.run.manifest.is_done)
         if meta is not None:
             return meta
+    import_held("bpy")   # Blender's start-up swallows a Ctrl-C (and leaves numpy half-loaded): held until it is in
     used = select(device)
     read = walk(layer)  # checked before USD opens a file; kept open so read_scene parses no layer twice
     inputs = input_hashes(layer, read.files)  # before the read: an edit meanwhile re-renders next time
@@ -107,7 +116,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     layer_passes = desc.render.outputs
     if passes is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, outputs=passes))
-    result = _render(desc, workdir, session, save_blend, used)
+    result = _render(desc, workdir, session, save_blend, used, replace_blend=force)
     paths = output_paths(layer, out_dir, desc.render.outputs)
     effects = {}
     if "rgb" in paths or "exr" in paths:
@@ -124,6 +133,8 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         write_exr(paths["normal"], {c: result.normal[..., i] for i, c in enumerate("XYZ")}, half=False)
     if "instance" in paths:
         write_instance_png(paths["instance"], result.ids)
+    if "amodal" in paths:
+        write_mask_png(paths["amodal"], result.amodal)
     counts = np.bincount(result.mask.ravel(), minlength=3)
     meta = {
         "layer": str(Path(layer).resolve()),   # where it was rendered from (this machine's path)
@@ -137,6 +148,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         "device": record(used),
         "cycles_cpu": cycles_cpu(),   # the CPU kernel Cycles used and the CPU flags that pick it
         "render_seconds": round(result.seconds, 3),
+        **({"amodal_seconds": round(result.amodal_seconds, 3)} if "amodal" in paths else {}),
         "resolution": list(desc.render.resolution),
         "class_pixels": {"background": int(counts[0]), "station_and_bodies": int(counts[1]),
                          "anomaly": int(counts[2])},
@@ -149,7 +161,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
         "files": {k: p.name for k, p in paths.items()},
         "outputs_sha256": outputs_sha256(paths),  # what is_done checks: the JSON alone vouches for its outputs
         # K, pose, clipping, the anomaly's box and place, the bodies in view (conventions: output/annotations.py)
-        "annotations": image_annotations(desc, result.mask),
+        "annotations": image_annotations(desc, result.mask, result.amodal),
     }
     write_json(paths["meta"], meta)
     if index and (Path(out_dir) / MANIFEST).is_file():  # a dispatcher's folder: its index follows the record
@@ -157,7 +169,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     return meta
 
 
-def _render(desc, workdir: Path | None, session, save_blend: Path | None, device):
+def _render(desc, workdir: Path | None, session, save_blend: Path | None, device, replace_blend: bool = False):
     from allo_usd.blender.build import build_scene
     from allo_usd.blender.render import render_current
 
@@ -171,7 +183,7 @@ def _render(desc, workdir: Path | None, session, save_blend: Path | None, device
         if save_blend is not None:
             from allo_usd.blender.debug import save_blend as save
 
-            save(save_blend)
+            save(save_blend, replace=replace_blend)
         return render_current(desc, workdir)
     except BaseException:
         if session is not None:

@@ -255,6 +255,9 @@ RENDER_VARS = {
     "PrimId": ("instance", "primId", "int", "Object id, 1 + the index of the object's path among the scene's "
                "sorted object paths (a station or body mesh prim; the anomaly as one object), 0 background; uint16 PNG (STEM_instance.png), id -> prim path in the JSON; "
                "written only when a product orders it."),
+    "AmodalMask": ("amodal", A.NAMESPACE + "amodalMask", "uchar", "0 background, 2 anomaly: the anomaly's full "
+                   "silhouette, the station and bodies invisible to camera rays (a second, 1-sample mask-only "
+                   "render), uint8 PNG (STEM_amodal.png); written only when a product orders it."),
 }
 PASS_VARS = {p: name for name, (p, _, _, _) in RENDER_VARS.items()}   # pass -> var prim name
 
