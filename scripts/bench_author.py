@@ -9,7 +9,9 @@ end to end through `author` with `--workers` processes, as `allo-usd author` doe
 authors the whole plan that way. Both report planned vs authored counts and the top-up.
 Numerics run single-threaded (OPENBLAS/OMP/MKL_NUM_THREADS=1), as in authoring's workers, and
 the subset is timed in CPU seconds of this process (`time.process_time`), so other load on the
-machine inflates the estimate less than wall-clock time would.
+machine inflates the estimate less than wall-clock time would. `--sample` and `--full` report wall
+seconds, the CPU seconds (user + system) of this process and its workers together, and the time of
+a second run with nothing left to do (a resume).
 
     python scripts/bench_author.py [--normal 1500] [--placements 300] [--sample DAYS | --full] [--out FILE]
 """
@@ -23,7 +25,9 @@ if __name__ == "__main__":  # before numpy loads: authoring's workers run like t
         os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import resource  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from collections import Counter  # noqa: E402
@@ -38,6 +42,8 @@ from allo_usd.sky.model import compute_sky
 from allo_usd.sky.orbit import Orbit
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "scripts"))   # benchinfo, the shared header
+import benchinfo  # noqa: E402
 
 
 def sizes(paths) -> str:
@@ -61,6 +67,12 @@ class _Quiet:
         pass
 
 
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its finished (joined) children: the pool's workers."""
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def scaled_plan(plan, days: int):
     """The paper plan over its first `days` days, with its counts scaled by days/365."""
     from allo_usd.plan.model import Counts, Dates
@@ -82,6 +94,7 @@ def main() -> None:
     ap.add_argument("--full", action="store_true", help="author the whole plan instead")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_author.md")
     args = ap.parse_args()
+    run = benchinfo.start()
 
     plan = paper_plan()
     t = time.perf_counter()
@@ -98,16 +111,23 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         if args.full or args.sample:
-            run = plan if args.full else scaled_plan(plan, args.sample)
-            n_run = len(enumerate_scenes(run))
+            authored = plan if args.full else scaled_plan(plan, args.sample)
+            n_run = len(enumerate_scenes(authored))
+            t, c = time.perf_counter(), cpu_seconds()
+            done = author(authored, out, progress=True, workers=args.workers)
+            total, cpu = time.perf_counter() - t, cpu_seconds() - c
             t = time.perf_counter()
-            done = author(run, out, progress=True, workers=args.workers)
-            total = time.perf_counter() - t
+            again = author(authored, out, progress=False)   # a resume with nothing to do, as the CLI runs it
+            noop = time.perf_counter() - t
+            assert again.paths == done.paths
             what = "Full run" if args.full else f"The plan scaled to {args.sample} days ({n_run:,} scenes)"
-            lines += [f"{what}, {args.workers} workers: {len(done.paths):,} scene layers in {total:.1f} s "
-                      f"({n_run / total:.0f} plan scenes/s); {done.reserve_resolved} reserve groups resolved.", ""]
+            lines += [f"{what}, {args.workers} workers: {len(done.paths):,} scene layers in **{total:.1f} s** wall, "
+                      f"{cpu:.1f} CPU s (user + system, all processes) ({n_run / total:.0f} plan scenes/s); "
+                      f"{done.reserve_resolved} reserve groups resolved. A resume with nothing to do: {noop:.1f} s.",
+                      ""]
             if not args.full:
-                lines += [f"Scaled by scenes to the full plan: **{total * len(keys) / n_run:.0f} s**.", ""]
+                lines += [f"Scaled by scenes to the full plan: **{total * len(keys) / n_run:.0f} s** wall, "
+                          f"{cpu * len(keys) / n_run:.0f} CPU s.", ""]
             lines += [*[f"- {s}" for s in summary_lines(done.counts)], "",
                       "| asset | planned | skipped | skipped % | reserve groups | topped up | short |",
                       "|---|---|---|---|---|---|---|"]
@@ -180,6 +200,7 @@ def main() -> None:
                   f"- scene layers: {sizes(list((out / 'scenes').rglob('*.usda')))}",
                   f"- pose layers: {sizes(list((out / 'poses').rglob('*.usda')))}",
                   f"- sky layers: {sizes(list((out / 'sky').rglob('*.usda')))}", ""]
+    lines[2:2] = [benchinfo.header(benchinfo.finish(run)), ""]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))
     print("\n".join(lines))

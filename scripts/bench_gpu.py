@@ -35,6 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if __name__ == "__main__":  # run from a checkout
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
+import benchinfo  # noqa: E402
 
 BENCH = ROOT / "out" / "bench" / "gpu"
 PRESET_ORDER = ("draft", "preview", "final", "paper")
@@ -120,7 +122,7 @@ def report(rows: list[dict], out: Path, meta: dict) -> None:
         w.writeheader()
         w.writerows(rows)
     gpu = meta["gpu"]
-    lines = ["# GPU rendering: time per preset (scripts/bench_gpu.py)", "",
+    lines = ["# GPU rendering: time per preset (scripts/bench_gpu.py)", "", benchinfo.header(meta["run"]), "",
              f"Scene `{meta['layer']}`; Blender {meta['blender']['version']} ({meta['blender']['build_hash']}); "
              f"CPU {meta['cpu']}, {meta['cores']} cores usable, load average {meta['load']} (1 min, at the end: "
              "other processes may share the cores, so the seconds are upper bounds); "
@@ -167,6 +169,7 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", default=",".join(PRESET_ORDER))
     ap.add_argument("--out", default=str(ROOT / "docs"))
     args = ap.parse_args(argv)
+    bench_run = benchinfo.start()
 
     from allo_usd.blender import device as dev
     from allo_usd.usd.read import read_scene
@@ -187,7 +190,8 @@ def main(argv=None) -> int:
             "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
             "gpu": None if gpu is None else gpu.label, "date": time.strftime("%Y-%m-%d"),
             "found": ", ".join(f"{n} ({k})" for n, k, _ in found) or "nothing",
-            "machine": platform.machine(), "load": f"{os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else "?"}
+            "machine": platform.machine(), "load": f"{os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else "?",
+            "run": benchinfo.finish(bench_run)}
     report(rows, Path(args.out), meta)
     print(f"wrote {Path(args.out) / 'bench_gpu.md'}")
     return 0

@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
+import benchinfo  # noqa: E402
 
 # Object indices the child gives the imported objects, by the USD prim their object came from.
 STATION_INDEX, BODY_INDEX, ANOMALY_INDEX = 1, 3, 2
@@ -300,6 +302,7 @@ def main(argv=None) -> None:
     if a.child:
         return _child(json.loads(a.child))
     w, h = (int(v) for v in a.size.split("x"))
+    run = benchinfo.start()
     rows = []
     for label, day in DAYS.items():
         for pose in (int(v) for v in a.poses.split(",")):
@@ -308,10 +311,10 @@ def main(argv=None) -> None:
                 row.update(case=label, day=day, pose=pose)
                 rows.append(row)
                 print(json.dumps({k: v for k, v in row.items() if k != "lights"}), flush=True)
-    write_report(rows, (w, h), a.samples, a.out)
+    write_report(rows, (w, h), a.samples, a.out, benchinfo.finish(run))
 
 
-def write_report(rows: list[dict], size, samples: int, docs: Path = ROOT / "docs") -> None:
+def write_report(rows: list[dict], size, samples: int, docs: Path = ROOT / "docs", run: dict | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -321,6 +324,8 @@ def write_report(rows: list[dict], size, samples: int, docs: Path = ROOT / "docs
     raw = [r for r in rows if not r["undo"]]
     fixed = {(r["day"], r["pose"]): r for r in rows if r["undo"]}
     lines = ["# What an outside USD client sees: Blender 5.0.1's own importer vs allo-usd's render",
+             "",
+             benchinfo.header(run or benchinfo.finish(benchinfo.start())),
              "",
              f"`scripts/bench_light_linking.py`: demo scenes (committed base stage, demo seed, no anomaly) at "
              f"{size[0]}x{size[1]}, {samples} samples, no denoising, rendered by allo-usd and, after "

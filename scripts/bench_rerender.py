@@ -40,6 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 if __name__ == "__main__":  # run from a checkout
     sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
+import benchinfo  # noqa: E402
 
 NO_AVX2_ENV = "CYCLES_CPU_NO_AVX2"   # allo_usd.blender.device.NO_AVX2_ENV (not imported: that module is bpy's side)
 RUNS = (("run1", {}), ("run2", {}), ("forced", {NO_AVX2_ENV: "1"}))
@@ -197,7 +199,7 @@ def commit() -> str:
 
 
 def report(rows: list[dict], kernels: dict, seconds: dict, render_s: dict, args, layers: list[Path],
-           docs: Path, command: str, date: str) -> None:
+           docs: Path, command: str, date: str, bench_run: dict | None = None) -> None:
     from allo_usd.blender.device import cpu_model   # plain Python: reads /proc/cpuinfo
 
     flags = kernels.get("_flags", [])
@@ -206,6 +208,10 @@ def report(rows: list[dict], kernels: dict, seconds: dict, render_s: dict, args,
     forced_ok = kernels["run1"] != kernels["forced"]
     lines = [
         "# Re-render on another CPU kernel",
+        "",
+        benchinfo.header(bench_run) if bench_run else
+        f"{benchinfo.HEADER_START}: the runs' commit, CPU and load were not recorded (runs made before the header); "
+        "re-run without --no-render to record them",
         "",
         f"- machine: {cpu_model()}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}; "
         f"CPU flags {', '.join(flags) or '-'}",
@@ -336,7 +342,8 @@ def main(argv: list[str] | None = None) -> None:
     overrides = [write_override(layer, out / "layers", args.size, args.samples) for layer in layers]
     roots = sorted({str(r) for layer in layers for r in allowed_roots(layer)})  # what each layer may read itself
     record_file = out / "runs" / "runs.json"   # how and when the runs were made, for --no-render
-    runs = {"seconds": {}, "command": command, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+    runs = {"seconds": {}, "command": command, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "bench_run": benchinfo.start(["scripts/bench_rerender.py", *given])}
     if args.no_render:
         if not record_file.is_file():
             raise SystemExit(f"--no-render: no runs in {out / 'runs'}; run without --no-render first")
@@ -346,6 +353,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{name}: rendering {len(overrides)} scene(s){' with ' + NO_AVX2_ENV + '=1' if env else ''} ...",
               flush=True)
         seconds[name] = run(name, env, out, overrides, args.threads, roots)
+        benchinfo.finish(runs["bench_run"])
         record_file.write_text(json.dumps(runs))
     kernels, render_s, first = {}, {}, None
     for name, _ in RUNS:
@@ -364,7 +372,7 @@ def main(argv: list[str] | None = None) -> None:
             row.update(scene=o.stem, pair=label, kernels=f"{kernels[a]} / {kernels[b]}")
             rows.append(row)
     shown = f"`{runs['command']}`" + (f" (report rewritten from its runs by `{command}`)" if args.no_render else "")
-    report(rows, kernels, seconds, render_s, args, layers, args.docs, shown, runs["date"])
+    report(rows, kernels, seconds, render_s, args, layers, args.docs, shown, runs["date"], runs.get("bench_run"))
     print(f"wrote {args.docs / 'bench_rerender.md'} and {args.docs / 'bench_rerender.png'}")
     for r in rows:
         print(f"  {r['scene']:40s} {r['pair']:20s} {r['kernels']:18s} png={fmt(r['png_identical'])} "

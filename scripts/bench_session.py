@@ -17,6 +17,7 @@ import argparse
 import json
 import os
 import statistics
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -24,6 +25,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
+import benchinfo  # noqa: E402
 
 
 def rss_mb() -> float:
@@ -217,6 +220,7 @@ def main() -> None:
     if args.scenes < 10:
         ap.error("--scenes must be at least 10 (memory growth is measured from scene 10)")
     args.out.mkdir(parents=True, exist_ok=True)
+    run = benchinfo.start()
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     preview = author_layers(args.out / "preview", *(((64, 36), 2, False) if args.quick else ((480, 270), 64, True)))
@@ -234,7 +238,8 @@ def main() -> None:
           f"{memory['growth_10_to_end']:+.1%}", flush=True)
     load1 = os.getloadavg()
     results = {"switch": switch, "identity": identity, "memory": memory, "load_before": load0, "load_after": load1,
-               "cpu_count": os.cpu_count(), "layers": len(many), "quick": args.quick}
+               "cpu_count": os.cpu_count(), "layers": len(many), "quick": args.quick,
+               "run": benchinfo.finish(run)}
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
     write_docs(results, args.docs, args.scenes)
 
@@ -270,7 +275,11 @@ def write_docs(r: dict, docs: Path, n: int) -> None:
     fig.savefig(docs / "bench_session.png", dpi=110)
 
     la, lb = r["load_before"], r["load_after"]
+    head = benchinfo.header(r["run"]) if "run" in r else \
+        f"{benchinfo.HEADER_START}: not recorded in OUT/results.json (an older run); re-run to record it"
     md = f"""# Warm render sessions: benchmark
+
+{head}
 
 `python scripts/bench_session.py` on the committed `stages/base.usda` ({sw['meshes']} meshes,
 {sw['points']:,} points in the normal scene), {r['cpu_count']} CPU cores shared with other work;

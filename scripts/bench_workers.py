@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
+import benchinfo  # noqa: E402
 
 
 def make_layers(root: Path, n: int, resolution, samples: int, mask_only: bool = False) -> list[Path]:
@@ -80,6 +82,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=32)
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args()
+    run = benchinfo.start()
 
     cores = os.cpu_count() or 1
     configs = [(1, cores), (1, 1), (cores, 1)] if cores > 1 else [(1, 1)]
@@ -117,6 +120,8 @@ def main() -> None:
     rows = "\n".join(f"| {r['workload']} | {r['workers']} | {r['threads']} | {r['seconds']:.1f} | {r['per_hour']:.0f} | "
                      f"{r['load'][0]:.1f} -> {r['load'][1]:.1f} |" for r in full + masks)
     (args.out / "bench_workers.md").write_text(f"""# Workers vs threads (scripts/bench_workers.py)
+
+{benchinfo.header(benchinfo.finish(run))}
 
 {args.scenes} scene layers over the committed base stage, {args.width}x{args.height}, rendered with
 `allo_usd.run.dispatch` (local pool) on this machine ({cores} cores): full renders at {args.samples} samples

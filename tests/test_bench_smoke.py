@@ -11,6 +11,7 @@ test_every_bench_script_has_a_smoke_run), except the scripts whose smoke run liv
 from __future__ import annotations
 
 import csv
+import re
 import subprocess
 import sys
 import time
@@ -21,6 +22,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ROOT / "scripts"
 TESTS = Path(__file__).resolve().parent
+DOCS = ROOT / "docs"
+sys.path.insert(0, str(SCRIPTS))
+import benchinfo  # noqa: E402
+
+SHA = re.compile(r"commit `?([0-9a-f]{7,40})`?( \(dirty\))?")
 
 pytestmark = pytest.mark.slow
 
@@ -31,14 +37,17 @@ COVERED_ELSEWHERE = {
 }
 
 # script -> its runs, in order (each a list of arguments; {out}, {tmp} and {layer} are filled in:
-# {layer} is a 32x18, 1-sample scene layer over the tests' tiny base stage).
+# {layer} and {layer2} are 32x18, 1-sample scene layers over the tests' tiny base stage, two views).
 SMOKE: dict[str, list[list[str]]] = {
-    "bench_accuracy.py": [  # the report after the reference alone, then after the presets alone
-        ["--phase", "reference", "--layer", "{layer}", "--ref-samples", "2", "--cache", "{tmp}/cache",
-         "--out", "{out}"],
-        ["--phase", "presets", "--layer", "{layer}", "--ref-samples", "2", "--cache", "{tmp}/cache",
-         "--out", "{out}"],
+    "bench_accuracy.py": [  # two views; the report after the reference alone (2 chunks: its noise is measured),
+        # then after the presets alone
+        ["--phase", "reference", "--layer", "{layer}", "--layer", "{layer2}", "--ref-samples", "2", "--ref-chunk", "1",
+         "--cache", "{tmp}/cache", "--out", "{out}"],
+        ["--phase", "presets", "--layer", "{layer}", "--layer", "{layer2}", "--ref-samples", "2", "--ref-chunk", "1",
+         "--rounds", "1", "--cache", "{tmp}/cache", "--out", "{out}"],
     ],
+    "bench_amodal.py": [["--layer", "{layer2}", "--sizes", "32x18,64x36", "--samples", "1", "--repeats", "1",
+                         "--work", "{tmp}/work", "--out", "{out}"]],
     "bench_author.py": [["--normal", "5", "--placements", "2", "--workers", "1", "--out", "{out}/bench_author.md"]],
     "bench_gpu.py": [["--layer", "{layer}", "--size", "32x18", "--cpu-size", "32x18", "--presets", "draft,preview",
                       "--out", "{out}"]],
@@ -46,19 +55,25 @@ SMOKE: dict[str, list[list[str]]] = {
                                 "--out", "{out}"]],
     "bench_placement.py": [["--n", "3", "--check-scenes", "2", "--render-scenes", "1", "--reps", "1",
                             "--resolution", "64x36", "--out", "{out}"]],
+    "bench_scale.py": [["--plan", "demo", "--skip-author", "--cache", "{tmp}/tree", "--work", "{tmp}/work",
+                        "--verify-sample", "2", "--add", "4", "--evict", "fadvise", "--out", "{out}"]],
     "bench_session.py": [["--quick", "--scenes", "10", "--repeats", "1", "--identity", "2", "--out", "{tmp}/work",
                           "--docs", "{out}"]],
     "bench_sky.py": [["--runs", "1", "--phases", "1", "--out", "{out}"]],
     "bench_workers.py": [["--scenes", "2", "--width", "32", "--height", "18", "--samples", "1", "--out", "{out}"]],
 }
-NO_RENDER = {"bench_author.py", "bench_sky.py"}
+NO_RENDER = {"bench_author.py", "bench_scale.py", "bench_sky.py"}
 
-ACCURACY_CSV = ["group", "preset", "samples", "denoiser", "adaptive", "bounces", "scale", "seconds", "wall",
-                "psnr_srgb8", "psnr_linear", "ssim_srgb8", "loadavg"]
+ACCURACY_CSV = ["view", "group", "preset", "samples", "denoiser", "adaptive", "bounces", "scale", "seconds", "wall",
+                "x_paper", "psnr_srgb8", "psnr_vs_paper", "psnr_linear", "ssim_srgb8", "psnr_converged", "ref_samples",
+                "loadavg"]
 # script -> {file written: the CSV's columns, or a table header line the .md holds}; every run writes a plot too.
 EXPECT: dict[str, dict[str, list[str] | str]] = {
     "bench_accuracy.py": {"bench_accuracy.csv": ACCURACY_CSV,
-                          "bench_accuracy.md": "| setting | seconds | PSNR sRGB | PSNR linear | SSIM |"},
+                          "bench_accuracy.md": "| view | reference spp | reference CPU s | PSNR of its two independent "
+                                               "halves (dB) | its own noise: est. PSNR vs converged (dB) |"},
+    "bench_amodal.py": {"bench_amodal.md": "| size | samples | RGB render s | amodal render s | amodal / RGB | "
+                                           "ray cast s | amodal px | visible px | pass vs ray cast: differing px |"},
     "bench_author.py": {"bench_author.md": "| part | per unit | full plan, 1 core |"},
     "bench_gpu.py": {"bench_gpu.csv": ["device", "preset", "size", "samples", "seconds", "seconds_first",
                                        "rerender_identical", "psnr_vs_cpu", "speedup_vs_cpu"],
@@ -72,6 +87,8 @@ EXPECT: dict[str, dict[str, list[str] | str]] = {
                                                    "attempts", "depths_skipped", "resolve_ms", "render_1spp_s",
                                                    "build_render_1spp_s"],
                            "bench_placement.md": "| metric | value | target | |"},
+    "bench_scale.py": {"bench_scale.md": "| figure | seconds | per scene | CPU s | peak RSS (MB) | load before -> after "
+                                         "| goal |"},
     "bench_session.py": {"bench_session.md": "| step | median seconds | share of the preview render |"},
     "bench_sky.py": {"bench_sky.md": "| what | ms |"},
     "bench_workers.py": {"bench_workers.md": "| workload | workers | Cycles threads each | seconds | images/hour | "
@@ -101,8 +118,29 @@ def small_layer(tiny_base, tmp_path_factory):
                              "layers" / "small.usda", tiny_base)
 
 
+@pytest.fixture(scope="module")
+def small_layer2(tiny_base, tmp_path_factory):
+    """A second view for the scripts that take several: the anomalous scene, 32x18, 1 sample."""
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from helpers import make_spec
+
+    return write_scene_layer(make_spec(anomaly=True, resolution=(32, 18), samples=1),
+                             tmp_path_factory.mktemp("bench") / "layers" / "small_anomaly.usda", tiny_base)
+
+
 def _docs_state() -> dict[str, int]:
     return {p.name: p.stat().st_mtime_ns for p in (ROOT / "docs").glob("bench_*")}
+
+
+def _git(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+
+
+def header_lines(text: str) -> list[str]:
+    """The benchinfo header lines of a docs/bench_*.md: right under its title, before the first table."""
+    top = text.split("\n|", 1)[0].splitlines()[:12]
+    return [line for line in top if line.startswith(benchinfo.HEADER_START)]
 
 
 def _check(script: str, out: Path) -> dict[str, str]:
@@ -116,6 +154,10 @@ def _check(script: str, out: Path) -> dict[str, str]:
         else:
             assert text.startswith("# "), name
             assert want in text.splitlines(), f"{name} has no table header {want!r}"
+            heads = header_lines(text)   # the run's own header: this checkout's commit, this CPU, the command
+            assert heads, f"{name} has no {benchinfo.HEADER_START!r} header line"
+            assert SHA.search(heads[-1]).group(1) == _git("rev-parse", "HEAD").stdout.strip(), heads[-1]
+            assert f"command: `python scripts/{script} " in heads[-1] and benchinfo.cpu_info()["model"] in heads[-1]
     if PLOTS[script]:
         from PIL import Image
 
@@ -131,8 +173,10 @@ def test_bench_smoke(script, tmp_path, request):
     docs_before = _docs_state()
     needs_layer = any("{layer}" in a for run in SMOKE[script] for a in run)
     layer = request.getfixturevalue("small_layer") if needs_layer else None
+    layer2 = request.getfixturevalue("small_layer2") if any("{layer2}" in a for run in SMOKE[script] for a in run) \
+        else None
     for k, run in enumerate(SMOKE[script]):
-        args = [a.format(out=out, tmp=tmp_path, layer=layer) for a in run]
+        args = [a.format(out=out, tmp=tmp_path, layer=layer, layer2=layer2) for a in run]
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, str(SCRIPTS / script), *args], capture_output=True, text=True, cwd=ROOT,
                            timeout=240)
@@ -141,14 +185,62 @@ def test_bench_smoke(script, tmp_path, request):
         texts = _check(script, out)
         if script == "bench_accuracy.py":
             rows = list(csv.DictReader(texts["bench_accuracy.csv"].splitlines()))
-            if k == 0:   # the reference alone: no rows, an empty front, still a report and a plot
-                assert rows == [] and "## Presets" not in texts["bench_accuracy.md"]
-            else:        # the presets alone
+            md = texts["bench_accuracy.md"]
+            if k == 0:   # the reference alone: no rows, still a report (each view's reference) and a plot
+                assert rows == [] and "## P1 per view" not in md
+                assert "| small | 2 |" in md and "| small_anomaly | 2 |" in md, md
+            else:        # the presets alone, on both views, scored against the references, relative to paper
                 from allo_usd.plan.settings import PRESETS
 
-                assert {r["preset"] for r in rows} == set(PRESETS) and {r["group"] for r in rows} == {"preset"}
-                assert "## Presets" in texts["bench_accuracy.md"]
+                assert {(r["view"], r["preset"]) for r in rows} == {(v, p) for v in ("small", "small_anomaly")
+                                                                    for p in PRESETS}
+                assert {r["group"] for r in rows} == {"preset"}
+                for r in rows:
+                    assert 0.0 < float(r["psnr_srgb8"]) < 100.0 and r["ref_samples"] == "2", r
+                    if r["preset"] == "paper":
+                        assert float(r["x_paper"]) == 1.0 and float(r["psnr_vs_paper"]) == 0.0
+                for heading in ("## P1 per view", "### small ", "### small_anomaly ", "## P1 overall",
+                                "## Does the reference cap the PSNR?"):
+                    assert heading in md, heading
     if script == "bench_gpu.py":   # the CPU rows are always there; GPU rows only where Cycles finds a GPU
         rows = list(csv.DictReader(texts["bench_gpu.csv"].splitlines()))
         assert [r["preset"] for r in rows if not r["device"].startswith("GPU")][:2] == ["draft", "preview"]
     assert _docs_state() == docs_before, "a smoke run wrote into docs/"
+
+
+def test_benchinfo_header(tmp_path):
+    """The header names this checkout's commit (dirty or not, as git status says), the CPU's SIMD sets
+    as /proc/cpuinfo lists them, the load before and after, and the command as typed."""
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text("processor\t: 0\nmodel name\t: Test CPU 9000\nflags\t\t: fpu sse2 sse4_2 avx avx2 fma\n\n"
+                       "processor\t: 1\nmodel name\t: Test CPU 9000\nflags\t\t: fpu sse2 sse4_2 avx avx2 fma\n")
+    cpu = benchinfo.cpu_info(cpuinfo)
+    assert cpu["model"] == "Test CPU 9000" and cpu["simd"] == ["sse4_2", "avx", "avx2", "fma"] and cpu["cores"] >= 1
+    run = benchinfo.start([str(SCRIPTS / "bench_sky.py"), "--runs", "1", "--out", "a b"])
+    assert run["load_after"] is None
+    benchinfo.finish(run)
+    head = benchinfo.header(run)
+    sha = _git("rev-parse", "HEAD").stdout.strip()
+    dirty = bool(_git("status", "--porcelain", "--untracked-files=no").stdout.strip())
+    assert SHA.search(head).groups() == (sha, " (dirty)" if dirty else None), head
+    assert head.startswith(benchinfo.HEADER_START) and "command: `python scripts/bench_sky.py --runs 1 --out 'a b'`" in head
+    assert "before" in head and "after" in head and "not recorded" not in head
+    assert all(f in head for f in benchinfo.cpu_info()["simd"])
+
+
+def test_every_bench_doc_names_its_commit_cpu_load_and_command():
+    """Each docs/bench_*.md opens with a header naming a commit that exists in this repository's
+    history, the CPU, the load and the command (benchinfo.header, or the same written by hand for a
+    doc measured before the header existed)."""
+    docs = sorted(DOCS.glob("bench_*.md"))
+    assert docs
+    for doc in docs:
+        heads = header_lines(doc.read_text())
+        assert heads, f"{doc.name}: no {benchinfo.HEADER_START!r} line under its title; re-run its script"
+        for head in heads:
+            m = SHA.search(head)
+            assert m, f"{doc.name}: its header names no commit: {head}"
+            assert _git("cat-file", "-e", f"{m.group(1)}^{{commit}}").returncode == 0, \
+                f"{doc.name}: commit {m.group(1)} is not in this repository's history"
+            for word in ("CPU", "load", "command"):
+                assert word in head, f"{doc.name}: its header does not name the {word}: {head}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import sys
 from dataclasses import fields
 from pathlib import Path
 
@@ -78,6 +79,7 @@ def _bench():
     path = Path(__file__).resolve().parents[1] / "scripts" / "bench_accuracy.py"
     spec = importlib.util.spec_from_file_location("bench_accuracy", path)
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod   # its dataclasses look their module up while they are made
     spec.loader.exec_module(mod)
     return mod
 
