@@ -46,8 +46,11 @@ run: $(STAMP)
 	$(VENV)/bin/allo-usd demo --out out/demo
 	@echo "renders in out/demo/renders, layers in out/demo/layers, contact sheet out/demo/contact_sheet.png"
 
+# Two test processes (pytest-xdist), each taking whole files (--dist loadfile: a file's module and session
+# fixtures are built once, in one process); TEST_WORKERS=1 runs them in this process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
 stage: $(STAMP)
 	$(PY) scripts/make_base_stage.py
