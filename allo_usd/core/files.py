@@ -283,13 +283,18 @@ def _refuse(path, kind: str, reason: str, what: str, fix, error):
 def _bounded_read(path: str | Path, limit: int) -> bytes | None:
     """At most limit + 1 bytes of a regular file, read through a non-blocking descriptor; None when
     what was opened is not a regular file (swapped after the stat)."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    return _read_regular(os.open(path, os.O_RDONLY | os.O_NONBLOCK), limit + 1)
+
+
+def _read_regular(fd: int, count: int) -> bytes | None:
+    """At most `count` bytes from the open descriptor `fd` (closed after), or None if it is not a
+    regular file: the one bounded read of _bounded_read and read_head."""
     try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
+        if not stat.S_ISREG(os.fstat(fd).st_mode):   # replaced between the stat and the open
             return None
         chunks, size = [], 0
-        while size <= limit:
-            chunk = os.read(fd, min(limit + 1 - size, 1 << 20))
+        while size < count:
+            chunk = os.read(fd, min(count - size, 1 << 20))
             if not chunk:
                 break
             chunks.append(chunk)
@@ -410,19 +415,7 @@ def read_head(path: Path, limit: int = 16384) -> bytes | None:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError:
         return None
-    try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):  # replaced between the stat and the open
-            return None
-        chunks, size = [], 0
-        while size < limit:
-            chunk = os.read(fd, limit - size)
-            if not chunk:
-                break
-            chunks.append(chunk)
-            size += len(chunk)
-        return b"".join(chunks)
-    finally:
-        os.close(fd)
+    return _read_regular(fd, limit)
 
 
 def _nearest_existing(path: Path) -> Path:
