@@ -35,9 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd.core.files import write_text_atomic
+from allo_usd.core.files import MAX_RECORD_BYTES, read_user_json, write_text_atomic
 from allo_usd.core.labels import ANOMALY
+from allo_usd.core.scene_labels import SPLITS
 from allo_usd.output import bop, coco
+from allo_usd.output.contact import read_pixels
+from allo_usd.output.dataset_files import COLUMNS, Refused, place, source_file
+from allo_usd.output.writers import write_png
 from allo_usd.output.pass_files import PASS_COLUMNS
 
 RECORDS = "annotations/records.json"
@@ -50,7 +54,6 @@ PASS_FILE = re.compile(r"^\d{6}_.+\.(?:exr|png)$")
 
 def row_key(row: dict) -> str:
     """A digest of the row as the manifest stores it (None as "", values as str): equal iff the row is."""
-    from allo_usd.output.dataset_files import COLUMNS
 
     text = "\x1f".join("" if row.get(c) is None else str(row.get(c)) for c in COLUMNS)
     return hashlib.sha256(text.encode()).hexdigest()
@@ -80,7 +83,6 @@ def read_depth_exr(path: Path) -> np.ndarray:
 
 def _render_json(out: Path, row: dict) -> tuple[dict, Path | None]:
     """(the row's render JSON, its path), ({}, None) when it is gone or unreadable."""
-    from allo_usd.core.files import MAX_RECORD_BYTES, read_user_json
 
     if not row.get("source"):
         return {}, None
@@ -94,8 +96,6 @@ def _render_json(out: Path, row: dict) -> tuple[dict, Path | None]:
 
 def _amodal_mask(meta: dict, meta_path: Path | None, shape) -> np.ndarray | None:
     """The render's STEM_amodal.png as a boolean mask (labels.ANOMALY pixels), None if not rendered."""
-    from allo_usd.output.contact import read_pixels
-    from allo_usd.output.dataset_files import Refused, source_file
 
     files = meta.get("files") if isinstance(meta.get("files"), dict) else {}
     if meta_path is None or "amodal" not in files:
@@ -116,7 +116,6 @@ def _model_path(path: str | None, row: dict, out: Path) -> str | None:
 
 
 def _link(src: Path, dst: Path) -> None:
-    from allo_usd.output.dataset_files import place
 
     place(src, dst, link=True)
 
@@ -124,8 +123,6 @@ def _link(src: Path, dst: Path) -> None:
 def compute_record(out: Path, row: dict, mask: np.ndarray | None = None) -> dict:
     """One image's record: COCO instance, BOP entries and the per-image BOP files (written here).
     `mask`: the row's 3-class mask when the caller has it decoded (the dataset, placing an anomaly)."""
-    from allo_usd.output.contact import read_pixels
-    from allo_usd.output.writers import write_png
 
     from PIL import Image
 
@@ -220,7 +217,6 @@ def _records(out: Path, rows, cache: dict, early: dict | None = None) -> tuple[d
 
 
 def _coco_files(out: Path, records: dict, categories: dict[str, int]) -> None:
-    from allo_usd.core.scene_labels import SPLITS
 
     for split in SPLITS:
         images, anns = [], []
