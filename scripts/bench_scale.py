@@ -452,8 +452,9 @@ def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, siz
               "wait4's, which counts this script's own RSS too). The resume "
               "check is `allo-usd render TREE --out RENDERS` over the finished folder: the scan for scene layers, "
               "the manifest load and compaction and, per scene, the layer's refusal check, its checksum, the quick "
-              "check of its outputs (size, mtime_ns, inode from the manifest row), its JSON and its inputs' identity "
-              "(shared files hashed once). `--verify` reads and checksums every output instead (distinct files: "
+              "check of its outputs (size, mtime_ns, inode from the manifest row; the JSON is one of them, and the row "
+              "carries the JSON's input paths and passes, so no JSON is opened) and its inputs' identity (each file "
+              "checksummed once per run: the scene layer by the scan that reads it). `--verify` reads and checksums every output instead (distinct files: "
               "the sample's outputs are copies), timed on the sample and scaled to the plan.", ""]
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_scale.md").write_text("\n".join(lines))
@@ -480,6 +481,8 @@ def main() -> None:
     ap.add_argument("--add", type=int, default=1000, help="records the dataset re-run adds")
     ap.add_argument("--jobs", type=int, default=2, help="processes that build the render folder")
     ap.add_argument("--out", type=Path, default=ROOT / "docs", help="where bench_scale.md and .png go")
+    ap.add_argument("--build-only", action="store_true",
+                    help="fill the cache and build the render folder, time nothing (a later run reuses both)")
     ap.add_argument("--evict", choices=("drop", "fadvise"), default="drop",
                     help="drop: the whole page cache where allowed (else fadvise); fadvise: only this run's files")
     a = ap.parse_args()
@@ -491,10 +494,14 @@ def main() -> None:
     work = (a.work or ROOT / "out" / "bench" / f"scale-{tag}").resolve()
     info = benchinfo.start()
     plan = plan_file(name, work)
-    rows = author_runs(plan, cache, work, a.skip_author)
+    rows = author_runs(plan, cache, work, a.skip_author or a.build_only)
     for r in rows:
         print(f"{r['what']}: {r['seconds']:.1f} s", file=sys.stderr)
     layers, sampled, sizes = build_renders(cache, work / "renders", a.verify_sample, a.jobs, info["cpu"]["model"])
+    if a.build_only:
+        print(f"{len(layers):,} scenes: the tree {cache} and the render folder {work / 'renders'} are ready",
+              file=sys.stderr)
+        return
     add = min(a.add, len(layers) // 2)
     resume, cache_note = resume_runs(cache, work / "renders", layers, sampled)
     resume[1]["scenes"] = len(sampled)

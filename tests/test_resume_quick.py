@@ -136,3 +136,37 @@ def test_a_copy_is_hashed_once_and_its_rows_take_the_new_stat(finished, tmp_path
     summary = dispatch(layers, out, workers=1, progress=False, verify=True)
     assert not summary.rendered and len(summary.skipped) == 5
     assert all(is_verified(r, layers / f"{s}.usda", out) for s, r in load_manifest(out).items())
+
+
+def test_the_quick_check_opens_no_render_json_and_an_old_row_learns_its_record(finished, tmp_path, monkeypatch):
+    """A row carries what the resume needs of the render JSON (its inputs' paths and passes:
+    manifest.record_fields), trusted because the JSON itself is one of the row's checked files: a
+    51,409-scene resume opens no JSON. A row without it (older) reads the JSON once and is upgraded;
+    a JSON changed since its row was made fails the check (its stat) like any output."""
+    layers, out = _copy(finished, tmp_path)
+    rows = load_manifest(out)
+    for s, r in rows.items():
+        meta = json.loads((out / f"{s}.json").read_text())
+        assert r["record"] == {"inputs": sorted(meta["inputs"]), "layer_passes": meta["layer_passes"],
+                               "passes": meta.get("passes", meta["layer_passes"])}
+    opened = []
+    real_meta = manifest_mod._meta
+    monkeypatch.setattr(manifest_mod, "_meta", lambda p: opened.append(Path(p).name) or real_meta(p))
+    for layer in sorted(layers.glob("*.usda")):
+        assert resume_check(layer, out, rows[layer.stem]) == (True, None)
+    assert opened == []
+
+    bare = {k: v for k, v in rows["q1"].items() if k != "record"}   # a row from before rows carried it
+    done, upgraded = resume_check(layers / "q1.usda", out, bare)
+    assert done and opened == ["q1.json"] and upgraded["record"] == rows["q1"]["record"]
+    assert {k: v for k, v in upgraded.items() if k != "record"} == bare
+    for broken in ({**rows["q1"], "record": {"inputs": "x"}}, {**rows["q1"], "record": None}):
+        opened.clear()   # a malformed copy is not used: the JSON decides
+        assert resume_check(layers / "q1.usda", out, broken)[0] and opened == ["q1.json"]
+
+    meta = json.loads((out / "q2.json").read_text())   # the JSON rewritten (an input dropped): its stat changed
+    meta["inputs"] = {k: v for k, v in meta["inputs"].items() if "stages" not in k}
+    (out / "q2.json").write_text(json.dumps(meta))
+    assert resume_check(layers / "q2.usda", out, rows["q2"]) == (False, None)
+    summary = dispatch(layers, out, workers=1, progress=False)
+    assert summary.rendered == ["q2"] and len(summary.skipped) == 4

@@ -66,6 +66,12 @@ def _tree(root: Path) -> Path:
     return layer
 
 
+def _roots_entries(cache: dict) -> list:
+    """The allowed_roots answers of a decision's cache (it also holds real_path's folders, check_root's
+    answers and current_identity's input checksums, each under its own tag)."""
+    return [k for k in cache if k[0] not in ("realpath", "check_root", "input")]
+
+
 def test_the_roots_cache_serves_one_decision_and_a_fresh_check_refuses_a_linked_folder(tmp_path):
     layer = _tree(tmp_path / "tree")
     elsewhere = tmp_path / "elsewhere"
@@ -74,7 +80,7 @@ def test_the_roots_cache_serves_one_decision_and_a_fresh_check_refuses_a_linked_
     with roots_cached(cache):
         before = allowed_roots(layer)
         assert sniff.refusal(layer) is None
-    assert len(cache) == 1 and Path(os.path.realpath(tmp_path / "tree" / "sky")) in before
+    assert len(_roots_entries(cache)) == 1 and Path(os.path.realpath(tmp_path / "tree" / "sky")) in before
     (tmp_path / "tree" / "sky").rmdir()
     (tmp_path / "tree" / "sky").symlink_to(elsewhere)
     with roots_cached(cache):   # the same decision: its answer stands
@@ -97,7 +103,7 @@ def test_a_layer_that_is_a_link_is_never_answered_from_the_cache(tmp_path):
         tree_roots = allowed_roots(layer)
         linked_roots = allowed_roots(tmp_path / "tree" / "scenes" / "b.usda")
     # the same folder as named, but its tree is its target's (none): computed, not looked up
-    assert len(cache) == 1 and linked_roots != tree_roots
+    assert len(_roots_entries(cache)) == 1 and linked_roots != tree_roots
     assert not {tmp_path / "tree" / d for d in ("sky", "poses")} & {Path(r) for r in linked_roots}
 
 
@@ -220,3 +226,27 @@ def test_an_anomalys_mask_visib_is_its_ground_truth_mask(tmp_path):
     assert os.path.samefile(visib, truth)
     pixels = np.asarray(Image.open(truth))
     assert set(np.unique(pixels)) == {0, 255} and int((pixels == 255).sum()) == 40
+
+
+def test_a_decision_resolves_folders_and_answers_check_root_once(tmp_path):
+    """Inside one decision (roots_cached) real_path resolves a layer through its folder's cached real
+    path and check_root answers a layer once; outside, and in a new decision, they look afresh. A
+    layer that is itself a link is resolved in full, even inside."""
+    from allo_usd.usd.dependencies import check_root
+    from allo_usd.usd.safety import real_path
+
+    layer = _tree(tmp_path / "tree")
+    (tmp_path / "real").mkdir()
+    (tmp_path / "real" / "b.usda").write_text("#usda 1.0\n")
+    (tmp_path / "tree" / "scenes" / "b.usda").symlink_to(tmp_path / "real" / "b.usda")
+    cache: dict = {}
+    with roots_cached(cache):
+        assert real_path(layer) == os.path.realpath(layer)
+        assert real_path(tmp_path / "tree" / "scenes" / "b.usda") == str(tmp_path / "real" / "b.usda")
+        assert check_root(layer) == os.path.realpath(layer)
+        layer.unlink()   # gone after this decision looked: its answer stands for the decision
+        assert check_root(layer) == os.path.realpath(layer) and sniff.refusal(layer) is None
+    assert ("realpath", str(layer.parent)) in cache
+    assert "cannot be read" in sniff.refusal(layer)   # a fresh look (a worker's)
+    with roots_cached():
+        assert "cannot be read" in sniff.refusal(layer)

@@ -418,6 +418,30 @@ def read_head(path: Path, limit: int = 16384) -> bytes | None:
     return _read_regular(fd, limit)
 
 
+def read_whole_small(path: str | Path, limit: int) -> tuple[bytes, os.stat_result] | None:
+    """The whole of a regular file of at most `limit` bytes and the stat those bytes were read at
+    (the descriptor's, the same before and after the read), or None for anything else (bigger,
+    not a regular file, changed during the read, unreadable). read_head's rule for what is opened:
+    the dispatcher's scan reads a scene layer once, to sniff it and to checksum it."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError:
+        return None
+    try:
+        before = os.fstat(fd)
+        if not stat.S_ISREG(before.st_mode) or before.st_size > limit:
+            return None
+        data = os.read(fd, limit + 1)
+        after = os.fstat(fd)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+    if len(data) != before.st_size or (after.st_size, after.st_mtime_ns) != (before.st_size, before.st_mtime_ns):
+        return None
+    return data, after
+
+
 def _nearest_existing(path: Path) -> Path:
     for p in (path, *path.parents):
         if os.path.lexists(p):

@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
-from allo_usd.core.files import RunLock, ensure_output_dir
+from allo_usd.core.files import RunLock, ensure_output_dir, read_whole_small
 from allo_usd.run.manifest import (MANIFEST, append_jsonl, append_rows, check_output_names, clean_stale,
-                                   compact_manifest, load_manifest, resume_check)
+                                   compact_manifest, remember_sha256, resume_check)
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
 from allo_usd.usd.safety import ENV_ROOTS, roots_cached, tree_roots
 from allo_usd.usd.sniff import refusal
@@ -65,9 +65,16 @@ SUPPORT_DIRS = ("sky", "poses", "stages", "schema", "hazards")  # a tree's share
 def _is_scene_layer(path: Path) -> bool | None:
     """The one rule for what `render DIR` renders (allo_usd.usd.sniff.is_scene_layer: a layer whose
     own layer metadata holds customLayerData.allo.sceneId)."""
-    from allo_usd.usd.sniff import is_scene_layer
+    from allo_usd.usd.sniff import HEAD_BYTES, is_scene_layer, refusal
 
-    return is_scene_layer(path)
+    if refusal(path):
+        return None
+    whole = read_whole_small(path, HEAD_BYTES)   # a scene layer is a few KB: read once, sniffed and checksummed
+    if whole is None:
+        return is_scene_layer(path)
+    data, st = whole
+    remember_sha256(path, st, data)   # the resume check's checksum of the layer (manifest.file_sha256's cache)
+    return is_scene_layer(path, data)
 
 
 def _scene_layers_under(root: Path) -> list[Path]:
@@ -107,7 +114,7 @@ def find_layers(source: str | Path | list) -> list[Path]:
     else:
         source = Path(source)
         if source.is_dir():
-            with roots_cached():   # one allowed_roots per folder for the scan's refusal checks
+            with roots_cached():   # one allowed_roots per folder for the scan's refusal checks (the caller's block's)
                 layers = _scene_layers_under(source)
             if not layers:
                 raise AlloError(f"no scene layers under {source} (a scene layer is a .usda whose customLayerData "
@@ -624,35 +631,35 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         raise AlloError(f"workers={workers}: pass a number of worker processes >= 1 (or 0 for one per core)")
     timeout = check_timeout(timeout)   # NaN would turn the limit off (it compares false with every time)
     extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
-    layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
+    roots_seen: dict = {}   # allowed_roots, real paths and refusals of this decision (a worker checks afresh)
+    with roots_cached(roots_seen):
+        layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
     ensure_output_dir(out_dir, "output directory")
     # a layer's own folder (not its link target's: a link to /etc/passwd must not make /etc a root)
-    roots = sorted({os.path.realpath(p.parent) for p in layers} | {str(Path(r).resolve()) for r in extra_roots})
+    roots = sorted({os.path.realpath(f) for f in {p.parent for p in layers}} | {str(Path(r).resolve()) for r in extra_roots})
     prior = os.environ.get(ENV_ROOTS, "")
     env = {ENV_ROOTS: os.pathsep.join([*roots, *([prior] if prior else [])])}
     summary = Summary()
     with RunLock(out_dir, LOCK, "render"):
         clean_stale(out_dir)
         (out_dir / FAILED).unlink(missing_ok=True)  # failures of this run only; earlier ones are retried
-        compact_manifest(out_dir)
-        done = load_manifest(out_dir)
+        done = compact_manifest(out_dir)
         tasks, unusable, caught_up = [], [], []
-        roots_seen: dict = {}   # allowed_roots per layer folder, for this decision only (a worker checks afresh)
-        for layer in layers:
-            with roots_cached(roots_seen):
+        with roots_cached(roots_seen):
+            for layer in layers:
                 why = refusal(layer)
-            if why:  # found by the scan: never opened, recorded as failed
-                unusable.append((_Task(layer), why))
-                continue
-            # is_done's rule: the manifest row's quick check (every byte with `verify`), else the render's JSON
-            finished, row = resume_check(layer, out_dir, done.get(layer.stem), verify)
-            if finished:
-                summary.skipped.append(layer.stem)
-                if row is not None:  # the index catches up: a scene another entry point rendered, or new stat
-                    caught_up.append(row if "finished" in row else
-                                     {**row, "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
-            else:
-                tasks.append(_Task(layer))
+                if why:  # found by the scan: never opened, recorded as failed
+                    unusable.append((_Task(layer), why))
+                    continue
+                # is_done's rule: the manifest row's quick check (every byte with `verify`), else the render's JSON
+                finished, row = resume_check(layer, out_dir, done.get(layer.stem), verify)
+                if finished:
+                    summary.skipped.append(layer.stem)
+                    if row is not None:  # the index catches up: a scene another entry point rendered, or new stat
+                        caught_up.append(row if "finished" in row else
+                                         {**row, "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+                else:
+                    tasks.append(_Task(layer))
         append_rows(out_dir / MANIFEST, caught_up)  # one write and one fsync, before anything renders
         run = _Run(out_dir, len(tasks) + len(unusable), retries, progress, summary, progress_interval)
         ended = False  # the run's last progress line only for a run that ended (not for an error's one line)
@@ -673,7 +680,8 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
             run.close(last_line=ended)
             clean_stale(out_dir)
             try:
-                compact_manifest(out_dir)
+                if tasks or caught_up:   # rows were appended (a resume with nothing to do leaves it as it was)
+                    compact_manifest(out_dir)
             except DiskFullError:
                 pass  # the appended manifest is valid as it is; compaction waits for the next run
     summary.seconds = time.perf_counter() - t0

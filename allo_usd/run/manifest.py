@@ -128,6 +128,16 @@ def hashed(path: str | Path, fresh: bool = False) -> tuple[str | None, os.stat_r
     return digest, st
 
 
+def remember_sha256(path: str | Path, st: os.stat_result, data: bytes) -> None:
+    """Enter the checksum of `data`, the whole of the file at `path` as read at `st`
+    (core.files.read_whole_small), into file_sha256's cache: the dispatcher's scan reads each scene
+    layer once, to sniff it and to checksum it for the resume check."""
+    if len(_SHA256) >= _SHA256_BOUND:
+        _SHA256.clear()
+    key = (os.path.abspath(path), st.st_mtime_ns, st.st_size, st.st_ino, st.st_dev)
+    _SHA256[key] = hashlib.sha256(data).hexdigest()
+
+
 def stat_record(st: os.stat_result) -> dict[str, int]:
     """What the quick check compares (is_verified): a rewrite changes the size or the mtime, a
     replacement (os.replace of a new file) the inode. Not ctime: restoring an mtime by hand, or a
@@ -170,20 +180,31 @@ def input_hashes(layer: Path, files) -> dict[str, str]:
 
 def current_identity(layer: Path, inputs) -> str | None:
     """The identity of a new render of `layer` whose recorded `inputs` still hold: recomputed from
-    those files' current bytes. None if the record is unusable (not a mapping, or not naming the
-    layer itself) or an input is missing or not a regular file."""
-    if not isinstance(inputs, dict) or not inputs:
+    those files' current bytes. None if the record is unusable (not a mapping or a list of its
+    paths, or not naming the layer itself) or an input is missing or not a regular file. Inside the
+    dispatcher's decision block (safety.roots_cached) real paths are resolved per folder and each
+    input file is checksummed once per block (a pose or stage layer many scenes share); a worker
+    that renders a scene computes its identity afresh."""
+    from allo_usd.usd.safety import decision_cache, real_path
+
+    if not isinstance(inputs, (dict, list)) or not inputs or not all(isinstance(r, str) for r in inputs):
         return None
-    here = os.path.realpath(Path(layer).parent)  # input_hashes wrote paths relative to it, links resolved
+    layer = os.path.abspath(layer)
+    here = real_path(os.path.dirname(layer))  # input_hashes wrote paths relative to it, links resolved
+    memo = decision_cache()  # the dispatcher's decision: a file shared by many scenes is looked at once
     now, paths = {}, set()
     for rel in inputs:
-        path = os.path.normpath(os.path.join(here, str(rel)))
-        digest = file_sha256(path)
-        if digest is None:
-            return None
-        now[rel] = digest
+        hit = memo.get(("input", here, rel)) if memo is not None else None
+        if hit is None:
+            path = os.path.normpath(os.path.join(here, rel))
+            hit = (path, file_sha256(path))
+            if hit[1] is None:
+                return None
+            if memo is not None:
+                memo["input", here, rel] = hit
+        path, now[rel] = hit
         paths.add(path)
-    if os.path.realpath(layer) not in paths:
+    if real_path(layer) not in paths:
         return None
     return render_identity(now)
 
@@ -298,11 +319,37 @@ def manifest_row(layer: Path, out_dir: Path, meta: dict) -> dict:
             stats[p.name] = stat_record(st)
     return {"scene": Path(layer).stem, "layer": str(Path(layer).resolve()), "layer_sha256": meta["layer_sha256"],
             "identity": meta["identity"],  # what the render read and the versions
+            **record_fields(meta),  # what check_row needs of the JSON, so that a resume does not read it
             "scene_id": (meta.get("scene") or {}).get("provenance", {}).get("sceneId", Path(layer).stem),
             "files": files, "stat": stats,  # the quick check's evidence (is_verified)
             "render_seconds": meta.get("render_seconds"),
             "device": {k: (meta.get("device") or {}).get(k) for k in ("used", "backend", "gpus", "cpu_model")},
             "layer_relative": relpath(Path(layer), Path(out_dir))}
+
+
+ROW_RECORD = "record"  # a row's copy of what check_row needs of the render's JSON (record_fields)
+
+
+def record_fields(meta: dict) -> dict:
+    """{ROW_RECORD: ...} of a render JSON `meta`: the paths of its inputs (the keys of its "inputs";
+    their checksums are recomputed from the files, never trusted), the passes its layer orders and
+    the passes it was rendered with. A row carries them so that the resume check need not open
+    51,409 JSONs: they are the JSON's own as long as the JSON passes the row's check (it is one of
+    the row's files, with its checksum and stat), so trusting them is trusting the JSON."""
+    inputs = meta.get("inputs")
+    return {ROW_RECORD: {"inputs": sorted(inputs) if isinstance(inputs, dict) else None,
+                         "layer_passes": meta.get("layer_passes"),
+                         "passes": meta.get("passes", meta.get("layer_passes"))}}
+
+
+def _row_record(row: dict) -> dict | None:
+    """The JSON's fields a row carries (record_fields), as a `meta` for check_row; None when the row
+    has none (written before rows carried them) or they are malformed: the JSON is read then."""
+    rec = row.get(ROW_RECORD)
+    if not isinstance(rec, dict) or not isinstance(rec.get("inputs"), list):
+        return None
+    return {"identity": row.get("identity"), "inputs": rec["inputs"], "layer_passes": rec.get("layer_passes"),
+            "passes": rec.get("passes")}
 
 
 def index_row(layer: Path, out_dir: Path, meta: dict) -> dict:
@@ -340,7 +387,10 @@ def check_row(row: dict | None, layer: Path, out_dir: Path, verify: bool = False
     if not isinstance(files, dict):
         return None
     stem = Path(layer).stem
-    meta = _meta(Path(out_dir) / f"{stem}.json")  # trusted below only if its stat (or checksum) is the row's
+    # the JSON's fields: the row's copy (record_fields), else the JSON itself; trusted below only if the
+    # JSON's stat (or checksum) is the row's
+    carried = _row_record(row)
+    meta = carried if carried is not None else _meta(Path(out_dir) / f"{stem}.json")
     passes = meta.get("layer_passes")
     named = ({f"{stem}{PASS_FILES[p]}" for p in passes} | {f"{stem}.json"}
              if isinstance(passes, list) and all(isinstance(p, str) and p in PASS_FILES for p in passes) else None)
@@ -372,7 +422,9 @@ def check_row(row: dict | None, layer: Path, out_dir: Path, verify: bool = False
         return None  # a `--passes` override's render (indexed by render_layer): not the layer's own outputs
     if meta.get("identity") != row["identity"] or current_identity(layer, meta.get("inputs")) != row["identity"]:
         return None
-    return row if now == recorded else {**row, "stat": now}
+    if now == recorded and carried is not None:
+        return row
+    return {**row, "stat": now, **(record_fields(meta) if carried is None else {})}
 
 
 # ---------------------------------------------------------------- manifest.jsonl
@@ -391,8 +443,31 @@ def read_jsonl(path: Path) -> list[dict]:
 
 
 def load_manifest(out_dir: Path) -> dict[str, dict]:
-    """Finished scenes by name (the last row of a scene wins)."""
-    return {row["scene"]: row for row in read_jsonl(Path(out_dir) / MANIFEST)}
+    """Finished scenes by name (the last row of a scene wins; torn lines and rows without a scene
+    name are skipped)."""
+    path = Path(out_dir) / MANIFEST
+    return _manifest_rows(path)[0] if path.is_file() else {}
+
+
+def _manifest_rows(path: Path) -> tuple[dict[str, dict], bool]:
+    """(finished scenes by name, whether the file holds anything but one whole line per scene: a torn
+    or foreign line, a repeated scene, no final newline)."""
+    rows: dict[str, dict] = {}
+    text = path.read_text(errors="replace")
+    lines = text.splitlines()
+    messy = bool(text) and not text.endswith("\n")
+    for line in lines:
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            messy = True
+            continue
+        if not isinstance(row, dict) or not isinstance(row.get("scene"), str):
+            messy = True
+            continue
+        messy = messy or row["scene"] in rows
+        rows[row["scene"]] = row
+    return rows, messy
 
 
 def append_jsonl(path: Path, row: dict) -> None:
@@ -430,16 +505,19 @@ def append_rows(path: Path, rows: list[dict]) -> None:
         os.close(fd)
 
 
-def compact_manifest(out_dir: Path) -> None:
-    """Rewrite the manifest with one row per scene (atomically), dropping torn lines and repeats."""
+def compact_manifest(out_dir: Path) -> dict[str, dict]:
+    """Rewrite the manifest with one row per scene (atomically), dropping torn lines and repeats,
+    when it holds any (a clean 51,409-row manifest is read once, not rewritten); returns the
+    finished scenes by name (load_manifest)."""
     path = Path(out_dir) / MANIFEST
     if not path.is_file():
-        return
-    rows = load_manifest(out_dir)
-    text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows.values())
-    if text != path.read_text(errors="replace"):
+        return {}
+    rows, messy = _manifest_rows(path)
+    if messy:
+        text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows.values())
         with atomic_path(path) as tmp:
             tmp.write_text(text)
+    return rows
 
 
 def clean_stale(out_dir: Path, pid: int | None = None) -> int:

@@ -63,7 +63,7 @@ from pathlib import Path
 
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import file_problem, write_bytes_atomic
-from allo_usd.usd.safety import allowed_roots, inside, reject
+from allo_usd.usd.safety import allowed_roots, decision_cache, inside, real_path, reject
 
 MAX_LAYER_BYTES = 256 << 20   # a scene layer is < 4 KB; the base stage's largest .usdc is a few MB
 MAX_ASSET_BYTES = 256 << 20   # a texture; the shipped ones are < 1 MB
@@ -195,7 +195,7 @@ def _check(kind: str, what: str, path: str, layer_path, roots, package_root: boo
            refuse=reject) -> str:
     """The real path of `path` if it may be read as a `kind`; else a LayerError naming the rule.
     `package_root`: `path` is the scene itself and may be a package (.usdz)."""
-    real = os.path.realpath(path)
+    real = real_path(path)
     if not inside(real, roots):
         refuse(what, path, layer_path, roots)
     packaged = package_root and is_package(path)
@@ -313,9 +313,25 @@ def _cached_named(key: tuple, identifier: str, layer_path, opened: list, package
 
 def check_root(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> str:
     """The real path of a scene layer that may be opened (its roots, a regular file, its size, a
-    layer extension, or a package: .usdz), without opening it; else a LayerError naming the rule."""
-    return _check(LAYER, "scene layer", os.path.abspath(layer_path), layer_path, allowed_roots(layer_path, extra),
-                  package_root=True)
+    layer extension, or a package: .usdz), without opening it; else a LayerError naming the rule.
+    Inside a roots_cached block (one decision over many layers: the dispatcher's scan, then its
+    resume check) a layer's answer is given once per block."""
+    cache = decision_cache()
+    key = ("check_root", os.path.abspath(layer_path), tuple(map(str, extra)))
+    if cache is not None and key in cache:
+        real, problem = cache[key]
+        if problem is not None:
+            raise LayerError(problem)
+        return real
+    try:
+        real = _check(LAYER, "scene layer", key[1], layer_path, allowed_roots(layer_path, extra), package_root=True)
+    except LayerError as exc:
+        if cache is not None:
+            cache[key] = (None, str(exc))
+        raise
+    if cache is not None:
+        cache[key] = (real, None)
+    return real
 
 
 def walk(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> Walk:
