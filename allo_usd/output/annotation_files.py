@@ -120,22 +120,30 @@ def _link(src: Path, dst: Path) -> None:
     place(src, dst, link=True)
 
 
-def compute_record(out: Path, row: dict, mask: np.ndarray | None = None) -> dict:
+def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: dict | None = None,
+                   visible=None) -> dict:
     """One image's record: COCO instance, BOP entries and the per-image BOP files (written here).
-    `mask`: the row's 3-class mask when the caller has it decoded (the dataset, placing an anomaly)."""
+    `mask`: the row's 3-class mask when the caller has it decoded; `visible`: its anomaly pixels
+    (dataset_files.AnomalyPixels) when the caller has them (the dataset, placing an anomaly);
+    `meta`: the row's render JSON when the caller has it read (else it is read here)."""
 
     from PIL import Image
 
     out = Path(out)
     index, anomalous = int(row["index"]), row["kind"] == "anomaly"
-    if mask is not None or anomalous or row.get("depth"):
+    if visible is not None and mask is None:
+        height, width = visible.shape
+    elif mask is not None or anomalous or row.get("depth"):
         mask = read_pixels(out / row["allo_mask"]) if mask is None else mask
         height, width = mask.shape
     else:   # a normal image without depth needs only the size: the header, not 2 MB of pixels
         with Image.open(out / row["allo_mask"]) as im:
             width, height = im.size
     shape = (height, width)
-    meta, meta_path = _render_json(out, row)
+    if meta is None:
+        meta, meta_path = _render_json(out, row)
+    else:
+        meta_path = out / row["source"] if row.get("source") else None
     annotations = meta.get("annotations") if isinstance(meta.get("annotations"), dict) else {}
     anomaly = annotations.get("anomaly") if isinstance(annotations.get("anomaly"), dict) else {}
     folder = f"bop/{row['category']}/{row['split']}/{bop.chunk_of(index)}"
@@ -156,7 +164,7 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None) -> dict
                    "model": None, "info": None},
            "instances": None}
     if anomalous:
-        visible = mask == ANOMALY
+        visible = visible.full() if visible is not None and mask is None else mask == ANOMALY
         rec["coco"] = coco.instance(visible)
         amodal = _amodal_mask(meta, meta_path, shape)
         model = bop.model(anomaly, (meta.get("scene") or {}).get("anomaly") if isinstance(meta.get("scene"), dict)
@@ -273,8 +281,9 @@ def _prune(out: Path, top: str, keep: set[str], pattern: re.Pattern) -> None:
     if not root.is_dir():
         return
     for d, _, names in os.walk(root, topdown=False):
+        prefix = os.path.relpath(d, out).replace(os.sep, "/") + "/"
         for name in names:
-            rel = Path(d, name).relative_to(out).as_posix()
+            rel = prefix + name
             if pattern.match(name) and rel not in keep:
                 Path(d, name).unlink(missing_ok=True)
         if Path(d) != root and not any(Path(d).iterdir()):

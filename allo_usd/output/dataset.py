@@ -63,10 +63,12 @@ from __future__ import annotations
 
 import csv
 import importlib.util
+import io
 import json
 import os
 import re
 import signal
+import stat
 import threading
 import warnings
 from contextlib import contextmanager
@@ -76,12 +78,14 @@ import numpy as np
 from PIL import Image
 
 from allo_usd.core.errors import AlloError
-from allo_usd.core.files import MAX_RECORD_BYTES, InputRefused, RunLock, atomic_path, read_user_json, sha256_file
+from allo_usd.core.files import (MAX_RECORD_BYTES, InputRefused, RunLock, atomic_path, read_user_json, sha256_file,
+                                 write_bytes_atomic)
 from allo_usd.core.scene_labels import SPLITS, VARIANTS, label_problem
 from allo_usd.output.annotations import annotation_columns
 from allo_usd.output.contact import PER_SHEET, read_pixels, sheet_paths, split_sheets
 from allo_usd.output.annotation_files import compute_record, load_cache, write_annotation_files
-from allo_usd.output.dataset_files import COLUMNS, FOLDERS, Refused, inside, place, real_folder, source_file
+from allo_usd.output.dataset_files import (COLUMNS, FOLDERS, AnomalyPixels, Refused, inside, place, real_folder, real_path,
+                                          source_entry, source_file)
 from allo_usd.output.pass_files import PASS_COLUMNS, pass_columns, passes_missing, place_passes
 from allo_usd.output.writers import write_png
 
@@ -111,30 +115,81 @@ class RefusedRenders(UserWarning):
     """Render records refused as untrustworthy (left out of the dataset; `allo-usd dataset` exits 1)."""
 
 
-def scan(render_dirs, progress: bool = False, refused: list | None = None) -> list[tuple[Path, dict]]:
+class Brief(dict):
+    """What planning reads of a render record whose JSON kept the stat at which it passed
+    check_render (issue 26: a re-run does not parse 51,409 JSONs to find 1,000 new ones): its
+    scene's split, variant and anomaly, its files, the class pixel counts _kind and the dark warning
+    read, its layer_sha256, and whether it has an annotations table. Kept in records.json's state
+    beside the stat; a record that is placed again is read whole (_whole)."""
+
+    @classmethod
+    def of(cls, meta: dict) -> "Brief":
+        scene, pixels = meta.get("scene"), meta.get("class_pixels")
+        scene, pixels = (scene if isinstance(scene, dict) else {}), (pixels if isinstance(pixels, dict) else {})
+        brief = cls({k: meta[k] for k in ("files", "layer_sha256") if k in meta})
+        brief["scene"] = {k: scene[k] for k in ("split", "variant", "anomaly") if k in scene}
+        brief["class_pixels"] = {k: pixels[k] for k in ("station_and_bodies", "anomaly") if k in pixels}
+        if isinstance(meta.get("annotations"), dict):
+            brief["annotations"] = {}
+        return brief
+
+
+def _json_stat(path: Path) -> list[int] | None:
+    """[size, mtime_ns, inode, device] of a render record that is a regular file, not a link (its
+    real path is then its folder's plus its name, inside its render directory), else None."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    return [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev] if stat.S_ISREG(st.st_mode) else None
+
+
+def _read_record(meta_path: Path, root: Path, refused: list | None) -> dict | None:
+    """A render record through the read gate (core.files.read_user_json), None when it is not one
+    (refusals appended to `refused` as "PATH: why"; scan's rules)."""
+    try:
+        meta = read_user_json(meta_path, MAX_RECORD_BYTES, "render record", roots=(root,))
+    except InputRefused as exc:
+        if exc.kind in ("not_json", "not_utf8", "missing"):
+            return None  # not ours (job.py writes its JSON atomically, so it is never partial), or gone
+        if refused is not None:
+            refused.append(f"{meta_path}: {exc.reason}")
+        return None
+    if not isinstance(meta, dict) or "scene" not in meta or "files" not in meta:
+        return None  # not a render record (e.g. a plan or report beside the renders)
+    return meta
+
+
+def scan(render_dirs, progress: bool = False, refused: list | None = None, known: dict | None = None,
+         stats: dict | None = None) -> list[tuple[Path, dict]]:
     """(json path, metadata) of every finished scene in the render directories, by name. Each
     NAME.json is read through the read gate (core.files.read_user_json): a FIFO, a device such as
     /dev/zero, a directory, a link out of its render folder, a file over MAX_RECORD_BYTES or JSON
     nested over MAX_JSON_DEPTH is never parsed; it is appended to `refused` as "PATH: why" (left out
-    with a warning, like a record check_render refuses). A file that is not JSON is not ours: skipped."""
+    with a warning, like a record check_render refuses). A file that is not JSON is not ours: skipped.
+    `known`: {json path: (stat, Brief)} of records that passed check_render; one whose file (a
+    regular file, no link) still has that stat is not read: its Brief stands for it. `stats` gets
+    {json path: its stat taken before it was read}, the evidence _check keeps."""
     from tqdm import tqdm
 
+    known = known or {}
     found: dict[str, tuple[Path, dict]] = {}
     for d in map(Path, render_dirs):
         if not d.is_dir():
             raise AlloError(f"render directory {d} does not exist; pass directories that `allo-usd render` wrote")
-        for meta_path in tqdm(sorted(d.glob("*.json")), desc=f"reading {d.name}", unit="file", disable=not progress,
-                              leave=False):
-            try:
-                meta = read_user_json(meta_path, MAX_RECORD_BYTES, "render record", roots=(d,))
-            except InputRefused as exc:
-                if exc.kind in ("not_json", "not_utf8", "missing"):
-                    continue  # not ours (job.py writes its JSON atomically, so it is never partial), or gone
-                if refused is not None:
-                    refused.append(f"{meta_path}: {exc.reason}")
-                continue
-            if not isinstance(meta, dict) or "scene" not in meta or "files" not in meta:
-                continue  # not a render record (e.g. a plan or report beside the renders)
+        names = sorted(e.name for e in os.scandir(d) if e.name.endswith(".json"))
+        for name in tqdm(names, desc=f"reading {d.name}", unit="file", disable=not progress, leave=False):
+            meta_path = d / name
+            st = _json_stat(meta_path)
+            prior = known.get(str(meta_path))
+            if st is not None and prior is not None and prior[0] == st:
+                meta = prior[1]
+            else:
+                meta = _read_record(meta_path, d, refused)
+                if meta is None:
+                    continue
+            if stats is not None:
+                stats[str(meta_path)] = st
             name = meta_path.stem
             if name in found and found[name][1].get("layer_sha256") != meta.get("layer_sha256"):
                 raise AlloError(f"two different scenes are named {name!r}: {found[name][0]} and {meta_path}; "
@@ -154,23 +209,55 @@ def read_manifest(path: Path) -> list[dict]:
     return rows
 
 
-def _write_csv(path: Path, rows) -> Path:
+_WRITTEN: set[Path] = set()   # manifests written within an assembly run (write_manifest's parquet follows)
+_LINES: dict[int, tuple[dict, str]] = {}   # id(row): (row, its CSV line), within an assembly run (_csv_text)
+
+
+def _csv_line(row: dict) -> str:
+    """The row's manifest line as csv.DictWriter writes it, made once per row object within a run
+    (the manifest is rewritten ahead of every batch of a run: O(log n) times)."""
+    held = _LINES.get(id(row))
+    if held is not None and held[0] is row:
+        return held[1]
+    buffer = io.StringIO()
+    csv.DictWriter(buffer, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n").writerow(row)
+    _LINES[id(row)] = (row, buffer.getvalue())
+    return _LINES[id(row)][1]
+
+
+def _csv_text(rows) -> str:
+    buffer = io.StringIO()
+    csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n").writeheader()
     rows = sorted(rows, key=lambda r: (r["category"], int(r["index"])))
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n")
-            w.writeheader()
-            w.writerows(rows)
-    return path
+    return buffer.getvalue() + "".join(map(_csv_line, rows))
+
+
+def _write_csv(path: Path, rows) -> bool:
+    """Write manifest.csv (atomically) unless it holds these rows already; returns whether it wrote."""
+    data = _csv_text(rows).encode("utf-8")
+    try:
+        if path.is_file() and path.stat().st_size == len(data) and path.read_bytes() == data:
+            return False
+    except OSError:
+        pass
+    write_bytes_atomic(path, data)
+    _WRITTEN.add(path)
+    return True
 
 
 def write_manifest(path: Path, rows: list[dict]) -> Path:
-    """manifest.csv (atomically), and manifest.parquet beside it if pandas and pyarrow are installed."""
-    _write_csv(path, rows)
-    if importlib.util.find_spec("pandas") and importlib.util.find_spec("pyarrow"):
+    """manifest.csv (atomically), and manifest.parquet beside it if pandas and pyarrow are installed
+    (made again only when the CSV changed or the parquet file is missing)."""
+    wrote = _write_csv(path, rows)
+    parquet = path.with_suffix(".parquet")
+    try:   # behind the CSV: written ahead this run, or by a run killed before its parquet
+        stale = wrote or path in _WRITTEN or parquet.stat().st_mtime_ns < path.stat().st_mtime_ns
+    except OSError:
+        stale = True
+    if importlib.util.find_spec("pandas") and importlib.util.find_spec("pyarrow") and stale:
         import pandas as pd
 
-        with atomic_path(path.with_suffix(".parquet")) as tmp:
+        with atomic_path(parquet) as tmp:
             pd.read_csv(path).to_parquet(tmp, index=False)
     return path
 
@@ -191,10 +278,12 @@ def remove_unlisted(out: Path, category: str, rows) -> list[str]:
     killed between placing a refreshed scene's new files and removing its old ones); returns them."""
     listed = {r[k] for r in rows if r["category"] == category for k in FILE_KEYS if r.get(k)}
     gone = []
+    root = os.fspath(out)
     for top in (out / category, out / "allo_masks" / category):
         for d, _, files in os.walk(top):
+            prefix = os.path.relpath(d, root).replace(os.sep, "/") + "/"
             for name in files:
-                rel = Path(d, name).relative_to(out).as_posix()
+                rel = prefix + name
                 if INDEXED.match(name) and rel not in listed:
                     Path(d, name).unlink(missing_ok=True)
                     gone.append(rel)
@@ -227,6 +316,13 @@ def check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int]]:
     add up to the image, and the kind agrees with the mask (an anomalous scene's mask, read here,
     must show the anomaly; a normal scene's pixel counts must show none). `_kind` then leaves out
     anomalous training scenes and invisible anomalies, as before."""
+    kind, size, _ = _check_render(meta_path, meta)
+    return kind, size
+
+
+def _check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int], AnomalyPixels | None]:
+    """check_render's answer, and the anomaly's pixels of the mask it decoded (an anomalous scene
+    with anomaly pixels), kept so that placing the scene does not decode its mask again."""
     name, scene, files = meta_path.stem, meta.get("scene"), meta.get("files")
     if not NAME.match(name):
         raise Refused(f"scene name {name!r} is not a plain name ([A-Za-z0-9_.-])")
@@ -255,10 +351,11 @@ def check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int]]:
     if scene["variant"] == "anomaly" and counts["anomaly"]:
         if anomaly is None:
             raise Refused("an anomalous scene that records no anomaly asset")
-        shown = int(np.count_nonzero(read_pixels(mask) == 2))
-        if shown != counts["anomaly"]:
-            raise Refused(f"its JSON counts {counts['anomaly']} anomaly pixels, its mask {shown}")
-    return VARIANTS[scene["variant"]], size
+        visible = AnomalyPixels.of(read_pixels(mask))
+        if visible.count != counts["anomaly"]:
+            raise Refused(f"its JSON counts {counts['anomaly']} anomaly pixels, its mask {visible.count}")
+        return VARIANTS[scene["variant"]], size, visible
+    return VARIANTS[scene["variant"]], size, None
 
 
 def _kind(scene: dict, meta: dict, kind: str) -> str | None:
@@ -308,8 +405,18 @@ def scene_columns(name: str, meta: dict) -> dict:
 
 def from_root(path, out: Path) -> str:
     """`path` relative to the dataset root `out` (symlinks resolved), so the manifest holds no
-    machine's absolute paths and stays right when the dataset and its renders move together."""
-    return os.path.relpath(os.path.realpath(path), real_folder(out)) if path else ""
+    machine's absolute paths and stays right when the dataset and its renders move together.
+    Within a run each folder's path from the root is worked out once (FOLDERS' memo)."""
+    if not path:
+        return ""
+    real, top, memo = real_path(path), real_folder(out), FOLDERS.get()
+    head, tail = os.path.split(real)
+    if memo is None or real == top or not tail:
+        return os.path.relpath(real, top)
+    key = ("from_root", head, top)
+    if key not in memo:
+        memo[key] = os.path.relpath(head, top)
+    return tail if memo[key] == "." else f"{memo[key]}/{tail}"
 
 
 def provenance_columns(meta_path: Path, meta: dict, out: Path) -> dict:
@@ -329,20 +436,23 @@ def _row(category, index, name, meta_path: Path, meta: dict, kind: str, where: s
             | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out))
 
 
-def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> np.ndarray | None:
+def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool,
+               visible: AnomalyPixels | None = None) -> AnomalyPixels | None:
     """Put one scene's files in the tree: its passes, 3-class mask, binary ground truth, then the
-    image. Returns the 3-class mask when it was decoded (an anomaly's, for its ground truth), so its
-    annotation record is computed from it rather than from a second decode."""
+    image. Returns the anomaly's pixels when it has a ground truth (`visible`: check_render's, else
+    its mask decoded here), so its annotation record is computed from them rather than from
+    another decode."""
     src = meta_path.parent
     place_passes(row, meta_path, meta, out, link)
     mask_src, rgb_src = (source_file(src, meta["files"][k]) for k in ("mask", "rgb"))
     place(mask_src, inside(out, row["allo_mask"]), link)
-    pixels = None
     if row["mask"]:
-        pixels = read_pixels(mask_src)
-        write_png(inside(out, row["mask"]), (pixels == 2).astype(np.uint8) * np.uint8(255))
+        visible = visible if visible is not None else AnomalyPixels.of(read_pixels(mask_src))
+        write_png(inside(out, row["mask"]), visible.full().astype(np.uint8) * np.uint8(255))
+    else:
+        visible = None
     place(rgb_src, inside(out, row["image"]), link)
-    return pixels
+    return visible
 
 
 def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> bool:
@@ -374,7 +484,7 @@ def _remove_files(out: Path, row: dict) -> None:
 
 
 def _complete(out: Path, row: dict) -> bool:
-    return all(inside(out, row[k]).is_file() for k in FILE_KEYS if row.get(k))
+    return all(os.path.isfile(inside(out, row[k])) for k in FILE_KEYS if row.get(k))
 
 
 @contextmanager
@@ -447,6 +557,8 @@ def assemble(render_dirs, out_dir, layout: str = "mvtec", link: bool = True, cat
             return _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene, defects)
     finally:
         FOLDERS.reset(token)
+        _LINES.clear()
+        _WRITTEN.clear()
 
 
 def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progress, on_scene, defects) -> Path:
@@ -489,31 +601,70 @@ def _stat_of(path) -> list[int]:
     return [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev]
 
 
-def _check(meta_path: Path, meta: dict, prior) -> tuple[str, tuple[int, int], dict | None]:
-    """check_render's (kind, size) of a record, and the evidence to keep for the next run: the stat
-    (size, mtime_ns, inode, device) of the record, its image and its mask, taken before the check.
+def _check(meta_path: Path, meta: dict, prior, json_stat: list[int] | None = None
+           ) -> tuple[str, tuple[int, int], dict | None, AnomalyPixels | None]:
+    """check_render's (kind, size) of a record, the evidence to keep for the next run (the stat
+    (size, mtime_ns, inode, device) of the record, its image and its mask, taken before the check,
+    and the record's Brief), and the anomaly's pixels when its mask was decoded.
     An earlier run's answer (`prior`) stands while all three stats are the ones it recorded (the
     quick check of make, rsync and the render manifest: a rewrite changes size or mtime, a
     re-render replaces the files), so a re-run does not read every image header and decode every
-    anomalous mask again; the file-name rules (source_file) are applied every time."""
+    anomalous mask again; the file-name rules (source_file) are applied every time. `json_stat`:
+    the record's stat taken before scan read it. `meta` may be a Brief only where `prior` holds
+    (_plan_rows reads the whole record otherwise)."""
     files = meta.get("files")
     try:
-        evidence = {"json": _stat_of(meta_path), **{k: _stat_of(source_file(meta_path.parent, files.get(k)))
-                                                    for k in ("rgb", "mask")}}
+        evidence = {"json": json_stat if json_stat is not None else _stat_of(meta_path),
+                    **{k: source_entry(meta_path.parent, files.get(k))[1] for k in ("rgb", "mask")}}
     except (Refused, OSError, AttributeError):
         evidence = None   # check_render says why
-    if evidence is not None and isinstance(prior, dict) and all(prior.get(k) == v for k, v in evidence.items()):
-        kind, size = prior.get("kind"), prior.get("size")
-        if kind in VARIANTS.values() and isinstance(size, list) and len(size) == 2 \
-                and all(isinstance(v, int) and not isinstance(v, bool) for v in size):
-            return kind, (size[0], size[1]), prior
-    kind, size = check_render(meta_path, meta)
-    return kind, size, (None if evidence is None else {**evidence, "kind": kind, "size": list(size)})
+    if _holds(evidence, prior):
+        if "brief" not in prior and not isinstance(meta, Brief):   # kept by a run before Briefs
+            prior = {**prior, "brief": Brief.of(meta)}
+        return prior["kind"], (prior["size"][0], prior["size"][1]), prior, None
+    if isinstance(meta, Brief):
+        raise _Stale(meta_path)
+    kind, size, visible = _check_render(meta_path, meta)
+    proof = None if evidence is None else {**evidence, "kind": kind, "size": list(size), "brief": Brief.of(meta)}
+    return kind, size, proof, visible
+
+
+class _Stale(Exception):
+    """A record's files changed since its Brief was kept: it is read whole and checked again."""
+
+
+def _holds(evidence: dict | None, prior) -> bool:
+    """Does an earlier run's check (`prior`) stand for a record with this evidence?"""
+    if evidence is None or not isinstance(prior, dict) or not all(prior.get(k) == v for k, v in evidence.items()):
+        return False
+    kind, size = prior.get("kind"), prior.get("size")
+    return kind in VARIANTS.values() and isinstance(size, list) and len(size) == 2 \
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in size)
+
+
+def _whole(meta_path: Path, refused: list, stats: dict) -> dict | None:
+    """The whole render record in place of its Brief (its stat taken again before it is read)."""
+    stats[str(meta_path)] = _json_stat(meta_path)
+    return _read_record(meta_path, meta_path.parent, refused)
+
+
+def _known(checked: dict, out: Path, render_dirs) -> dict:
+    """{json path as scan names it: (stat, Brief)} of the records an earlier run checked."""
+    known = {}
+    for d in map(Path, render_dirs):
+        rel = os.path.relpath(os.path.abspath(d), os.path.abspath(out))
+        prefix = "" if rel == "." else rel + "/"
+        for key, proof in checked.items():
+            name = key[len(prefix):]
+            if key.startswith(prefix) and "/" not in name and isinstance(proof, dict) \
+                    and isinstance(proof.get("brief"), dict) and isinstance(proof.get("json"), list):
+                known[str(d / name)] = (proof["json"], Brief(proof["brief"]))
+    return known
 
 
 def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, link, out: Path,
                defects: str, checked=None) -> tuple[list[tuple], dict]:
-    """(name, meta path, meta, kind, index, folder) of each render to place: new scenes get the
+    """(name, meta path, meta, kind, index, folder, anomaly pixels or None) of each render to place: new scenes get the
     next free indices, changed or moved ones keep theirs, unchanged linked ones are skipped; the
     rest are reported. An anomaly asset named like the normal folder stops the run.
     Render records that check_render refuses are left out with a warning; renders of another
@@ -524,19 +675,30 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
     evidence: dict[str, dict] = {}
     next_index = 1 + max((int(r["index"]) for r in rows.values() if r["category"] == category), default=-1)
     refused: list[str] = []   # "JSON: why" of each record left out (the read gate's, then check_render's)
-    found = scan(render_dirs, progress, refused)
+    stats: dict[str, list | None] = {}   # json path: its stat before it was read (scan, _whole)
+    found = scan(render_dirs, progress, refused, _known(checked, out, render_dirs), stats)
     if not found and not refused:
         raise AlloError(f"no renders in {', '.join(map(str, render_dirs))}: no NAME.json render record there; fix: "
                         "pass the directories `allo-usd render` wrote (its --out; for a plan, OUT/renders)")
     left_out, mask_only, todo, sizes, dark, black = [], [], [], {}, [], []
+    prefixes = {}   # render folder: its path from OUT (the state's keys: no machine's path)
     for meta_path, meta in found:
         name = meta_path.stem
         if isinstance(meta.get("files"), dict) and "rgb" not in meta["files"]:
             mask_only.append(name)
             continue
-        key = os.path.relpath(os.path.abspath(meta_path), os.path.abspath(out))   # no machine's path in the state
+        if meta_path.parent not in prefixes:
+            rel = os.path.relpath(os.path.abspath(meta_path.parent), os.path.abspath(out))
+            prefixes[meta_path.parent] = "" if rel == "." else rel + "/"
+        key = prefixes[meta_path.parent] + meta_path.name
         try:
-            kind, size, proof = _check(meta_path, meta, checked.get(key))
+            try:
+                kind, size, proof, visible = _check(meta_path, meta, checked.get(key), stats.get(str(meta_path)))
+            except _Stale:   # its image or mask changed since its Brief was kept: read it whole
+                meta = _whole(meta_path, refused, stats)
+                if meta is None:
+                    continue
+                kind, size, proof, visible = _check(meta_path, meta, None, stats.get(str(meta_path)))
         except Refused as exc:
             refused.append(f"{meta_path}: {exc}")
             continue
@@ -556,11 +718,18 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
         old = rows.get((category, name))
         if old and link and _unchanged(old, meta_path, meta, kind, where, out):
             continue
+        if isinstance(meta, Brief):   # to be placed: its row needs the whole record
+            whole = _whole(meta_path, refused, stats)
+            if whole is None or Brief.of(whole) != meta or stats.get(str(meta_path)) != evidence[key]["json"]:
+                refused.append(f"{meta_path}: it changed while the dataset was being assembled; run again")
+                evidence.pop(key, None)
+                continue
+            meta = whole
         if all_black(source_file(meta_path.parent, meta["files"]["rgb"]), size):
             black.append(name)
         index = int(old["index"]) if old else next_index
         next_index += old is None
-        todo.append((name, meta_path, meta, kind, index, where))
+        todo.append((name, meta_path, meta, kind, index, where, visible))
     _one_resolution(sizes, rows, category, out)
     if refused:
         warnings.warn(f"{len(refused)} render(s) refused and left out, their JSON unreadable (not a regular file, too "
@@ -623,14 +792,14 @@ def _place_all(todo: list[tuple], rows: dict[tuple, dict], manifest: Path, out: 
                     ahead[key] = rows.get(key)
                     rows[key] = row
                 _write_csv(manifest, rows.values())  # before any of the batch's files exists
-                for (name, meta_path, meta, *_), row in new:
+                for (name, meta_path, meta, *_, visible), row in new:
                     if stop.is_set():
                         break
                     key = in_hand = (category, name)
                     old = ahead[key]
-                    pixels = _place_row(row, meta_path, meta, out, link)
-                    if pixels is not None and early is not None:
-                        early[f"{category}/{name}"] = compute_record(out, row, pixels)
+                    visible = _place_row(row, meta_path, meta, out, link, visible)
+                    if early is not None:
+                        early[f"{category}/{name}"] = compute_record(out, row, meta=meta, visible=visible)
                     if old:
                         _remove_files(out, {k: old[k] for k in FILE_KEYS if old.get(k) and old[k] != str(row[k])})
                     del ahead[key]

@@ -7,8 +7,11 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 from contextvars import ContextVar
 from pathlib import Path
+
+import numpy as np
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import atomic_path, sha256_file
@@ -45,6 +48,46 @@ def place(src: Path, dst: Path, link: bool = True) -> str:
     return "copy"
 
 
+class AnomalyPixels:
+    """The anomaly class (2) of a 3-class mask, kept small between the check that decodes the mask
+    and the writers that need it (the binary ground truth, the COCO and BOP annotations): the
+    mask's shape, the anomaly's box (row0, col0, row1, col1, inclusive) and its pixels inside the
+    box, bit-packed. A dataset run holds one for every new anomalous scene until it is placed."""
+
+    __slots__ = ("shape", "box", "count", "_packed", "_crop_shape")
+
+    def __init__(self, shape, box, crop):
+        self.shape, self.box = tuple(int(v) for v in shape), box
+        self.count = int(np.count_nonzero(crop)) if crop is not None else 0
+        self._crop_shape = None if crop is None else crop.shape
+        self._packed = None if crop is None else np.packbits(crop, axis=None)
+
+    @classmethod
+    def of(cls, mask: np.ndarray) -> "AnomalyPixels":
+        visible = np.asarray(mask) == 2
+        rows = np.flatnonzero(visible.any(axis=1))
+        if not rows.size:
+            return cls(visible.shape, None, None)
+        cols = np.flatnonzero(visible[rows[0]:rows[-1] + 1].any(axis=0))
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+        return cls(visible.shape, (r0, c0, r1, c1), visible[r0:r1 + 1, c0:c1 + 1])
+
+    def crop(self) -> np.ndarray | None:
+        """The box's pixels (bool), None when no pixel is set."""
+        if self._packed is None:
+            return None
+        size = self._crop_shape[0] * self._crop_shape[1]
+        return np.unpackbits(self._packed, count=size).astype(bool).reshape(self._crop_shape)
+
+    def full(self) -> np.ndarray:
+        """The whole mask's anomaly pixels (bool, the mask's shape)."""
+        out = np.zeros(self.shape, dtype=bool)
+        if self.box is not None:
+            r0, c0, r1, c1 = self.box
+            out[r0:r1 + 1, c0:c1 + 1] = self.crop()
+        return out
+
+
 class Refused(Exception):
     """Why a render record is left out of the dataset (its JSON contradicts itself or its files)."""
 
@@ -66,27 +109,62 @@ def real_folder(path) -> str:
     return memo[key]
 
 
+def real_path(path) -> str:
+    """os.path.realpath(path), from one lstat where it can (issue 26: the dataset asks ~10 times a
+    scene, and realpath lstats every component of the path): a path whose last component exists and
+    is no link has its folder's real path plus that name, the folder's from real_folder (a memo within
+    an assembly run). Anything else (a link, a missing file, '.' or '..') goes to realpath."""
+    head, tail = os.path.split(os.fspath(path))
+    if FOLDERS.get() is None or tail in ("", ".", ".."):
+        return os.path.realpath(path)
+    try:
+        if stat.S_ISLNK(os.lstat(path).st_mode):
+            return os.path.realpath(path)
+    except OSError:
+        return os.path.realpath(path)
+    return os.path.join(real_folder(head or "."), tail)
+
+
 def source_file(render_dir: Path, name) -> Path:
     """`name` from a render JSON's "files" as a file of `render_dir`: a plain name (no separator,
     not . or ..) of a regular file whose real path lies in the render directory itself."""
+    return source_entry(render_dir, name)[0]
+
+
+def source_entry(render_dir: Path, name) -> tuple[Path, list[int]]:
+    """source_file's path and its stat [size, mtime_ns, inode, device], from one lstat when the file
+    is no link (the usual render folder: the dataset's re-run stats every record's image and mask)."""
     if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name \
             or "\0" in name:
         raise Refused(f"file name {name!r} is not a plain file name in its render directory")
     path = render_dir / name
-    real = os.path.realpath(path)
+    try:
+        st = os.lstat(path)
+    except OSError:
+        st = None
+    if st is not None and stat.S_ISREG(st.st_mode):   # no link: its real path is its folder's plus the name
+        real = os.path.join(real_folder(render_dir), name)
+    else:
+        real = os.path.realpath(path)
+        st = None
     if os.path.dirname(real) != real_folder(render_dir):
         raise Refused(f"file {name!r} resolves to {real}, outside its render directory {render_dir}")
-    if not os.path.isfile(real):
-        raise Refused(f"file {name!r} is missing or not a regular file")
-    return path
+    if st is None:
+        try:
+            st = os.stat(real)
+        except OSError:
+            st = None
+        if st is None or not stat.S_ISREG(st.st_mode):
+            raise Refused(f"file {name!r} is missing or not a regular file")
+    return path, [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev]
 
 
 def inside(out: Path, rel: str) -> Path:
     """`out / rel`, refused (AlloError) unless its real path stays inside `out`: nothing is written
     or removed outside the dataset, whatever the manifest says or a symlinked folder points at."""
     path = Path(out) / rel
-    top, real = real_folder(out), os.path.realpath(path)
-    if Path(rel).is_absolute() or os.path.commonpath([top, real]) != top:
+    top, real = real_folder(out), real_path(path)
+    if os.path.isabs(rel) or not (real == top or real.startswith(top.rstrip(os.sep) + os.sep)):
         raise AlloError(f"{path} resolves to {real}, outside the dataset {out} (a symlinked folder, or a manifest "
                         f"row naming another place); fix: remove it, or assemble into a fresh --out")
     return path
