@@ -28,7 +28,7 @@ from allo_usd.core.labels import ANOMALY
 from allo_usd.core.errors import PlacementError
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import box_corners, camera_intrinsics, fibonacci_sphere, quat_to_matrix
-from allo_usd.scene.raycast import RayScene, pixel_rays
+from allo_usd.scene.raycast import RayScene, pixel_ray_columns, pixel_rays
 from allo_usd.core import fixedmath as fm
 
 DEPTH_OFFSETS = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -236,6 +236,9 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
             fitted = idx is not None
         if idx is None and box is not None:
             idx = _box_indices(box, width, stride)
+        if rays is None and pose is not None:
+            return _posed_fraction(station, anomaly, cam_pos, width, height, pose, stride, None if fitted else (c, r),
+                                   pixel_ray_columns(cam_rot, width, height, idx, lens))
         if rays is None:
             o, d = pixel_rays(cam_pos, cam_rot, width, height, idx, lens)
         else:
@@ -270,6 +273,50 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
         return float(hit.sum() * stride * stride / (width * height))
     # Visible where no station surface lies between the camera and the object's surface.
     hidden = station.occluded(o[hit], d[hit], a_dist[hit])
+    return float((~hidden).sum() * stride * stride / (width * height))
+
+
+def _posed_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, width: int, height: int, pose, stride: int,
+                    sphere, columns) -> float:
+    """`visible_fraction`'s count for camera rays (`columns`: pixel_ray_columns of the pixels cast) and an
+    object posed by `pose`, component by component: the same operations in the same order as the
+    (n, 3) form (the sphere cull's fm.dot, fm.matmul's sums, first_hit's), so the same bits, with
+    the world-frame directions gathered only for the rays that hit the object. `sphere`: (centre,
+    radius) to cull rays that pass outside it, None when a footprint already chose the pixels."""
+    cam = np.asarray(cam_pos, dtype=np.float64)
+    d0, d1, d2 = columns
+    if not len(d0):
+        return 0.0
+    if sphere is not None:
+        c, r = sphere
+        v = c - cam                                    # every ray starts at the camera
+        t = d0 * v[0]                                  # fm.dot(d, v), left to right
+        t = t + d1 * v[1]
+        t = t + d2 * v[2]
+        miss = (fm.dot(v, v) - t * t > r * r) | (t < -r)
+        keep = np.flatnonzero(~miss)
+        if keep.size == 0:
+            return 0.0
+        d0, d1, d2 = d0[keep], d1[keep], d2[keep]
+    position, rotation = np.asarray(pose[0], dtype=np.float64), np.asarray(pose[1], dtype=np.float64)
+    origin = fm.matmul(cam[None] - position, rotation)
+    local = []
+    for j in range(3):                                 # fm.matmul(d, rotation), column by column
+        col = d0 * rotation[0, j]
+        col = col + d1 * rotation[1, j]
+        local.append(col + d2 * rotation[2, j])
+    a_owner, a_dist = anomaly.first_hit_from(origin[0], tuple(local))
+    hit = a_owner > 0
+    if not hit.any():
+        return 0.0
+    if station is None:
+        return float(hit.sum() * stride * stride / (width * height))
+    # Visible where no station surface lies between the camera and the object's surface.
+    rays = np.flatnonzero(hit)
+    d = np.empty((rays.size, 3))
+    for j, comp in enumerate((d0, d1, d2)):
+        d[:, j] = comp[rays]
+    hidden = station.occluded(np.broadcast_to(cam, d.shape), d, a_dist[rays])
     return float((~hidden).sum() * stride * stride / (width * height))
 
 

@@ -23,9 +23,13 @@ _ZERO = 1e-13                                         # a shorter normal or dire
 def _unitize(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rows of `v` scaled to unit length, which rows had a length): trimesh's `unitize` (times the
     reciprocal length; a zero row stays zero), with the length summed in a fixed order rather than
-    by a BLAS product, so that hits and distances are the same on every CPU (core.fixedmath)."""
+    by a BLAS product, so that hits and distances are the same on every CPU (core.fixedmath).
+    When every row has a length (the usual case) the reciprocal is taken directly: the same bits
+    as the masked form, two passes fewer."""
     length = fm.norm(v, axis=-1)
     ok = length > _ZERO
+    if ok.all():
+        return v * (1.0 / length)[:, None], ok
     inv = np.where(ok, 1.0 / np.where(ok, length, 1.0), 1.0)
     return v * inv[:, None], ok
 
@@ -55,6 +59,9 @@ class RayScene:
         self._plane_origin = tri[:, 0].copy()
         normals, ok = _unitize(fm.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
         self._normal = np.where(ok[:, None], normals, 0.0)
+        # the same, one contiguous array per component (first_hit_from's per-component hits)
+        self._normal_cols = tuple(np.ascontiguousarray(self._normal[:, j]) for j in range(3))
+        self._plane_origin_cols = tuple(np.ascontiguousarray(self._plane_origin[:, j]) for j in range(3))
         self._parts: dict[int, np.ndarray] = {}
         self._embree = rtcore_scene.EmbreeScene()
         TriangleMesh(scene=self._embree, vertices=((self.vertices - lo) * self._factor).astype(np.float32),
@@ -85,7 +92,12 @@ class RayScene:
         return self._parts[levels]
 
     def _run(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        o = ((origins - self._origin) * self._factor).astype(np.float32)
+        if origins.ndim == 2 and len(origins) > 1 and origins.strides[0] == 0:
+            # every ray from one point (a broadcast camera position): its row converted once, the
+            # same float32 bits for every ray, and handed to embree broadcast (it reads by stride)
+            o = np.broadcast_to(((origins[:1] - self._origin) * self._factor).astype(np.float32), origins.shape)
+        else:
+            o = ((origins - self._origin) * self._factor).astype(np.float32)
         return self._embree.run(o, dirs.astype(np.float32))
 
     def _plane_distance(self, tri: np.ndarray, origins: np.ndarray, dirs: np.ndarray):
@@ -109,14 +121,72 @@ class RayScene:
         prim = self._run(origins, dirs)
         rays = np.flatnonzero(prim != -1)
         if rays.size:
-            tri = prim[rays]
-            valid, t = self._plane_distance(tri, origins[rays], dirs[rays])
-            rays, tri = rays[valid], tri[valid]
-            owner[rays] = self.owner[tri]
-            loc = dirs[rays] * t.reshape((-1, 1))
-            loc += origins[rays]
-            dist[rays] = fm.norm(loc - origins[rays], axis=1)
+            self._record_hits(owner, dist, rays, prim[rays], origins[rays], dirs[rays])
         return owner, dist
+
+    def first_hit_from(self, origin: np.ndarray, dirs: tuple[np.ndarray, np.ndarray, np.ndarray]):
+        """`first_hit(np.broadcast_to(origin, (n, 3)), np.stack(dirs, axis=1))` bit for bit, for rays
+        that all start at `origin` (3,) with their directions given as three component arrays (n,):
+        the same operations element by element, without the (n, 3) float64 temporaries of the rays
+        that miss (most of a placement check's rays)."""
+        origin = np.asarray(origin, dtype=np.float64).reshape(3)
+        d0, d1, d2 = (np.asarray(c, dtype=np.float64) for c in dirs)
+        n = len(d0)
+        owner = np.zeros(n, dtype=np.uint8)
+        dist = np.full(n, np.inf)
+        if not n:
+            return owner, dist
+        length = d0 * d0                                  # _unitize: fm.norm's sum, in its order
+        length = length + d1 * d1
+        length = np.sqrt(length + d2 * d2)
+        ok = length > _ZERO
+        inv = 1.0 / length if ok.all() else np.where(ok, 1.0 / np.where(ok, length, 1.0), 1.0)
+        unit = (d0 * inv, d1 * inv, d2 * inv)
+        dirs32 = np.empty((n, 3), dtype=np.float32)       # _run's float32 copy (the same cast)
+        for j in range(3):
+            dirs32[:, j] = unit[j]
+        o32 = ((origin[None] - self._origin) * self._factor).astype(np.float32)
+        prim = self._embree.run(np.broadcast_to(o32, (n, 3)), dirs32)
+        rays = np.flatnonzero(prim != -1)
+        if rays.size:
+            self._record_hits_from(owner, dist, rays, prim[rays], origin, tuple(u[rays] for u in unit))
+        return owner, dist
+
+    def _record_hits_from(self, owner, dist, rays, tri, origin, dirs) -> None:
+        """`_record_hits` for rays from one `origin` (3,) with unit directions as component arrays:
+        the plane distance (`_plane_distance`'s dot products) and the hit distance (fm.norm) written
+        out per component, the same operations in the same order."""
+        d0, d1, d2 = dirs
+        n0, n1, n2 = (c[tri] for c in self._normal_cols)
+        p0, p1, p2 = (c[tri] for c in self._plane_origin_cols)
+        ori = (p0 - origin[0]) * n0
+        ori = ori + (p1 - origin[1]) * n1
+        ori = ori + (p2 - origin[2]) * n2
+        den = d0 * n0
+        den = den + d1 * n1
+        den = den + d2 * n2
+        valid = np.abs(den) > _PARALLEL
+        if not valid.all():
+            rays, tri, ori, den, d0, d1, d2 = rays[valid], tri[valid], ori[valid], den[valid], \
+                d0[valid], d1[valid], d2[valid]
+        t = np.divide(ori, den)
+        owner[rays] = self.owner[tri]
+        length = None
+        for j, d in enumerate((d0, d1, d2)):     # loc = d * t + origin; |loc - origin|
+            part = (d * t + origin[j]) - origin[j]
+            length = part * part if length is None else length + part * part
+        dist[rays] = np.sqrt(length)
+
+    def _record_hits(self, owner, dist, rays, tri, hit_origins, hit_dirs) -> None:
+        """Fill `owner` and `dist` at the rays embree reports a hit for (hit triangle `tri`), the
+        distance recomputed in float64 from the triangle's plane; near-parallel hits are dropped."""
+        valid, t = self._plane_distance(tri, hit_origins, hit_dirs)
+        if not valid.all():
+            rays, tri, hit_origins, hit_dirs = rays[valid], tri[valid], hit_origins[valid], hit_dirs[valid]
+        owner[rays] = self.owner[tri]
+        loc = hit_dirs * t.reshape((-1, 1))
+        loc += hit_origins
+        dist[rays] = fm.norm(loc - hit_origins, axis=1)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
         """True where a ray (unit direction) meets a surface before distance `tmax` (an any-hit query:
@@ -191,6 +261,18 @@ def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None,
     subset gives exactly the bits the full grid would. (Each direction component is computed as
     its own contiguous array, the same operations in the same order as R @ (x, y, -1) per ray.)
     `lens`: the camera's lens and sensor (core.camera_model), with its principal point offset."""
+    columns = pixel_ray_columns(cam_rot, width, height, index, lens)
+    d = np.empty((len(columns[0]), 3))
+    for j in range(3):
+        d[:, j] = columns[j]
+    o = np.broadcast_to(np.asarray(cam_pos, dtype=np.float64), d.shape)
+    return o, d
+
+
+def pixel_ray_columns(cam_rot, width: int, height: int, index=None,
+                      lens: CameraModel = DEFAULT_CAMERA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`pixel_rays`' unit directions as three contiguous component arrays (the same bits): for
+    callers that go on component by component (placement.visible_fraction)."""
     k = camera_intrinsics(width, height, lens)
     if index is None:
         u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
@@ -205,12 +287,7 @@ def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None,
     d1 = x * r[1, 0] + y * r[1, 1] - r[1, 2]
     d2 = x * r[2, 0] + y * r[2, 1] - r[2, 2]
     n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    d = np.empty((len(x), 3))
-    np.divide(d0, n, out=d[:, 0])
-    np.divide(d1, n, out=d[:, 1])
-    np.divide(d2, n, out=d[:, 2])
-    o = np.broadcast_to(np.asarray(cam_pos, dtype=np.float64), d.shape)
-    return o, d
+    return np.divide(d0, n), np.divide(d1, n), np.divide(d2, n)
 
 
 def class_image(scene: RayScene, cam_pos, cam_rot, width: int, height: int,
