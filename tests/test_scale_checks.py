@@ -250,3 +250,54 @@ def test_a_decision_resolves_folders_and_answers_check_root_once(tmp_path):
     assert "cannot be read" in sniff.refusal(layer)   # a fresh look (a worker's)
     with roots_cached():
         assert "cannot be read" in sniff.refusal(layer)
+
+
+def test_in_threads_keeps_order_shares_the_decision_cache_and_raises():
+    """core.threads.in_threads: the answers in the items' order, each call sees the caller's
+    roots_cached dict (one decision: one cache), and an exception reaches the caller."""
+    from allo_usd.core.threads import in_threads
+    from allo_usd.usd.safety import decision_cache
+
+    cache: dict = {}
+
+    def note(x):
+        decision_cache()[("seen", x)] = x * x
+        return x * 2
+
+    with roots_cached(cache):
+        assert in_threads(note, list(range(1000))) == [2 * x for x in range(1000)]
+    assert cache == {("seen", x): x * x for x in range(1000)}
+
+    def boom(x):
+        if x == 700:
+            raise ValueError("seven hundred")
+        return x
+
+    with pytest.raises(ValueError, match="seven hundred"):
+        in_threads(boom, list(range(1000)))
+
+
+def test_a_resume_decision_reads_each_layer_once(tmp_path, tiny_base):
+    """The dispatcher's scan reads a scene layer once, to sniff it and checksum it; the resume
+    check's checksum of the layer comes from that read (file_sha256's cache holds it under the
+    layer's stat), and an edited layer is a new stat, so it is read again."""
+    from allo_usd.run import manifest as m
+    from allo_usd.run.dispatch import find_layers
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from helpers import make_spec
+
+    for i in range(3):
+        write_scene_layer(make_spec(seed=80 + i, scene_id=f"r{i}"), tmp_path / "layers" / f"r{i}.usda", tiny_base)
+    m._SHA256.clear()
+    layers = find_layers(tmp_path / "layers")
+    assert [p.name for p in layers] == ["r0.usda", "r1.usda", "r2.usda"]
+    keys = {Path(k[0]).name: k for k in m._SHA256}
+    assert set(keys) == {"r0.usda", "r1.usda", "r2.usda"}
+    for p in layers:
+        st = p.stat()
+        assert keys[p.name][1:4] == (st.st_mtime_ns, st.st_size, st.st_ino)
+        assert m.file_sha256(p) == m.sha256_file(p)
+    before = m._SHA256[keys["r1.usda"]]
+    layers[1].write_text(layers[1].read_text() + "\n")
+    assert m.file_sha256(layers[1]) == m.sha256_file(layers[1]) != before

@@ -21,8 +21,9 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock, ensure_output_dir, read_whole_small
+from allo_usd.core.threads import in_threads
 from allo_usd.run.manifest import (MANIFEST, append_jsonl, append_rows, check_output_names, clean_stale,
-                                   compact_manifest, remember_sha256, resume_check)
+                                   compact_manifest, prefetch, remember_sha256, resume_check)
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
 from allo_usd.usd.safety import ENV_ROOTS, roots_cached, tree_roots
 from allo_usd.usd.sniff import refusal
@@ -62,19 +63,31 @@ class Summary:
 SUPPORT_DIRS = ("sky", "poses", "stages", "schema", "hazards")  # a tree's shared layers (allo_usd.usd.compose)
 
 
-def _is_scene_layer(path: Path) -> bool | None:
-    """The one rule for what `render DIR` renders (allo_usd.usd.sniff.is_scene_layer: a layer whose
-    own layer metadata holds customLayerData.allo.sceneId)."""
-    from allo_usd.usd.sniff import HEAD_BYTES, is_scene_layer, refusal
+def _read_candidate(path: Path) -> tuple[bool, bytes | None]:
+    """(refused, its bytes when it is a small regular file): the refusal check (never opened when
+    refused), then one read of the whole layer, entered in file_sha256's cache for the resume check.
+    Safe in a thread: the sniff that may need pxr happens in the caller's (_is_scene_layer)."""
+    from allo_usd.usd.sniff import HEAD_BYTES, refusal
 
     if refusal(path):
-        return None
+        return True, None
     whole = read_whole_small(path, HEAD_BYTES)   # a scene layer is a few KB: read once, sniffed and checksummed
     if whole is None:
-        return is_scene_layer(path)
+        return False, None
     data, st = whole
     remember_sha256(path, st, data)   # the resume check's checksum of the layer (manifest.file_sha256's cache)
-    return is_scene_layer(path, data)
+    return False, data
+
+
+def _is_scene_layer(path: Path, read: tuple[bool, bytes | None] | None = None) -> bool | None:
+    """The one rule for what `render DIR` renders (allo_usd.usd.sniff.is_scene_layer: a layer whose
+    own layer metadata holds customLayerData.allo.sceneId); `read`: _read_candidate's answer."""
+    from allo_usd.usd.sniff import is_scene_layer
+
+    refused, data = _read_candidate(path) if read is None else read
+    if refused:
+        return None
+    return is_scene_layer(path) if data is None else is_scene_layer(path, data)
 
 
 def _scene_layers_under(root: Path) -> list[Path]:
@@ -101,7 +114,9 @@ def _scene_layers_under(root: Path) -> list[Path]:
         found += [here / f for f in filenames
                   if f.lower().endswith((*LAYER_SUFFIXES, ".usdz")) and not f.startswith(".")]
     # A name that is not a regular file is kept (never opened): dispatch records it in failed.jsonl.
-    return [p for p in sorted(found) if _is_scene_layer(p) is not False]
+    found.sort()
+    reads = in_threads(_read_candidate, found)
+    return [p for p, read in zip(found, reads) if _is_scene_layer(p, read) is not False]
 
 
 def find_layers(source: str | Path | list) -> list[Path]:
@@ -633,7 +648,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
     roots_seen: dict = {}   # allowed_roots, real paths and refusals of this decision (a worker checks afresh)
     with roots_cached(roots_seen):
-        layers = [Path(os.path.abspath(p)) for p in find_layers(source)]
+        layers = [p if os.path.abspath(p) == str(p) else Path(os.path.abspath(p)) for p in find_layers(source)]
     ensure_output_dir(out_dir, "output directory")
     # a layer's own folder (not its link target's: a link to /etc/passwd must not make /etc a root)
     roots = sorted({os.path.realpath(f) for f in {p.parent for p in layers}} | {str(Path(r).resolve()) for r in extra_roots})
@@ -646,6 +661,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         done = compact_manifest(out_dir)
         tasks, unusable, caught_up = [], [], []
         with roots_cached(roots_seen):
+            prefetch(layers, done, out_dir)   # the inputs' checksums and the outputs' inodes, several reads in flight
             for layer in layers:
                 why = refusal(layer)
                 if why:  # found by the scan: never opened, recorded as failed
@@ -678,7 +694,8 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
             summary.interrupted = True
         finally:
             run.close(last_line=ended)
-            clean_stale(out_dir)
+            if tasks:   # temporaries of writers killed during this run (none ran: none to clean)
+                clean_stale(out_dir)
             try:
                 if tasks or caught_up:   # rows were appended (a resume with nothing to do leaves it as it was)
                     compact_manifest(out_dir)

@@ -50,8 +50,17 @@ PASS_FILES = {"rgb": ".png", "exr": ".exr", "mask": "_mask.png", "depth": "_dept
               "instance": "_instance.png", "amodal": "_amodal.png"}  # pass -> what output_paths appends to a stem
 
 
+def _stem(layer) -> str:
+    """A layer's stem (Path.stem) without building a Path: a 51,409-layer run asks for it often."""
+    if isinstance(layer, Path):
+        return layer.stem
+    name = os.path.basename(os.fspath(layer))
+    i = name.rfind(".")
+    return name[:i] if 0 < i < len(name) - 1 else name
+
+
 def _stem_problem(layer: Path) -> str | None:
-    low = Path(layer).stem.lower()
+    low = _stem(layer).lower()
     suffix = next((s for s in RESERVED_SUFFIXES if low.endswith(s)), None)
     if suffix is None:
         return None
@@ -67,14 +76,15 @@ def check_output_names(layers) -> None:
     reserved suffix, or two stems equal up to case (one output directory takes them all)."""
     seen: dict[str, Path] = {}
     for layer in layers:
-        problem = _stem_problem(Path(layer))
+        layer = layer if isinstance(layer, Path) else Path(layer)
+        problem = _stem_problem(layer)
         if problem:
             raise LayerError(problem)
-        low = Path(layer).stem.lower()
-        if low in seen and seen[low] != Path(layer):
+        low = layer.stem.lower()
+        if low in seen and seen[low] != layer:
             raise LayerError(f"layers {seen[low]} and {layer} have names that differ only in case; their outputs "
                              "would overwrite each other on a file system that ignores case: rename one")
-        seen[low] = Path(layer)
+        seen[low] = layer
 
 
 def output_paths(layer: Path, out_dir: Path, outputs: tuple[str, ...] | None = None) -> dict[str, Path]:
@@ -185,12 +195,12 @@ def current_identity(layer: Path, inputs) -> str | None:
     dispatcher's decision block (safety.roots_cached) real paths are resolved per folder and each
     input file is checksummed once per block (a pose or stage layer many scenes share); a worker
     that renders a scene computes its identity afresh."""
-    from allo_usd.usd.safety import decision_cache, real_path
+    from allo_usd.usd.safety import decision_cache, real_folder, real_path
 
     if not isinstance(inputs, (dict, list)) or not inputs or not all(isinstance(r, str) for r in inputs):
         return None
     layer = os.path.abspath(layer)
-    here = real_path(os.path.dirname(layer))  # input_hashes wrote paths relative to it, links resolved
+    here = real_folder(os.path.dirname(layer))  # input_hashes wrote paths relative to it, links resolved
     memo = decision_cache()  # the dispatcher's decision: a file shared by many scenes is looked at once
     now, paths = {}, set()
     for rel in inputs:
@@ -237,7 +247,7 @@ def is_done(layer: Path, out_dir: Path, manifest: dict[str, dict] | None = None,
         return False  # the render says what is wrong with it
     if manifest is None:
         return done_record(layer, out_dir) is not None
-    return resume_check(layer, out_dir, manifest.get(Path(layer).stem), verify)[0]
+    return resume_check(layer, out_dir, manifest.get(_stem(layer)), verify)[0]
 
 
 def resume_check(layer: Path, out_dir: Path, row: dict | None, verify: bool = False) -> tuple[bool, dict | None]:
@@ -352,6 +362,42 @@ def _row_record(row: dict) -> dict | None:
             "passes": rec.get("passes")}
 
 
+def prefetch(layers, rows: dict[str, dict], out_dir: Path) -> int:
+    """Warm what the dispatcher's decision is about to look at, several reads in flight
+    (core.threads), before it looks at the scenes one by one: checksum every input file the
+    manifest rows of `layers` carry (record_fields) into file_sha256's cache, and stat every output
+    they name (the answers are dropped: the decision stats each output itself, now from the
+    kernel's cache). On a cold page cache the paper plan's ~37,000 pose layers and ~200,000 outputs
+    are then read concurrently, not one disk round trip at a time. Only what the decision would
+    read anyway; returns how many files. Call it inside the decision's roots_cached block (its real
+    paths)."""
+    from allo_usd.core.threads import in_threads
+    from allo_usd.usd.safety import real_folder
+
+    named: set[tuple[str, str]] = set()   # (folder, relative path): a shared file's name repeats 51,409 times
+    outputs: list[str] = []
+    for layer in layers:
+        row = rows.get(_stem(layer))
+        files = row.get("files") if isinstance(row, dict) else None
+        outputs += [os.path.join(out_dir, n) for n in files if isinstance(n, str)] if isinstance(files, dict) else []
+        rec = row.get(ROW_RECORD) if isinstance(row, dict) else None
+        if not isinstance(rec, dict) or not isinstance(rec.get("inputs"), list):
+            continue
+        here = real_folder(os.path.dirname(os.path.abspath(layer)))
+        named.update((here, rel) for rel in rec["inputs"] if isinstance(rel, str))
+    paths = sorted({os.path.normpath(os.path.join(here, rel)) for here, rel in named})
+    in_threads(file_sha256, paths)
+    in_threads(_stat_quietly, outputs)
+    return len(paths) + len(outputs)
+
+
+def _stat_quietly(path: str) -> None:
+    try:
+        os.stat(path)
+    except OSError:
+        pass
+
+
 def index_row(layer: Path, out_dir: Path, meta: dict) -> dict:
     """The manifest row of a scene whose render JSON `meta` is verified (done_record), for a scene
     another entry point rendered (render_layer, `allo-usd render LAYER`, the demo): the index
@@ -386,11 +432,11 @@ def check_row(row: dict | None, layer: Path, out_dir: Path, verify: bool = False
     files = row.get("files")
     if not isinstance(files, dict):
         return None
-    stem = Path(layer).stem
+    stem = _stem(layer)
     # the JSON's fields: the row's copy (record_fields), else the JSON itself; trusted below only if the
     # JSON's stat (or checksum) is the row's
     carried = _row_record(row)
-    meta = carried if carried is not None else _meta(Path(out_dir) / f"{stem}.json")
+    meta = carried if carried is not None else _meta(os.path.join(out_dir, f"{stem}.json"))
     passes = meta.get("layer_passes")
     named = ({f"{stem}{PASS_FILES[p]}" for p in passes} | {f"{stem}.json"}
              if isinstance(passes, list) and all(isinstance(p, str) and p in PASS_FILES for p in passes) else None)
@@ -527,9 +573,10 @@ def clean_stale(out_dir: Path, pid: int | None = None) -> int:
     pattern = temp_name_re(pid)
     n = 0
     if out_dir.is_dir():
-        for p in out_dir.iterdir():
-            if pattern.match(p.name) and p.is_file():
-                p.unlink(missing_ok=True)
-                n += 1
+        with os.scandir(out_dir) as entries:   # a paper-size folder holds ~260,000 names: no Path, no stat each
+            stale = [e.path for e in entries if e.name.startswith(".") and pattern.match(e.name) and e.is_file()]
+        for p in stale:
+            Path(p).unlink(missing_ok=True)
+            n += 1
     shutil.rmtree(out_dir / WORKDIR if pid is None else out_dir / WORKDIR / str(int(pid)), ignore_errors=True)
     return n

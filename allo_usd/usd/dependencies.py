@@ -63,7 +63,7 @@ from pathlib import Path
 
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import file_problem, write_bytes_atomic
-from allo_usd.usd.safety import allowed_roots, decision_cache, inside, real_path, reject
+from allo_usd.usd.safety import allowed_roots, decision_cache, inside, inside_real, real_path, reject
 
 MAX_LAYER_BYTES = 256 << 20   # a scene layer is < 4 KB; the base stage's largest .usdc is a few MB
 MAX_ASSET_BYTES = 256 << 20   # a texture; the shipped ones are < 1 MB
@@ -196,7 +196,7 @@ def _check(kind: str, what: str, path: str, layer_path, roots, package_root: boo
     """The real path of `path` if it may be read as a `kind`; else a LayerError naming the rule.
     `package_root`: `path` is the scene itself and may be a package (.usdz)."""
     real = real_path(path)
-    if not inside(real, roots):
+    if not inside_real(real, roots):
         refuse(what, path, layer_path, roots)
     packaged = package_root and is_package(path)
     problem = file_problem(real, MAX_PACKAGE_BYTES if packaged else MAX_LAYER_BYTES if kind == LAYER

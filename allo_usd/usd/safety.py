@@ -166,7 +166,8 @@ def _roots_key(layer_path: str | Path, extra) -> tuple | None:
             return None
     except OSError:
         return None
-    return (os.getcwd(), str(Path(layer_path).parent), tuple(map(str, extra)), os.environ.get(ENV_ROOTS, ""))
+    return (os.getcwd(), os.path.dirname(os.fspath(layer_path)) or ".", tuple(map(str, extra)),
+            os.environ.get(ENV_ROOTS, ""))
 
 
 def allowed_roots(layer_path: str | Path, extra: tuple[str | Path, ...] = ()) -> tuple[Path, ...]:
@@ -215,17 +216,29 @@ def real_path(path: str | Path) -> str:
     except OSError:
         return os.path.realpath(path)
     folder, name = os.path.split(path)
-    key = ("realpath", folder)
+    return os.path.join(real_folder(folder), name) if name else real_folder(folder)
+
+
+def real_folder(folder: str) -> str:
+    """os.path.realpath of a folder, once per roots_cached block (real_path's folders)."""
+    cache = _ROOTS_CACHE.get()
+    if cache is None:
+        return os.path.realpath(folder)
+    key = ("realpath", os.path.abspath(folder))
     real = cache.get(key)
     if real is None:
-        real = cache[key] = os.path.realpath(folder)
-    return os.path.join(real, name) if name else real
+        real = cache[key] = os.path.realpath(key[1])
+    return real
 
 
 def inside(path: str, roots: tuple[Path, ...]) -> bool:
     """Does the real path of `path` lie in (or equal) one of `roots` (real paths)? Compared as
     strings: a root's path and a separator prefix the path of everything below it."""
-    real = real_path(path)
+    return inside_real(real_path(path), roots)
+
+
+def inside_real(real: str, roots: tuple[Path, ...]) -> bool:
+    """inside() for a path already resolved (os.path.realpath, real_path)."""
     for r in roots:
         top = str(r)
         if real == top or real.startswith(top if top.endswith(os.sep) else top + os.sep):
