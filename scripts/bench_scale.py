@@ -54,6 +54,8 @@ QUICK_DAYS = 14  # the paper plan over its first 14 days: 1,972 scenes
 GOALS = {"author": 120.0, "author_noop": 30.0, "resume": 60.0}  # seconds, the issue's "done means"
 REAL_SIZES = "EXR 5.6 MB, PNG 1.2 MB, mask 21 KB, JSON 7 KB"  # a real 1080p render's outputs (issue 26)
 STAMP = "bench-scale.json"  # in --work: what the render folder was built from
+LINKS_PER_SOURCE = 20000  # scenes per synthesised source file: the render folder's link and the dataset's make two
+                          # each, under ext4's 65,000 links per inode (past it `dataset` copies instead of linking)
 
 
 # ---------------------------------------------------------------- the machine
@@ -247,8 +249,9 @@ def _record_one(args) -> dict:
     from allo_usd.output.writers import write_json
     from allo_usd.run import manifest as m
 
-    layer, out, src, digests, copy, cpu, templates = args
+    layer, out, src, digests, copy, cpu, templates, group = args
     layer, out = Path(layer), Path(out)
+    src = {k: f"{v}.{group}" if group else v for k, v in src.items()}   # this scene's copy of the sources
     files, sdf = _inputs(layer, check=copy)
     inputs = m.input_hashes(layer, files)
     scene = _scene_meta(sdf, layer.parent)
@@ -329,7 +332,7 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
     step = max(1, len(layers) // max(sample, 1))
     sampled = layers[::step][:sample]
     stamp = {"tree": str(tree.resolve()), "layers": len(layers), "plan": (tree / "plan.toml").read_text(),
-             "sample": [p.stem for p in sampled]}
+             "sample": [p.stem for p in sampled], "links_per_source": LINKS_PER_SOURCE}
     stamp_path = renders.parent / STAMP
     if stamp_path.is_file() and json.loads(stamp_path.read_text()) == stamp and (renders / MANIFEST).is_file():
         return layers, sampled, json.loads((renders.parent / "sizes.json").read_text())
@@ -339,8 +342,11 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
     digests = {k: sha256_file(p) for k, p in src.items()}
     templates = _templates(layers, src)
     in_sample = {p.stem for p in sampled}
-    tasks = [(str(p), str(renders), {k: str(v) for k, v in src.items()}, digests, p.stem in in_sample, cpu, templates)
-             for p in layers]
+    for g in range(1, (len(layers) - 1) // LINKS_PER_SOURCE + 1):   # same bytes and mtime, another inode
+        for p in src.values():
+            shutil.copy2(p, f"{p}.{g}")
+    tasks = [(str(p), str(renders), {k: str(v) for k, v in src.items()}, digests, p.stem in in_sample, cpu, templates,
+              i // LINKS_PER_SOURCE) for i, p in enumerate(layers)]
     t0 = time.perf_counter()
     with get_context("spawn").Pool(jobs) as pool:
         rows = []
@@ -434,7 +440,8 @@ def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, siz
              f"Plan: {plan}. Page cache before the resume checks and the first dataset run: {cache_note}.", "",
              f"Render folder: every scene's PNG ({sizes.get('png', 0):,} B), EXR ({sizes.get('exr', 0):,} B) and mask "
              f"({sizes.get('mask_normal', 0):,} / {sizes.get('mask_anomaly', 0):,} B) are hard links to one "
-             f"synthesised set at the plan's resolution (a real 1080p render: {REAL_SIZES}); the `--verify` sample's "
+             f"synthesised set (a copy of it per {LINKS_PER_SOURCE:,} scenes, so that no file passes ext4's 65,000 "
+             f"links when `dataset` links it again) at the plan's resolution (a real 1080p render: {REAL_SIZES}); the `--verify` sample's "
              f"are copies; each JSON (median {sizes.get('json_median', 0):,} B) is its own layer's record (layer checksum, "
              "inputs and identity, scene labels; the annotations are one real layer's of its kind) and each manifest "
              "row comes from `manifest_row`.", "",

@@ -186,6 +186,17 @@ def _s_sincos(x: float, want_cos: bool) -> float | None:
     return (c, -s, -c, s)[n] if want_cos else (s, c, -s, -c)[n]
 
 
+def _s_sin_cos(x: float) -> tuple[float, float] | None:
+    """(sin, cos) of a finite float, each exactly `_s_sincos`'s, from one range reduction (tan needs both)."""
+    if abs(x) < 2.0 ** -27:
+        return x, 1.0
+    if not abs(x) < REDUCTION_LIMIT:
+        return None
+    n, y0, y1 = _s_rem_pio2(x)
+    s, c = _ksin(y0, y1), _kcos(y0, y1)
+    return (s, c, -s, -c)[n], (c, -s, -c, s)[n]
+
+
 def sin(x):
     if _finite(x) and (r := _s_sincos(float(x), False)) is not None:
         return r
@@ -202,10 +213,8 @@ def cos(x):
 
 def tan(x):
     """sin(x) / cos(x): within 2 ulp, and the same on every machine (the camera's half-angles)."""
-    if _finite(x):
-        s, c = _s_sincos(float(x), False), _s_sincos(float(x), True)
-        if s is not None and c:
-            return s / c
+    if _finite(x) and (sc := _s_sin_cos(float(x))) is not None and sc[1]:
+        return sc[0] / sc[1]
     a, scalar = _arr(x)
     a1 = np.atleast_1d(a)
     with np.errstate(all="ignore"):

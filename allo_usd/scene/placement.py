@@ -28,7 +28,7 @@ from allo_usd.core.labels import ANOMALY
 from allo_usd.core.errors import PlacementError
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import box_corners, camera_intrinsics, fibonacci_sphere, quat_to_matrix
-from allo_usd.scene.raycast import RayScene, pixel_ray_columns, pixel_rays
+from allo_usd.scene.raycast import RayFan, RayScene, intrinsic_rows, pixel_ray_columns, pixel_rays
 from allo_usd.core import fixedmath as fm
 
 DEPTH_OFFSETS = (0.0, -1.0, 1.0, -2.0, 2.0)
@@ -73,32 +73,34 @@ def _bounds_to_pixels(width: int, height: int, u0: float, u1: float, v0: float, 
 def _sphere_box(cam_pos, cam_rot, width: int, height: int, centre, radius: float, lens: CameraModel = DEFAULT_CAMERA):
     """The sphere's exact image-space bounding box (tangent planes through the camera) as pixel
     bounds, or None when the sphere reaches the camera plane (then every pixel is a candidate)."""
-    k = camera_intrinsics(width, height, lens)
-    c = fm.matmul(np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
-    depth = -c[2]
+    (fx, _, cx), (_, fy, cy), _ = intrinsic_rows(width, height, lens)
+    # fm.matmul(centre - cam_pos, cam_rot) on Python floats: each entry summed in index order, so the
+    # same bits without a dozen numpy calls on 3-vectors (this runs for every candidate checked)
+    v0, v1, v2 = (np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)).tolist()
+    r0, r1, r2 = np.asarray(cam_rot, dtype=np.float64).tolist()
+    depth = -(v0 * r0[2] + v1 * r1[2] + v2 * r2[2])
     if depth <= radius * 1.01:
         return None
     bounds = []
-    for lateral in (c[0], c[1]):
+    for lateral in (v0 * r0[0] + v1 * r1[0] + v2 * r2[0], v0 * r0[1] + v1 * r1[1] + v2 * r2[1]):
         h = fm.hypot(lateral, depth)
         theta, beta = fm.arctan2(lateral, depth), fm.arcsin(min(1.0, radius / h))
         bounds.append((fm.tan(theta - beta), fm.tan(theta + beta)))
     (sx0, sx1), (sy0, sy1) = bounds
-    return _bounds_to_pixels(width, height, sx0 * k[0, 0] + k[0, 2], sx1 * k[0, 0] + k[0, 2],
-                             k[1, 2] - sy1 * k[1, 1], k[1, 2] - sy0 * k[1, 1])
+    return _bounds_to_pixels(width, height, sx0 * fx + cx, sx1 * fx + cx, cy - sy1 * fy, cy - sy0 * fy)
 
 
 def _corner_box(cam_pos, cam_rot, width: int, height: int, corners, lens: CameraModel = DEFAULT_CAMERA):
     """Pixel bounds of points' projections (a convex object's box corners), or None when any lies
     on or behind the camera plane. Perspective maps a convex set in front of the camera to the
     convex hull of its corners' images, so every pixel whose ray meets the object is inside."""
-    k = camera_intrinsics(width, height, lens)
+    k = intrinsic_rows(width, height, lens)
     c = fm.matmul(np.asarray(corners, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
         return None
-    u = k[0, 0] * c[:, 0] / depth + k[0, 2]
-    v = k[1, 2] - k[1, 1] * c[:, 1] / depth
+    u = k[0][0] * c[:, 0] / depth + k[0][2]
+    v = k[1][2] - k[1][1] * c[:, 1] / depth
     return _bounds_to_pixels(width, height, u.min(), u.max(), v.min(), v.max())
 
 
@@ -124,15 +126,14 @@ def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box
     widened image box of at least one triangle: the object's footprint, much tighter than its
     overall box for thin or hollow objects, and exact (a ray meets a triangle only through its
     image). None when a vertex lies on or behind the camera plane."""
-    k = camera_intrinsics(width, height, lens)
+    k = intrinsic_rows(width, height, lens)
     c = fm.matmul(np.asarray(points, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
         return None
-    u = (k[0, 0] * c[:, 0] / depth + k[0, 2])[triangles]
-    v = (k[1, 2] - k[1, 1] * c[:, 1] / depth)[triangles]
-    uu = np.stack([u[:, 0], u[:, 1], u[:, 2]])
-    vv = np.stack([v[:, 0], v[:, 1], v[:, 2]])
+    corners_of = np.asarray(triangles).T              # gathered as (3, triangles): one row per corner
+    uu = (k[0][0] * c[:, 0] / depth + k[0][2])[corners_of]
+    vv = (k[1][2] - k[1][1] * c[:, 1] / depth)[corners_of]
     return _rects_union(width, box, stride, uu.min(axis=0), uu.max(axis=0), vv.min(axis=0), vv.max(axis=0))
 
 
@@ -142,14 +143,14 @@ def _parts_footprint(cam_pos, cam_rot, width: int, height: int, corners, box, st
     corners): the pixels whose centre lies in the widened image box of some part. A part's image
     lies in the convex hull of its box corners' images, and each triangle's in its part's, so this
     holds every pixel `_footprint` holds (exact too), at a cost that does not grow with the mesh."""
-    k = camera_intrinsics(width, height, lens)
+    k = intrinsic_rows(width, height, lens)
     c = fm.matmul(np.asarray(corners, dtype=np.float64).reshape(-1, 3) - np.asarray(cam_pos, dtype=np.float64),
                   np.asarray(cam_rot))
     depth = -c[:, 2]
     if depth.min() <= 1e-6:
         return None
-    u = (k[0, 0] * c[:, 0] / depth + k[0, 2]).reshape(-1, 8)
-    v = (k[1, 2] - k[1, 1] * c[:, 1] / depth).reshape(-1, 8)
+    u = (k[0][0] * c[:, 0] / depth + k[0][2]).reshape(-1, 8)
+    v = (k[1][2] - k[1][1] * c[:, 1] / depth).reshape(-1, 8)
     return _rects_union(width, box, stride, u.min(axis=1), u.max(axis=1), v.min(axis=1), v.max(axis=1))
 
 
@@ -332,7 +333,7 @@ def _clear_of(station: RayScene, position, radius: float, cam_pos, cam_rot) -> s
     both probed along 128 directions from the centre."""
     if fm.dot(position - cam_pos, -cam_rot[:, 2]) <= radius + CAMERA_CLEARANCE_M:
         return "behind or against the camera"
-    _, dist = station.first_hit(np.repeat(position[None], len(_SPHERE_DIRS), 0), _SPHERE_DIRS)
+    _, dist = station.first_hit_fan(position, _SPHERE_FAN)   # first_hit from `position`, bit for bit
     if (dist < radius * 1.05).any():
         return "intersects the station"
     if dist.min() > NEAR_STRUCTURE_M:
@@ -379,6 +380,7 @@ def check(station: RayScene, anomaly_points, anomaly_tris, position, rotation, c
 
 
 _SPHERE_DIRS = fibonacci_sphere(128)
+_SPHERE_FAN = RayFan.of_rows(_SPHERE_DIRS)   # their unit vectors and float32 copy, made once
 
 
 def _image_rays(cam_rot, k: np.ndarray, px, py) -> np.ndarray:

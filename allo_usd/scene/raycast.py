@@ -34,6 +34,30 @@ def _unitize(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v * inv[:, None], ok
 
 
+class RayFan:
+    """Ray directions (three component arrays, need not be unit) made ready for `RayScene.first_hit_fan`:
+    their unit vectors (`_unitize`'s operations, component by component) and the float32 copy
+    embree reads. Built once for a fixed set of directions cast from many points (placement's
+    clearance probes), or per call by `first_hit_from`."""
+
+    def __init__(self, d0: np.ndarray, d1: np.ndarray, d2: np.ndarray):
+        length = d0 * d0                                  # _unitize: fm.norm's sum, in its order
+        length = length + d1 * d1
+        length = np.sqrt(length + d2 * d2)
+        ok = length > _ZERO
+        inv = 1.0 / length if ok.all() else np.where(ok, 1.0 / np.where(ok, length, 1.0), 1.0)
+        self.unit = (d0 * inv, d1 * inv, d2 * inv)
+        self.dirs32 = np.empty((len(d0), 3), dtype=np.float32)   # _run's float32 copy (the same cast)
+        for j in range(3):
+            self.dirs32[:, j] = self.unit[j]
+
+    @classmethod
+    def of_rows(cls, dirs: np.ndarray) -> "RayFan":
+        """The fan of (n, 3) direction rows."""
+        d = np.asarray(dirs, dtype=np.float64)
+        return cls(*(np.ascontiguousarray(d[:, j]) for j in range(3)))
+
+
 class RayScene:
     """Triangles tagged by owner id (1 station, 2 anomaly), one embree BVH over all of them."""
 
@@ -86,8 +110,8 @@ class RayScene:
                     split += [g[order[:len(g) // 2]], g[order[len(g) // 2:]]]
                 groups = split
             boxes = []
-            for g in groups:
-                boxes.append(box_corners(self.vertices[np.unique(self.faces[g])]))
+            for g in groups:   # the corners of each triangle (repeats change no min or max)
+                boxes.append(box_corners(self.vertices[self.faces[g].ravel()]))
             self._parts[levels] = np.array(boxes, dtype=np.float64).reshape(-1, 8, 3)
         return self._parts[levels]
 
@@ -129,24 +153,21 @@ class RayScene:
         that all start at `origin` (3,) with their directions given as three component arrays (n,):
         the same operations element by element, without the (n, 3) float64 temporaries of the rays
         that miss (most of a placement check's rays)."""
-        origin = np.asarray(origin, dtype=np.float64).reshape(3)
         d0, d1, d2 = (np.asarray(c, dtype=np.float64) for c in dirs)
-        n = len(d0)
+        if not len(d0):
+            return np.zeros(0, dtype=np.uint8), np.full(0, np.inf)
+        return self.first_hit_fan(origin, RayFan(d0, d1, d2))
+
+    def first_hit_fan(self, origin: np.ndarray, fan: "RayFan"):
+        """`first_hit_from(origin, fan's directions)` bit for bit, the directions' unit vectors and
+        float32 copy taken from `fan` (made once for directions cast from many points)."""
+        origin = np.asarray(origin, dtype=np.float64).reshape(3)
+        unit = fan.unit
+        n = len(unit[0])
         owner = np.zeros(n, dtype=np.uint8)
         dist = np.full(n, np.inf)
-        if not n:
-            return owner, dist
-        length = d0 * d0                                  # _unitize: fm.norm's sum, in its order
-        length = length + d1 * d1
-        length = np.sqrt(length + d2 * d2)
-        ok = length > _ZERO
-        inv = 1.0 / length if ok.all() else np.where(ok, 1.0 / np.where(ok, length, 1.0), 1.0)
-        unit = (d0 * inv, d1 * inv, d2 * inv)
-        dirs32 = np.empty((n, 3), dtype=np.float32)       # _run's float32 copy (the same cast)
-        for j in range(3):
-            dirs32[:, j] = unit[j]
         o32 = ((origin[None] - self._origin) * self._factor).astype(np.float32)
-        prim = self._embree.run(np.broadcast_to(o32, (n, 3)), dirs32)
+        prim = self._embree.run(np.broadcast_to(o32, (n, 3)), fan.dirs32)
         rays = np.flatnonzero(prim != -1)
         if rays.size:
             self._record_hits_from(owner, dist, rays, prim[rays], origin, tuple(u[rays] for u in unit))
@@ -269,23 +290,39 @@ def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None,
     return o, d
 
 
+_INTRINSICS: dict = {}
+
+
+def intrinsic_rows(width: int, height: int, lens: CameraModel = DEFAULT_CAMERA) -> list:
+    """`camera_intrinsics(width, height, lens)` as nested lists of floats (the same values), computed
+    once per (size, lens): placement checks every candidate at the same few sizes."""
+    key = (width, height, lens)
+    try:
+        rows = _INTRINSICS.get(key)
+    except TypeError:              # a lens that cannot be a key (unhashable fields): computed each time
+        return camera_intrinsics(width, height, lens).tolist()
+    if rows is None:
+        rows = _INTRINSICS[key] = camera_intrinsics(width, height, lens).tolist()
+    return rows
+
+
 def pixel_ray_columns(cam_rot, width: int, height: int, index=None,
                       lens: CameraModel = DEFAULT_CAMERA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`pixel_rays`' unit directions as three contiguous component arrays (the same bits): for
     callers that go on component by component (placement.visible_fraction)."""
-    k = camera_intrinsics(width, height, lens)
+    (fx, _, cx), (_, fy, cy), _ = intrinsic_rows(width, height, lens)
     if index is None:
         u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
         u, v = u.ravel(), v.ravel()
     else:
         row, col = np.divmod(np.asarray(index, dtype=np.int64), width)
         u, v = col + 0.5, row + 0.5
-    x = (u - k[0, 2]) / k[0, 0]
-    y = -(v - k[1, 2]) / k[1, 1]
-    r = np.asarray(cam_rot, dtype=np.float64)
-    d0 = x * r[0, 0] + y * r[0, 1] - r[0, 2]   # R @ (x, y, -1)
-    d1 = x * r[1, 0] + y * r[1, 1] - r[1, 2]
-    d2 = x * r[2, 0] + y * r[2, 1] - r[2, 2]
+    x = (u - cx) / fx
+    y = -(v - cy) / fy
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(cam_rot, dtype=np.float64).tolist()
+    d0 = x * r00 + y * r01 - r02   # R @ (x, y, -1)
+    d1 = x * r10 + y * r11 - r12
+    d2 = x * r20 + y * r21 - r22
     n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     return np.divide(d0, n), np.divide(d1, n), np.divide(d2, n)
 

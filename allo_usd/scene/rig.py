@@ -23,7 +23,7 @@ from allo_usd.scene.spec import CameraPose
 from allo_usd.core.errors import PlacementError
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import check_finite, fibonacci_sphere, look_at, rot_x, rot_y, rot_z
-from allo_usd.scene.raycast import RayScene
+from allo_usd.scene.raycast import RayFan, RayScene
 from allo_usd.core import fixedmath as fm
 
 N_TRAIN, N_TEST = 40, 10
@@ -205,11 +205,12 @@ def perturbation_matrix(angles) -> np.ndarray:
 _CLEARANCE_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
                             [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], dtype=np.float64)
 _CLEARANCE_DIRS /= fm.norm(_CLEARANCE_DIRS, axis=1, keepdims=True)   # once: every camera sample probes these
+_CLEARANCE_FAN = RayFan.of_rows(_CLEARANCE_DIRS)   # and their unit vectors and float32 copy (first_hit_fan)
 
 
 def too_close(scene: RayScene, p: np.ndarray, clearance: float = CLEARANCE_M) -> bool:
     """True if p is within `clearance` of the station or enclosed by it (parity vote)."""
-    owner, dist = scene.first_hit(np.repeat(p[None], len(_CLEARANCE_DIRS), 0), _CLEARANCE_DIRS)
+    owner, dist = scene.first_hit_fan(p, _CLEARANCE_FAN)   # first_hit from p, bit for bit
     return bool((dist < clearance).any() or scene.inside(p))
 
 

@@ -174,7 +174,8 @@ class TreeLinks:
 
     def relpath(self, target, start) -> str:
         """`allo_usd.core.files.relpath(target, start)` (the same string)."""
-        rel = Path(os.path.relpath(self.real(target), self._real_dir(self._absolute(start)))).as_posix()
+        rel = os.path.relpath(self.real(target), self._real_dir(self._absolute(start)))
+        rel = rel if os.sep == "/" else Path(rel).as_posix()   # a string op: ~20,000 layers name ~90,000 paths
         return rel if rel.startswith(".") else f"./{rel}"
 
 
