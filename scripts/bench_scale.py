@@ -429,7 +429,7 @@ def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, siz
             return f"<= {GOALS['author']:.0f} s"
         if w.startswith("author, resume"):
             return f"<= {GOALS['author_noop']:.0f} s"
-        if w.startswith("resume check"):
+        if w.startswith("resume check, quick"):
             return f"<= {GOALS['resume']:.0f} s"
         if w.startswith("dataset, re-run"):
             first = next((x for x in rows if x["what"].startswith("dataset, first")), None)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import contextvars
 from concurrent.futures import ThreadPoolExecutor
 
-READ_THREADS = 8  # reads in flight (disk latency, not CPU: more threads than cores)
+READ_THREADS = 4  # reads in flight (disk latency, not CPU: more threads than cores; more cost GIL hand-offs)
 CHUNK = 64        # items per task (a future per item would cost more than a warm item's work)
 
 

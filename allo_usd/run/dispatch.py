@@ -661,7 +661,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         done = compact_manifest(out_dir)
         tasks, unusable, caught_up = [], [], []
         with roots_cached(roots_seen):
-            prefetch(layers, done, out_dir)   # the inputs' checksums and the outputs' inodes, several reads in flight
+            prefetch(layers, done)   # the shared inputs' checksums, several reads in flight
             for layer in layers:
                 why = refusal(layer)
                 if why:  # found by the scan: never opened, recorded as failed

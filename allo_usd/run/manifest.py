@@ -362,40 +362,29 @@ def _row_record(row: dict) -> dict | None:
             "passes": rec.get("passes")}
 
 
-def prefetch(layers, rows: dict[str, dict], out_dir: Path) -> int:
-    """Warm what the dispatcher's decision is about to look at, several reads in flight
-    (core.threads), before it looks at the scenes one by one: checksum every input file the
-    manifest rows of `layers` carry (record_fields) into file_sha256's cache, and stat every output
-    they name (the answers are dropped: the decision stats each output itself, now from the
-    kernel's cache). On a cold page cache the paper plan's ~37,000 pose layers and ~200,000 outputs
-    are then read concurrently, not one disk round trip at a time. Only what the decision would
-    read anyway; returns how many files. Call it inside the decision's roots_cached block (its real
-    paths)."""
+def prefetch(layers, rows: dict[str, dict]) -> int:
+    """Checksum, several reads in flight (core.threads), every input file the manifest rows of
+    `layers` carry (record_fields) outside the layer's own folder (the scene layer itself was read
+    by the scan), into file_sha256's cache, before the dispatcher's decision looks at the scenes one
+    by one: on a cold page cache the paper plan's ~37,000 pose layers are then read concurrently,
+    not one disk round trip at a time. Only what the decision would checksum anyway (it still
+    stats each file); returns how many files. Call it inside the decision's roots_cached block (its
+    real paths). The outputs are not warmed so: 200,000 stats in threads cost more in GIL hand-offs
+    than their disk latency (measured)."""
     from allo_usd.core.threads import in_threads
     from allo_usd.usd.safety import real_folder
 
     named: set[tuple[str, str]] = set()   # (folder, relative path): a shared file's name repeats 51,409 times
-    outputs: list[str] = []
     for layer in layers:
         row = rows.get(_stem(layer))
-        files = row.get("files") if isinstance(row, dict) else None
-        outputs += [os.path.join(out_dir, n) for n in files if isinstance(n, str)] if isinstance(files, dict) else []
         rec = row.get(ROW_RECORD) if isinstance(row, dict) else None
         if not isinstance(rec, dict) or not isinstance(rec.get("inputs"), list):
             continue
         here = real_folder(os.path.dirname(os.path.abspath(layer)))
-        named.update((here, rel) for rel in rec["inputs"] if isinstance(rel, str))
+        named.update((here, rel) for rel in rec["inputs"] if isinstance(rel, str) and "/" in rel.removeprefix("./"))
     paths = sorted({os.path.normpath(os.path.join(here, rel)) for here, rel in named})
     in_threads(file_sha256, paths)
-    in_threads(_stat_quietly, outputs)
-    return len(paths) + len(outputs)
-
-
-def _stat_quietly(path: str) -> None:
-    try:
-        os.stat(path)
-    except OSError:
-        pass
+    return len(paths)
 
 
 def index_row(layer: Path, out_dir: Path, meta: dict) -> dict:
