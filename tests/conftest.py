@@ -3,6 +3,7 @@ helpers.py."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 
 import pytest
@@ -13,6 +14,12 @@ from allo_usd.usd.base_stage import write_base_stage
 from allo_usd.core.geometry import look_at
 
 from helpers import CAM_POS, tiny_anomalies, tiny_station
+
+# A runner started in the background by a non-interactive shell (`cmd &`, `nohup cmd &`) inherits
+# SIGINT ignored, and so would every process the tests start: the Ctrl-C tests would then wait for
+# a stop that never comes. The tests send real SIGINTs, so they run with Python's own handler.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")
