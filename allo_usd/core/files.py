@@ -26,6 +26,41 @@ def relpath(target: Path, start: Path) -> str:
     return rel if rel.startswith(".") else f"./{rel}"
 
 
+def folder_realpath(folder, folders: dict | None) -> str:
+    """os.path.realpath(folder), kept in `folders` (a caller's memo for one run or one decision, None:
+    none) under ("realpath", FOLDER): the first answer stands while the memo lives."""
+    if folders is None:
+        return os.path.realpath(folder)
+    key = ("realpath", os.fspath(folder))
+    real = folders.get(key)
+    if real is None:
+        real = folders[key] = os.path.realpath(key[1])
+    return real
+
+
+def memo_realpath(path, folders: dict | None) -> str:
+    """os.path.realpath(path), the same string, from one lstat where it can: a path whose last
+    component is no symbolic link resolves as its folder's real path (folder_realpath, memoised in
+    `folders`) joined with its name; realpath itself lstats every component (a 51,409-scene run
+    resolves each file several times). A link, a name that is "", "." or "..", or one that lstat
+    cannot see resolves in full. The path is made absolute without being normalised, as realpath
+    takes it (a link is resolved before the ".." after it). One rule for authoring's TreeLinks,
+    the dispatcher's decision (usd.safety.real_path) and a dataset run (output.dataset_files)."""
+    if folders is None:
+        return os.path.realpath(path)
+    p = os.fspath(path)
+    p = p if os.path.isabs(p) else os.path.join(os.getcwd(), p)
+    folder, name = os.path.split(p)
+    if name in ("", ".", ".."):
+        return os.path.realpath(p)
+    try:
+        if stat.S_ISLNK(os.lstat(p).st_mode):
+            return os.path.realpath(p)
+    except OSError:
+        return os.path.realpath(p)
+    return os.path.join(folder_realpath(folder, folders), name)
+
+
 DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)  # no space, or the user's quota is spent
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from allo_usd.core.errors import AlloError
-from allo_usd.core.files import atomic_path, sha256_file
+from allo_usd.core.files import atomic_path, folder_realpath, memo_realpath, sha256_file
 from allo_usd.output.annotations import ANNOTATION_COLUMNS, CAMERA_COLUMNS
 
 # Manifest columns, in groups; a new group is a tuple here and a function in dataset._row.
@@ -100,13 +100,7 @@ def real_folder(path) -> str:
     elsewhere it is computed each call): the rules below compare every file's real path with its
     folder's, ~10 times a scene. Within a run the folder's first answer stands: a folder swapped for
     a link meanwhile puts its files' fresh real paths outside it, so they are refused."""
-    memo = FOLDERS.get()
-    if memo is None:
-        return os.path.realpath(path)
-    key = os.fspath(path)
-    if key not in memo:
-        memo[key] = os.path.realpath(path)
-    return memo[key]
+    return folder_realpath(path, FOLDERS.get())
 
 
 def real_path(path) -> str:
@@ -114,15 +108,7 @@ def real_path(path) -> str:
     scene, and realpath lstats every component of the path): a path whose last component exists and
     is no link has its folder's real path plus that name, the folder's from real_folder (a memo within
     an assembly run). Anything else (a link, a missing file, '.' or '..') goes to realpath."""
-    head, tail = os.path.split(os.fspath(path))
-    if FOLDERS.get() is None or tail in ("", ".", ".."):
-        return os.path.realpath(path)
-    try:
-        if stat.S_ISLNK(os.lstat(path).st_mode):
-            return os.path.realpath(path)
-    except OSError:
-        return os.path.realpath(path)
-    return os.path.join(real_folder(head or "."), tail)
+    return memo_realpath(path, FOLDERS.get())
 
 
 def source_file(render_dir: Path, name) -> Path:

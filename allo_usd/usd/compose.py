@@ -28,7 +28,7 @@ import os
 import shutil
 from pathlib import Path
 
-from allo_usd.core.files import atomic_directory, relpath
+from allo_usd.core.files import atomic_directory, folder_realpath, memo_realpath, relpath
 from allo_usd.scene.spec import CameraSpec, SceneSpec, SunSpec
 from allo_usd.usd.scene_layer import (anomaly_asset_path, check_base_stage, pose_prims, scene_custom, scene_prims,
                                       sky_prims, validate_spec, write_layer)
@@ -149,13 +149,7 @@ class TreeLinks:
     (tests/test_author_speed.py compares them, symlinked trees included)."""
 
     def __init__(self):
-        self._dirs: dict[str, str] = {}
-
-    def _real_dir(self, d: str) -> str:
-        real = self._dirs.get(d)
-        if real is None:
-            real = self._dirs[d] = os.path.realpath(d)
-        return real
+        self._dirs: dict = {}   # core.files.folder_realpath's memo
 
     @staticmethod
     def _absolute(path) -> str:
@@ -166,15 +160,11 @@ class TreeLinks:
 
     def real(self, path) -> str:
         """os.path.realpath(path), its directory's resolution cached."""
-        p = self._absolute(path)
-        d, name = os.path.split(p)
-        if name in ("", ".", "..") or os.path.islink(p):
-            return os.path.realpath(p)
-        return os.path.join(self._real_dir(d), name)
+        return memo_realpath(path, self._dirs)
 
     def relpath(self, target, start) -> str:
         """`allo_usd.core.files.relpath(target, start)` (the same string)."""
-        rel = os.path.relpath(self.real(target), self._real_dir(self._absolute(start)))
+        rel = os.path.relpath(self.real(target), folder_realpath(self._absolute(start), self._dirs))
         rel = rel if os.sep == "/" else Path(rel).as_posix()   # a string op: ~20,000 layers name ~90,000 paths
         return rel if rel.startswith(".") else f"./{rel}"
 

@@ -44,6 +44,7 @@ from contextvars import ContextVar
 from pathlib import Path
 
 from allo_usd.core.errors import LayerError
+from allo_usd.core.files import folder_realpath, memo_realpath
 from allo_usd.core.paths import STAGES
 
 ENV_ROOTS = "ALLO_ASSET_ROOTS"
@@ -206,29 +207,12 @@ def real_path(path: str | Path) -> str:
     of one per component (a 51,409-layer resume check resolves each layer and its inputs several
     times). A link, or a path whose lstat fails, resolves in full. A folder turned into a link
     during the block is seen as it was; a render worker checks its layer afresh."""
-    cache = _ROOTS_CACHE.get()
-    if cache is None:
-        return os.path.realpath(path)
-    path = os.path.abspath(path)
-    try:
-        if stat.S_ISLNK(os.lstat(path).st_mode):
-            return os.path.realpath(path)
-    except OSError:
-        return os.path.realpath(path)
-    folder, name = os.path.split(path)
-    return os.path.join(real_folder(folder), name) if name else real_folder(folder)
+    return memo_realpath(path, _ROOTS_CACHE.get())
 
 
 def real_folder(folder: str) -> str:
     """os.path.realpath of a folder, once per roots_cached block (real_path's folders)."""
-    cache = _ROOTS_CACHE.get()
-    if cache is None:
-        return os.path.realpath(folder)
-    key = ("realpath", os.path.abspath(folder))
-    real = cache.get(key)
-    if real is None:
-        real = cache[key] = os.path.realpath(key[1])
-    return real
+    return folder_realpath(os.path.abspath(folder), _ROOTS_CACHE.get())
 
 
 def inside(path: str, roots: tuple[Path, ...]) -> bool:
