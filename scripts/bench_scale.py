@@ -269,8 +269,7 @@ def _record_one(args) -> dict:
             shutil.copyfile(src[pick[key]], path)
         else:
             os.link(src[pick[key]], path)
-            st = os.stat(path)  # the same inode: the source's bytes, checksummed once
-            m._SHA256[(os.path.abspath(path), st.st_mtime_ns, st.st_size, st.st_ino, st.st_dev)] = digests[pick[key]]
+            m.remember_digest(path, os.stat(path), digests[pick[key]])  # the same inode: the source's bytes, checksummed once
     meta = {
         **template,
         "layer": str(layer.resolve()), "layer_relative": relpath(layer, out), "layer_sha256": m.file_sha256(layer),

@@ -648,7 +648,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
     roots_seen: dict = {}   # allowed_roots, real paths and refusals of this decision (a worker checks afresh)
     with roots_cached(roots_seen):
-        layers = [p if os.path.abspath(p) == str(p) else Path(os.path.abspath(p)) for p in find_layers(source)]
+        layers = [p if (a := os.path.abspath(p)) == str(p) else Path(a) for p in find_layers(source)]
     ensure_output_dir(out_dir, "output directory")
     # a layer's own folder (not its link target's: a link to /etc/passwd must not make /etc a root)
     roots = sorted({os.path.realpath(f) for f in {p.parent for p in layers}} | {str(Path(r).resolve()) for r in extra_roots})

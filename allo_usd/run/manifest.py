@@ -126,26 +126,33 @@ def hashed(path: str | Path, fresh: bool = False) -> tuple[str | None, os.stat_r
         return None, None
     if not stat.S_ISREG(st.st_mode):
         return None, None
-    key = (path, st.st_mtime_ns, st.st_size, st.st_ino, st.st_dev)
-    digest = None if fresh else _SHA256.get(key)
+    digest = None if fresh else _SHA256.get(_cache_key(path, st))
     if digest is None:
-        if len(_SHA256) >= _SHA256_BOUND:
-            _SHA256.clear()
         try:
-            digest = _SHA256[key] = sha256_file(Path(path))
+            digest = sha256_file(Path(path))
         except OSError:
             return None, None
+        remember_digest(path, st, digest)
     return digest, st
 
 
-def remember_sha256(path: str | Path, st: os.stat_result, data: bytes) -> None:
-    """Enter the checksum of `data`, the whole of the file at `path` as read at `st`
-    (core.files.read_whole_small), into file_sha256's cache: the dispatcher's scan reads each scene
-    layer once, to sniff it and to checksum it for the resume check."""
+def _cache_key(path: str, st: os.stat_result) -> tuple:
+    return path, st.st_mtime_ns, st.st_size, st.st_ino, st.st_dev
+
+
+def remember_digest(path: str | Path, st: os.stat_result, digest: str) -> None:
+    """Enter `digest`, the checksum of the file at `path` as it was at `st`, into file_sha256's
+    cache (bounded: cleared when full)."""
     if len(_SHA256) >= _SHA256_BOUND:
         _SHA256.clear()
-    key = (os.path.abspath(path), st.st_mtime_ns, st.st_size, st.st_ino, st.st_dev)
-    _SHA256[key] = hashlib.sha256(data).hexdigest()
+    _SHA256[_cache_key(os.path.abspath(path), st)] = digest
+
+
+def remember_sha256(path: str | Path, st: os.stat_result, data: bytes) -> None:
+    """remember_digest of `data`, the whole of the file at `path` as read at `st`
+    (core.files.read_whole_small): the dispatcher's scan reads each scene layer once, to sniff it
+    and to checksum it for the resume check."""
+    remember_digest(path, st, hashlib.sha256(data).hexdigest())
 
 
 def stat_record(st: os.stat_result) -> dict[str, int]:
@@ -377,11 +384,11 @@ def prefetch(layers, rows: dict[str, dict]) -> int:
     named: set[tuple[str, str]] = set()   # (folder, relative path): a shared file's name repeats 51,409 times
     for layer in layers:
         row = rows.get(_stem(layer))
-        rec = row.get(ROW_RECORD) if isinstance(row, dict) else None
-        if not isinstance(rec, dict) or not isinstance(rec.get("inputs"), list):
+        carried = _row_record(row) if isinstance(row, dict) else None
+        if carried is None:
             continue
         here = real_folder(os.path.dirname(os.path.abspath(layer)))
-        named.update((here, rel) for rel in rec["inputs"] if isinstance(rel, str) and "/" in rel.removeprefix("./"))
+        named.update((here, rel) for rel in carried["inputs"] if isinstance(rel, str) and "/" in rel.removeprefix("./"))
     paths = sorted({os.path.normpath(os.path.join(here, rel)) for here, rel in named})
     in_threads(file_sha256, paths)
     return len(paths)
