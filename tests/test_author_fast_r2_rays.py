@@ -1,8 +1,8 @@
 """The shortcuts of issue 26 (round 2) give exactly the bits of the code they stand in for: a RayFan
 cast with first_hit_fan is first_hit from repeated origins (placement's and the rig's clearance
 probes), fixedmath.tan's one-reduction scalar path is sin / cos, _sphere_box on Python floats is
-its fm.matmul form, the cached intrinsics are camera_intrinsics, part_boxes without np.unique
-and _footprint's transposed gather are their former forms."""
+its fm.matmul form, the cached intrinsics are camera_intrinsics, and part_boxes without np.unique
+is its former form."""
 
 from __future__ import annotations
 
@@ -114,25 +114,3 @@ def test_part_boxes_without_unique():
         groups = split
     want = np.array([box_corners(scene.vertices[np.unique(scene.faces[g])]) for g in groups]).reshape(-1, 8, 3)
     assert _bits(scene.part_boxes(5)) == _bits(want)
-
-
-def test_footprint_is_its_stacked_form():
-    rng = np.random.default_rng(5)
-    pts = rng.normal(size=(900, 3))
-    tris = rng.integers(0, len(pts), size=(1500, 3))
-    for _ in range(20):
-        cam = np.array([0.0, 0.0, 0.0])
-        rot = quat_to_matrix(rng.normal(size=4) * [0.05, 0.05, 0.05, 1.0])
-        world = pts + fm.matmul(rot, [0.0, 0.0, -float(rng.uniform(4, 12))])
-        box = (0, 479, 0, 269)
-        k = camera_intrinsics(480, 270, DEFAULT_CAMERA)
-        c = fm.matmul(world - cam, rot)
-        depth = -c[:, 2]
-        u = (k[0, 0] * c[:, 0] / depth + k[0, 2])[tris]
-        v = (k[1, 2] - k[1, 1] * c[:, 1] / depth)[tris]
-        uu, vv = np.stack([u[:, 0], u[:, 1], u[:, 2]]), np.stack([v[:, 0], v[:, 1], v[:, 2]])
-        for stride in (1, 3):
-            want = placement._rects_union(480, box, stride, uu.min(axis=0), uu.max(axis=0), vv.min(axis=0),
-                                          vv.max(axis=0))
-            got = placement._footprint(cam, rot, 480, 270, world, tris, box, stride)
-            assert _bits(got) == _bits(want)

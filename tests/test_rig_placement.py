@@ -397,32 +397,34 @@ def test_screened_placements_hold_at_the_render_resolution():
                 assert abs(p.area_fraction - exact) <= 0.01 * exact, (p.area_fraction, exact)
 
 
-def test_footprint_and_subgrid_cast_every_pixel_the_object_can_cover():
-    """The triangle footprint that limits the pixels cast never leaves out a pixel whose centre ray
-    meets the object, on the full grid or on a sub-grid."""
-    from allo_usd.scene.placement import _box_indices, _footprint, _sphere_box, anomaly_scene, random_rotation
+def test_part_pixels_and_subgrid_cast_every_pixel_the_object_can_cover():
+    """The part boxes' pixels that limit the rays cast never leave out a pixel whose centre ray meets
+    the object, on the full grid or on a sub-grid, at every pose (a long thin object: its box is
+    mostly empty), and none lies off the sub-grid or outside the image."""
+    from allo_usd.scene.placement import _box_indices, _parts_pixels, anomaly_scene, random_rotation
     from allo_usd.scene.raycast import pixel_rays
 
     rng = np.random.default_rng(4)
-    obj = box("thin", (1.2, 0.05, 0.03), "m")     # long and thin: its box is mostly empty
+    obj = box("thin", (1.2, 0.05, 0.03), "m")
     pts, tris = obj.points, obj.triangles()
     local = anomaly_scene(pts, tris)
-    r = np.linalg.norm(pts, axis=1).max()
     w, h = 320, 180
     checked = 0
     for _ in range(30):
         rot = random_rotation(rng)
         pos = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-0.8, 0.8), -rng.uniform(1.0, 4.0)])
-        box_ = _sphere_box(np.zeros(3), np.eye(3), w, h, pos, r * 1.001)
         for stride in (1, 2, 3):
             every = _box_indices((0, w - 1, 0, h - 1), w, stride)
             o, d = pixel_rays(np.zeros(3), np.eye(3), w, h, every)
             owner, _ = local.first_hit((o - pos) @ rot, d @ rot)
             covered = set(every[owner > 0].tolist())
-            footprint = set(_footprint(np.zeros(3), np.eye(3), w, h, pts @ rot.T + pos, tris, box_, stride).tolist())
-            assert covered <= footprint
+            cast = _parts_pixels(local, np.zeros(3), np.eye(3), w, h, (pos, rot), stride)
+            assert covered <= set(cast.tolist()) <= set(every.tolist())
+            assert len(set(cast.tolist())) == len(cast)
             checked += len(covered)
     assert checked > 1000
+    behind = (np.array([0.0, 0.0, 0.2]), np.eye(3))                 # the object reaches behind the camera
+    assert _parts_pixels(local, np.zeros(3), np.eye(3), w, h, behind) is None
 
 
 def test_occlusion_query_agrees_with_first_hit():
@@ -462,10 +464,10 @@ def test_pixel_rays_equal_the_matrix_form_bit_for_bit():
             assert np.array_equal(d.view(np.uint64), want.view(np.uint64)) and np.array_equal(o[-1], np.ones(3))
 
 
-def test_part_footprint_and_rectangle_union_keep_every_pixel_and_the_count(monkeypatch):
-    """The part boxes' footprint holds the triangles' footprint (and so every pixel the object covers);
-    marking a few rectangles one by one equals the running count; and visible_fraction gives the
-    same value with either footprint, or with none."""
+def test_part_pixels_keep_every_pixel_and_the_count(monkeypatch):
+    """The part boxes' pixels hold every pixel the object covers at any number of parts, and
+    visible_fraction gives the same value (the same bits) with that cull, with fewer parts, or with
+    none (the sphere and box-corner cull alone), with or without the station in front."""
     import allo_usd.scene.placement as P
     from allo_usd.assets.anomalies import build_anomaly
     from allo_usd.scene.raycast import pixel_rays
@@ -484,32 +486,28 @@ def test_part_footprint_and_rectangle_union_keep_every_pixel_and_the_count(monke
     for _ in range(25):
         rot = P.random_rotation(rng)
         pos = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-0.8, 0.8), -rng.uniform(1.0, 5.0)])
-        box_ = P._sphere_box(np.zeros(3), np.eye(3), w, h, pos, r * 1.001)
         every = P._box_indices((0, w - 1, 0, h - 1), w)
         o, d = pixel_rays(np.zeros(3), np.eye(3), w, h, every)
         owner, _ = local.first_hit((o - pos) @ rot, d @ rot)
         covered = set(every[owner > 0].tolist())
-        tri = set(P._footprint(np.zeros(3), np.eye(3), w, h, pts @ rot.T + pos, tris, box_).tolist())
-        parts = local.part_boxes(P._PART_LEVELS) @ rot.T + pos
-        many = P._parts_footprint(np.zeros(3), np.eye(3), w, h, parts, box_)
-        with monkeypatch.context() as m:
-            m.setattr(P, "_FEW_RECTS", 0)                               # the running count instead
-            assert np.array_equal(P._parts_footprint(np.zeros(3), np.eye(3), w, h, parts, box_), many)
-        assert covered <= tri <= set(many.tolist())
+        for levels in (P._PART_LEVELS, 3, 0):
+            with monkeypatch.context() as m:
+                m.setattr(P, "_PART_LEVELS", levels)
+                assert covered <= set(P._parts_pixels(local, np.zeros(3), np.eye(3), w, h, (pos, rot)).tolist())
         covered_total += len(covered)
         cam = np.array([12.0, 6.0, 4.0])
         cam_rot = look_at(cam, [0, 0, 0])
         at = cam - cam_rot[:, 2] * rng.uniform(2.0, 9.0) + rng.normal(scale=0.5, size=3)
-        args = (station, local, cam, cam_rot, w, h, None, (at, r), (at, rot), P.box_corners(pts), 1, (pts, tris))
-        got = []
-        for levels, from_ in ((P._PART_LEVELS, P._FOOTPRINT_FROM), (P._PART_LEVELS, 0), (0, 10 ** 9)):
-            with monkeypatch.context() as m:
-                m.setattr(P, "_PART_LEVELS", levels)
-                m.setattr(P, "_FOOTPRINT_FROM", from_)
-                got.append(visible_fraction(*args))
-        assert got[0] == got[1] == got[2], got
-        fractions.append(got[0])
-    assert covered_total > 500 and sum(f > 0 for f in fractions) >= 5
+        for scene in (station, None):
+            args = (scene, local, cam, cam_rot, w, h, None, (at, r), (at, rot), P.box_corners(pts), 1)
+            got = []
+            for levels in (P._PART_LEVELS, 2, 0):
+                with monkeypatch.context() as m:
+                    m.setattr(P, "_PART_LEVELS", levels)
+                    got.append(visible_fraction(*args))
+            assert got[0] == got[1] == got[2], got
+            fractions.append(got[0])
+    assert covered_total > 500 and sum(f > 0 for f in fractions) >= 10
 
 
 def test_fallback_ranking_screens_less_and_ranks_as_screening_everything():

@@ -606,6 +606,8 @@ def matmul(a, b):
         raise ValueError(f"matmul: inner sizes differ ({a.shape} @ {b.shape})")
     if a.ndim == 2 and b.ndim == 2 and k and a.shape[0] >= _ROWS_BY_COLUMN:
         return _matmul_rows(a, b)
+    if a.ndim == 2 and b.ndim == 2 and 0 < k <= 4 and a.shape[0] <= 4 and b.shape[1] <= 4:
+        return _matmul_small(a, b)
     out = a[..., :, 0, None] * b[..., 0, None, :]
     for i in range(1, k):
         out = out + a[..., :, i, None] * b[..., i, None, :]
@@ -613,6 +615,23 @@ def matmul(a, b):
 
 
 _ROWS_BY_COLUMN = 64   # from this many rows, (n, k) @ (k, m) is summed one output column at a time
+
+
+def _matmul_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, k) @ (k, m) for a few rows and columns (rotations, a point): the broadcast form's sums on
+    Python floats, each product rounded and added left to right as there, so the same bits (IEEE
+    doubles either way; inf and NaN propagate alike) without a dozen numpy calls on 3x3 arrays."""
+    rows, cols = a.tolist(), b.T.tolist()
+    out = []
+    for r in rows:
+        line = []
+        for c in cols:
+            acc = r[0] * c[0]
+            for i in range(1, len(r)):
+                acc = acc + r[i] * c[i]
+            line.append(acc)
+        out.append(line)
+    return np.array(out, dtype=np.float64).reshape(a.shape[0], b.shape[1])
 
 
 def _matmul_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -76,38 +76,54 @@ def rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
 
 
-_EYE = np.eye(3)
-_EYE_TOLERANCE = 1e-6 + 1e-5 * np.abs(_EYE)   # np.allclose(m, I, atol=1e-6)'s bound (rtol 1e-5) per entry
+_DIAGONAL_TOLERANCE = 1e-6 + 1e-5 * 1.0       # np.allclose(m, I, atol=1e-6)'s bound (rtol 1e-5) per entry
+_OFF_DIAGONAL_TOLERANCE = 1e-6 + 1e-5 * 0.0
 
 
-def _near_identity(m: np.ndarray) -> bool:
-    """np.allclose(m, np.eye(3), atol=1e-6), entry for entry (|m - I| <= atol + rtol |I|; NaN fails),
-    without allclose's generic machinery (~60 us; every authored orientation is checked)."""
-    return bool((np.abs(m - _EYE) <= _EYE_TOLERANCE).all())
+def _near_identity(m) -> bool:
+    """np.allclose(m, np.eye(3), atol=1e-6) for a 3x3 array or nested lists, entry for entry
+    (|m - I| <= atol + rtol |I|; NaN fails), on Python floats, without allclose's generic machinery
+    (~60 us; every authored orientation is checked)."""
+    rows = m.tolist() if isinstance(m, np.ndarray) else m
+    return all(abs(rows[i][j] - (1.0 if i == j else 0.0)) <= (_DIAGONAL_TOLERANCE if i == j else _OFF_DIAGONAL_TOLERANCE)
+               for i in range(3) for j in range(3))
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w >= 0, from a proper rotation matrix (Shepperd's method)."""
+    """Unit quaternion (w, x, y, z), w >= 0, from a proper rotation matrix (Shepperd's method).
+    Computed on Python floats, the same operations in the same order as the 3x3 array form (the
+    checks too: fm.det3, fm.matmul(r, r.T) near the identity), so the same bits at a fraction of
+    the cost: every pose layer and anomalous scene converts one orientation."""
     r = check_finite("rotation matrix", r)
-    if abs(fm.det3(r) - 1.0) > 1e-6 or not _near_identity(fm.matmul(r, r.T)):
+    if r.shape != (3, 3):
+        raise AlloError(f"rotation matrix has shape {r.shape}; give a 3x3 matrix")
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = m = r.tolist()
+    det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20)
+    gram = [[(m[i][0] * m[j][0] + m[i][1] * m[j][1]) + m[i][2] * m[j][2] for j in range(3)] for i in range(3)]
+    if abs(det - 1.0) > 1e-6 or not _near_identity(gram):
         raise AlloError("rotation matrix is not orthonormal with det +1; build it from unit axes")
-    t = r[0, 0] + r[1, 1] + r[2, 2]
-    cands = np.array([t, r[0, 0], r[1, 1], r[2, 2]])
-    k = int(np.argmax(cands))
+    t = r00 + r11 + r22
+    cands = (t, r00, r11, r22)
+    k = cands.index(max(cands))          # np.argmax: the first largest
+
+    def root(x: float) -> float:        # np.sqrt: NaN below zero (a matrix at the tolerance's edge)
+        return math.sqrt(x) * 2 if x >= 0 else math.nan
+
     if k == 0:
-        s = np.sqrt(1.0 + t) * 2
-        q = np.array([0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s])
+        s = root(1.0 + t)
+        q = [0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s]
     elif k == 1:
-        s = np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
-        q = np.array([(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s])
+        s = root(1.0 + r00 - r11 - r22)
+        q = [(r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s]
     elif k == 2:
-        s = np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
-        q = np.array([(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s])
+        s = root(1.0 + r11 - r00 - r22)
+        q = [(r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s]
     else:
-        s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
-        q = np.array([(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s])
-    q /= fm.norm(q)
-    return q if q[0] >= 0 else -q
+        s = root(1.0 + r22 - r00 - r11)
+        q = [(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s]
+    n = math.sqrt(((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3])   # fm.norm's sum
+    q = [x / n for x in q]
+    return np.array(q if q[0] >= 0 else [-x for x in q])
 
 
 def quat_to_matrix(q) -> np.ndarray:

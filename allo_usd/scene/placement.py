@@ -104,9 +104,7 @@ def _corner_box(cam_pos, cam_rot, width: int, height: int, corners, lens: Camera
     return _bounds_to_pixels(width, height, u.min(), u.max(), v.min(), v.max())
 
 
-_FOOTPRINT_FROM = 32000  # pixels in an object's box above which its triangles' footprint pays off
-_PART_LEVELS = 5         # below it, the footprint of 2^5 part boxes (raycast.RayScene.part_boxes)
-_FEW_RECTS = 64          # image boxes marked one by one (more: by a running count over the box)
+_PART_LEVELS = 6         # an object's image is bounded by those of 2^6 part boxes (raycast.RayScene.part_boxes)
 
 
 def _box_indices(box, width: int, stride: int = 1) -> np.ndarray:
@@ -120,68 +118,59 @@ def _box_indices(box, width: int, stride: int = 1) -> np.ndarray:
     return (np.arange(j0, j1 + 1, stride)[:, None] * width + np.arange(i0, i1 + 1, stride)[None, :]).ravel()
 
 
-def _footprint(cam_pos, cam_rot, width: int, height: int, points, triangles, box, stride: int = 1,
-               lens: CameraModel = DEFAULT_CAMERA):
-    """Row-major indices of the pixels in `box` (and on the stride sub-grid) whose centre lies in the
-    widened image box of at least one triangle: the object's footprint, much tighter than its
-    overall box for thin or hollow objects, and exact (a ray meets a triangle only through its
-    image). None when a vertex lies on or behind the camera plane."""
-    k = intrinsic_rows(width, height, lens)
-    c = fm.matmul(np.asarray(points, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
-    depth = -c[:, 2]
+def _parts_pixels(anomaly: RayScene, cam_pos, cam_rot, width: int, height: int, pose, stride: int = 1,
+                  lens: CameraModel = DEFAULT_CAMERA) -> np.ndarray | None:
+    """Row-major indices of the pixels (on the stride sub-grid) whose centre lies in the image box,
+    widened by one pixel, of some part of the object (`anomaly` in its own frame, posed by `pose`;
+    its parts are `RayScene.part_boxes`), or None when a part's corner lies on or behind the camera
+    plane. A part's image lies in the convex hull of its box corners' images, and each triangle's
+    in its part's, so a ray that meets the object passes through one of these pixels: a cull that
+    leaves the count unchanged.
+
+    Only the set matters, not the bits of the projection (a ray not cast is one that cannot hit),
+    so the corners are taken to the camera frame by one composed 3x3 map on Python floats and
+    elementwise products (the same on every CPU): a few microseconds, where bounding sphere,
+    corner box and per-triangle footprints cost ten times the rays they saved."""
+    (fx, _, cx), (_, fy, cy), _ = intrinsic_rows(width, height, lens)
+    q0, q1, q2 = anomaly.part_corner_columns(_PART_LEVELS)
+    r = np.asarray(pose[1], dtype=np.float64).tolist()
+    c = np.asarray(cam_rot, dtype=np.float64).tolist()
+    d = (np.asarray(pose[0], dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)).tolist()
+    # camera frame: (R q + d) @ C, i.e. column j = sum_k q_k a[k][j] + b[j] with a = R^T C, b = d @ C
+    a = [[r[0][k] * c[0][j] + r[1][k] * c[1][j] + r[2][k] * c[2][j] for j in range(3)] for k in range(3)]
+    b = [d[0] * c[0][j] + d[1] * c[1][j] + d[2] * c[2][j] for j in range(3)]
+    depth = -(q0 * a[0][2] + q1 * a[1][2] + q2 * a[2][2] + b[2])
     if depth.min() <= 1e-6:
         return None
-    corners_of = np.asarray(triangles).T              # gathered as (3, triangles): one row per corner
-    uu = (k[0][0] * c[:, 0] / depth + k[0][2])[corners_of]
-    vv = (k[1][2] - k[1][1] * c[:, 1] / depth)[corners_of]
-    return _rects_union(width, box, stride, uu.min(axis=0), uu.max(axis=0), vv.min(axis=0), vv.max(axis=0))
-
-
-def _parts_footprint(cam_pos, cam_rot, width: int, height: int, corners, box, stride: int = 1,
-                     lens: CameraModel = DEFAULT_CAMERA):
-    """Like `_footprint`, for the boxes of the object's parts (`raycast.RayScene.part_boxes`, posed: (P, 8, 3)
-    corners): the pixels whose centre lies in the widened image box of some part. A part's image
-    lies in the convex hull of its box corners' images, and each triangle's in its part's, so this
-    holds every pixel `_footprint` holds (exact too), at a cost that does not grow with the mesh."""
-    k = intrinsic_rows(width, height, lens)
-    c = fm.matmul(np.asarray(corners, dtype=np.float64).reshape(-1, 3) - np.asarray(cam_pos, dtype=np.float64),
-                  np.asarray(cam_rot))
-    depth = -c[:, 2]
-    if depth.min() <= 1e-6:
-        return None
-    u = (k[0][0] * c[:, 0] / depth + k[0][2]).reshape(-1, 8)
-    v = (k[1][2] - k[1][1] * c[:, 1] / depth).reshape(-1, 8)
-    return _rects_union(width, box, stride, u.min(axis=1), u.max(axis=1), v.min(axis=1), v.max(axis=1))
+    inv = 1.0 / depth
+    u = ((q0 * a[0][0] + q1 * a[1][0] + q2 * a[2][0] + b[0]) * inv * fx + cx).reshape(-1, 8)
+    v = (cy - (q0 * a[0][1] + q1 * a[1][1] + q2 * a[2][1] + b[1]) * inv * fy).reshape(-1, 8)
+    u0, u1, v0, v1 = u.min(axis=1), u.max(axis=1), v.min(axis=1), v.max(axis=1)
+    box = _bounds_to_pixels(width, height, float(u0.min()), float(u1.max()), float(v0.min()), float(v1.max()))
+    return _rects_union(width, box, stride, u0, u1, v0, v1)
 
 
 def _rects_union(width: int, box, stride: int, u0, u1, v0, v1) -> np.ndarray:
     """Row-major indices of the pixels in `box` (on the stride sub-grid) whose centre lies in at least
-    one image box [u0, u1] x [v0, v1], each widened by one pixel."""
+    one image box [u0, u1] x [v0, v1], each widened by one pixel: each box marked on a grid over
+    `box` (a few dozen part boxes)."""
     bi0, bi1, bj0, bj1 = box
     phase = stride // 2
     ci0, rj0 = bi0 + (phase - bi0) % stride, bj0 + (phase - bj0) % stride   # first sub-grid column, row
     if ci0 > bi1 or rj0 > bj1:
         return np.zeros(0, dtype=np.int64)
     bw, bh = (bi1 - ci0) // stride + 1, (bj1 - rj0) // stride + 1           # sub-grid size in the box
-    # Pixels (sub-grid cells) whose centre may fall in each image box, widened by one pixel.
-    i0 = np.clip(-((ci0 - np.floor(u0 - 0.5).astype(np.int64) + 1) // stride), 0, bw)
-    i1 = np.clip((np.ceil(u1 - 0.5).astype(np.int64) + 1 - ci0) // stride + 1, 0, bw)
-    j0 = np.clip(-((rj0 - np.floor(v0 - 0.5).astype(np.int64) + 1) // stride), 0, bh)
-    j1 = np.clip((np.ceil(v1 - 0.5).astype(np.int64) + 1 - rj0) // stride + 1, 0, bh)
-    ok = (i0 < i1) & (j0 < j1)
-    i0, i1, j0, j1 = i0[ok], i1[ok], j0[ok], j1[ok]
-    if len(i0) <= _FEW_RECTS:                    # a few: mark each
-        covered = np.zeros((bh, bw), dtype=bool)
-        for a, b, c, d in zip(j0.tolist(), j1.tolist(), i0.tolist(), i1.tolist()):
+    # Sub-grid cells whose centre may fall in each image box, widened by one pixel.
+    i0 = np.maximum(-((ci0 + 1 - np.floor(u0 - 0.5).astype(np.int64)) // stride), 0).tolist()
+    i1 = np.minimum((np.ceil(u1 - 0.5).astype(np.int64) + (1 - ci0)) // stride + 1, bw).tolist()
+    j0 = np.maximum(-((rj0 + 1 - np.floor(v0 - 0.5).astype(np.int64)) // stride), 0).tolist()
+    j1 = np.minimum((np.ceil(v1 - 0.5).astype(np.int64) + (1 - rj0)) // stride + 1, bh).tolist()
+    covered = np.zeros((bh, bw), dtype=bool)
+    for a, b, c, d in zip(j0, j1, i0, i1):
+        if a < b and c < d:
             covered[a:b, c:d] = True
-    else:                                        # many: +1/-1 at every corner, then a 2-D running count
-        w1, n = bw + 1, (bh + 1) * (bw + 1)
-        diff = np.bincount(np.concatenate([j0 * w1 + i0, j1 * w1 + i1]), minlength=n) - \
-            np.bincount(np.concatenate([j0 * w1 + i1, j1 * w1 + i0]), minlength=n)
-        counts = diff.astype(np.int32).reshape(bh + 1, w1).cumsum(axis=0, dtype=np.int32)
-        covered = counts.cumsum(axis=1, dtype=np.int32)[:bh, :bw] > 0
-    jj, ii = np.nonzero(covered)
-    return ((rj0 + jj * stride) * width + (ci0 + ii * stride)).astype(np.int64, copy=False)
+    jj, ii = np.divmod(np.flatnonzero(covered), bw)
+    return (rj0 + jj * stride) * width + (ci0 + ii * stride)
 
 
 def sphere_pixels(cam_pos, cam_rot, width: int, height: int, centre, radius: float,
@@ -194,7 +183,7 @@ def sphere_pixels(cam_pos, cam_rot, width: int, height: int, centre, radius: flo
 
 
 def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_rot, width: int, height: int,
-                     rays=None, sphere=None, pose=None, corners=None, stride: int = 1, mesh=None,
+                     rays=None, sphere=None, pose=None, corners=None, stride: int = 1,
                      lens: CameraModel = DEFAULT_CAMERA) -> float:
     """Fraction of pixel centres whose first hit is the anomaly (station and anomaly BVHs kept apart,
     so the station's is built once per world and the anomaly's once per asset; `station` None:
@@ -204,39 +193,32 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
     computed. `sphere`: (centre, radius) bounding the anomaly; only rays that pass within it are
     cast (exact: a ray that misses the sphere cannot hit the anomaly). `pose`: (position,
     rotation) when `anomaly` holds the object in its own frame; the rays are then moved into that
-    frame (p_obj = R^T (p - position)) instead of building a BVH for the posed object. `corners`:
-    the object's box corners in its own frame (`box_corners`), with `pose`: their projection
-    narrows the pixels cast to (also exact), which matters for long thin objects. `mesh`: the
-    object's (points, triangles) in its own frame, with `pose`: only pixels inside the image box
-    of some triangle (`_footprint`, for large boxes) or of some part of the object (`_parts_footprint`,
-    cheaper, for the rest) are cast; both are exact, and then the sphere test is skipped (it would
-    drop almost nothing more). `stride` s > 1 (with `sphere`): cast one pixel in s x s
+    frame (p_obj = R^T (p - position)) instead of building a BVH for the posed object, and only
+    the pixels inside the image box of some part of the object are cast (`_parts_pixels`: exact,
+    and much tighter than the sphere for long, thin or hollow objects; the sphere test is then
+    skipped). `corners`: the object's box corners in its own frame (`box_corners`), with `pose`:
+    where a part reaches the camera plane, their projection narrows the sphere's pixels (also
+    exact). `stride` s > 1 (with `sphere`): cast one pixel in s x s
     (`_box_indices`) and count each for s^2 pixels. Every cull only leaves out rays that cannot
     meet the object, so the count is the same whichever applies. `lens`: the camera's lens and sensor
     (core.camera_model; its principal point offset is in pixels of this width x height)."""
     if sphere is not None:
         c, r = np.asarray(sphere[0], dtype=np.float64), float(sphere[1]) * 1.001 + 1e-9
-        box = _sphere_box(cam_pos, cam_rot, width, height, c, r, lens)
-        if corners is not None and pose is not None:
-            world = np.asarray(pose[0], dtype=np.float64) + fm.apply(pose[1], corners)
-            tight = _corner_box(cam_pos, cam_rot, width, height, world, lens)
-            if tight is not None:
-                box = tight if box is None else (max(box[0], tight[0]), min(box[1], tight[1]),
-                                                 max(box[2], tight[2]), min(box[3], tight[3]))
-        if box is None and stride > 1:
-            box = (0, width - 1, 0, height - 1)
-        idx, fitted = None, False
-        if box is not None and mesh is not None and pose is not None:
-            if (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > _FOOTPRINT_FROM * stride * stride:
-                world = np.asarray(pose[0], dtype=np.float64) + fm.apply(pose[1], mesh[0])
-                idx = _footprint(cam_pos, cam_rot, width, height, world, mesh[1], box, stride, lens)
-            elif _PART_LEVELS:
-                parts = np.asarray(pose[0], dtype=np.float64) + \
-                    fm.matmul(anomaly.part_boxes(_PART_LEVELS), np.asarray(pose[1], dtype=np.float64).T)
-                idx = _parts_footprint(cam_pos, cam_rot, width, height, parts, box, stride, lens)
-            fitted = idx is not None
-        if idx is None and box is not None:
-            idx = _box_indices(box, width, stride)
+        idx = _parts_pixels(anomaly, cam_pos, cam_rot, width, height, pose, stride, lens) \
+            if pose is not None and _PART_LEVELS else None
+        fitted = idx is not None
+        if not fitted:
+            box = _sphere_box(cam_pos, cam_rot, width, height, c, r, lens)
+            if corners is not None and pose is not None:
+                world = np.asarray(pose[0], dtype=np.float64) + fm.apply(pose[1], corners)
+                tight = _corner_box(cam_pos, cam_rot, width, height, world, lens)
+                if tight is not None:
+                    box = tight if box is None else (max(box[0], tight[0]), min(box[1], tight[1]),
+                                                     max(box[2], tight[2]), min(box[3], tight[3]))
+            if box is None and stride > 1:
+                box = (0, width - 1, 0, height - 1)
+            if box is not None:
+                idx = _box_indices(box, width, stride)
         if rays is None and pose is not None:
             return _posed_fraction(station, anomaly, cam_pos, width, height, pose, stride, None if fitted else (c, r),
                                    pixel_ray_columns(cam_rot, width, height, idx, lens))
@@ -246,7 +228,7 @@ def visible_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, cam_r
             o, d = rays if idx is None else (rays[0][idx], rays[1][idx])
         if not len(o):
             return 0.0
-        if not fitted:                                 # a footprint already keeps (nearly) only these
+        if not fitted:                                 # the parts' pixels are (nearly) only these
             v = c - o[0]                               # every ray starts at the camera
             t = fm.dot(d, v)
             miss = (fm.dot(v, v) - t * t > r * r) | (t < -r)
@@ -306,18 +288,16 @@ def _posed_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, width:
         col = d0 * rotation[0, j]
         col = col + d1 * rotation[1, j]
         local.append(col + d2 * rotation[2, j])
-    a_owner, a_dist = anomaly.first_hit_from(origin[0], tuple(local))
-    hit = a_owner > 0
-    if not hit.any():
+    rays, a_dist = anomaly.hits_from(origin[0], RayFan(*local), distances=station is not None)
+    if not rays.size:
         return 0.0
     if station is None:
-        return float(hit.sum() * stride * stride / (width * height))
+        return float(rays.size * stride * stride / (width * height))
     # Visible where no station surface lies between the camera and the object's surface.
-    rays = np.flatnonzero(hit)
     d = np.empty((rays.size, 3))
     for j, comp in enumerate((d0, d1, d2)):
         d[:, j] = comp[rays]
-    hidden = station.occluded(np.broadcast_to(cam, d.shape), d, a_dist[rays])
+    hidden = station.occluded(np.broadcast_to(cam, d.shape), d, a_dist)
     return float((~hidden).sum() * stride * stride / (width * height))
 
 
@@ -342,10 +322,10 @@ def _clear_of(station: RayScene, position, radius: float, cam_pos, cam_rot) -> s
 
 
 def _visibility(station: RayScene, anomaly: RayScene, radius: float, corners, position, rotation, cam_pos, cam_rot,
-                width: int, height: int, min_fraction: float, stride: int = 1, mesh=None,
+                width: int, height: int, min_fraction: float, stride: int = 1,
                 lens: CameraModel = DEFAULT_CAMERA) -> tuple[bool, float, str]:
     frac = visible_fraction(station, anomaly, cam_pos, cam_rot, width, height, None, (position, radius),
-                            (position, rotation), corners, stride, mesh, lens)
+                            (position, rotation), corners, stride, lens)
     if frac == 0.0:
         return False, 0.0, "fully occluded or outside the frame"
     if frac < min_fraction:
@@ -376,7 +356,7 @@ def check(station: RayScene, anomaly_points, anomaly_tris, position, rotation, c
             return False, frac, f"covers {frac:.4%} of the image, under {min_fraction:.1%}"
         return True, frac, ""
     return _visibility(station, anomaly, radius, box_corners(anomaly_points), position, rotation, cam_pos,
-                       cam_rot, width, height, min_fraction, 1, (anomaly_points, np.asarray(anomaly_tris)), lens)
+                       cam_rot, width, height, min_fraction, 1, lens)
 
 
 _SPHERE_DIRS = fibonacci_sphere(128)
@@ -411,7 +391,6 @@ class _Group:
         self.station = station_parts if isinstance(station_parts, RayScene) else RayScene(station_parts)
         self.radius = float(fm.norm(anomaly_points, axis=1).max())
         self.corners = box_corners(anomaly_points)
-        self.mesh = (np.asarray(anomaly_points, dtype=np.float64), np.asarray(anomaly_tris, dtype=np.int64))
         self.anomaly = anomaly_scene(anomaly_points, anomaly_tris) if anomaly is None else anomaly
         self.min_fraction = min_fraction
         self.width, self.height = width, height
@@ -467,7 +446,7 @@ class _Group:
         # still covers min_fraction (coverage falls as 1/depth^2); 0.95 keeps a margin.
         at = self.cam_pos + self.ref * ray
         silhouette = visible_fraction(None, self.anomaly, self.cam_pos, self.cam_rot, *self.screen, None,
-                                      (at, self.radius), (at, rot), self.corners, 1, self.mesh,
+                                      (at, self.radius), (at, rot), self.corners, 1,
                                       self.lenses[self.screen])
         top = min(surface, 0.95 * self.ref * np.sqrt(silhouette / self.min_fraction))
         return top if top > self.nearest else None
@@ -489,7 +468,7 @@ class _Group:
         if why:
             return False, 0.0, why
         return _visibility(self.station, self.anomaly, self.radius, self.corners, pos, rot, self.cam_pos,
-                           self.cam_rot, *size, self.min_fraction, stride, self.mesh, self.lenses[size])
+                           self.cam_rot, *size, self.min_fraction, stride, self.lenses[size])
 
     def at_screen(self, attempt, depth_index, ray, depth, rot):
         """One depth at the cheap screening size, cached so the fallback reuses the main loop's work."""

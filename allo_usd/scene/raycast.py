@@ -86,7 +86,7 @@ class RayScene:
         # the same, one contiguous array per component (first_hit_from's per-component hits)
         self._normal_cols = tuple(np.ascontiguousarray(self._normal[:, j]) for j in range(3))
         self._plane_origin_cols = tuple(np.ascontiguousarray(self._plane_origin[:, j]) for j in range(3))
-        self._parts: dict[int, np.ndarray] = {}
+        self._parts: dict = {}   # part_boxes and part_corner_columns, by levels
         self._embree = rtcore_scene.EmbreeScene()
         TriangleMesh(scene=self._embree, vertices=((self.vertices - lo) * self._factor).astype(np.float32),
                      indices=self.faces.astype(np.int32))
@@ -114,6 +114,15 @@ class RayScene:
                 boxes.append(box_corners(self.vertices[self.faces[g].ravel()]))
             self._parts[levels] = np.array(boxes, dtype=np.float64).reshape(-1, 8, 3)
         return self._parts[levels]
+
+    def part_corner_columns(self, levels: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`part_boxes(levels)`'s corners as three contiguous coordinate arrays (P * 8,), eight per part
+        in order: the form placement projects with elementwise products, built once per scene."""
+        key = ("columns", levels)
+        if key not in self._parts:
+            corners = self.part_boxes(levels).reshape(-1, 3)
+            self._parts[key] = tuple(np.ascontiguousarray(corners[:, j]) for j in range(3))
+        return self._parts[key]
 
     def _run(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         if origins.ndim == 2 and len(origins) > 1 and origins.strides[0] == 0:
@@ -172,6 +181,41 @@ class RayScene:
         if rays.size:
             self._record_hits_from(owner, dist, rays, prim[rays], origin, tuple(u[rays] for u in unit))
         return owner, dist
+
+    def hits_from(self, origin: np.ndarray, fan: "RayFan", distances: bool = True):
+        """(indices of the rays of `fan` cast from `origin` whose first hit has an owner id above 0, in
+        increasing order; their hit distances, or None without `distances`): what a count of an
+        object's pixels needs of `first_hit_fan`, bit for bit (the same hits, near-parallel ones
+        dropped, the same distances), without its full-size owner and distance arrays, and without
+        the distances when only the count matters (a silhouette)."""
+        origin = np.asarray(origin, dtype=np.float64).reshape(3)
+        unit = fan.unit
+        o32 = ((origin[None] - self._origin) * self._factor).astype(np.float32)
+        prim = self._embree.run(np.broadcast_to(o32, (len(unit[0]), 3)), fan.dirs32)
+        rays = np.flatnonzero(prim != -1)
+        if not rays.size:
+            return rays, (np.zeros(0) if distances else None)
+        tri = prim[rays]
+        d0, d1, d2 = (u[rays] for u in unit)
+        n0, n1, n2 = (c[tri] for c in self._normal_cols)
+        den = d0 * n0                                  # _record_hits_from's operations, in its order
+        den = den + d1 * n1
+        den = den + d2 * n2
+        keep = (np.abs(den) > _PARALLEL) & (self.owner[tri] > 0)
+        if not keep.all():
+            rays, tri, den, d0, d1, d2, n0, n1, n2 = (a[keep] for a in (rays, tri, den, d0, d1, d2, n0, n1, n2))
+        if not distances:
+            return rays, None
+        p0, p1, p2 = (c[tri] for c in self._plane_origin_cols)
+        ori = (p0 - origin[0]) * n0
+        ori = ori + (p1 - origin[1]) * n1
+        ori = ori + (p2 - origin[2]) * n2
+        t = np.divide(ori, den)
+        length = None
+        for j, d in enumerate((d0, d1, d2)):     # loc = d * t + origin; |loc - origin|
+            part = (d * t + origin[j]) - origin[j]
+            length = part * part if length is None else length + part * part
+        return rays, np.sqrt(length)
 
     def _record_hits_from(self, owner, dist, rays, tri, origin, dirs) -> None:
         """`_record_hits` for rays from one `origin` (3,) with unit directions as component arrays:
