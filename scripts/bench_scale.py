@@ -149,9 +149,10 @@ def plan_file(name: str, work: Path) -> Path:
 
 def calibrate() -> float:
     """CPU seconds of a fixed single-threaded workload (Python integer arithmetic and small numpy
-    passes, as authoring's mix): the machine's speed at that moment. On a shared virtual machine
-    it moves by a third from hour to hour, unseen by the load average, so each author run is
-    reported beside it."""
+    passes), reported beside each author run. On a shared virtual machine the speed moves by a
+    third from hour to hour, unseen by the load average; this workload lives in the CPU's caches,
+    so it sees a slower core but not contention for the shared cache and memory (docs/bench_scale.md
+    records a morning when it stayed flat while unchanged code ran 12-30% slower)."""
     t = time.process_time()
     s = 0
     for i in range(1_500_000):
