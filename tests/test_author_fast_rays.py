@@ -1,5 +1,5 @@
 """The shortcuts of issue 26 in ray casting and placement give exactly the bits of the code they
-stand in for: first_hit_from is first_hit on broadcast origins and stacked directions, the
+stand in for: first_hit_fan of a per-call RayFan is first_hit on broadcast origins and stacked directions, the
 component-wise pixel rays are pixel_rays, _unitize's all-nonzero path is its masked path,
 visible_fraction's per-component posed count is the (n, 3) count, fixedmath.norm's cheap error
 state restores numpy's, and geometry's identity check is np.allclose's decision."""
@@ -14,7 +14,7 @@ from allo_usd.core import geometry
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.core.geometry import quat_to_matrix
 from allo_usd.scene import placement, raycast
-from allo_usd.scene.raycast import RayScene, pixel_ray_columns, pixel_rays
+from allo_usd.scene.raycast import RayFan, RayScene, pixel_ray_columns, pixel_rays
 
 RNG = np.random.default_rng(2626)
 
@@ -33,7 +33,7 @@ def _blob(n_tris: int = 400, seed: int = 0, centre=(0.0, 0.0, 0.0)) -> RayScene:
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_first_hit_from_is_first_hit(seed):
+def test_first_hit_fan_of_component_arrays_is_first_hit(seed):
     rng = np.random.default_rng(seed)
     scene = _blob(seed=seed)
     origin = rng.normal(size=3) * 5
@@ -41,13 +41,13 @@ def test_first_hit_from_is_first_hit(seed):
     dirs = -origin + rng.normal(size=(n, 3)) * 1.5
     dirs[: n // 20] = 0.0                           # zero directions take the masked path
     owner, dist = scene.first_hit(np.broadcast_to(origin, (n, 3)), dirs)
-    owner2, dist2 = scene.first_hit_from(origin, (dirs[:, 0].copy(), dirs[:, 1].copy(), dirs[:, 2].copy()))
+    owner2, dist2 = scene.first_hit_fan(origin, RayFan(dirs[:, 0].copy(), dirs[:, 1].copy(), dirs[:, 2].copy()))
     assert _bits(owner) == _bits(owner2) and _bits(dist) == _bits(dist2)
     assert (owner > 0).any()
 
 
-def test_first_hit_from_no_rays():
-    owner, dist = _blob().first_hit_from(np.zeros(3), (np.zeros(0), np.zeros(0), np.zeros(0)))
+def test_first_hit_fan_no_rays():
+    owner, dist = _blob().first_hit_fan(np.zeros(3), RayFan(np.zeros(0), np.zeros(0), np.zeros(0)))
     assert owner.shape == dist.shape == (0,)
 
 

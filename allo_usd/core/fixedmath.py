@@ -663,11 +663,10 @@ def cross(a, b):
 
 
 def det3(m) -> float:
-    """Determinant of a 3x3 matrix by cofactors of its first row (no LAPACK)."""
-    m = np.asarray(m, dtype=np.float64)
-    return float(m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
-                 - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
-                 + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+    """Determinant of a 3x3 matrix by cofactors of its first row (no LAPACK), on Python floats (the
+    same operations as on numpy's float64 scalars, so the same bits)."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(m, dtype=np.float64)[:3, :3].tolist()
+    return m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20) + m02 * (m10 * m21 - m11 * m20)
 
 
 def hypot(x, y):

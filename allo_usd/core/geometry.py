@@ -80,28 +80,26 @@ _DIAGONAL_TOLERANCE = 1e-6 + 1e-5 * 1.0       # np.allclose(m, I, atol=1e-6)'s b
 _OFF_DIAGONAL_TOLERANCE = 1e-6 + 1e-5 * 0.0
 
 
-def _near_identity(m) -> bool:
-    """np.allclose(m, np.eye(3), atol=1e-6) for a 3x3 array or nested lists, entry for entry
-    (|m - I| <= atol + rtol |I|; NaN fails), on Python floats, without allclose's generic machinery
-    (~60 us; every authored orientation is checked)."""
-    rows = m.tolist() if isinstance(m, np.ndarray) else m
+def _near_identity(m: np.ndarray) -> bool:
+    """np.allclose(m, np.eye(3), atol=1e-6), entry for entry (|m - I| <= atol + rtol |I|; NaN fails),
+    on Python floats, without allclose's generic machinery (~60 us; every authored orientation is
+    checked)."""
+    rows = m.tolist()
     return all(abs(rows[i][j] - (1.0 if i == j else 0.0)) <= (_DIAGONAL_TOLERANCE if i == j else _OFF_DIAGONAL_TOLERANCE)
                for i in range(3) for j in range(3))
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z), w >= 0, from a proper rotation matrix (Shepperd's method).
-    Computed on Python floats, the same operations in the same order as the 3x3 array form (the
-    checks too: fm.det3, fm.matmul(r, r.T) near the identity), so the same bits at a fraction of
-    the cost: every pose layer and anomalous scene converts one orientation."""
+    Computed on Python floats, the same operations in the same order as the 3x3 array form, so the
+    same bits at a fraction of the cost: every pose layer and anomalous scene converts one
+    orientation."""
     r = check_finite("rotation matrix", r)
     if r.shape != (3, 3):
         raise AlloError(f"rotation matrix has shape {r.shape}; give a 3x3 matrix")
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = m = r.tolist()
-    det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20)
-    gram = [[(m[i][0] * m[j][0] + m[i][1] * m[j][1]) + m[i][2] * m[j][2] for j in range(3)] for i in range(3)]
-    if abs(det - 1.0) > 1e-6 or not _near_identity(gram):
+    if abs(fm.det3(r) - 1.0) > 1e-6 or not _near_identity(fm.matmul(r, r.T)):
         raise AlloError("rotation matrix is not orthonormal with det +1; build it from unit axes")
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r.tolist()
     t = r00 + r11 + r22
     cands = (t, r00, r11, r22)
     k = cands.index(max(cands))          # np.argmax: the first largest

@@ -74,15 +74,13 @@ def _sphere_box(cam_pos, cam_rot, width: int, height: int, centre, radius: float
     """The sphere's exact image-space bounding box (tangent planes through the camera) as pixel
     bounds, or None when the sphere reaches the camera plane (then every pixel is a candidate)."""
     (fx, _, cx), (_, fy, cy), _ = intrinsic_rows(width, height, lens)
-    # fm.matmul(centre - cam_pos, cam_rot) on Python floats: each entry summed in index order, so the
-    # same bits without a dozen numpy calls on 3-vectors (this runs for every candidate checked)
-    v0, v1, v2 = (np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)).tolist()
-    r0, r1, r2 = np.asarray(cam_rot, dtype=np.float64).tolist()
-    depth = -(v0 * r0[2] + v1 * r1[2] + v2 * r2[2])
+    c0, c1, c2 = fm.matmul(np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64),
+                           np.asarray(cam_rot, dtype=np.float64)).tolist()
+    depth = -c2
     if depth <= radius * 1.01:
         return None
     bounds = []
-    for lateral in (v0 * r0[0] + v1 * r1[0] + v2 * r2[0], v0 * r0[1] + v1 * r1[1] + v2 * r2[1]):
+    for lateral in (c0, c1):
         h = fm.hypot(lateral, depth)
         theta, beta = fm.arctan2(lateral, depth), fm.arcsin(min(1.0, radius / h))
         bounds.append((fm.tan(theta - beta), fm.tan(theta + beta)))
@@ -128,17 +126,15 @@ def _parts_pixels(anomaly: RayScene, cam_pos, cam_rot, width: int, height: int, 
     leaves the count unchanged.
 
     Only the set matters, not the bits of the projection (a ray not cast is one that cannot hit),
-    so the corners are taken to the camera frame by one composed 3x3 map on Python floats and
+    so the corners are taken to the camera frame by one composed 3x3 map (fm.matmul) and
     elementwise products (the same on every CPU): a few microseconds, where bounding sphere,
     corner box and per-triangle footprints cost ten times the rays they saved."""
     (fx, _, cx), (_, fy, cy), _ = intrinsic_rows(width, height, lens)
     q0, q1, q2 = anomaly.part_corner_columns(_PART_LEVELS)
-    r = np.asarray(pose[1], dtype=np.float64).tolist()
-    c = np.asarray(cam_rot, dtype=np.float64).tolist()
-    d = (np.asarray(pose[0], dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)).tolist()
+    cam = np.asarray(cam_rot, dtype=np.float64)
     # camera frame: (R q + d) @ C, i.e. column j = sum_k q_k a[k][j] + b[j] with a = R^T C, b = d @ C
-    a = [[r[0][k] * c[0][j] + r[1][k] * c[1][j] + r[2][k] * c[2][j] for j in range(3)] for k in range(3)]
-    b = [d[0] * c[0][j] + d[1] * c[1][j] + d[2] * c[2][j] for j in range(3)]
+    a = fm.matmul(np.asarray(pose[1], dtype=np.float64).T, cam).tolist()
+    b = fm.matmul(np.asarray(pose[0], dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), cam).tolist()
     depth = -(q0 * a[0][2] + q1 * a[1][2] + q2 * a[2][2] + b[2])
     if depth.min() <= 1e-6:
         return None

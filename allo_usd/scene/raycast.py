@@ -38,7 +38,7 @@ class RayFan:
     """Ray directions (three component arrays, need not be unit) made ready for `RayScene.first_hit_fan`:
     their unit vectors (`_unitize`'s operations, component by component) and the float32 copy
     embree reads. Built once for a fixed set of directions cast from many points (placement's
-    clearance probes), or per call by `first_hit_from`."""
+    clearance probes), or per call (placement's pixel rays in the object's frame)."""
 
     def __init__(self, d0: np.ndarray, d1: np.ndarray, d2: np.ndarray):
         length = d0 * d0                                  # _unitize: fm.norm's sum, in its order
@@ -83,7 +83,7 @@ class RayScene:
         self._plane_origin = tri[:, 0].copy()
         normals, ok = _unitize(fm.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
         self._normal = np.where(ok[:, None], normals, 0.0)
-        # the same, one contiguous array per component (first_hit_from's per-component hits)
+        # the same, one contiguous array per component (first_hit_fan's per-component hits)
         self._normal_cols = tuple(np.ascontiguousarray(self._normal[:, j]) for j in range(3))
         self._plane_origin_cols = tuple(np.ascontiguousarray(self._plane_origin[:, j]) for j in range(3))
         self._parts: dict = {}   # part_boxes and part_corner_columns, by levels
@@ -157,90 +157,72 @@ class RayScene:
             self._record_hits(owner, dist, rays, prim[rays], origins[rays], dirs[rays])
         return owner, dist
 
-    def first_hit_from(self, origin: np.ndarray, dirs: tuple[np.ndarray, np.ndarray, np.ndarray]):
-        """`first_hit(np.broadcast_to(origin, (n, 3)), np.stack(dirs, axis=1))` bit for bit, for rays
-        that all start at `origin` (3,) with their directions given as three component arrays (n,):
-        the same operations element by element, without the (n, 3) float64 temporaries of the rays
-        that miss (most of a placement check's rays)."""
-        d0, d1, d2 = (np.asarray(c, dtype=np.float64) for c in dirs)
-        if not len(d0):
-            return np.zeros(0, dtype=np.uint8), np.full(0, np.inf)
-        return self.first_hit_fan(origin, RayFan(d0, d1, d2))
-
     def first_hit_fan(self, origin: np.ndarray, fan: "RayFan"):
-        """`first_hit_from(origin, fan's directions)` bit for bit, the directions' unit vectors and
-        float32 copy taken from `fan` (made once for directions cast from many points)."""
-        origin = np.asarray(origin, dtype=np.float64).reshape(3)
-        unit = fan.unit
-        n = len(unit[0])
+        """`first_hit(np.broadcast_to(origin, (n, 3)), fan's directions as rows)` bit for bit, for rays
+        that all start at `origin` (3,): the same operations element by element, the directions'
+        unit vectors and float32 copy taken from `fan` (made once for directions cast from many
+        points), without the (n, 3) float64 temporaries of the rays that miss."""
+        n = len(fan.unit[0])
         owner = np.zeros(n, dtype=np.uint8)
         dist = np.full(n, np.inf)
-        o32 = ((origin[None] - self._origin) * self._factor).astype(np.float32)
-        prim = self._embree.run(np.broadcast_to(o32, (n, 3)), fan.dirs32)
-        rays = np.flatnonzero(prim != -1)
+        origin, rays, tri, dirs, normals, den = self._fan_hits(origin, fan)
         if rays.size:
-            self._record_hits_from(owner, dist, rays, prim[rays], origin, tuple(u[rays] for u in unit))
+            owner[rays] = self.owner[tri]
+            dist[rays] = self._hit_lengths(origin, tri, dirs, normals, den)
         return owner, dist
 
     def hits_from(self, origin: np.ndarray, fan: "RayFan", distances: bool = True):
         """(indices of the rays of `fan` cast from `origin` whose first hit has an owner id above 0, in
         increasing order; their hit distances, or None without `distances`): what a count of an
-        object's pixels needs of `first_hit_fan`, bit for bit (the same hits, near-parallel ones
-        dropped, the same distances), without its full-size owner and distance arrays, and without
-        the distances when only the count matters (a silhouette)."""
+        object's pixels needs of `first_hit_fan`, bit for bit, without its full-size owner and
+        distance arrays, and without the distances when only the count matters (a silhouette)."""
+        origin, rays, tri, dirs, normals, den = self._fan_hits(origin, fan)
+        keep = self.owner[tri] > 0
+        if not keep.all():
+            rays, tri, den = rays[keep], tri[keep], den[keep]
+            dirs, normals = tuple(c[keep] for c in dirs), tuple(c[keep] for c in normals)
+        if not distances:
+            return rays, None
+        return rays, self._hit_lengths(origin, tri, dirs, normals, den)
+
+    def _fan_hits(self, origin: np.ndarray, fan: "RayFan"):
+        """embree's first hits of `fan` from `origin` with the near-parallel ones dropped: (origin as a
+        (3,) float64 array, the rays that hit, their triangles, their unit directions and the
+        triangles' normals as component arrays, the directions' dot products with the normals).
+        `_record_hits`' operations, component by component, in its order."""
         origin = np.asarray(origin, dtype=np.float64).reshape(3)
         unit = fan.unit
+        if not len(unit[0]):
+            return origin, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), unit, unit, np.zeros(0)
         o32 = ((origin[None] - self._origin) * self._factor).astype(np.float32)
         prim = self._embree.run(np.broadcast_to(o32, (len(unit[0]), 3)), fan.dirs32)
         rays = np.flatnonzero(prim != -1)
-        if not rays.size:
-            return rays, (np.zeros(0) if distances else None)
         tri = prim[rays]
         d0, d1, d2 = (u[rays] for u in unit)
         n0, n1, n2 = (c[tri] for c in self._normal_cols)
-        den = d0 * n0                                  # _record_hits_from's operations, in its order
-        den = den + d1 * n1
-        den = den + d2 * n2
-        keep = (np.abs(den) > _PARALLEL) & (self.owner[tri] > 0)
-        if not keep.all():
-            rays, tri, den, d0, d1, d2, n0, n1, n2 = (a[keep] for a in (rays, tri, den, d0, d1, d2, n0, n1, n2))
-        if not distances:
-            return rays, None
-        p0, p1, p2 = (c[tri] for c in self._plane_origin_cols)
-        ori = (p0 - origin[0]) * n0
-        ori = ori + (p1 - origin[1]) * n1
-        ori = ori + (p2 - origin[2]) * n2
-        t = np.divide(ori, den)
-        length = None
-        for j, d in enumerate((d0, d1, d2)):     # loc = d * t + origin; |loc - origin|
-            part = (d * t + origin[j]) - origin[j]
-            length = part * part if length is None else length + part * part
-        return rays, np.sqrt(length)
-
-    def _record_hits_from(self, owner, dist, rays, tri, origin, dirs) -> None:
-        """`_record_hits` for rays from one `origin` (3,) with unit directions as component arrays:
-        the plane distance (`_plane_distance`'s dot products) and the hit distance (fm.norm) written
-        out per component, the same operations in the same order."""
-        d0, d1, d2 = dirs
-        n0, n1, n2 = (c[tri] for c in self._normal_cols)
-        p0, p1, p2 = (c[tri] for c in self._plane_origin_cols)
-        ori = (p0 - origin[0]) * n0
-        ori = ori + (p1 - origin[1]) * n1
-        ori = ori + (p2 - origin[2]) * n2
-        den = d0 * n0
+        den = d0 * n0                                  # fm.dot(dirs, normal), left to right
         den = den + d1 * n1
         den = den + d2 * n2
         valid = np.abs(den) > _PARALLEL
         if not valid.all():
-            rays, tri, ori, den, d0, d1, d2 = rays[valid], tri[valid], ori[valid], den[valid], \
-                d0[valid], d1[valid], d2[valid]
+            rays, tri, den, d0, d1, d2, n0, n1, n2 = (a[valid] for a in (rays, tri, den, d0, d1, d2, n0, n1, n2))
+        return origin, rays, tri, (d0, d1, d2), (n0, n1, n2), den
+
+    def _hit_lengths(self, origin, tri, dirs, normals, den) -> np.ndarray:
+        """The distances along unit `dirs` from `origin` to the planes of triangles `tri`: the plane
+        distance (`_plane_distance`'s dot products) and the hit distance (fm.norm of loc - origin)
+        written out per component, `_record_hits`' operations in its order."""
+        n0, n1, n2 = normals
+        p0, p1, p2 = (c[tri] for c in self._plane_origin_cols)
+        ori = (p0 - origin[0]) * n0
+        ori = ori + (p1 - origin[1]) * n1
+        ori = ori + (p2 - origin[2]) * n2
         t = np.divide(ori, den)
-        owner[rays] = self.owner[tri]
         length = None
-        for j, d in enumerate((d0, d1, d2)):     # loc = d * t + origin; |loc - origin|
+        for j, d in enumerate(dirs):     # loc = d * t + origin; |loc - origin|
             part = (d * t + origin[j]) - origin[j]
             length = part * part if length is None else length + part * part
-        dist[rays] = np.sqrt(length)
+        return np.sqrt(length)
 
     def _record_hits(self, owner, dist, rays, tri, hit_origins, hit_dirs) -> None:
         """Fill `owner` and `dist` at the rays embree reports a hit for (hit triangle `tri`), the
