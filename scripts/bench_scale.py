@@ -54,6 +54,7 @@ QUICK_DAYS = 14  # the paper plan over its first 14 days: 1,972 scenes
 GOALS = {"author": 120.0, "author_noop": 30.0, "resume": 60.0}  # seconds, the issue's "done means"
 REAL_SIZES = "EXR 5.6 MB, PNG 1.2 MB, mask 21 KB, JSON 7 KB"  # a real 1080p render's outputs (issue 26)
 STAMP = "bench-scale.json"  # in --work: what the render folder was built from
+SETTLE_S = 300  # after removing a previous benchmark's scratch trees: ext4 stops skipping freed inodes
 LINKS_PER_SOURCE = 20000  # scenes per synthesised source file: the render folder's link and the dataset's make two
                           # each, under ext4's 65,000 links per inode (past it `dataset` copies instead of linking)
 
@@ -163,36 +164,58 @@ def calibrate() -> float:
     return time.process_time() - t
 
 
+def create_probe(where: Path, files: int = 1000) -> float:
+    """Microseconds per small file created beside the author trees (`where`), as authoring writes its
+    ~92,000 layers: an exclusive create, a write and a rename. Reported beside each author run: on
+    ext4 without a journal (this machine's root) a create walks past every inode freed in the last
+    minutes (fs/ext4/ialloc.c, recently_deleted), so right after a large tree is deleted a create can
+    cost 1 ms instead of 80 us, a minute of a paper-plan run. The probe's files are kept until
+    `cleanup` (deleting them would slow the next create)."""
+    folder = where / f"probe-{time.time_ns()}"
+    folder.mkdir(parents=True)
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL
+    t = time.perf_counter()
+    for i in range(files):
+        fd = os.open(folder / f".{i}.tmp", flags, 0o600)
+        os.write(fd, b"x" * 3000)
+        os.close(fd)
+        os.replace(folder / f".{i}.tmp", folder / f"{i}.usda")
+    return 1e6 * (time.perf_counter() - t) / files
+
+
 def author_runs(plan: Path, cache: Path, work: Path, skip: bool, repeat: int = 3) -> list[dict]:
-    """`allo-usd author` from scratch (`repeat` times, each into a fresh tree; the figure is the
-    fastest, as timeit reports, every run listed beside it with the machine's calibration) and as a
-    resume with nothing to do: into the cache when it is empty, else into a scratch tree removed
-    afterwards. With `skip`, only what fills an empty cache (not reported)."""
+    """`allo-usd author` from scratch (`repeat` times, each into a new tree; the figure is the fastest,
+    as timeit reports, every run listed beside it with the machine's calibration and file-create
+    probe) and as a resume with nothing to do: into the cache when it is empty, else into the first
+    scratch tree. No timed run follows a deletion: scratch trees (and the probes' files) are removed
+    only after the last timing, since on this machine's file system a create right after a large
+    deletion costs up to ten times as much (`create_probe`). With `skip`, only what fills an empty
+    cache (not reported)."""
     have = (cache / "counts.csv").is_file()  # written when an author run ends
     if skip:
         if not have:
             run([*CLI, "author", str(plan), "--out", str(cache)], "author, to fill the cache")
         return []
-    tree = work / "author-scratch" if have else cache
-    if have:
-        shutil.rmtree(tree, ignore_errors=True)
+    scratch = work / "author-scratch"
+    if scratch.exists():   # a previous benchmark's, removed, then a pause for the file system to settle
+        shutil.rmtree(scratch, ignore_errors=True)
+        time.sleep(SETTLE_S)
+    trees = [cache if not have and k == 0 else scratch / f"run{k}" for k in range(max(1, repeat))]
     try:
         runs = []
-        for k in range(max(1, repeat)):
-            if k:
-                shutil.rmtree(tree, ignore_errors=True)
-            before = calibrate()
+        for tree in trees:
+            before, probe = calibrate(), create_probe(scratch)
             r = run([*CLI, "author", str(plan), "--out", str(tree)], "author, from scratch")
             r["calibration"] = (before, calibrate())
+            r["create_us"] = probe
             runs.append(r)
         best = dict(min(runs, key=lambda r: r["seconds"]))
         best["runs"] = runs
         if len(runs) > 1:
             best["what"] = f"author, from scratch (fastest of {len(runs)})"
-        return [best, run([*CLI, "author", str(plan), "--out", str(tree)], "author, resume with nothing to do")]
+        return [best, run([*CLI, "author", str(plan), "--out", str(trees[0])], "author, resume with nothing to do")]
     finally:
-        if have:
-            shutil.rmtree(tree, ignore_errors=True)
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 # ---------------------------------------------------------------- the finished render folder
@@ -486,9 +509,11 @@ def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, siz
         if r.get("runs"):
             lines += ["", f"Every `author` run from scratch (wall s, CPU s, load before -> after; the calibration is "
                       f"calibrate(): CPU seconds of a fixed workload just before and after the run, lower is a faster "
-                      f"machine): " + "; ".join(
+                      f"machine; the file create is create_probe(): microseconds per small file created beside the tree "
+                      f"just before the run, as authoring writes its layers): " + "; ".join(
                           f"{x['seconds']:.1f} s, {x['cpu']:.1f} CPU s, load {x['load'][0]} -> {x['load'][1]}, "
-                          f"calibration {x['calibration'][0]:.2f} / {x['calibration'][1]:.2f}" for x in r["runs"]) + "."]
+                          f"calibration {x['calibration'][0]:.2f} / {x['calibration'][1]:.2f}, "
+                          f"file create {x['create_us']:.0f} us" for x in r["runs"]) + "."]
     lines += ["", "Peak RSS is the largest process of the command (its own or a child's: /usr/bin/time's %M, else "
               "wait4's, which counts this script's own RSS too). The resume "
               "check is `allo-usd render TREE --out RENDERS` over the finished folder: the scan for scene layers, "

@@ -124,14 +124,16 @@ class RayScene:
             self._parts[key] = tuple(np.ascontiguousarray(corners[:, j]) for j in range(3))
         return self._parts[key]
 
-    def _run(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    def _origins32(self, origins: np.ndarray) -> np.ndarray:
+        """Ray origins in the BVH's float32 frame. Every ray from one point (a broadcast camera
+        position): its row converted once, the same float32 bits for every ray, and handed to embree
+        broadcast (it reads by stride)."""
         if origins.ndim == 2 and len(origins) > 1 and origins.strides[0] == 0:
-            # every ray from one point (a broadcast camera position): its row converted once, the
-            # same float32 bits for every ray, and handed to embree broadcast (it reads by stride)
-            o = np.broadcast_to(((origins[:1] - self._origin) * self._factor).astype(np.float32), origins.shape)
-        else:
-            o = ((origins - self._origin) * self._factor).astype(np.float32)
-        return self._embree.run(o, dirs.astype(np.float32))
+            return np.broadcast_to(((origins[:1] - self._origin) * self._factor).astype(np.float32), origins.shape)
+        return ((origins - self._origin) * self._factor).astype(np.float32)
+
+    def _run(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        return self._embree.run(self._origins32(origins), dirs.astype(np.float32))
 
     def _plane_distance(self, tri: np.ndarray, origins: np.ndarray, dirs: np.ndarray):
         """(valid, signed distance t along each unit ray to its hit triangle's plane), in float64
@@ -242,41 +244,68 @@ class RayScene:
         origins = np.asarray(origins, dtype=np.float64)
         if not len(origins):
             return np.zeros(0, dtype=bool)
-        o = ((origins - self._origin) * self._factor).astype(np.float32)
         t = (np.asarray(tmax, dtype=np.float64) * self._factor).astype(np.float32)
-        return self._embree.run(o, np.asarray(dirs).astype(np.float32), dists=t, query="OCCLUDED") != -1
+        return self._embree.run(self._origins32(origins), np.asarray(dirs).astype(np.float32), dists=t,
+                                query="OCCLUDED") != -1
 
     def hits(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int = 100) -> np.ndarray:
         """Ray index of every surface crossing (one entry per crossing), stepping past each hit face."""
-        out = [crossed for crossed, _ in self._crossings(origins, dirs, max_hits)]
-        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+        out = [r for crossed, _ in self._crossings(origins, dirs, max_hits) for r in crossed]
+        return np.array(out, dtype=np.int64)
 
     def _crossings(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int):
         """`hits` one step at a time: per step, (the rays that crossed a surface, the rays still
-        going); a ray missing from the second has crossed its last surface."""
-        o = np.array(origins, dtype=np.float64)
-        d = _unitize(np.asarray(dirs, dtype=np.float64))[0]
+        going), as lists of ray indices; a ray missing from the second has crossed its last surface.
+
+        Each step casts the rays still going from where they are (embree), and moves each that hit
+        a new face just past its plane: o + d t (t recomputed in float64 from the face's plane, as
+        `_plane_distance`), plus an offset of `base` along d; a ray that meets the face it has just
+        left (a float32 re-hit) is pushed on by an offset doubled each time, and one that grazes the
+        plane stops. The bookkeeping runs on Python floats, the same operations in the same order
+        as elementwise numpy (so the same bits): `inside` casts 7 rays and is usually decided in one
+        step, where numpy's per-call costs were most of a camera sample's clearance check."""
+        o = np.array(origins, dtype=np.float64).reshape(-1, 3).tolist()
+        unit = _unitize(np.asarray(dirs, dtype=np.float64).reshape(-1, 3))[0]
+        d, d32 = unit.tolist(), unit.astype(np.float32)
         base = max(_RAY_OFFSET_FLOOR, self.scale * _RAY_OFFSET_FACTOR)
-        offsets = d * base
-        last = np.full(len(o), -1, dtype=np.int64)
-        live = np.arange(len(o))
+        offsets = [[c * base for c in row] for row in d]
+        last = [-1] * len(o)
+        live = list(range(len(o)))
         for _ in range(max_hits):
-            prim = self._run(o[live], d[live])
-            hit = prim != -1
-            if not hit.any():
+            if not live:
                 break
-            rays, tri = live[hit], prim[hit].astype(np.int64)
-            dupe = last[rays] == tri
-            last[rays] = tri
-            ok_rays, ok_tri, dupe_rays = rays[~dupe], tri[~dupe], rays[dupe]
-            valid, t = self._plane_distance(ok_tri, o[ok_rays], d[ok_rays])
-            ok_rays = ok_rays[valid]
-            o[ok_rays] = o[ok_rays] + d[ok_rays] * t[:, None] + offsets[ok_rays]
-            offsets[ok_rays] = d[ok_rays] * base
-            offsets[dupe_rays] *= 2.0
-            o[dupe_rays] += offsets[dupe_rays]
-            live = np.concatenate([ok_rays, dupe_rays])
-            yield ok_rays, live
+            prim = self._embree.run(self._origins32(np.array([o[r] for r in live])), d32[live]).tolist()
+            if all(t == -1 for t in prim):
+                break
+            crossed, dupes = [], []
+            for r, tri in zip(live, prim):
+                if tri == -1:
+                    continue
+                if last[r] == tri:
+                    last[r] = tri
+                    dupes.append(r)
+                    continue
+                last[r] = tri
+                (n0, n1, n2), (p0, p1, p2) = self._normal[tri].tolist(), self._plane_origin[tri].tolist()
+                (o0, o1, o2), (d0, d1, d2) = o[r], d[r]
+                ori = (p0 - o0) * n0                 # _plane_distance's fm.dot, left to right
+                ori = ori + (p1 - o1) * n1
+                ori = ori + (p2 - o2) * n2
+                den = d0 * n0
+                den = den + d1 * n1
+                den = den + d2 * n2
+                if not abs(den) > _PARALLEL:
+                    continue                         # grazes the plane: the ray stops
+                t = ori / den
+                f0, f1, f2 = offsets[r]
+                o[r] = [(o0 + d0 * t) + f0, (o1 + d1 * t) + f1, (o2 + d2 * t) + f2]
+                offsets[r] = [d0 * base, d1 * base, d2 * base]
+                crossed.append(r)
+            for r in dupes:
+                f = offsets[r] = [c * 2.0 for c in offsets[r]]
+                o[r] = [o[r][0] + f[0], o[r][1] + f[1], o[r][2] + f[2]]
+            live = crossed + dupes
+            yield crossed, live
 
     def inside(self, point: np.ndarray) -> bool:
         """Parity test: a point is enclosed when most of 7 rays cross the surface an odd number of
@@ -284,17 +313,17 @@ class RayScene:
         only until the vote is decided: once 4 rays that have crossed their last surface agree, the
         rest cannot change the outcome (`hits` would follow every ray to its end)."""
         n = len(_PARITY_DIRS)
-        origins = np.repeat(np.asarray(point, dtype=np.float64)[None], n, 0)
-        crossings = np.zeros(n, dtype=np.int64)
-        done = np.ones(n, dtype=bool)
+        origins = np.repeat(np.asarray(point, dtype=np.float64).reshape(1, 3), n, 0)
+        crossings = [0] * n
         for crossed, live in self._crossings(origins, _PARITY_DIRS, 100):
-            crossings += np.bincount(crossed, minlength=n)
-            done[:] = True
-            done[live] = False
-            odd = crossings % 2 == 1
-            if int((done & odd).sum()) >= 4 or int((done & ~odd).sum()) > n - 4:
+            for r in crossed:
+                crossings[r] += 1
+            going = set(live)
+            odd = sum(1 for r in range(n) if r not in going and crossings[r] % 2 == 1)
+            even = sum(1 for r in range(n) if r not in going and crossings[r] % 2 == 0)
+            if odd >= 4 or even > n - 4:
                 break
-        return int((crossings % 2 == 1).sum()) >= 4
+        return sum(c % 2 for c in crossings) >= 4
 
 
 _PARITY_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
@@ -336,19 +365,24 @@ def pixel_ray_columns(cam_rot, width: int, height: int, index=None,
                       lens: CameraModel = DEFAULT_CAMERA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`pixel_rays`' unit directions as three contiguous component arrays (the same bits): for
     callers that go on component by component (placement.visible_fraction)."""
+    n = width * height
+    row, col = np.divmod(np.arange(n) if index is None else np.asarray(index, dtype=np.int64), width)
+    return subgrid_ray_columns(cam_rot, width, height, np.arange(width), np.arange(height), col, row, lens)
+
+
+def subgrid_ray_columns(cam_rot, width: int, height: int, xs, ys, ii, jj,
+                        lens: CameraModel = DEFAULT_CAMERA) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`pixel_ray_columns` of the pixels in column xs[ii] and row ys[jj] (pixel numbers from the top
+    left; `ii`, `jj` index arrays), the same bits: each ray is R @ (x, y, -1) normalised, x of its
+    column and y of its row, so x * R[k, 0] is computed once per column and y * R[k, 1] once per row
+    and gathered (elementwise products give the same bits wherever they are taken)."""
     (fx, _, cx), (_, fy, cy), _ = intrinsic_rows(width, height, lens)
-    if index is None:
-        u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-        u, v = u.ravel(), v.ravel()
-    else:
-        row, col = np.divmod(np.asarray(index, dtype=np.int64), width)
-        u, v = col + 0.5, row + 0.5
-    x = (u - cx) / fx
-    y = -(v - cy) / fy
+    x = (np.asarray(xs, dtype=np.int64) + 0.5 - cx) / fx
+    y = -(np.asarray(ys, dtype=np.int64) + 0.5 - cy) / fy
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(cam_rot, dtype=np.float64).tolist()
-    d0 = x * r00 + y * r01 - r02   # R @ (x, y, -1)
-    d1 = x * r10 + y * r11 - r12
-    d2 = x * r20 + y * r21 - r22
+    d0 = (x * r00)[ii] + (y * r01)[jj] - r02   # R @ (x, y, -1)
+    d1 = (x * r10)[ii] + (y * r11)[jj] - r12
+    d2 = (x * r20)[ii] + (y * r21)[jj] - r22
     n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     return np.divide(d0, n), np.divide(d1, n), np.divide(d2, n)
 

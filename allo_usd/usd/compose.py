@@ -113,16 +113,21 @@ def _copy_into_tree(src: Path, files: list[str], dest: Path, out_dir: Path) -> N
             shutil.copyfile(src / f, tmp / f)
 
 
+def _uncached(key: tuple, make):
+    """TreeLinks.once without a run to remember answers in: make()."""
+    return make()
+
+
 def sky_layer_path(out_dir: Path, day: int) -> Path:
-    return Path(out_dir) / SKY_DIR / f"d{day:03d}.usda"
+    return Path(out_dir, SKY_DIR, f"d{day:03d}.usda")   # one Path built (a run names ~200,000 paths)
 
 
 def pose_layer_path(out_dir: Path, seed: int, sample_id: str) -> Path:
-    return Path(out_dir) / POSE_DIR / f"s{seed}" / f"{sample_id.split('_', 1)[1]}.usda"
+    return Path(out_dir, POSE_DIR, f"s{seed}", f"{sample_id.split('_', 1)[1]}.usda")
 
 
 def scene_layer_path(out_dir: Path, split: str, kind: str, scene_id: str) -> Path:
-    return Path(out_dir) / SCENE_DIR / split / kind / f"{scene_id}.usda"
+    return Path(out_dir, SCENE_DIR, split, kind, f"{scene_id}.usda")
 
 
 def write_sky_layer(path: Path, *, day: int, epoch: str, perilune_epoch: str, sun: SunSpec, bodies: dict,
@@ -150,6 +155,17 @@ class TreeLinks:
 
     def __init__(self):
         self._dirs: dict = {}   # core.files.folder_realpath's memo
+        self._once: dict = {}   # once()'s answers, by key
+
+    def once(self, key: tuple, make):
+        """make()'s answer for `key`, computed the first time it is asked in this run: a scene layer's
+        checks and paths that repeat over thousands of layers (the base stage exists, a built-in
+        asset's file, a target lies inside the tree, a relative path). An error is not kept."""
+        try:
+            return self._once[key]
+        except KeyError:
+            value = self._once[key] = make()
+            return value
 
     @staticmethod
     def _absolute(path) -> str:
@@ -162,8 +178,14 @@ class TreeLinks:
         """os.path.realpath(path), its directory's resolution cached."""
         return memo_realpath(path, self._dirs)
 
-    def relpath(self, target, start) -> str:
-        """`allo_usd.core.files.relpath(target, start)` (the same string)."""
+    def relpath(self, target, start, keep: bool = True) -> str:
+        """`allo_usd.core.files.relpath(target, start)` (the same string; with `keep`, the first answer
+        for a pair stands for the run, as the folders' resolutions do: a target many layers name)."""
+        if not keep:
+            return self._relpath(target, start)
+        return self.once(("relpath", os.fspath(target), os.fspath(start)), lambda: self._relpath(target, start))
+
+    def _relpath(self, target, start) -> str:
         rel = os.path.relpath(self.real(target), folder_realpath(self._absolute(start), self._dirs))
         rel = rel if os.sep == "/" else Path(rel).as_posix()   # a string op: ~20,000 layers name ~90,000 paths
         return rel if rel.startswith(".") else f"./{rel}"
@@ -178,22 +200,26 @@ def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_l
     stage's built-in asset is referenced. `links`: a run's TreeLinks (the same paths, computed faster)."""
     validate_spec(spec)
     path = Path(path)
-    base_stage = check_base_stage(base_stage)
+    once = _uncached if links is None else links.once
+    base_stage = once(("base", os.fspath(base_stage)), lambda: check_base_stage(base_stage))
     here = path.parent
     targets = [pose_layer, sky_layer, base_stage]
     if spec.anomaly is not None:
-        targets.append(Path(anomaly_asset) if anomaly_asset is not None
-                       else anomaly_asset_path(base_stage, spec.anomaly.asset))
+        asset = spec.anomaly.asset
+        targets.append(Path(anomaly_asset) if anomaly_asset is not None else
+                       once(("asset", os.fspath(base_stage), asset), lambda: anomaly_asset_path(base_stage, asset)))
     if root is not None:
         from allo_usd.core.errors import LayerError
 
         top = os.path.abspath(root)
-        for t in (path, *targets):
-            if os.path.commonpath([top, os.path.abspath(t)]) != top:
+        for k, t in enumerate((path, *targets)):   # the layer and its pose layer are its own; the rest repeat
+            inside = (lambda: os.path.commonpath([top, os.path.abspath(t)]) == top)
+            if not (inside() if k < 2 else once(("inside", top, os.fspath(t)), inside)):
                 raise LayerError(f"{path} would refer to {t}, outside its tree {root}; fix: copy the base stage "
                                  f"into the tree first (allo_usd.usd.compose.copy_base_stage)")
     rel = relpath if links is None else links.relpath
     ref = "" if spec.anomaly is None else rel(targets[3], here)
-    sublayers = [rel(pose_layer, here), rel(sky_layer, here), rel(base_stage, here)]
+    sublayers = [relpath(pose_layer, here) if links is None else links.relpath(pose_layer, here, keep=False),
+                 rel(sky_layer, here), rel(base_stage, here)]
     return write_layer(path, scene_prims(spec, ref), sublayers, scene_custom(spec),
                        f"allo-usd scene {spec.scene_id}")

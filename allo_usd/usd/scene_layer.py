@@ -449,9 +449,14 @@ def _digits(mantissa: str, exp: int) -> tuple[str, int]:
 
 
 def _double(x) -> str:
-    """A double as Sdf writes it: Python's repr holds the same shortest round-trip digits."""
+    """A double as Sdf writes it: Python's repr holds the same shortest round-trip digits. From 1e-4 to
+    1e15 (most of a layer's values) repr already lays them out as Tf does, in fixed notation, but for
+    a whole number's ".0" (the digits and _shortest's layout agree there: exponents -4 to 14)."""
     if type(x) is not float or x != x or x in (_INF, -_INF):
         raise _Unknown(x)
+    if 1e-4 <= abs(x) < 1e15:
+        r = repr(x)
+        return r[:-2] if r.endswith(".0") else r
     if x == 0.0:
         return "-0" if str(x)[0] == "-" else "0"
     r = repr(abs(x))
@@ -462,11 +467,27 @@ def _double(x) -> str:
 
 def _float(x) -> str:
     """A double stored as a float attribute (rounded to float32, as Sdf's cast), written with the float's
-    own shortest round-trip digits (numpy's unique Dragon4 for float32, as double-conversion's)."""
-    import numpy as np
-
+    own shortest round-trip digits (numpy's unique Dragon4 for float32, as double-conversion's). Kept
+    per value (a run writes the same exposures and render settings into thousands of layers); zero is
+    not kept, since 0.0 and -0.0 are one key."""
     if type(x) is not float or not abs(x) < _FLOAT32_SAFE:   # nan, inf or past float32's range
         raise _Unknown(x)
+    text = _FLOATS.get(x) if x else None
+    if text is None:
+        text = _float_text(x)
+        if x:
+            if len(_FLOATS) >= 4096:
+                _FLOATS.clear()
+            _FLOATS[x] = text
+    return text
+
+
+_FLOATS: dict[float, str] = {}
+
+
+def _float_text(x: float) -> str:
+    import numpy as np
+
     f = np.float32(x)
     if f == 0.0:
         return "-0" if np.signbit(f) else "0"
