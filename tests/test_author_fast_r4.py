@@ -222,3 +222,48 @@ def test_double_fast_layout_is_tf_layout_and_sdfs():
     for v in (0.1, -0.1, 0.0, -0.0, 1e-50, -1e-50, 0.1):
         assert S._float(v) == S._float_text(v)
     assert (S._float(0.0), S._float(-0.0)) == ("0", "-0")
+
+
+def test_inside_by_folder_is_commonpaths_rule():
+    """write_composed_scene's tree check, decided per folder (and kept per run), answers as
+    os.path.commonpath([top, target]) == top for the tree itself, paths below it, siblings that
+    share a prefix and the file system's root."""
+    import os
+
+    from allo_usd.usd.compose import TreeLinks, _inside, _uncached
+
+    tops = ["/", "/a", "/a/b", "/a/bc", "/x/y/z"]
+    paths = ["/", "/a", "/a/b", "/a/b/c", "/a/bc", "/a/bc/d", "/a/b/c/d/e.usda", "/ab", "/a/b.usda", "/x/y",
+             "/x/y/z", "/x/y/z/w", "/x/y/zz/w"]
+    links = TreeLinks()
+    for top in tops:
+        for p in paths:
+            want = os.path.commonpath([top, p]) == top
+            assert _inside(top, p, _uncached) == want and _inside(top, p, links.once) == want, (top, p)
+
+
+def test_a_scene_layer_naming_a_file_outside_its_tree_is_refused_with_or_without_a_run(tmp_path):
+    """The tree check still refuses a base stage outside the tree (a run's TreeLinks keeps answers,
+    not refusals), writes nothing, and accepts the same layer once the stage is the tree's own copy."""
+    from allo_usd.core.errors import LayerError
+    from allo_usd.core.paths import BASE_STAGE
+    from allo_usd.usd.compose import TreeLinks, copy_base_stage, write_composed_scene, write_pose_layer
+    from helpers import make_spec
+
+    spec = make_spec()
+    tree = tmp_path / "tree"
+    pose = write_pose_layer(tree / "poses" / "p.usda", pose=1, camera=spec.camera, seed=1, seed_path="t",
+                            sample_id="s1_d000_p01")
+    sky = tree / "sky" / "d000.usda"
+    sky.parent.mkdir(parents=True)
+    sky.write_text("#usda 1.0\n")
+    links = TreeLinks()
+    for run in (None, links, links):
+        with pytest.raises(LayerError, match="outside its tree"):
+            write_composed_scene(spec, tree / "scenes" / "a.usda", pose_layer=pose, sky_layer=sky,
+                                 base_stage=BASE_STAGE, root=tree, links=run)
+    assert not (tree / "scenes" / "a.usda").exists()
+    own = copy_base_stage(BASE_STAGE, tree)
+    layer = write_composed_scene(spec, tree / "scenes" / "a.usda", pose_layer=pose, sky_layer=sky, base_stage=own,
+                                 root=tree, links=links)
+    assert "@../stages/base.usda@" in layer.read_text()

@@ -113,6 +113,14 @@ def _copy_into_tree(src: Path, files: list[str], dest: Path, out_dir: Path) -> N
             shutil.copyfile(src / f, tmp / f)
 
 
+def _inside(top: str, target: str, once) -> bool:
+    """Whether absolute, normalised `target` is `top` or lies below it (os.path.commonpath's rule),
+    decided per folder (`once`: TreeLinks.once, so a run's few folders are each decided once): a
+    path below `top` is `top` itself or one whose folder is `top` or below it."""
+    folder = os.path.dirname(target)
+    return target == top or once(("inside", top, folder), lambda: os.path.commonpath([top, folder]) == top)
+
+
 def _uncached(key: tuple, make):
     """TreeLinks.once without a run to remember answers in: make()."""
     return make()
@@ -212,9 +220,8 @@ def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_l
         from allo_usd.core.errors import LayerError
 
         top = os.path.abspath(root)
-        for k, t in enumerate((path, *targets)):   # the layer and its pose layer are its own; the rest repeat
-            inside = (lambda: os.path.commonpath([top, os.path.abspath(t)]) == top)
-            if not (inside() if k < 2 else once(("inside", top, os.fspath(t)), inside)):
+        for t in (path, *targets):
+            if not _inside(top, os.path.abspath(t), once):
                 raise LayerError(f"{path} would refer to {t}, outside its tree {root}; fix: copy the base stage "
                                  f"into the tree first (allo_usd.usd.compose.copy_base_stage)")
     rel = relpath if links is None else links.relpath
