@@ -39,8 +39,12 @@ def _scan_in_child(root: Path, tmp_path: Path) -> dict:
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
             layers = find_layers({str(root)!r})
+        # VmHWM: this process's own peak (ru_maxrss also counts the peak of the pytest process it was
+        # started from, which Linux carries over exec)
+        hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM:")]
+        peak = int(hwm[0].split()[1]) if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         print(json.dumps({{"layers": [p.name for p in layers], "warnings": [str(x.message) for x in w],
-                          "maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}}))
+                          "maxrss_kb": peak}}))
     """)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
