@@ -164,9 +164,10 @@ CULL_MARGIN_PX = 0.05
 triangles in float64; embree sees them, and each ray, in float32 in a frame scaled to a ~100-unit
 box, and its triangle test is watertight to about an ulp: together under 1e-3 pixel for any object
 the placement accepts (it stays CAMERA_CLEARANCE_M in front of the camera, where a pixel spans over
-1e-4 m, against float32 errors near 1e-7 m). The margin is 50 times that, and tests/
-test_rig_placement.py checks the cull against every pixel at sizes from 64 to 1920 wide. It was a
-whole pixel until issue 26: 17% more rays for the same counts."""
+1e-4 m, against float32 errors near 1e-7 m). The margin is 50 times that, and
+tests/test_author_fast_r4.py checks the cull against every pixel the 16 hazard objects cover, at 64
+to 1920 pixels wide, from the clearance out to 40 m. It was a whole pixel until issue 26: 17% more
+rays for the same counts."""
 
 
 def _rects_union(width: int, height: int, stride: int, u0, u1, v0, v1) -> _Cells:
