@@ -638,6 +638,68 @@ def main() -> None:
         raise SystemExit(2) from None
 
 
+def console() -> None:
+    """The `allo-usd` command (its console script, and `python -m allo_usd.cli`): main(), then the
+    process ends at once with SIGINT only noted (_exit_held). main() alone (a caller's process) returns
+    or raises SystemExit as before."""
+    said = True                     # main() prints the "interrupted" line itself when it ends with 130
+    try:
+        main()
+        code = 0
+    except SystemExit as exc:
+        code = exc.code
+    except KeyboardInterrupt:       # a Ctrl-C on main()'s way out, after its own handling
+        code, said = 130, False
+    while True:
+        try:
+            _exit_held(code, said)  # never returns
+        except KeyboardInterrupt:   # a Ctrl-C that came before the hold, raised as _exit_held began
+            if code in (0, None):
+                code, said = 130, False
+
+
+def _exit_held(code, said: bool = True) -> None:
+    """End the process with `code` (a SystemExit's: None is 0, a message is printed and 1), a SIGINT
+    only noted from the first line on. Python's own shutdown after a command (module teardown, about
+    0.3 s with USD, numpy and embree loaded) puts back the default SIGINT action, so a Ctrl-C landing
+    there killed the process by the signal (status -2, no message) after its work was done. Noted, a
+    Ctrl-C that comes before the end turns a success into 130 with the one line, as at any other
+    moment. What shutdown does that matters runs first, in its order: threads joined (threading's
+    exit hooks), atexit handlers, the standard streams flushed."""
+    import signal
+
+    came: list[int] = []
+    signal.signal(signal.SIGINT, lambda *_: came.append(1))   # one already due runs this handler, not Python's
+    try:
+        _due()
+    except KeyboardInterrupt:       # raised by Python's handler just before the line above
+        came.append(1)
+    import atexit
+    import os
+    import threading
+
+    if isinstance(code, str):
+        print(code, file=sys.stderr)
+        code = 1
+    code = 0 if code is None else int(code)
+    threading._shutdown()           # what Python's shutdown runs first: non-daemon threads joined, executors' hooks
+    atexit._run_exitfuncs()
+    if came and code == 0:
+        code, said = 130, False
+    if code == 130 and not said:
+        typer.echo(_INTERRUPTED, err=True)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):   # a closed or broken pipe: nothing more can be said
+            pass
+    os._exit(code)
+
+
+def _due() -> None:
+    """Nothing: a Python call, at whose start Python runs the signal handlers that are due."""
+
+
 def _loaded() -> None:
     """Put back the SIGINT handler held while this module loaded. A Ctrl-C that came meanwhile ends
     `allo-usd` (the console script, or `python -m allo_usd.cli`) with the one line and exit 130;
@@ -652,4 +714,4 @@ def _loaded() -> None:
 _loaded()
 
 if __name__ == "__main__":
-    main()
+    console()
