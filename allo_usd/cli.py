@@ -665,7 +665,8 @@ def _exit_held(code, said: bool = True) -> None:
     there killed the process by the signal (status -2, no message) after its work was done. Noted, a
     Ctrl-C that comes before the end turns a success into 130 with the one line, as at any other
     moment. What shutdown does that matters runs first, in its order: threads joined (threading's
-    exit hooks), atexit handlers, the standard streams flushed."""
+    exit hooks), atexit handlers, the standard streams flushed. A process that loaded bpy ends through
+    Python's shutdown, as before: Blender removes its session's temporary folder in C exit handlers."""
     import signal
 
     came: list[int] = []
@@ -682,6 +683,12 @@ def _exit_held(code, said: bool = True) -> None:
         print(code, file=sys.stderr)
         code = 1
     code = 0 if code is None else int(code)
+    if "bpy" in sys.modules:        # Blender removes its session's temporary folder in its own C exit
+        if came and code == 0:      # handlers, which os._exit would skip: Python's own shutdown, as before
+            code, said = 130, False
+        if code == 130 and not said:
+            typer.echo(_INTERRUPTED, err=True)
+        raise SystemExit(code)
     threading._shutdown()           # what Python's shutdown runs first: non-daemon threads joined, executors' hooks
     atexit._run_exitfuncs()
     if came and code == 0:
