@@ -683,18 +683,21 @@ def _exit_held(code, said: bool = True) -> None:
         print(code, file=sys.stderr)
         code = 1
     code = 0 if code is None else int(code)
-    if "bpy" in sys.modules:        # Blender removes its session's temporary folder in its own C exit
-        if came and code == 0:      # handlers, which os._exit would skip: Python's own shutdown, as before
-            code, said = 130, False
-        if code == 130 and not said:
+
+    def verdict(code: int) -> int:
+        """`code`, or 130 (the one line said) for a success that a Ctrl-C came into."""
+        if came and code == 0:
+            code = 130
             typer.echo(_INTERRUPTED, err=True)
-        raise SystemExit(code)
+        elif code == 130 and not said:
+            typer.echo(_INTERRUPTED, err=True)
+        return code
+
+    if "bpy" in sys.modules:        # Blender removes its session's temporary folder in its own C exit
+        raise SystemExit(verdict(code))   # handlers, which os._exit would skip: Python's shutdown, as before
     threading._shutdown()           # what Python's shutdown runs first: non-daemon threads joined, executors' hooks
     atexit._run_exitfuncs()
-    if came and code == 0:
-        code, said = 130, False
-    if code == 130 and not said:
-        typer.echo(_INTERRUPTED, err=True)
+    code = verdict(code)
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

@@ -186,14 +186,8 @@ class TreeLinks:
         """os.path.realpath(path), its directory's resolution cached."""
         return memo_realpath(path, self._dirs)
 
-    def relpath(self, target, start, keep: bool = True) -> str:
-        """`allo_usd.core.files.relpath(target, start)` (the same string; with `keep`, the first answer
-        for a pair stands for the run, as the folders' resolutions do: a target many layers name)."""
-        if not keep:
-            return self._relpath(target, start)
-        return self.once(("relpath", os.fspath(target), os.fspath(start)), lambda: self._relpath(target, start))
-
-    def _relpath(self, target, start) -> str:
+    def relpath(self, target, start) -> str:
+        """`allo_usd.core.files.relpath(target, start)` (the same string)."""
         rel = os.path.relpath(self.real(target), folder_realpath(self._absolute(start), self._dirs))
         rel = rel if os.sep == "/" else Path(rel).as_posix()   # a string op: ~20,000 layers name ~90,000 paths
         return rel if rel.startswith(".") else f"./{rel}"
@@ -224,9 +218,12 @@ def write_composed_scene(spec: SceneSpec, path: Path, *, pose_layer: Path, sky_l
             if not _inside(top, os.path.abspath(t), once):
                 raise LayerError(f"{path} would refer to {t}, outside its tree {root}; fix: copy the base stage "
                                  f"into the tree first (allo_usd.usd.compose.copy_base_stage)")
-    rel = relpath if links is None else links.relpath
-    ref = "" if spec.anomaly is None else rel(targets[3], here)
-    sublayers = [relpath(pose_layer, here) if links is None else links.relpath(pose_layer, here, keep=False),
-                 rel(sky_layer, here), rel(base_stage, here)]
+    own = relpath if links is None else links.relpath
+
+    def rel(t) -> str:   # a target many layers name (sky, base stage, asset): its path kept for the run
+        return once(("relpath", os.fspath(t), os.fspath(here)), lambda: own(t, here))
+
+    ref = "" if spec.anomaly is None else rel(targets[3])
+    sublayers = [own(pose_layer, here), rel(sky_layer), rel(base_stage)]
     return write_layer(path, scene_prims(spec, ref), sublayers, scene_custom(spec),
                        f"allo-usd scene {spec.scene_id}")
