@@ -80,3 +80,77 @@ def test_one_seed_hash():
     old = int.from_bytes(hashlib.sha256(b"2031/a/3").digest()[:8], "little")
     assert key_hash(2031, "a", 3) == old
     assert scene_seed(2031, "a", 3) == (old >> 1, "2031/a/3")
+
+
+def test_write_bytes_atomic_links_an_unnamed_file_and_replaces_an_existing_one(tmp_path):
+    from allo_usd.core import files
+
+    target = tmp_path / "deep" / "layer.usda"
+    files.write_bytes_atomic(target, b"first")
+    assert target.read_bytes() == b"first" and oct(target.stat().st_mode & 0o777) == "0o644"
+    files.write_bytes_atomic(target, b"second", mode=0o600)
+    assert target.read_bytes() == b"second" and oct(target.stat().st_mode & 0o777) == "0o600"
+    assert os.listdir(target.parent) == ["layer.usda"]                   # no temporary left either way
+    if files._unnamed["ok"]:                                              # Linux with O_TMPFILE here: no name was made
+        made = []
+        real_open = os.open
+
+        def spy(p, flags, *a, **k):
+            made.append(flags & os.O_CREAT)
+            return real_open(p, flags, *a, **k)
+
+        os.open = spy
+        try:
+            files.write_bytes_atomic(tmp_path / "deep" / "other.usda", b"3")
+        finally:
+            os.open = real_open
+        assert made == [0]
+
+
+def test_write_bytes_atomic_falls_back_to_a_named_temporary(tmp_path, monkeypatch):
+    """Without unnamed files in a folder (the file system refuses O_TMPFILE) or without /proc to link
+    one, the named temporary and rename of atomic_path write the file, whole."""
+    from allo_usd.core import files
+
+    monkeypatch.setattr(files, "_unnamed", {"ok": True, "root": None, "folders": set()})
+    real_open = os.open
+
+    def no_tmpfile(p, flags, *a, **k):
+        if flags & getattr(os, "O_TMPFILE", 0) == getattr(os, "O_TMPFILE", -1):
+            raise OSError(errno.EOPNOTSUPP, "Operation not supported", p)
+        return real_open(p, flags, *a, **k)
+
+    monkeypatch.setattr(os, "open", no_tmpfile)
+    files.write_bytes_atomic(tmp_path / "a.usda", b"named")
+    assert (tmp_path / "a.usda").read_bytes() == b"named" and os.listdir(tmp_path) == ["a.usda"]
+    assert str(tmp_path) in files._unnamed["folders"]                   # not asked again for this folder
+    monkeypatch.setattr(os, "open", real_open)
+    if not hasattr(os, "O_TMPFILE"):
+        return
+    real_link = os.link
+
+    def no_proc(src, dst, **k):
+        if str(src).startswith("/proc/self/fd/"):
+            raise FileNotFoundError(errno.ENOENT, "No such file or directory", src)
+        return real_link(src, dst, **k)
+
+    monkeypatch.setattr(os, "link", no_proc)
+    files.write_bytes_atomic(tmp_path / "sub" / "b.usda", b"no proc")
+    assert (tmp_path / "sub" / "b.usda").read_bytes() == b"no proc" and os.listdir(tmp_path / "sub") == ["b.usda"]
+    assert files._unnamed["ok"] is False
+
+
+def test_write_bytes_atomic_on_a_full_disk_leaves_nothing(tmp_path, monkeypatch):
+    from allo_usd.core import files
+
+    (tmp_path / "kept.usda").write_bytes(b"old")
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "write", full)
+    for name in ("kept.usda", "new.usda"):
+        with pytest.raises(DiskFullError, match="free space"):
+            files.write_bytes_atomic(tmp_path / name, b"x" * 100)
+    monkeypatch.undo()
+    assert os.listdir(tmp_path) == ["kept.usda"] and (tmp_path / "kept.usda").read_bytes() == b"old"

@@ -108,6 +108,66 @@ def _open_temp_beside(path: Path, suffix: str = "") -> tuple[int, Path]:
     raise FileExistsError(errno.EEXIST, "no free temporary name", path)
 
 
+_UNNAMED_FLAGS = getattr(os, "O_TMPFILE", 0) | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
+_NO_UNNAMED = (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOTSUP)   # no O_TMPFILE there
+_unnamed = {"ok": hasattr(os, "O_TMPFILE"), "root": None, "folders": set()}   # this process's findings
+
+
+def _open_unnamed_beside(path: Path) -> int | None:
+    """A descriptor of a new file without a name in `path`'s folder (made when the open finds it
+    missing), or None where there are none: not Linux, a file system without O_TMPFILE (remembered
+    per folder), or /proc not there to link one in (remembered for the process). Creating a named
+    temporary and renaming it costs two directory updates where linking an unnamed file costs one:
+    about a quarter of a small layer's writing on ext4, for ~92,000 layers a paper-plan run."""
+    if not _unnamed["ok"]:
+        return None
+    folder = os.path.dirname(os.fspath(path)) or "."
+    if folder in _unnamed["folders"]:
+        return None
+    for _ in range(2):
+        try:
+            return os.open(folder, _UNNAMED_FLAGS, 0o600)
+        except FileNotFoundError:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            if exc.errno in _NO_UNNAMED:
+                _unnamed["folders"].add(folder)
+                return None
+            raise
+    return None
+
+
+def _link_unnamed(fd: int, path: Path) -> bool:
+    """Give the written unnamed file `fd` the name `path`: linkat through /proc/self/fd (the only
+    unprivileged way; the root folder's descriptor as src_dir_fd makes os.link call linkat with
+    AT_SYMLINK_FOLLOW). An existing `path` is replaced as rename replaces it: the file is linked
+    under a temporary name, then renamed over it. False (nothing named) where /proc cannot be used,
+    and the caller writes through a named temporary instead."""
+    if _unnamed["root"] is None:
+        _unnamed["root"] = os.open("/", os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+    source = f"/proc/self/fd/{fd}"
+    try:
+        os.link(source, path, src_dir_fd=_unnamed["root"])
+        return True
+    except FileExistsError:
+        pass
+    except (FileNotFoundError, PermissionError, NotADirectoryError):
+        _unnamed["ok"] = False      # no /proc here (or it hides descriptors): named temporaries from now on
+        return False
+    folder, name = os.path.split(os.fspath(path))
+    for _ in range(1000):
+        tmp = os.path.join(folder, f".{name}.{os.getpid()}.{next(_TEMP_SERIAL) & 0xFFFFFFFF:08x}{os.path.splitext(name)[1]}")
+        try:
+            os.link(source, tmp, src_dir_fd=_unnamed["root"])
+            break
+        except FileExistsError:
+            continue
+    else:
+        raise FileExistsError(errno.EEXIST, "no free temporary name", path)
+    commit_temp(Path(tmp), path, None)
+    return True
+
+
 def _failed(exc: BaseException, tmp: Path, path: Path) -> None:
     """Remove the temporary, and raise a full disk as DiskFullError (other errors propagate)."""
     if Path(tmp).is_dir():
@@ -115,8 +175,20 @@ def _failed(exc: BaseException, tmp: Path, path: Path) -> None:
     else:
         Path(tmp).unlink(missing_ok=True)
     if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
-        raise DiskFullError(f"no space left on the device while writing {path}; free space and re-run "
-                            "(finished outputs are kept and will be skipped)") from exc
+        raise _disk_full(path) from exc
+
+
+def _disk_full(path) -> DiskFullError:
+    return DiskFullError(f"no space left on the device while writing {path}; free space and re-run "
+                         "(finished outputs are kept and will be skipped)")
+
+
+def _fill(fd: int, data: bytes, mode: int) -> None:
+    """Make the new file `fd` `mode` and write all of `data` into it."""
+    os.fchmod(fd, mode)
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
 
 
 def commit_temp(tmp: Path, path: Path, mode: int | None = 0o644) -> None:
@@ -158,16 +230,29 @@ def write_text_atomic(path: Path, text: str, **open_args) -> Path:
 
 
 def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> Path:
-    """Write `data` whole or not at all: into atomic_path's temporary through the descriptor that
-    created it (made `mode` there), then renamed over `path`. A full disk raises DiskFullError."""
+    """Write `data` whole or not at all: into a file without a name in `path`'s folder (O_TMPFILE),
+    made `mode`, then linked in as `path` (`_link_unnamed`); where the file system or platform has
+    no unnamed files, into atomic_path's temporary through the descriptor that created it, then
+    renamed over `path`. A full disk raises DiskFullError; a write cut short leaves nothing (an
+    unnamed file vanishes when its descriptor closes)."""
     path = Path(path)
+    fd = _open_unnamed_beside(path)
+    if fd is not None:
+        try:
+            try:
+                _fill(fd, data, mode)
+                if _link_unnamed(fd, path):
+                    return path
+            except OSError as exc:
+                if exc.errno in DISK_FULL_ERRNOS:
+                    raise _disk_full(path) from exc
+                raise
+        finally:
+            os.close(fd)
     fd, tmp = _open_temp_beside(path)
     try:
         try:
-            os.fchmod(fd, mode)
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view):]
+            _fill(fd, data, mode)
         finally:
             os.close(fd)
     except BaseException as exc:

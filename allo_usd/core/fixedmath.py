@@ -621,9 +621,16 @@ def _matmul_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(n, k) @ (k, m) for a few rows and columns (rotations, a point): the broadcast form's sums on
     Python floats, each product rounded and added left to right as there, so the same bits (IEEE
     doubles either way; inf and NaN propagate alike) without a dozen numpy calls on 3x3 arrays."""
-    rows, cols = a.tolist(), b.T.tolist()
+    return np.array(matmul_lists(a.tolist(), b.tolist()), dtype=np.float64).reshape(a.shape[0], b.shape[1])
+
+
+def matmul_lists(a: list, b: list) -> list:
+    """`_matmul_small` on nested lists of Python floats ((n, k) rows times (k, m) rows), returning rows:
+    for callers that go on in Python floats (placement's camera-frame map), so the same bits without
+    the arrays around them."""
+    cols = list(zip(*b))
     out = []
-    for r in rows:
+    for r in a:
         line = []
         for c in cols:
             acc = r[0] * c[0]
@@ -631,7 +638,7 @@ def _matmul_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                 acc = acc + r[i] * c[i]
             line.append(acc)
         out.append(line)
-    return np.array(out, dtype=np.float64).reshape(a.shape[0], b.shape[1])
+    return out
 
 
 def _matmul_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -146,17 +146,20 @@ def _parts_pixels(anomaly: RayScene, cam_pos, cam_rot, width: int, height: int, 
     corner box and per-triangle footprints cost ten times the rays they saved."""
     (fx, _, cx), (_, fy, cy), _ = intrinsic_rows(width, height, lens)
     q0, q1, q2 = anomaly.part_corner_columns(_PART_LEVELS)
-    cam = np.asarray(cam_rot, dtype=np.float64)
+    cam = np.asarray(cam_rot, dtype=np.float64).tolist()
     # camera frame: (R q + d) @ C, i.e. column j = sum_k q_k a[k][j] + b[j] with a = R^T C, b = d @ C
-    a = fm.matmul(np.asarray(pose[1], dtype=np.float64).T, cam).tolist()
-    b = fm.matmul(np.asarray(pose[0], dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), cam).tolist()
+    a = fm.matmul_lists(np.asarray(pose[1], dtype=np.float64).T.tolist(), cam)
+    (b,) = fm.matmul_lists([(np.asarray(pose[0], dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64)).tolist()],
+                           cam)
     depth = -(q0 * a[0][2] + q1 * a[1][2] + q2 * a[2][2] + b[2])
     if depth.min() <= 1e-6:
         return None
     inv = 1.0 / depth
-    u = ((q0 * a[0][0] + q1 * a[1][0] + q2 * a[2][0] + b[0]) * inv * fx + cx).reshape(-1, 8)
-    v = (cy - (q0 * a[0][1] + q1 * a[1][1] + q2 * a[2][1] + b[1]) * inv * fy).reshape(-1, 8)
-    return _rects_union(width, height, stride, u.min(axis=1), u.max(axis=1), v.min(axis=1), v.max(axis=1))
+    uv = np.empty((2, len(q0)))                    # u, then v, of every corner
+    uv[0] = (q0 * a[0][0] + q1 * a[1][0] + q2 * a[2][0] + b[0]) * inv * fx + cx
+    uv[1] = cy - (q0 * a[0][1] + q1 * a[1][1] + q2 * a[2][1] + b[1]) * inv * fy
+    uv = uv.reshape(2, -1, 8)
+    return _rects_union(width, height, stride, uv.min(axis=2), uv.max(axis=2))
 
 
 CULL_MARGIN_PX = 0.05
@@ -170,29 +173,40 @@ to 1920 pixels wide, from the clearance out to 40 m. It was a whole pixel until 
 rays for the same counts."""
 
 
-def _rects_union(width: int, height: int, stride: int, u0, u1, v0, v1) -> _Cells:
+def _rects_union(width: int, height: int, stride: int, lo: np.ndarray, hi: np.ndarray) -> _Cells:
     """The pixels of the image on the stride sub-grid (column and row both s // 2 modulo s) whose
-    centre lies within CULL_MARGIN_PX of at least one image box [u0, u1] x [v0, v1]: each box marked
-    on a grid over the sub-grid cells that any of them reaches (a few dozen part boxes)."""
+    centre lies within CULL_MARGIN_PX of at least one image box [lo[0], hi[0]] x [lo[1], hi[1]] (u
+    then v, one column per box): each box marked on a grid over the sub-grid cells that any of them
+    reaches (a few dozen part boxes). Both axes go through each step together, since numpy's
+    per-call cost, not the arithmetic, is most of a call."""
     phase, m = stride // 2, CULL_MARGIN_PX
-    none = np.zeros(0, dtype=np.int64)
     if phase >= width or phase >= height:
+        none = np.zeros(0, dtype=np.int64)
         return _Cells(none, none, none, none)
     # pixel k's centre k + 0.5 lies in [lo - m, hi + m] when ceil(lo - 0.5 - m) <= k <= floor(hi - 0.5 + m);
     # sub-grid cell t is pixel phase + stride * t
-    t0 = np.maximum(-((phase - np.ceil(u0 - (0.5 + m)).astype(np.int64)) // stride), 0)
-    t1 = np.minimum((np.floor(u1 - (0.5 - m)).astype(np.int64) - phase) // stride, (width - 1 - phase) // stride)
-    r0 = np.maximum(-((phase - np.ceil(v0 - (0.5 + m)).astype(np.int64)) // stride), 0)
-    r1 = np.minimum((np.floor(v1 - (0.5 - m)).astype(np.int64) - phase) // stride, (height - 1 - phase) // stride)
-    some = (t0 <= t1) & (r0 <= r1)
-    if not some.any():
-        return _Cells(none, none, none, none)
-    c0, c1, w0, w1 = int(t0[some].min()), int(t1[some].max()), int(r0[some].min()), int(r1[some].max())
+    first = np.ceil(lo - (0.5 + m)).astype(np.int64)
+    last = np.floor(hi - (0.5 - m)).astype(np.int64)
+    if stride == 1:                                # phase 0: the cells are the pixels
+        first = np.maximum(first, 0)
+        last = np.minimum(last, [[width - 1], [height - 1]])
+    else:
+        first = np.maximum(-((phase - first) // stride), 0)
+        last = np.minimum((last - phase) // stride, [[(width - 1 - phase) // stride], [(height - 1 - phase) // stride]])
+    some = (first <= last).all(axis=0)
+    if not some.all():
+        if not some.any():
+            none = np.zeros(0, dtype=np.int64)
+            return _Cells(none, none, none, none)
+        first, last = first[:, some], last[:, some]
+    (c0, w0), (c1, w1) = first.min(axis=1).tolist(), last.max(axis=1).tolist()
     covered = np.zeros((w1 - w0 + 1, c1 - c0 + 1), dtype=bool)
-    for a, b, c, d in zip((r0 - w0).tolist(), (r1 - w0 + 1).tolist(), (t0 - c0).tolist(), (t1 - c0 + 1).tolist()):
-        if a < b and c < d:
-            covered[a:b, c:d] = True
+    (cs, rs), (ce, re) = (first - [[c0], [w0]]).tolist(), (last - [[c0 - 1], [w0 - 1]]).tolist()
+    for a, b, c, d in zip(rs, re, cs, ce):
+        covered[a:b, c:d] = True
     jj, ii = np.nonzero(covered)
+    if stride == 1:
+        return _Cells(np.arange(c0, c1 + 1), np.arange(w0, w1 + 1), ii, jj)
     return _Cells(phase + stride * np.arange(c0, c1 + 1), phase + stride * np.arange(w0, w1 + 1), ii, jj)
 
 
@@ -309,19 +323,19 @@ def _posed_fraction(station: RayScene | None, anomaly: RayScene, cam_pos, width:
             return 0.0
         d0, d1, d2 = d0[keep], d1[keep], d2[keep]
     position, rotation = np.asarray(pose[0], dtype=np.float64), np.asarray(pose[1], dtype=np.float64)
-    origin = fm.matmul(cam[None] - position, rotation)
+    (origin,) = fm.matmul_lists([(cam - position).tolist()], rotation.tolist())   # fm.matmul's sums
     local = []
     for j in range(3):                                 # fm.matmul(d, rotation), column by column
         col = d0 * rotation[0, j]
         col = col + d1 * rotation[1, j]
         local.append(col + d2 * rotation[2, j])
-    rays, a_dist = anomaly.hits_from(origin[0], RayFan(*local), distances=station is not None)
+    rays, a_dist = anomaly.hits_from(np.array(origin), RayFan(*local), distances=station is not None)
     if not rays.size:
         return 0.0
     if station is None:
         return float(rays.size * stride * stride / (width * height))
     # Visible where no station surface lies between the camera and the object's surface.
-    d = np.empty((rays.size, 3))
+    d = np.empty((rays.size, 3), dtype=np.float32)    # occluded's float32 copy, cast as it casts
     for j, comp in enumerate((d0, d1, d2)):
         d[:, j] = comp[rays]
     hidden = station.occluded(np.broadcast_to(cam, d.shape), d, a_dist)
@@ -406,6 +420,16 @@ def _stride(fraction: float, n_pixels: int) -> int:
     return max(1, int(np.sqrt(fraction * n_pixels / EXACT_PIXELS)))
 
 
+def _extent(anomaly: RayScene, points) -> tuple[float, np.ndarray]:
+    """(bounding radius, box_corners) of an object's points in its own frame, kept on its BVH (built
+    once per asset) for as long as the caller passes the same points array: every group of an
+    asset needs them, and the points can be thousands."""
+    kept = anomaly.memo.get("extent")
+    if kept is None or kept[0] is not points:
+        kept = anomaly.memo["extent"] = (points, float(fm.norm(points, axis=1).max()), box_corners(points))
+    return kept[1], kept[2]
+
+
 class _Group:
     """One (day, pose, asset) group's fixed inputs and per-(attempt, depth) caches, so that placing
     it reads as steps (draw, room, screen, confirm, fall back) with nothing recomputed."""
@@ -416,9 +440,8 @@ class _Group:
         self.cam_pos = np.asarray(cam_pos, dtype=np.float64)
         self.cam_rot = np.asarray(cam_rot, dtype=np.float64)
         self.station = station_parts if isinstance(station_parts, RayScene) else RayScene(station_parts)
-        self.radius = float(fm.norm(anomaly_points, axis=1).max())
-        self.corners = box_corners(anomaly_points)
         self.anomaly = anomaly_scene(anomaly_points, anomaly_tris) if anomaly is None else anomaly
+        self.radius, self.corners = _extent(self.anomaly, anomaly_points)
         self.min_fraction = min_fraction
         self.width, self.height = width, height
         self.full = (int(width), int(height))

@@ -9,6 +9,8 @@ which dominated for the small ray batches placement casts.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
@@ -18,6 +20,7 @@ from allo_usd.core import fixedmath as fm
 _RAY_OFFSET_FACTOR, _RAY_OFFSET_FLOOR = 1e-6, 1e-8   # step past a hit face (multiple hits)
 _PARALLEL = 1e-5                                      # |cos| under this: the ray grazes the plane
 _ZERO = 1e-13                                         # a shorter normal or direction has none (trimesh's tol.zero)
+_FEW = 16                                             # up to this many rays, a hit's float64 work runs on Python floats
 
 
 def _unitize(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -32,6 +35,15 @@ def _unitize(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return v * (1.0 / length)[:, None], ok
     inv = np.where(ok, 1.0 / np.where(ok, length, 1.0), 1.0)
     return v * inv[:, None], ok
+
+
+def _unit_row(v: list) -> list:
+    """`_unitize` of one row of Python floats: the same operations (fm.norm's sum in index order,
+    times the reciprocal length; a row without a length is kept as it is, times 1.0)."""
+    v0, v1, v2 = v
+    length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    inv = 1.0 / length if length > _ZERO else 1.0
+    return [v0 * inv, v1 * inv, v2 * inv]
 
 
 class RayFan:
@@ -50,6 +62,8 @@ class RayFan:
         self.dirs32 = np.empty((len(d0), 3), dtype=np.float32)   # _run's float32 copy (the same cast)
         for j in range(3):
             self.dirs32[:, j] = self.unit[j]
+        # the unit vectors as rows of Python floats, for a fan of _FEW rays or fewer (RayScene._few_hits)
+        self.rows = np.stack(self.unit, axis=1).tolist() if len(d0) <= _FEW else None
 
     @classmethod
     def of_rows(cls, dirs: np.ndarray) -> "RayFan":
@@ -74,6 +88,7 @@ class RayScene:
         self.vertices = np.concatenate(pts)
         self.faces = np.concatenate(tris)
         self.owner = np.concatenate(owner)
+        self._owned = bool((self.owner > 0).all())   # every triangle has an owner above 0 (hits_from keeps all)
         used = self.vertices[np.unique(self.faces)] if len(self.faces) else self.vertices
         lo, hi = used.min(axis=0), used.max(axis=0)
         self.scale = float(fm.norm(hi - lo))             # bounding-box diagonal
@@ -87,6 +102,7 @@ class RayScene:
         self._normal_cols = tuple(np.ascontiguousarray(self._normal[:, j]) for j in range(3))
         self._plane_origin_cols = tuple(np.ascontiguousarray(self._plane_origin[:, j]) for j in range(3))
         self._parts: dict = {}   # part_boxes and part_corner_columns, by levels
+        self.memo: dict = {}     # what callers derive once per scene (placement's object extent)
         self._embree = rtcore_scene.EmbreeScene()
         TriangleMesh(scene=self._embree, vertices=((self.vertices - lo) * self._factor).astype(np.float32),
                      indices=self.faces.astype(np.int32))
@@ -148,6 +164,10 @@ class RayScene:
         """(owner id or 0, distance or inf) of the first hit of each ray (directions need not be unit)."""
         origins = np.asarray(origins, dtype=np.float64)
         dirs = np.asarray(dirs, dtype=np.float64)
+        if 0 < len(origins) <= _FEW and origins.shape == dirs.shape == (len(origins), 3):
+            rows = [_unit_row(d) for d in dirs.tolist()]
+            return self._few_hits(origins.tolist(), self._origins32(origins),
+                                  np.array(rows, dtype=np.float64).astype(np.float32), rows)
         dirs = _unitize(dirs)[0]
         owner = np.zeros(len(origins), dtype=np.uint8)
         dist = np.full(len(origins), np.inf)
@@ -165,6 +185,9 @@ class RayScene:
         unit vectors and float32 copy taken from `fan` (made once for directions cast from many
         points), without the (n, 3) float64 temporaries of the rays that miss."""
         n = len(fan.unit[0])
+        if fan.rows is not None and n:
+            o = np.asarray(origin, dtype=np.float64).reshape(1, 3)
+            return self._few_hits(o.tolist() * n, np.broadcast_to(self._origins32(o), (n, 3)), fan.dirs32, fan.rows)
         owner = np.zeros(n, dtype=np.uint8)
         dist = np.full(n, np.inf)
         origin, rays, tri, dirs, normals, den = self._fan_hits(origin, fan)
@@ -179,8 +202,8 @@ class RayScene:
         object's pixels needs of `first_hit_fan`, bit for bit, without its full-size owner and
         distance arrays, and without the distances when only the count matters (a silhouette)."""
         origin, rays, tri, dirs, normals, den = self._fan_hits(origin, fan)
-        keep = self.owner[tri] > 0
-        if not keep.all():
+        keep = None if self._owned else self.owner[tri] > 0
+        if keep is not None and not keep.all():
             rays, tri, den = rays[keep], tri[keep], den[keep]
             dirs, normals = tuple(c[keep] for c in dirs), tuple(c[keep] for c in normals)
         if not distances:
@@ -226,6 +249,33 @@ class RayScene:
             length = part * part if length is None else length + part * part
         return np.sqrt(length)
 
+    def _few_hits(self, origins: list, o32: np.ndarray, d32: np.ndarray, dirs: list):
+        """`first_hit` of a few rays (origins and unit directions as rows of Python floats, and their
+        float32 copies for embree): `_record_hits`' operations on Python floats, in its order (IEEE
+        doubles either way, so the same bits), where numpy's per-call costs were most of the rig's
+        clearance probe (10 rays) and placement's one-ray look along a candidate's line of sight."""
+        n = len(dirs)
+        owner, dist = [0] * n, [math.inf] * n
+        prim = self._embree.run(o32, d32).tolist()
+        rays = [r for r in range(n) if prim[r] != -1]
+        if rays:
+            tri = [prim[r] for r in rays]
+            for r, (n0, n1, n2), (p0, p1, p2), who in zip(rays, self._normal[tri].tolist(),
+                                                          self._plane_origin[tri].tolist(), self.owner[tri].tolist()):
+                (o0, o1, o2), (d0, d1, d2) = origins[r], dirs[r]
+                den = d0 * n0                       # _plane_distance's fm.dot, left to right
+                den = den + d1 * n1
+                den = den + d2 * n2
+                if not abs(den) > _PARALLEL:
+                    continue                        # near-parallel: dropped
+                ori = (p0 - o0) * n0
+                ori = ori + (p1 - o1) * n1
+                ori = ori + (p2 - o2) * n2
+                t = ori / den
+                a, b, c = (d0 * t + o0) - o0, (d1 * t + o1) - o1, (d2 * t + o2) - o2   # loc - origin
+                owner[r], dist[r] = who, math.sqrt(a * a + b * b + c * c)             # fm.norm's order
+        return np.array(owner, dtype=np.uint8), np.array(dist, dtype=np.float64)
+
     def _record_hits(self, owner, dist, rays, tri, hit_origins, hit_dirs) -> None:
         """Fill `owner` and `dist` at the rays embree reports a hit for (hit triangle `tri`), the
         distance recomputed in float64 from the triangle's plane; near-parallel hits are dropped."""
@@ -245,7 +295,7 @@ class RayScene:
         if not len(origins):
             return np.zeros(0, dtype=bool)
         t = (np.asarray(tmax, dtype=np.float64) * self._factor).astype(np.float32)
-        return self._embree.run(self._origins32(origins), np.asarray(dirs).astype(np.float32), dists=t,
+        return self._embree.run(self._origins32(origins), np.asarray(dirs, dtype=np.float32), dists=t,
                                 query="OCCLUDED") != -1
 
     def hits(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int = 100) -> np.ndarray:
@@ -265,8 +315,7 @@ class RayScene:
         as elementwise numpy (so the same bits): `inside` casts 7 rays and is usually decided in one
         step, where numpy's per-call costs were most of a camera sample's clearance check."""
         o = np.array(origins, dtype=np.float64).reshape(-1, 3).tolist()
-        unit = _unitize(np.asarray(dirs, dtype=np.float64).reshape(-1, 3))[0]
-        d, d32 = unit.tolist(), unit.astype(np.float32)
+        d, d32 = _unit_fan(dirs)
         base = max(_RAY_OFFSET_FLOOR, self.scale * _RAY_OFFSET_FACTOR)
         offsets = [[c * base for c in row] for row in d]
         last = [-1] * len(o)
@@ -274,9 +323,15 @@ class RayScene:
         for _ in range(max_hits):
             if not live:
                 break
-            prim = self._embree.run(self._origins32(np.array([o[r] for r in live])), d32[live]).tolist()
-            if all(t == -1 for t in prim):
-                break
+            prim = self._embree.run(self._origins32(np.array([o[r] for r in live])),
+                                    d32 if len(live) == len(o) else d32[live]).tolist()
+            new = [tri for r, tri in zip(live, prim) if tri != -1 and last[r] != tri]   # faces to step past
+            if not new:
+                if all(t == -1 for t in prim):
+                    break
+                faces = iter(())
+            else:
+                faces = zip(self._normal[new].tolist(), self._plane_origin[new].tolist())
             crossed, dupes = [], []
             for r, tri in zip(live, prim):
                 if tri == -1:
@@ -286,7 +341,7 @@ class RayScene:
                     dupes.append(r)
                     continue
                 last[r] = tri
-                (n0, n1, n2), (p0, p1, p2) = self._normal[tri].tolist(), self._plane_origin[tri].tolist()
+                (n0, n1, n2), (p0, p1, p2) = next(faces)
                 (o0, o1, o2), (d0, d1, d2) = o[r], d[r]
                 ori = (p0 - o0) * n0                 # _plane_distance's fm.dot, left to right
                 ori = ori + (p1 - o1) * n1
@@ -328,6 +383,18 @@ class RayScene:
 
 _PARITY_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
                          [0.577, 0.577, 0.577]], dtype=np.float64)   # inside's seven rays (made unit by hits)
+
+
+def _unit_fan(dirs) -> tuple[list, np.ndarray]:
+    """(`_unitize`d rows of `dirs` as Python floats, their float32 copy): `_crossings`' directions,
+    made once for inside's fixed seven."""
+    if dirs is _PARITY_DIRS:
+        return _PARITY_FAN
+    unit = _unitize(np.asarray(dirs, dtype=np.float64).reshape(-1, 3))[0]
+    return unit.tolist(), unit.astype(np.float32)
+
+
+_PARITY_FAN = _unit_fan(_PARITY_DIRS.copy())   # (inside passes _PARITY_DIRS itself)
 
 
 def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None,
