@@ -467,6 +467,9 @@ def dataset_runs(renders: Path, work: Path, layers: list[Path], add: int) -> lis
 
 # ---------------------------------------------------------------- the report
 
+NOTES = "notes_bench_scale.md"   # beside the report: findings measured by hand, included in every report
+
+
 def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, sizes: dict, plan: str) -> None:
     import matplotlib
 
@@ -514,6 +517,9 @@ def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, siz
                           f"{x['seconds']:.1f} s, {x['cpu']:.1f} CPU s, load {x['load'][0]} -> {x['load'][1]}, "
                           f"calibration {x['calibration'][0]:.2f} / {x['calibration'][1]:.2f}, "
                           f"file create {x['create_us']:.0f} us" for x in r["runs"]) + "."]
+    notes = out / NOTES
+    if notes.is_file():   # what was measured by hand beside the script (kept across its runs)
+        lines += ["", notes.read_text().strip()]
     lines += ["", "Peak RSS is the largest process of the command (its own or a child's: /usr/bin/time's %M, else "
               "wait4's, which counts this script's own RSS too). The resume "
               "check is `allo-usd render TREE --out RENDERS` over the finished folder: the scan for scene layers, "
