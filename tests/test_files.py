@@ -154,3 +154,21 @@ def test_write_bytes_atomic_on_a_full_disk_leaves_nothing(tmp_path, monkeypatch)
             files.write_bytes_atomic(tmp_path / name, b"x" * 100)
     monkeypatch.undo()
     assert os.listdir(tmp_path) == ["kept.usda"] and (tmp_path / "kept.usda").read_bytes() == b"old"
+
+
+@pytest.mark.parametrize("unnamed", [True, False])
+def test_write_bytes_atomic_without_an_inode_left_is_a_disk_full_error(tmp_path, monkeypatch, unnamed):
+    """ENOSPC (or EDQUOT) when the file itself is created, not only while it is written."""
+    from allo_usd.core import files
+
+    monkeypatch.setattr(files, "_unnamed", {"ok": unnamed, "root": None, "folders": set()})
+
+    def no_inode(p, flags, *a, **k):
+        raise OSError(errno.ENOSPC if unnamed else errno.EDQUOT, "No space left on device", p)
+
+    monkeypatch.setattr(os, "open", no_inode)
+    with pytest.raises(DiskFullError, match="free space"):
+        files.write_bytes_atomic(tmp_path / "a.usda", b"x")
+    monkeypatch.undo()
+    assert os.listdir(tmp_path) == []
+

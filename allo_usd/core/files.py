@@ -236,20 +236,20 @@ def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> Path:
     renamed over `path`. A full disk raises DiskFullError; a write cut short leaves nothing (an
     unnamed file vanishes when its descriptor closes)."""
     path = Path(path)
-    fd = _open_unnamed_beside(path)
-    if fd is not None:
-        try:
+    try:
+        fd = _open_unnamed_beside(path)
+        if fd is not None:
             try:
                 _fill(fd, data, mode)
                 if _link_unnamed(fd, path):
                     return path
-            except OSError as exc:
-                if exc.errno in DISK_FULL_ERRNOS:
-                    raise _disk_full(path) from exc
-                raise
-        finally:
-            os.close(fd)
-    fd, tmp = _open_temp_beside(path)
+            finally:
+                os.close(fd)
+        fd, tmp = _open_temp_beside(path)
+    except OSError as exc:   # no inode, block or quota left for the file, its folder or its name
+        if exc.errno in DISK_FULL_ERRNOS:
+            raise _disk_full(path) from exc
+        raise
     try:
         try:
             _fill(fd, data, mode)
