@@ -134,6 +134,13 @@ def test_write_bytes_atomic_falls_back_to_a_named_temporary(tmp_path, monkeypatc
             raise FileNotFoundError(errno.ENOENT, "No such file or directory", src)
         return real_link(src, dst, **k)
 
+    def other_mount(src, dst, **k):
+        raise OSError(errno.EXDEV, "Invalid cross-device link", src)
+
+    monkeypatch.setattr(os, "link", other_mount)
+    files.write_bytes_atomic(tmp_path / "mnt" / "c.usda", b"other mount")
+    assert (tmp_path / "mnt" / "c.usda").read_bytes() == b"other mount" and os.listdir(tmp_path / "mnt") == ["c.usda"]
+    assert str(tmp_path / "mnt") in files._unnamed["folders"] and files._unnamed["ok"] is True
     monkeypatch.setattr(os, "link", no_proc)
     files.write_bytes_atomic(tmp_path / "sub" / "b.usda", b"no proc")
     assert (tmp_path / "sub" / "b.usda").read_bytes() == b"no proc" and os.listdir(tmp_path / "sub") == ["b.usda"]

@@ -154,6 +154,11 @@ def _link_unnamed(fd: int, path: Path) -> bool:
     except (FileNotFoundError, PermissionError, NotADirectoryError):
         _unnamed["ok"] = False      # no /proc here (or it hides descriptors): named temporaries from now on
         return False
+    except OSError as exc:
+        if exc.errno != errno.EXDEV:
+            raise
+        _unnamed["folders"].add(os.path.dirname(os.fspath(path)) or ".")   # a mount that will not link it
+        return False
     folder, name = os.path.split(os.fspath(path))
     for _ in range(1000):
         tmp = os.path.join(folder, f".{name}.{os.getpid()}.{next(_TEMP_SERIAL) & 0xFFFFFFFF:08x}{os.path.splitext(name)[1]}")
