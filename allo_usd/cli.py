@@ -618,9 +618,6 @@ def one_line(message: str) -> str:
 def main() -> None:
     try:
         app()
-    except AlloError as exc:
-        typer.secho(f"error: {one_line(str(exc))}", fg=typer.colors.RED, err=True)
-        raise SystemExit(2) from None
     except KeyboardInterrupt:
         typer.echo(_INTERRUPTED, err=True)
         raise SystemExit(130) from None
@@ -630,12 +627,32 @@ def main() -> None:
         if exc.code == 130 and ctx is not None and isinstance(ctx.__cause__, KeyboardInterrupt):
             typer.echo(_INTERRUPTED, err=True)
         raise
-    except OSError as exc:
-        line = _os_error_line(exc)
+    except Exception as exc:
+        if _SIGINTS:   # a library turned the Ctrl-C into another error: it was still a Ctrl-C
+            typer.echo(_INTERRUPTED, err=True)
+            raise SystemExit(130) from None
+        if isinstance(exc, AlloError):
+            typer.secho(f"error: {one_line(str(exc))}", fg=typer.colors.RED, err=True)
+            raise SystemExit(2) from None
+        line = _os_error_line(exc) if isinstance(exc, OSError) else None
         if line is None:
             raise
         typer.secho(line, fg=typer.colors.RED, err=True)
         raise SystemExit(2) from None
+
+
+_SIGINTS: list[int] = []   # SIGINTs that reached Python's handler during the command (_noted_sigint)
+
+
+def _noted_sigint(signum, frame):
+    """Python's SIGINT handler (a KeyboardInterrupt), noting that one came: a C extension that takes
+    numpy's C API as it loads turns a KeyboardInterrupt raised inside its import into "ImportError:
+    numpy.core.multiarray failed to import", and a bare `except:` around an optional import turns it
+    into the next import's error (skyfield's iokit: "No module named 'urlparse'"). The libraries
+    this package loads lazily are imported with SIGINT held (core.interrupts); main() ends any other
+    such error that follows a Ctrl-C as the Ctrl-C it was (exit 130, the one line), not a traceback."""
+    _SIGINTS.append(signum)
+    raise KeyboardInterrupt
 
 
 def console() -> None:
@@ -719,6 +736,11 @@ def _loaded() -> None:
     if _LOADING.release(deliver=not command):
         typer.echo(_INTERRUPTED, err=True)
         raise SystemExit(130)
+    if command:
+        import signal
+
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _noted_sigint)
 
 
 _loaded()

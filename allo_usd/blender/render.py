@@ -43,7 +43,9 @@ class RenderResult:
 
 
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
-    import OpenEXR
+    from allo_usd.core.interrupts import import_held
+
+    OpenEXR = import_held("OpenEXR")   # a C extension that takes numpy as it loads: Ctrl-C held
 
     channels = {}
     with OpenEXR.File(str(path), separate_channels=True) as f:

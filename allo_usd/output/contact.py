@@ -62,7 +62,9 @@ def tile_size(width: int, height: int) -> tuple[int, int]:
 def outlined(rgb: np.ndarray, anomaly: np.ndarray, size: tuple[int, int]) -> Image.Image:
     """The image at `size` with the anomaly (a boolean mask) ringed and boxed in OUTLINE. The mask
     is scaled with a box filter and any covered pixel kept, so a tiny anomaly never vanishes."""
-    from scipy.ndimage import binary_dilation
+    from allo_usd.core.interrupts import import_held
+
+    binary_dilation = import_held("scipy.ndimage").binary_dilation   # numpy's C API as it loads: Ctrl-C held
 
     tile = Image.fromarray(rgb).resize(size, Image.Resampling.LANCZOS if size[0] < rgb.shape[1]
                                        else Image.Resampling.NEAREST)

@@ -479,6 +479,7 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
     """The tasks on a Dask cluster. Each attempt's clock starts when the scheduler first lists it
     as processing on a worker; past its limit the future is cancelled, the worker restarted (the
     stuck thread holds that process's bpy lock) and the attempt counted as a timeout."""
+    _distributed()
     from distributed import Client, as_completed
 
     client = scheduler if isinstance(scheduler, Client) else connect_scheduler(scheduler)
@@ -542,10 +543,21 @@ SCHEDULER_CONNECT_S = 5.0   # how long connecting to a --scheduler may take (dis
 SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss")
 
 
+def _distributed() -> None:
+    """Import Dask's distributed (and its comm registry) with Ctrl-C held (core.interrupts): a large
+    import whose dependencies try optional modules under broad excepts, where a Ctrl-C could be
+    swallowed or come out as another error."""
+    from allo_usd.core.interrupts import import_held
+
+    import_held("distributed")
+    import_held("distributed.comm.registry")
+
+
 def scheduler_problem(address) -> str | None:
     """Why `address` is not a Dask scheduler address one can connect to from another process, or
     None: SCHEME://HOST:PORT (tcp, tls, ws or wss; a bare HOST:PORT is tcp) with a port 1-65535, as
     distributed parses it. Checked before anything renders, without connecting."""
+    _distributed()
     from distributed.comm import get_address_host_port, parse_address
     from distributed.comm.registry import get_backend
 
@@ -568,6 +580,7 @@ def connect_scheduler(address):
     LocalCluster), or an AlloError in one line: a malformed address at once (scheduler_problem), one
     that does not answer as a Dask scheduler within SCHEDULER_CONNECT_S (refused, unroutable, or
     something else listening there: distributed then reads garbage and may raise MemoryError)."""
+    _distributed()
     from distributed import Client
 
     fix = "fix: give the address `dask scheduler` prints, e.g. --scheduler tcp://HOST:8786, or leave it out for a local pool"

@@ -37,6 +37,24 @@ def _unitize(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v * inv[:, None], ok
 
 
+_EMBREEX: list = []
+
+
+def _embreex():
+    """embreex's scene and mesh modules, imported once with Ctrl-C held (core.interrupts): they are
+    Cython modules that take numpy's C API as they load, and a KeyboardInterrupt landing there comes
+    out as "ImportError: numpy.core.multiarray failed to import" (the command failed with a
+    traceback instead of stopping with exit 130; seen in test_sigint)."""
+    if not _EMBREEX:
+        import importlib
+
+        from allo_usd.core.interrupts import interrupt_held
+
+        with interrupt_held():
+            _EMBREEX[:] = [importlib.import_module(f"embreex.{name}") for name in ("rtcore_scene", "mesh_construction")]
+    return _EMBREEX
+
+
 def _unit_row(v: list) -> list:
     """`_unitize` of one row of Python floats: the same operations (fm.norm's sum in index order,
     times the reciprocal length; a row without a length is kept as it is, times 1.0)."""
@@ -76,8 +94,8 @@ class RayScene:
     """Triangles tagged by owner id (1 station, 2 anomaly), one embree BVH over all of them."""
 
     def __init__(self, parts: list[tuple[np.ndarray, np.ndarray, int]]):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
+        rtcore_scene, mesh_construction = _embreex()
+        TriangleMesh = mesh_construction.TriangleMesh
 
         pts, tris, owner, off = [], [], [], 0
         for p, t, oid in parts:

@@ -27,6 +27,7 @@ import numpy as np
 
 from allo_usd.core.constants import SECONDS_PER_DAY
 from allo_usd.core.errors import EphemerisRangeError, EpochError, SkyInputError
+from allo_usd.core.interrupts import interrupt_held
 from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 from allo_usd.core import fixedmath as fm
@@ -65,8 +66,9 @@ class _Ephemeris:
 def load_de421() -> _Ephemeris:
     """Open DE421 and the builtin timescale from skyfield-data; never touches the network."""
     with quiet_expiry():
-        import skyfield_data
-        from skyfield.api import Loader
+        with interrupt_held():   # skyfield's iokit tries urllib under a bare `except:`: a Ctrl-C landing there
+            import skyfield_data   # came out as "No module named 'urlparse'" (a traceback, not exit 130)
+            from skyfield.api import Loader
 
         directory = skyfield_data.get_skyfield_data_path()
         path = os.path.join(directory, "de421.bsp")
