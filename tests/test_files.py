@@ -107,9 +107,12 @@ def test_write_bytes_atomic_links_an_unnamed_file_and_replaces_an_existing_one(t
         assert made == [0]
 
 
-def test_write_bytes_atomic_falls_back_to_a_named_temporary(tmp_path, monkeypatch):
-    """Without unnamed files in a folder (the file system refuses O_TMPFILE) or without /proc to link
-    one, the named temporary and rename of atomic_path write the file, whole."""
+@pytest.mark.parametrize("refusal", [errno.EOPNOTSUPP, errno.EISDIR, errno.ENOSYS])
+def test_write_bytes_atomic_falls_back_to_a_named_temporary(tmp_path, monkeypatch, refusal):
+    """Without unnamed files in a folder (the file system refuses O_TMPFILE: EOPNOTSUPP; a kernel that
+    predates it reads the flag as O_DIRECTORY: EISDIR; a FUSE or emulation layer: ENOSYS), across
+    mounts, or without /proc to link one, the named temporary and rename of atomic_path write the
+    file, whole."""
     from allo_usd.core import files
 
     monkeypatch.setattr(files, "_unnamed", {"ok": True, "root": None, "folders": set()})
@@ -117,7 +120,7 @@ def test_write_bytes_atomic_falls_back_to_a_named_temporary(tmp_path, monkeypatc
 
     def no_tmpfile(p, flags, *a, **k):
         if flags & getattr(os, "O_TMPFILE", 0) == getattr(os, "O_TMPFILE", -1):
-            raise OSError(errno.EOPNOTSUPP, "Operation not supported", p)
+            raise OSError(refusal, os.strerror(refusal), p)
         return real_open(p, flags, *a, **k)
 
     monkeypatch.setattr(os, "open", no_tmpfile)

@@ -109,7 +109,7 @@ def _open_temp_beside(path: Path, suffix: str = "") -> tuple[int, Path]:
 
 
 _UNNAMED_FLAGS = getattr(os, "O_TMPFILE", 0) | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
-_NO_UNNAMED = (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOTSUP)   # no O_TMPFILE there
+_NO_UNNAMED = (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOTSUP, errno.ENOSYS)   # no O_TMPFILE there
 _unnamed = {"ok": hasattr(os, "O_TMPFILE"), "root": None, "folders": set()}   # this process's findings
 
 
