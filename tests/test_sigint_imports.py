@@ -42,7 +42,8 @@ CASES = {
                 "    RayScene([(np.eye(3), np.array([[0, 1, 2]]), 1)])"),
     "skyfield": ("skyfield.iokit", ["skyfield.api", "skyfield.iokit"],
                  "    from allo_usd.sky.ephemeris import load_de421\n    load_de421()"),
-    "OpenEXR": ("OpenEXR", ["OpenEXR"], "    from allo_usd.output.writers import openexr\n    openexr()"),
+    "OpenEXR": ("OpenEXR", ["OpenEXR"], "    from allo_usd.output.annotation_files import read_depth_exr\n"
+                "    read_depth_exr('missing.exr')"),
     "scipy.ndimage": ("scipy.ndimage", ["scipy.ndimage"],
                       "    import numpy as np\n    from allo_usd.output.contact import outlined\n"
                       "    mask = np.zeros((8, 8), bool)\n    mask[3:5, 3:5] = True\n"

@@ -91,11 +91,8 @@ def _open_temp_beside(path: Path, suffix: str = "") -> tuple[int, Path]:
     exclusively, links not followed, mode 0o600), named by a per-process serial instead of random
     letters, the folder made only when the create finds it missing: authoring writes ~92,000 files,
     and mkstemp's names and a mkdir each cost a third of a layer's writing."""
-    path = os.fspath(path)
-    folder, name = os.path.split(path)
-    ext = suffix or os.path.splitext(name)[1]
-    for _ in range(1000):
-        tmp = os.path.join(folder, f".{name}.{os.getpid()}.{next(_TEMP_SERIAL) & 0xFFFFFFFF:08x}{ext}")
+    folder = os.path.dirname(os.fspath(path))
+    for tmp in _temp_names(path, suffix):
         try:
             return os.open(tmp, _TEMP_FLAGS, 0o600), Path(tmp)
         except FileExistsError:
@@ -105,7 +102,16 @@ def _open_temp_beside(path: Path, suffix: str = "") -> tuple[int, Path]:
                 Path(folder).mkdir(parents=True, exist_ok=True)
                 continue
             raise
-    raise FileExistsError(errno.EEXIST, "no free temporary name", path)
+    raise FileExistsError(errno.EEXIST, "no free temporary name", os.fspath(path))
+
+
+def _temp_names(path, suffix: str = ""):
+    """Up to 1,000 temporary names beside `path` for this process (temp_name_re's form: `.NAME.PID.SERIAL`
+    and `suffix` or `path`'s suffix), each a new serial."""
+    folder, name = os.path.split(os.fspath(path))
+    ext = suffix or os.path.splitext(name)[1]
+    for _ in range(1000):
+        yield os.path.join(folder, f".{name}.{os.getpid()}.{next(_TEMP_SERIAL) & 0xFFFFFFFF:08x}{ext}")
 
 
 _UNNAMED_FLAGS = getattr(os, "O_TMPFILE", 0) | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
@@ -159,9 +165,7 @@ def _link_unnamed(fd: int, path: Path) -> bool:
             raise
         _unnamed["folders"].add(os.path.dirname(os.fspath(path)) or ".")   # a mount that will not link it
         return False
-    folder, name = os.path.split(os.fspath(path))
-    for _ in range(1000):
-        tmp = os.path.join(folder, f".{name}.{os.getpid()}.{next(_TEMP_SERIAL) & 0xFFFFFFFF:08x}{os.path.splitext(name)[1]}")
+    for tmp in _temp_names(path):
         try:
             os.link(source, tmp, src_dir_fd=_unnamed["root"])
             break

@@ -41,7 +41,7 @@ from allo_usd.core.scene_labels import SPLITS
 from allo_usd.output import bop, coco
 from allo_usd.output.contact import read_pixels
 from allo_usd.output.dataset_files import COLUMNS, Refused, place, source_file
-from allo_usd.output.writers import openexr, write_png
+from allo_usd.output.writers import write_png
 from allo_usd.output.pass_files import PASS_COLUMNS
 
 RECORDS = "annotations/records.json"
@@ -73,7 +73,9 @@ def write_if_changed(path: Path, text: str) -> bool:
 
 def read_depth_exr(path: Path) -> np.ndarray:
     """The Z channel of a float depth EXR (the render's STEM_depth.exr), metres."""
-    OpenEXR = openexr()
+    from allo_usd.core.interrupts import import_held
+
+    OpenEXR = import_held("OpenEXR")   # a C extension that takes numpy as it loads: Ctrl-C held
 
     with OpenEXR.File(str(path), separate_channels=True) as f:
         channels = f.parts[0].channels

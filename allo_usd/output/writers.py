@@ -62,16 +62,10 @@ def write_instance_png(path: Path, ids: np.ndarray) -> Path:
     return write_png(path, ids)
 
 
-def openexr():
-    """The OpenEXR module, imported with Ctrl-C held (core.interrupts): a C extension that takes
-    numpy as it loads, where a KeyboardInterrupt can come out as an ImportError."""
+def write_exr(path: Path, channels: dict[str, np.ndarray], half: bool = True, attributes: dict | None = None) -> Path:
     from allo_usd.core.interrupts import import_held
 
-    return import_held("OpenEXR")
-
-
-def write_exr(path: Path, channels: dict[str, np.ndarray], half: bool = True, attributes: dict | None = None) -> Path:
-    OpenEXR = openexr()
+    OpenEXR = import_held("OpenEXR")   # a C extension that takes numpy as it loads: Ctrl-C held
 
     if half:  # the Sun's disc and its specular glints exceed half's range: saturate, never inf
         hmax = float(np.finfo(np.float16).max)

@@ -321,7 +321,7 @@ class RayScene:
         out = [r for crossed, _ in self._crossings(origins, dirs, max_hits) for r in crossed]
         return np.array(out, dtype=np.int64)
 
-    def _crossings(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int):
+    def _crossings(self, origins: np.ndarray, dirs: np.ndarray, max_hits: int, fan=None):
         """`hits` one step at a time: per step, (the rays that crossed a surface, the rays still
         going), as lists of ray indices; a ray missing from the second has crossed its last surface.
 
@@ -333,7 +333,7 @@ class RayScene:
         as elementwise numpy (so the same bits): `inside` casts 7 rays and is usually decided in one
         step, where numpy's per-call costs were most of a camera sample's clearance check."""
         o = np.array(origins, dtype=np.float64).reshape(-1, 3).tolist()
-        d, d32 = _unit_fan(dirs)
+        d, d32 = _unit_fan(dirs) if fan is None else fan   # fan: _unit_fan(dirs), made beforehand
         base = max(_RAY_OFFSET_FLOOR, self.scale * _RAY_OFFSET_FACTOR)
         offsets = [[c * base for c in row] for row in d]
         last = [-1] * len(o)
@@ -388,7 +388,7 @@ class RayScene:
         n = len(_PARITY_DIRS)
         origins = np.repeat(np.asarray(point, dtype=np.float64).reshape(1, 3), n, 0)
         crossings = [0] * n
-        for crossed, live in self._crossings(origins, _PARITY_DIRS, 100):
+        for crossed, live in self._crossings(origins, _PARITY_DIRS, 100, _PARITY_FAN):
             for r in crossed:
                 crossings[r] += 1
             going = set(live)
@@ -404,15 +404,12 @@ _PARITY_DIRS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]
 
 
 def _unit_fan(dirs) -> tuple[list, np.ndarray]:
-    """(`_unitize`d rows of `dirs` as Python floats, their float32 copy): `_crossings`' directions,
-    made once for inside's fixed seven."""
-    if dirs is _PARITY_DIRS:
-        return _PARITY_FAN
+    """(`_unitize`d rows of `dirs` as Python floats, their float32 copy): `_crossings`' directions."""
     unit = _unitize(np.asarray(dirs, dtype=np.float64).reshape(-1, 3))[0]
     return unit.tolist(), unit.astype(np.float32)
 
 
-_PARITY_FAN = _unit_fan(_PARITY_DIRS.copy())   # (inside passes _PARITY_DIRS itself)
+_PARITY_FAN = _unit_fan(_PARITY_DIRS)   # inside's seven directions, made once
 
 
 def pixel_rays(cam_pos, cam_rot, width: int, height: int, index=None,
