@@ -9,7 +9,7 @@ pass when it is not asked for (output.annotations.amodal_raycast) is timed too, 
 compared with the pass's pixel for pixel.
 
 By default the scene is the demo plan's first anomalous scene (authored into --work, as
-tests/test_golden.py does) over the committed stages/; --layer renders another one.
+tests/system/test_golden.py does) over the committed stages/; --layer renders another one.
 Writes docs/bench_amodal.md and docs/bench_amodal.png. Usage:
     .venv/bin/python scripts/bench_amodal.py [--sizes 160x90,480x270,960x540] [--repeats 2] [--out docs]
 """

@@ -15,7 +15,7 @@ with Cycles, and compares it with the project's own render of the same layer:
 Run as a benchmark, it measures what the importer's departures from the spec (light linking and
 `allo:rayVisibility` ignored, the DistantLight intensity factor, ...) cost on a normal day and on
 eclipse days, and writes docs/bench_light_linking.md and .png (or into --out).
-tests/test_outside_client.py loads this file for the same functions.
+tests/system/test_outside_client.py loads this file for the same functions.
 
     PYTHONPATH=. python scripts/bench_light_linking.py [--size 96x54] [--samples 16]
 """
@@ -50,7 +50,7 @@ DEPARTURES = {
                               "angle is the light's angular size (the Sun: about 0.53 degrees)",
 }
 
-# Days of 2030 (tests/test_sky_render.py): a normal day, the station's umbra (the Earth and Moon
+# Days of 2030 (tests/blender/test_render_sky.py): a normal day, the station's umbra (the Earth and Moon
 # stay sunlit), the lunar eclipse (the Moon's lamp dims, the station in sunlight).
 DAYS = {"normal (day 0)": 0, "umbra (2030-09-27)": 269, "lunar eclipse (2030-12-10)": 343}
 

@@ -4,7 +4,7 @@ A benchmark figure is only worth what its context says: the commit (a later comm
 or slower), the date, the CPU (its model and the SIMD sets Embree, Cycles and OIDN pick their
 kernels by), the core count, the load average before and after (other work on a shared machine
 slows wall time), and the command that made it (so anyone can re-run it). Every scripts/bench_*.py
-and scripts/check_determinism.py calls this module, and tests/test_bench_smoke.py checks that each
+and scripts/check_determinism.py calls this module, and tests/system/test_bench_smoke.py checks that each
 docs/bench_*.md names a commit that exists, the CPU, the load and the command.
 
     import benchinfo                       # scripts/ is on sys.path when a script runs

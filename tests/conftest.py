@@ -13,7 +13,7 @@ from allo_usd.scene.spec import CameraPose
 from allo_usd.usd.base_stage import write_base_stage
 from allo_usd.core.geometry import look_at
 
-from helpers import CAM_POS, tiny_anomalies, tiny_station
+from tests.support.helpers import CAM_POS, tiny_anomalies, tiny_station
 
 # A runner started in the background by a non-interactive shell (`cmd &`, `nohup cmd &`) inherits
 # SIGINT ignored, and so would every process the tests start: the Ctrl-C tests would then wait for
@@ -37,7 +37,7 @@ def rendered(tiny_base, tmp_path_factory):
     from allo_usd.run.job import render_layer
     from allo_usd.usd.scene_layer import write_scene_layer
 
-    from helpers import make_spec
+    from tests.support.helpers import make_spec
 
     root = tmp_path_factory.mktemp("render")
     out = {}
