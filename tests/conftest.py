@@ -1,10 +1,17 @@
-"""Shared fixtures: a tiny base stage built in a temp dir (fast). Helper functions live in
-helpers.py."""
+"""Shared fixtures (a tiny base stage built in a temp dir, two tiny renders of it) and the unit tier.
+
+Helper functions live in tests/support/helpers.py. `pytest --unit` (`make test-unit`) runs the
+unit tier: every test outside tests/system/ that is not marked `render`, `slow`, `process` or `bpy`, and
+it fails any test of that tier that starts a process or imports bpy, so that the tier stays the
+inner loop that answers in about a minute. `make test` runs everything."""
 
 from __future__ import annotations
 
+import multiprocessing.process
 import signal
 import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -82,3 +89,64 @@ def small_tmpfs(tmp_path):
     finally:
         if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
             subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+# ---------------------------------------------------------------- the unit tier
+
+TESTS = Path(__file__).resolve().parent
+UNIT_EXCLUDED_MARKS = ("render", "slow", "process", "bpy")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--unit", action="store_true", default=False,
+                     help="the unit tier: no tests/system/, nothing marked render, slow, process or bpy; a test of "
+                          "the tier that starts a process or imports bpy fails")
+
+
+def in_unit_tier(item) -> bool:
+    return (TESTS / "system") not in Path(str(item.fspath)).parents and \
+        not any(item.get_closest_marker(m) for m in UNIT_EXCLUDED_MARKS)
+
+
+def pytest_collection_modifyitems(config, items):
+    if not config.getoption("--unit"):
+        return
+    keep = [i for i in items if in_unit_tier(i)]
+    config.hook.pytest_deselected(items=[i for i in items if not in_unit_tier(i)])
+    items[:] = keep
+
+
+class _UnitTierBreach(BaseException):
+    """Raised (not an Exception, so that no `except Exception` in the code under test swallows it)
+    where a unit-tier test starts a process or imports bpy."""
+
+
+def _refuse(what: str):
+    def refuse(*args, **kwargs):
+        raise _UnitTierBreach(f"a unit-tier test {what}: mark it @pytest.mark.process (or bpy, or render if it "
+                              f"renders) so that `make test-unit` leaves it to `make test`")
+    return refuse
+
+
+class _NoBpy:
+    """A meta-path finder that refuses to import bpy (loading Blender costs seconds)."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "bpy" or name.startswith("bpy."):
+            _refuse("imports bpy")()
+        return None
+
+
+@pytest.fixture(autouse=True)
+def _unit_tier_guard(request, monkeypatch):
+    if not request.config.getoption("--unit"):
+        yield
+        return
+    monkeypatch.setattr(subprocess.Popen, "__init__", _refuse("starts a process (subprocess)"))
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", _refuse("starts a process (multiprocessing)"))
+    finder = _NoBpy()
+    sys.meta_path.insert(0, finder)
+    try:
+        yield
+    finally:
+        sys.meta_path.remove(finder)

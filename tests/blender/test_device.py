@@ -233,6 +233,7 @@ def test_gpu_without_a_gpu_is_one_clear_error(layer, tmp_path, how):
     assert not (tmp_path / "out" / "dev.png").exists()
 
 
+@pytest.mark.process
 def test_a_bad_device_on_the_command_line_is_one_line(layer, tmp_path):
     for args in (["render", layer, "--out", tmp_path / "o"], ["demo", "--out", tmp_path / "d"]):
         r = cli(*args, "--device", "tpu")

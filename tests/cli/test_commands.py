@@ -26,6 +26,7 @@ def test_cli_sky_writes_a_year(tmp_path):
     assert (tmp_path / "sky_2030.png").stat().st_size > 10_000
 
 
+@pytest.mark.process
 def test_cli_render_reports_a_missing_layer(tmp_path):
     import subprocess
     import sys
@@ -139,6 +140,7 @@ def test_cli_render_save_blend_keeps_what_blender_got(tiny_base, tmp_path):
     assert r.returncode == 2 and "single .usda layer" in r.stderr, r.stderr
 
 
+@pytest.mark.process
 def test_cli_render_save_blend_refuses_paths_blender_cannot_write(tiny_base, tmp_path):
     """A directory or an unwritable place for --save-blend is a clear error (exit 2), not a traceback."""
     import subprocess

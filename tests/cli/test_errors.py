@@ -91,6 +91,7 @@ def test_an_out_that_cannot_be_written_is_one_line_and_exit_2(tmp_path, read_onl
     one_line_error(cli("plan", "--demo", "--out", read_only_dir / "p.toml"), str(read_only_dir))
 
 
+@pytest.mark.process
 def test_bad_numbers_are_refused(tmp_path):
     (tmp_path / "layers").mkdir()
     for opt in ("--workers", "--threads", "--retries", "--timeout"):
@@ -134,6 +135,7 @@ INTERRUPT_DURING_PXR = textwrap.dedent("""
 """)
 
 
+@pytest.mark.process
 def test_ctrl_c_while_pxr_is_first_imported_is_not_lost(tiny_base, tmp_path):
     from allo_usd.usd.scene_layer import write_scene_layer
     from tests.support.helpers import make_spec

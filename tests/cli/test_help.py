@@ -77,6 +77,7 @@ def test_every_option_is_described_without_a_meaningless_default(path, cmd):
                 f"what it does in the help text and hide it (show_default=False): {row!r}")
 
 
+@pytest.mark.process
 def test_version_prints_the_installed_distribution_without_bpy():
     code = ("import sys; from typer.testing import CliRunner; from allo_usd.cli import app; "
             "r = CliRunner().invoke(app, ['--version']); print(r.exit_code); print(r.output.strip()); "
@@ -91,6 +92,7 @@ def test_version_prints_the_installed_distribution_without_bpy():
     assert bpy_loaded == "False"
 
 
+@pytest.mark.process
 def test_version_through_the_entry_point():
     r = subprocess.run([sys.executable, "-c", "from allo_usd.cli import main; main()", "--version"],
                        capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})

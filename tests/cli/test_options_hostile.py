@@ -58,6 +58,7 @@ def test_a_bad_number_is_one_line_that_prints_what_was_given(command, option, va
     assert not (tmp_path / "o").exists()   # refused before anything was made
 
 
+@pytest.mark.process
 def test_the_one_line_reaches_the_terminal_and_the_default_limit_keeps_its_meaning(tmp_path):
     (tmp_path / "layers").mkdir()
     r = sandboxed_cli("render", tmp_path / "layers", "--out", tmp_path / "o", "--timeout", "nan")
@@ -97,6 +98,7 @@ def test_a_malformed_scheduler_address_is_one_line(address, tmp_path):
              f"--scheduler {address!r}", "fix:")
 
 
+@pytest.mark.process
 def test_an_unreachable_scheduler_is_one_line_within_10_s(tmp_path):
     """Timed against a malformed address (the same start-up, imports and checks, no connection),
     so a loaded machine's slow start does not count against the connection's 10 s."""
@@ -146,6 +148,7 @@ def test_save_blend_never_loses_a_file_or_writes_through_a_link(layer, tmp_path)
     assert not (tmp_path / "nowhere.blend").exists() and not out.exists()
 
 
+@pytest.mark.process
 def test_save_blend_refuses_what_is_not_a_new_or_regular_blend_file(layer, tmp_path):
     out = tmp_path / "o"
     fifo = tmp_path / "pipe.blend"

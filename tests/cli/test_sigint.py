@@ -87,6 +87,7 @@ def plan_dir(tmp_path) -> Path:
     return d
 
 
+@pytest.mark.process
 def test_a_sigint_at_any_time_ends_author_with_130_and_a_resume_gives_the_same_tree(plan_dir, tmp_path):
     """The moments are fractions of an uninterrupted run's wall time (0.3 to 2 s on an idle machine,
     later on a loaded one), and one is "while scipy loads", inside trimesh's own import."""
@@ -164,6 +165,7 @@ def test_the_hold_hands_a_sigint_to_a_custom_handler_and_nests():
         signal.signal(signal.SIGINT, previous)
 
 
+@pytest.mark.process
 def test_a_sigint_after_the_work_ends_with_130_or_0_never_by_the_signal(plan_dir, tmp_path):
     """A Ctrl-C sent the moment the summary is printed lands in the command's exit. Python's own
     shutdown (about 0.3 s with USD and numpy loaded) used to run with the default SIGINT action,

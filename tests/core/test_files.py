@@ -53,6 +53,7 @@ def test_atomic_directory_replaces_whole_or_not_at_all(tmp_path):
     assert os.listdir(dest) == ["other"]
 
 
+@pytest.mark.process
 def test_atomic_directory_removes_dead_writers_leftovers_only(tmp_path):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     dead_pid = int(dead.stdout)

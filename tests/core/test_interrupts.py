@@ -54,6 +54,7 @@ CASES = {
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.process
 def test_a_ctrl_c_while_a_library_loads_is_raised_once_it_is_loaded(case):
     trigger, loaded, call = CASES[case]
     script = HOOK.format(trigger=trigger, loaded=loaded, call=call)
@@ -90,6 +91,7 @@ console()
 """
 
 
+@pytest.mark.process
 def test_a_ctrl_c_a_library_turned_into_another_error_still_ends_the_command_with_130(tmp_path):
     """The safety net behind the held imports: numpy's own import (the author command's first) is made
     to turn a Ctrl-C into the ImportError a C extension makes of it; the command ends with the one

@@ -28,6 +28,7 @@ def runs(tree) -> list[dict]:
     return json.loads((tree / TREE_VERSIONS).read_text())["runs"]
 
 
+@pytest.mark.process
 def test_versions_come_from_metadata_without_importing_bpy():
     code = ("import json, sys; from allo_usd.core.provenance import library_versions; "
             "v = library_versions(); assert 'bpy' not in sys.modules, 'bpy imported'; print(json.dumps(v))")

@@ -55,6 +55,7 @@ def _deep(levels: int) -> str:
 # The gate itself
 
 
+@pytest.mark.process
 def test_the_gate_refuses_a_fifo_without_opening_it(tmp_path):
     fifo = tmp_path / "r.json"
     os.mkfifo(fifo)
@@ -121,6 +122,7 @@ def test_text_that_is_not_utf8_names_the_byte(tmp_path):
 # Pose files (breaks 6b, 7a, 7b)
 
 
+@pytest.mark.process
 def test_a_fifo_pose_file_fails_author_at_once(tmp_path):
     fifo = tmp_path / "poses.csv"
     os.mkfifo(fifo)
@@ -156,6 +158,7 @@ def test_deep_pose_json_is_one_plan_error_naming_its_line(tmp_path):
 # Render records (breaks 6c, 7a, 7b, 10b)
 
 
+@pytest.mark.process
 def test_dataset_refuses_hostile_render_records_with_notes_and_keeps_the_rest(tmp_path):
     renders = tmp_path / "renders"
     fake_render(renders, "ok")
@@ -174,6 +177,7 @@ def test_dataset_refuses_hostile_render_records_with_notes_and_keeps_the_rest(tm
     assert [p.name for p in (tmp_path / "ds").rglob("*ok.png")], "the good record is assembled"
 
 
+@pytest.mark.process
 def test_an_oversized_record_alone_is_named_too_big_not_no_record(tmp_path):
     renders = tmp_path / "renders"
     renders.mkdir()
@@ -183,6 +187,7 @@ def test_an_oversized_record_alone_is_named_too_big_not_no_record(tmp_path):
     assert r.returncode in (1, 2) and "too big" in text and "no NAME.json render record" not in text, r.stderr
 
 
+@pytest.mark.process
 def test_the_resume_check_reads_a_fifo_record_as_not_done(tmp_path):
     """manifest._meta (render's "is it done?") on a FIFO NAME.json: {} at once, so the scene renders again."""
     fifo = tmp_path / "scene.json"
@@ -222,6 +227,7 @@ def test_a_bad_split_is_refused_by_the_reader_as_dataset_refuses_it(tiny_base, t
     assert label_problem({"split": "../../escaped", "variant": "normal"}) in message   # the dataset's own words
 
 
+@pytest.mark.process
 def test_render_refuses_a_bad_split_and_records_nothing(tiny_base, tmp_path):
     from pxr import Sdf
 

@@ -147,6 +147,7 @@ def test_nothing_is_written_outside_out(tmp_path):
     assert (victim / "precious.png").read_bytes() == b"mine"
 
 
+@pytest.mark.process
 def test_a_folder_without_renders_says_so(tmp_path):
     (tmp_path / "empty").mkdir()
     fake_render(tmp_path / "top" / "renders", "a")
@@ -156,6 +157,7 @@ def test_a_folder_without_renders_says_so(tmp_path):
     assert "no renders in" in line and "OUT/renders" in line
 
 
+@pytest.mark.process
 def test_renders_of_different_resolutions_are_not_mixed(tmp_path):
     small, big, out = tmp_path / "small", tmp_path / "big", tmp_path / "ds"
     fake_render(small, "a")
@@ -204,6 +206,7 @@ def test_suspicious_renders_are_flagged(tmp_path):
     assert "black" in black and "fine" not in black and "nothing_seen" not in black
 
 
+@pytest.mark.process
 def test_an_anomaly_asset_named_good_is_not_filed_as_normal(tmp_path):
     """MVTec loaders read any folder named `good` as normal images: a defect folder may not be one."""
     renders, out = tmp_path / "r", tmp_path / "ds"

@@ -3,6 +3,8 @@ against the builders and the real ephemeris file."""
 
 from __future__ import annotations
 
+import pytest
+
 import os
 import subprocess
 import sys
@@ -11,6 +13,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.process
 def test_validating_a_plan_leaves_builders_and_skyfield_unloaded():
     code = ("import sys\n"
             "from allo_usd.plan.model import paper_plan, demo_plan\n"

@@ -237,6 +237,7 @@ def plain_usd_report(root: Path, layers: list[Path]) -> dict:
     return report
 
 
+@pytest.mark.process
 def test_a_moved_tree_opens_with_plain_usd(authored, tmp_path, monkeypatch):
     import shutil
 

@@ -87,6 +87,7 @@ def test_author_scene_refuses_a_tree_of_another_plan(tmp_path):
     assert load_plan(out / "plan.toml").quality.resolution == (480, 270)
 
 
+@pytest.mark.process
 def test_cli_replace_removes_the_old_layers_and_nothing_else(tmp_path):
     out, outside = tmp_path / "tree", tmp_path / "outside"
     old, new = save_plan(small_plan((160, 90)), tmp_path / "old.toml"), save_plan(small_plan((480, 270)),
@@ -123,6 +124,7 @@ def test_layers_without_a_plan_record_are_refused(tmp_path):
 # One author run at a time
 
 
+@pytest.mark.process
 def test_a_second_author_run_is_one_clear_error(tmp_path):
     from allo_usd.run.author import tree_lock
 
@@ -136,6 +138,7 @@ def test_a_second_author_run_is_one_clear_error(tmp_path):
     assert (out / TREE_LOCK).read_text() == ""   # released, and empty: the tree's bytes name no run
 
 
+@pytest.mark.process
 def test_two_concurrent_author_runs_into_one_folder(tmp_path):
     """Both started at once: the one that gets the lock authors, the other is refused in one line
     (never a traceback); a third run then resumes to the same tree as a run alone."""
@@ -186,6 +189,7 @@ def broken_stage(tmp_path: Path, how: str) -> Path:
 
 
 @pytest.mark.parametrize("how", ["garbage", "truncated", "no-rig"])
+@pytest.mark.process
 def test_a_broken_base_stage_is_one_error_naming_it_and_the_fix(tmp_path, how):
     base = broken_stage(tmp_path, how)
     plan = save_plan(small_plan(base_stage=base), tmp_path / "plan.toml")

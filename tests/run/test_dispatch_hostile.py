@@ -52,6 +52,7 @@ def _scan_in_child(root: Path, tmp_path: Path) -> dict:
     return json.loads(r.stdout.splitlines()[-1])
 
 
+@pytest.mark.process
 def test_scan_never_opens_fifos_or_devices_and_reads_a_bounded_prefix(tiny_base, tmp_path):
     root = tmp_path / "layers"
     make_layers(tiny_base, root, 1)
@@ -69,6 +70,7 @@ def test_scan_never_opens_fifos_or_devices_and_reads_a_bounded_prefix(tiny_base,
     assert found["maxrss_kb"] < 1_000_000  # not a 2 GB read
 
 
+@pytest.mark.process
 def test_a_fifo_or_device_given_as_the_layer_is_an_error(tmp_path):
     from allo_usd.core.errors import AlloError
 

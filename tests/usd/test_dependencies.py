@@ -116,6 +116,7 @@ def test_non_layer_file_as_sublayer_is_refused(layer, capfd):
     refused(layer, r"notes.txt is not a USD layer \(its name must end in .usda", capfd)
 
 
+@pytest.mark.process
 def test_fifo_inside_the_roots_is_refused_without_opening_it(layer):
     """A FIFO would block USD's read forever: the walk only stats it. (A child process, so a
     regression shows as a timeout instead of a hung test run.)"""

@@ -89,6 +89,7 @@ def tree_text(tree) -> str:
 # ------------------------------------------------------------------------- break 5: USD hazards from the CLI
 
 
+@pytest.mark.process
 def test_author_converts_a_usd_hazard_from_the_command_line(tmp_path):
     """`allo-usd author` with a plan naming a two-file .usda hazard: converted, authored, and every file
     it composes recorded in source.json (before the fix: 'the allo-usd schema did not register')."""
@@ -111,6 +112,7 @@ def test_author_converts_a_usd_hazard_from_the_command_line(tmp_path):
     assert dict(prov["composes"]) == record["composes"] and prov["droppedTriangles"] == 0
 
 
+@pytest.mark.process
 def test_asset_import_converts_a_usd_file_from_the_command_line(tmp_path):
     from allo_usd.usd.read import read_triangles
 
@@ -165,6 +167,7 @@ def test_a_usd_file_naming_a_layer_outside_its_folder_is_refused(tmp_path, how, 
 
 
 @pytest.mark.parametrize("parses", [True, False], ids=["valid", "garbage"])
+@pytest.mark.process
 def test_author_refuses_a_hazard_sublayer_outside_and_never_reads_it(tmp_path, parses):
     """The outside file is never parsed (no USD warning quotes it) nor copied into OUT/hazards."""
     secret = outside_layer(tmp_path / "elsewhere", parses)
@@ -205,6 +208,7 @@ def test_a_missing_sublayer_is_refused_and_a_linked_hazard_reaches_its_targets_f
     assert info["triangles"] == 12 and "composes" not in info
 
 
+@pytest.mark.process
 def test_asset_import_refuses_an_outside_sublayer_in_one_line(tmp_path):
     """The command line's view of the walk's refusal: exit 2, one line naming the path and the rule."""
     secret = outside_layer(tmp_path / "out", parses=False)
@@ -219,6 +223,7 @@ def test_asset_import_refuses_an_outside_sublayer_in_one_line(tmp_path):
 # ------------------------------------------------------------------------- break 6a: a FIFO sublayer
 
 
+@pytest.mark.process
 def test_a_fifo_sublayer_is_refused_by_stat_not_read(tmp_path):
     """`asset import` and `author` both refuse it by name at once (before the fix both hung on the read)."""
     main = usd_hazard(tmp_path, sub="geo/pipe.usda")
@@ -315,6 +320,7 @@ def test_a_zero_area_usd_triangle_is_a_counted_drop(tmp_path):
     assert (info["triangles"], info["droppedTriangles"]) == (12, 1)
 
 
+@pytest.mark.process
 def test_the_records_show_a_dropped_triangle(tmp_path, monkeypatch):
     """A hazard OBJ with a NaN vertex, one of its two faces dropped: source.json, the layer's provenance
     and `asset import`'s line all say 1 dropped (before the fix: droppedTriangles = 0)."""

@@ -95,6 +95,7 @@ def test_reader_resolves_light_linking_from_the_collections(tiny_base, tmp_path)
     assert "/World/Sky/MoonSunLight" not in {s.path for s in read_scene(layer).suns}
 
 
+@pytest.mark.process
 def test_reader_never_imports_bpy(tiny_base, tmp_path):
     layer = write_scene_layer(make_spec(), tmp_path / "s.usda", tiny_base)
     code = ("import sys; from allo_usd.usd.read import read_scene; read_scene(sys.argv[1]); "

@@ -342,6 +342,7 @@ def test_resolution_below_blenders_minimum_is_refused(layer):
 
 # ----------------------------------------------------------------------------- the bounds are Blender's
 
+@pytest.mark.bpy
 def test_reader_bounds_lie_within_blenders_hard_limits():
     """Every range the reader allows ends inside the hard limits of the bpy RNA property it sets,
     so Blender never clamps a recorded value (read from bpy, not copied by hand)."""

@@ -56,6 +56,7 @@ def test_symlink_out_of_a_root_is_rejected(tiny_base, tmp_path, narrow_roots):
         read_scene(layer)
 
 
+@pytest.mark.bpy
 def test_blender_never_auto_runs_scripts(tmp_path):
     """A .blend whose text block is registered to run on load does not run after build.reset()."""
     import bpy

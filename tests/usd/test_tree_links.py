@@ -42,6 +42,7 @@ def tree(tmp_path_factory):
     return out, scene, evil, root
 
 
+@pytest.mark.process
 def test_a_hazards_link_out_of_the_tree_is_refused_and_nothing_outside_is_read(tree, tmp_path):
     out, scene, evil, root = tree
     link = out / HAZARD_DIR

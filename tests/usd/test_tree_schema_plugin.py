@@ -93,6 +93,7 @@ def test_the_tree_carries_a_relocatable_copy_of_the_plugin(moved_tree):
             assert not os.path.isabs(plugin.get(key, "")), (key, plugin[key])   # relative: moves with the tree
 
 
+@pytest.mark.process
 def test_plain_usd_core_applies_the_allo_schemas_with_the_trees_plugin(moved_tree):
     tree, paths = moved_tree
     report = _probe(_scenes(tree, paths), tree_schema(tree))
@@ -112,6 +113,7 @@ def _fallback_attributes(tree: Path, paths: list[Path]) -> list[list[str]]:
     return [[rec["layer"], rec["prim"], f[0]] for rec in report["prims"] for f in rec["fallbacks"]]
 
 
+@pytest.mark.process
 def test_without_the_plugin_usd_core_silently_drops_the_allo_schemas(moved_tree):
     """The problem: no error, but no Allo*API applied and no fallback values."""
     tree, paths = moved_tree
