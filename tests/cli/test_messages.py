@@ -21,8 +21,8 @@ BRACKET_OBJ = ROOT / "examples" / "bring_your_own" / "bracket.obj"   # millimetr
 
 
 def readme_hazard_block() -> str:
-    """The README's `[[anomalies.assets]]` block (section "Your own hazards")."""
-    section = (ROOT / "README.md").read_text().split("### Your own hazards", 1)[1]
+    """The `[[anomalies.assets]]` block of docs/guide/bring_your_own.md (section "Your own hazards")."""
+    section = (ROOT / "docs" / "guide" / "bring_your_own.md").read_text().split("### Your own hazards", 1)[1]
     return re.search(r"```toml\n(.*?)```", section, re.S).group(1)
 
 

@@ -2,8 +2,8 @@
 
 A normal train scene, a normal test scene and an anomalous test scene are rendered at 64x36 with
 the depth, normal and instance passes (and `amodal` once the renderer has it); `allo-usd dataset`'s
-assemble then writes annotations/, bop/, depth/, normal/, instance/ and instances.json. The README's
-COCO and BOP snippets are run here as they are written (README_SNIPPETS)."""
+assemble then writes annotations/, bop/, depth/, normal/, instance/ and instances.json. The COCO and
+BOP snippets of docs/formats/coco_bop.md are run here as they are written (README_SNIPPETS)."""
 
 from __future__ import annotations
 
@@ -196,8 +196,8 @@ def test_a_rerun_adding_scenes_leaves_earlier_files_untouched(renders, tmp_path)
 
 
 def readme_snippet(first_line: str) -> str:
-    """The README's python block that starts with `first_line`."""
-    text = (ROOT / "README.md").read_text()
+    """The python block of docs/formats/coco_bop.md that starts with `first_line`."""
+    text = (ROOT / "docs" / "formats" / "coco_bop.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
     return next(b for b in blocks if b.startswith(first_line))
 
@@ -208,6 +208,6 @@ def test_readme_coco_and_bop_snippets_run(tree, monkeypatch):
     for first in ("# COCO:", "# BOP:"):
         code = readme_snippet(first).replace('"out/demo/dataset"', repr(str(out)))
         namespace: dict = {}
-        exec(compile(code, f"README {first}", "exec"), namespace)   # noqa: S102 - the README's own code
+        exec(compile(code, f"docs/formats/coco_bop.md {first}", "exec"), namespace)   # noqa: S102 - the README's own code
         if first == "# BOP:" and namespace.get("covered") is not None:
             assert namespace["covered"] >= 0.98   # the model's projected vertices cover the visible mask

@@ -16,7 +16,7 @@ import pytest
 
 import allo_usd
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+README = Path(__file__).resolve().parents[2] / "docs" / "guide" / "api.md"
 # Blender's own log lines ("00:02.023  render           | Saved: '...'"), and what the GPU probe prints
 BLENDER_LINE = re.compile(r"^\d\d:\d\d\.\d{3}\s+\w+\s+\|", re.M)
 BLENDER_WORDS = ("Saved:", "CUEW", "HIPEW")

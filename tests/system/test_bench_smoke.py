@@ -22,7 +22,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPTS = ROOT / "scripts"
 TESTS = Path(__file__).resolve().parents[1]
-DOCS = ROOT / "docs"
+DOCS = ROOT / "docs" / "benchmarks"
 sys.path.insert(0, str(SCRIPTS))
 import benchinfo  # noqa: E402
 
@@ -130,7 +130,7 @@ def small_layer2(tiny_base, tmp_path_factory):
 
 
 def _docs_state() -> dict[str, int]:
-    return {p.name: p.stat().st_mtime_ns for p in (ROOT / "docs").glob("bench_*")}
+    return {p.name: p.stat().st_mtime_ns for p in DOCS.glob("bench_*")}
 
 
 def _git(*args: str) -> subprocess.CompletedProcess:

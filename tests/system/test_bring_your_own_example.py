@@ -21,7 +21,7 @@ SECTION = "### Worked example: your camera, your poses, your hazard, tracking ar
 
 
 def section() -> str:
-    return (ROOT / "README.md").read_text().split(SECTION, 1)[1].split("\n## ", 1)[0].split("\n### ", 1)[0]
+    return (ROOT / "docs" / "guide" / "bring_your_own.md").read_text().split(SECTION, 1)[1].split("\n## ", 1)[0].split("\n### ", 1)[0]
 
 
 def commands() -> list[list[str]]:

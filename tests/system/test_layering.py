@@ -31,7 +31,7 @@ CANARY = "CANARY-7c1f9e: private text that no message may show"
 
 def readme_recipe() -> tuple[str, list[str]]:
     """(the .usda text, the `allo-usd render ...` arguments) of the README's recipe section."""
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "guide" / "layering.md").read_text()
     section = text.split("\n## Your own layer on top\n", 1)[1].split("\n## ", 1)[0]
     usda = re.findall(r"```usda\n(.*?)```", section, re.S)
     renders = [line for block in re.findall(r"```sh\n(.*?)```", section, re.S) for line in block.splitlines()
