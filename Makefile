@@ -1,4 +1,5 @@
-# Two commands set up everything: `make run` renders a small real dataset, `make test` runs the tests.
+# Two commands set up everything: `make run` renders a small real dataset, `make test` runs the tests
+# (`make test-unit`: the unit tier alone, the inner loop).
 # Both create .venv (Python 3.11: bpy 5.0.1 wheels exist for 3.11 only) and install what they need:
 # exactly the versions in requirements.lock, checked against its sha256 hashes, then allo-usd itself
 # (editable, no dependencies, no build isolation: nothing outside the lock is fetched).
@@ -15,7 +16,7 @@ LOCKVENV   := $(VENV)/lock-tool
 LOCK_INDEX ?= https://pypi.org/simple
 LOCK_ARGS  ?=
 
-.PHONY: run test env lock stage bench clean
+.PHONY: run test test-unit env lock stage bench clean
 
 # A changed lock or pyproject.toml reinstalls (a package dropped from the lock stays installed: rm -rf .venv for a clean one).
 $(STAMP): $(LOCK) pyproject.toml
@@ -51,6 +52,11 @@ run: $(STAMP)
 TEST_WORKERS ?= 2
 test: $(STAMP)
 	$(PY) -m pytest -q $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
+
+# The inner loop: the unit tier (tests/conftest.py): no tests/system/, nothing marked render, slow, process or
+# bpy; a test of the tier that starts a process or loads Blender fails. `make test` stays the gate (and CI's).
+test-unit: $(STAMP)
+	$(PY) -m pytest -q --unit $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
 stage: $(STAMP)
 	$(PY) scripts/make_base_stage.py
