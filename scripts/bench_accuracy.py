@@ -1,6 +1,6 @@
 """Accuracy vs time of Cycles settings on several demo views; checks the presets against the Pareto front.
 
-    .venv/bin/python scripts/bench_accuracy.py [--phase all|reference|sweep|presets|report]
+    .venv/bin/python -m scripts.bench_accuracy [--phase all|reference|sweep|presets|report]
         [--layer out/demo/layers/d120_p44.usda --layer ...] [--size 320x180] [--ref-samples 8192]
         [--ref-chunk 2048] [--rounds 3] [--sweep full|front|none] [--out docs] [--cache out/bench]
 
@@ -44,16 +44,12 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if __name__ == "__main__":  # run from a checkout; importing this file (tests) changes nothing
-    sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # benchinfo
-
-import benchinfo
 from allo_usd.core.files import atomic_path, write_text_atomic
 from allo_usd.plan.settings import PRESETS
 from allo_usd.output.writers import linear_to_srgb8
+from scripts import benchinfo
 
+ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "out" / "bench"
 ROWS = BENCH / "accuracy_rows.json"
 REF_SEED = 977
@@ -721,7 +717,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"--ref-samples {args.ref_samples} is not a multiple of --ref-chunk {chunk}; "
                          "give a multiple (e.g. --ref-samples 8192 --ref-chunk 2048)")
 
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
 
     layers = [Path(p) for p in (args.layer or [ROOT / "out/demo/layers/d045_p42_power_drill_z0.usda"])]
     descs = [read_scene(p) for p in layers]

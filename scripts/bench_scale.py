@@ -21,9 +21,9 @@ The page cache is dropped with /proc/sys/vm/drop_caches where the process may wr
 file of the tree and the render folder is evicted with posix_fadvise(POSIX_FADV_DONTNEED) (the
 table says which was used).
 
-    python scripts/bench_scale.py --quick              # the paper plan over 14 days: 1,972 scenes
-    python scripts/bench_scale.py                      # the paper plan: 51,409 scenes
-    python scripts/bench_scale.py --plan demo --skip-author --out /tmp/docs
+    python -m scripts.bench_scale --quick              # the paper plan over 14 days: 1,972 scenes
+    python -m scripts.bench_scale                      # the paper plan: 51,409 scenes
+    python -m scripts.bench_scale --plan demo --skip-author --out /tmp/docs
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from scripts import benchinfo  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "scripts"))
-import benchinfo  # noqa: E402  (scripts/: the header every docs/bench_*.md opens with)
 
 CLI = [sys.executable, "-c", "from allo_usd.cli import main; main()"]
 QUICK_DAYS = 14  # the paper plan over its first 14 days: 1,972 scenes
@@ -128,8 +128,7 @@ def drop_caches(roots: list[Path]) -> str:
 # ---------------------------------------------------------------- the plan and its tree
 
 def plan_file(name: str, work: Path) -> Path:
-    from allo_usd.plan.io import save_plan
-    from allo_usd.plan.model import demo_plan, paper_plan
+    from allo_usd import demo_plan, paper_plan, save_plan
 
     if name not in ("paper", "quick", "demo"):
         return Path(name)
@@ -138,8 +137,7 @@ def plan_file(name: str, work: Path) -> Path:
     else:
         plan = paper_plan()
         if name == "quick":
-            sys.path.insert(0, str(ROOT / "scripts"))
-            from bench_author import scaled_plan
+            from scripts.bench_author import scaled_plan
 
             plan = scaled_plan(plan, QUICK_DAYS)
     path = work / f"plan-{name}.toml"
@@ -340,7 +338,7 @@ def _templates(layers: list[Path], src: dict[str, Path]) -> dict[str, dict]:
     the first normal and the first anomalous layer read in full (read_scene: ~1.5 s each)."""
     from allo_usd.output.annotations import image_annotations
     from allo_usd.output.contact import read_pixels
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
     from pxr import Sdf
 
     out = {}
@@ -376,7 +374,7 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
     from allo_usd.core.files import sha256_file
     from allo_usd.run.dispatch import find_layers
     from allo_usd.run.manifest import MANIFEST, append_rows
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
 
     layers = find_layers(tree)
     step = max(1, len(layers) // max(sample, 1))
@@ -418,10 +416,10 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
 VERIFY_SAMPLE = """
 import sys, time
 from pathlib import Path
-from allo_usd.run.dispatch import dispatch
+import allo_usd
 layers = [Path(p) for p in sys.argv[2:]]
 t0 = time.perf_counter()
-s = dispatch(layers, Path(sys.argv[1]), workers=1, retries=0, timeout=1, progress=False, verify=True)
+s = allo_usd.render(layers, Path(sys.argv[1]), workers=1, retries=0, timeout=1, progress=False, verify=True)
 print(len(s.rendered), len(s.skipped), len(s.failed), time.perf_counter() - t0)
 """
 

@@ -1,8 +1,7 @@
-#!/usr/bin/env python
 """Regenerate the base stage and every asset under stages/ (deterministic; the files are committed).
 
-    python scripts/make_base_stage.py                       # procedural station -> stages/
-    python scripts/make_base_stage.py --station ISS_2016.glb --units in --up-axis=-z --out out/stages_iss
+    python -m scripts.make_base_stage                       # procedural station -> stages/
+    python -m scripts.make_base_stage --station ISS_2016.glb --units in --up-axis=-z --out out/stages_iss
 
 An imported model's orientation and unit are its format's (glTF: +Y up, metres) or --up-axis /
 --units (allo_usd.assets.importer); NASA's ISS_2016.glb breaks glTF's rule (inches, +Z nadir),
