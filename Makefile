@@ -59,10 +59,10 @@ test-unit: $(STAMP)
 	$(PY) -m pytest -q --unit $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
 stage: $(STAMP)
-	$(PY) scripts/make_base_stage.py
+	$(PY) -m scripts.make_base_stage
 
 bench: $(STAMP)
-	$(PY) scripts/bench_sky.py
+	$(PY) -m scripts.bench_sky
 
 clean:
 	rm -rf out .pytest_cache

@@ -1,6 +1,6 @@
 """Accuracy vs time of Cycles settings on several demo views; checks the presets against the Pareto front.
 
-    .venv/bin/python scripts/bench_accuracy.py [--phase all|reference|sweep|presets|report]
+    .venv/bin/python -m scripts.bench_accuracy [--phase all|reference|sweep|presets|report]
         [--layer out/demo/layers/d120_p44.usda --layer ...] [--size 320x180] [--ref-samples 8192]
         [--ref-chunk 2048] [--rounds 3] [--sweep full|front|none] [--out docs] [--cache out/bench]
 
@@ -11,7 +11,7 @@ N-spp image: path tracing is unbiased and the chunks independent), the sweep row
 (--rounds rounds, interleaved over presets and views, median per preset). Every image is kept, so
 the metrics are computed at report time against the best reference there is: a reference grown
 from 4096 to 8192 spp re-scores every row without re-rendering, and phases (and rounds, and chunks)
-can be run, stopped and resumed separately; `report` writes docs/bench_accuracy.csv, .md and .png.
+can be run, stopped and resumed separately; `report` writes docs/benchmarks/bench_accuracy.csv, .md and .png.
 
 A reference of 2k chunks also measures its own noise: its two halves (k chunks each) are
 independent k x chunk-spp references, so PSNR(half A, half B) is their noise level, the full
@@ -44,16 +44,12 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if __name__ == "__main__":  # run from a checkout; importing this file (tests) changes nothing
-    sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # benchinfo
-
-import benchinfo
 from allo_usd.core.files import atomic_path, write_text_atomic
 from allo_usd.plan.settings import PRESETS
 from allo_usd.output.writers import linear_to_srgb8
+from scripts import benchinfo
 
+ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "out" / "bench"
 ROWS = BENCH / "accuracy_rows.json"
 REF_SEED = 977
@@ -367,7 +363,7 @@ def scored(row: dict, view: View, ref: Reference) -> dict:
 
 
 # ----------------------------------------------------------------------------- report
-FINDINGS = """## Findings (issue 28: P1 on three views)
+FINDINGS = """## Findings (P1 on three views)
 
 - **Resolution 240x135, stated.** The old doc measured 480x270 (its 4096-spp reference: 488 CPU s);
   the brief's fallback was 320x180. During this run the 2 cores carried a load average of 15-23 (other
@@ -408,7 +404,7 @@ FINDINGS = """## Findings (issue 28: P1 on three views)
 NOTES = """## Notes from the earlier one-view sweep
 
 Measured at commit 69ba5b4 on d045_p42 at 480x270 against a 4096-spp reference (the full sweep's
-table is in that commit's docs/bench_accuracy.md).
+table is in that commit's docs/benchmarks/bench_accuracy.md).
 
 - **Why CPU seconds.** Wall time of the same render moved by up to 2x between rounds while other
   work shared the 2 cores (paper: 36-59 s wall); its CPU time moved by 1.5% (61.4-62.2 s). The
@@ -492,7 +488,7 @@ def targets(presets: dict) -> tuple[bool | None, bool | None]:
 
 
 def report(views: list[View], refs: dict, scored_rows: dict, runs: list[dict], out: Path) -> None:
-    """docs/bench_accuracy.csv, .md and .png from the scored rows of every view."""
+    """docs/benchmarks/bench_accuracy.csv, .md and .png from the scored rows of every view."""
     import csv
 
     out.mkdir(parents=True, exist_ok=True)
@@ -708,7 +704,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ref-chunk", type=int, default=4096, help="spp per reference chunk (one render each)")
     ap.add_argument("--rounds", type=int, default=3, help="preset rounds (interleaved; median per preset)")
     ap.add_argument("--sweep", default="full", choices=sorted(SWEEPS), help="which sweep the sweep phase renders")
-    ap.add_argument("--out", default=str(ROOT / "docs"))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks"))
     ap.add_argument("--redo", action="store_true", help="re-render sweep rows and presets already cached")
     ap.add_argument("--cache", default=str(BENCH), help="where the references, images and rows are cached "
                                                         "(default out/bench)")
@@ -721,7 +717,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"--ref-samples {args.ref_samples} is not a multiple of --ref-chunk {chunk}; "
                          "give a multiple (e.g. --ref-samples 8192 --ref-chunk 2048)")
 
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
 
     layers = [Path(p) for p in (args.layer or [ROOT / "out/demo/layers/d045_p42_power_drill_z0.usda"])]
     descs = [read_scene(p) for p in layers]

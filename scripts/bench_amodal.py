@@ -1,5 +1,4 @@
-#!/usr/bin/env python
-"""What the `amodal` pass costs against the RGB render (issue 27), and how close its free stand-in is.
+"""What the `amodal` pass costs against the RGB render, and how close its free stand-in is.
 
 For each size, one anomalous scene renders in a warm Session (allo_usd.blender.session) with passes
 rgb + mask (its RGB render: the layer's samples and denoiser), then again with amodal added; the
@@ -10,8 +9,8 @@ compared with the pass's pixel for pixel.
 
 By default the scene is the demo plan's first anomalous scene (authored into --work, as
 tests/system/test_golden.py does) over the committed stages/; --layer renders another one.
-Writes docs/bench_amodal.md and docs/bench_amodal.png. Usage:
-    .venv/bin/python scripts/bench_amodal.py [--sizes 160x90,480x270,960x540] [--repeats 2] [--out docs]
+Writes docs/benchmarks/bench_amodal.md and docs/benchmarks/bench_amodal.png. Usage:
+    .venv/bin/python -m scripts.bench_amodal [--sizes 160x90,480x270,960x540] [--repeats 2] [--out docs]
 """
 
 from __future__ import annotations
@@ -25,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
+from scripts import benchinfo
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
-import benchinfo  # noqa: E402
 
 COLUMNS = ("size", "samples", "RGB render s", "amodal render s", "amodal / RGB", "ray cast s", "amodal px",
            "visible px", "pass vs ray cast: differing px")
@@ -35,12 +34,11 @@ COLUMNS = ("size", "samples", "RGB render s", "amodal render s", "amodal / RGB",
 
 def demo_layer(work: Path) -> Path:
     """The demo plan's first anomalous scene, authored into `work` (once)."""
-    from allo_usd.plan.model import demo_plan
-    from allo_usd.run.author import author
+    from allo_usd import author_plan, demo_plan
 
     found = sorted((work / "scenes").rglob("*_z*.usda")) if (work / "scenes").is_dir() else []
     if not found:
-        author(demo_plan(), work, limit=7, progress=False, workers=1)
+        author_plan(demo_plan(), work, limit=7, progress=False, workers=1)
         found = sorted((work / "scenes").rglob("*_z*.usda"))
     if not found:
         raise SystemExit(f"the demo plan authored no anomalous scene into {work}; pass --layer")
@@ -48,10 +46,10 @@ def demo_layer(work: Path) -> Path:
 
 
 def measure(layer: Path, sizes: list[tuple[int, int]], repeats: int, samples: int | None, work: Path) -> list[dict]:
+    from allo_usd import read_scene
     from allo_usd.blender.session import Session
     from allo_usd.core.labels import ANOMALY
     from allo_usd.output.annotations import amodal_raycast, camera_record
-    from allo_usd.usd.read import read_scene
 
     base = read_scene(layer)
     session = Session()
@@ -129,7 +127,7 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, help="override the layer's samples")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--work", type=Path, default=ROOT / "out" / "bench_amodal")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     args = ap.parse_args(argv)
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     args.work.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""Benchmark authoring the paper plan (51,409 scenes) and write docs/bench_author.md.
+"""Benchmark authoring the paper plan (51,409 scenes) and write docs/benchmarks/bench_author.md.
 
 By default a scaled subset is authored in one process and the full plan is extrapolated for
 2 workers: normal scenes, planned anomaly placements (strided over the plan) and the top-up of
@@ -13,7 +13,7 @@ machine inflates the estimate less than wall-clock time would. `--sample` and `-
 seconds, the CPU seconds (user + system) of this process and its workers together, and the time of
 a second run with nothing left to do (a resume).
 
-    python scripts/bench_author.py [--normal 1500] [--placements 300] [--sample DAYS | --full] [--out FILE]
+    python -m scripts.bench_author [--normal 1500] [--placements 300] [--sample DAYS | --full] [--out FILE]
 """
 
 from __future__ import annotations
@@ -27,23 +27,20 @@ if __name__ == "__main__":  # before numpy loads: authoring's workers run like t
 import argparse  # noqa: E402
 import resource  # noqa: E402
 import statistics  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from collections import Counter  # noqa: E402
 from itertools import groupby  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from allo_usd.run.author import (AuthorContext, drive, InlineRunner, author, author_sample, ensure_sky_layer,
-                                 summary_lines, with_tree_stage)
-from allo_usd.plan.enumeration import enumerate_scenes
-from allo_usd.plan.model import paper_plan
+from allo_usd import author_plan, enumerate_scenes, paper_plan
+from allo_usd.run.author import (AuthorContext, drive, InlineRunner, author_sample, ensure_sky_layer, summary_lines,
+                                 with_tree_stage)
 from allo_usd.sky.model import compute_sky
 from allo_usd.sky.orbit import Orbit
+from scripts import benchinfo
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "scripts"))   # benchinfo, the shared header
-import benchinfo  # noqa: E402
 
 
 def sizes(paths) -> str:
@@ -92,7 +89,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--sample", type=int, metavar="DAYS", help="author the plan scaled to DAYS days instead")
     ap.add_argument("--full", action="store_true", help="author the whole plan instead")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench_author.md")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "bench_author.md")
     args = ap.parse_args()
     run = benchinfo.start()
 
@@ -114,10 +111,10 @@ def main() -> None:
             authored = plan if args.full else scaled_plan(plan, args.sample)
             n_run = len(enumerate_scenes(authored))
             t, c = time.perf_counter(), cpu_seconds()
-            done = author(authored, out, progress=True, workers=args.workers)
+            done = author_plan(authored, out, progress=True, workers=args.workers)
             total, cpu = time.perf_counter() - t, cpu_seconds() - c
             t = time.perf_counter()
-            again = author(authored, out, progress=False)   # a resume with nothing to do, as the CLI runs it
+            again = author_plan(authored, out, progress=False)   # a resume with nothing to do, as the CLI runs it
             noop = time.perf_counter() - t
             assert again.paths == done.paths
             what = "Full run" if args.full else f"The plan scaled to {args.sample} days ({n_run:,} scenes)"

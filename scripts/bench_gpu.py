@@ -1,6 +1,6 @@
 """Render time of the quality presets on a GPU (when Cycles finds one) and on the CPU, for reference.
 
-    .venv/bin/python scripts/bench_gpu.py [--layer LAYER] [--size 480x270] [--cpu-size 160x90]
+    .venv/bin/python -m scripts.bench_gpu [--layer LAYER] [--size 480x270] [--cpu-size 160x90]
         [--presets draft,preview,final,paper] [--out docs]
 
 The scene is the demo's anomalous view (authored into out/bench/gpu/layers when --layer is not
@@ -25,19 +25,14 @@ import csv
 import dataclasses
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if __name__ == "__main__":  # run from a checkout
-    sys.path.insert(0, str(ROOT))
-    sys.path.insert(0, str(ROOT / "scripts"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
-import benchinfo  # noqa: E402
+from scripts import benchinfo
 
+ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "out" / "bench" / "gpu"
 PRESET_ORDER = ("draft", "preview", "final", "paper")
 
@@ -84,9 +79,9 @@ def render(desc, preset: str, resolution: tuple[int, int], device) -> tuple[np.n
 
 
 def run(desc, presets, device, resolution, reference: dict | None = None) -> list[dict]:
-    from bench_accuracy import psnr
     from allo_usd.output.writers import linear_to_srgb8
     from allo_usd.plan.settings import preset_fields
+    from scripts.bench_accuracy import psnr
 
     rows = []
     for preset in presets:
@@ -167,12 +162,12 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=size, default=(480, 270), help="GPU render size")
     ap.add_argument("--cpu-size", type=size, default=(160, 90), help="CPU reference size (GPU rows too)")
     ap.add_argument("--presets", default=",".join(PRESET_ORDER))
-    ap.add_argument("--out", default=str(ROOT / "docs"))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks"))
     args = ap.parse_args(argv)
     bench_run = benchinfo.start()
 
+    from allo_usd import read_scene
     from allo_usd.blender import device as dev
-    from allo_usd.usd.read import read_scene
 
     layer = Path(args.layer) if args.layer else demo_layer()
     desc = read_scene(layer)

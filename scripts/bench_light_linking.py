@@ -14,10 +14,10 @@ with Cycles, and compares it with the project's own render of the same layer:
 
 Run as a benchmark, it measures what the importer's departures from the spec (light linking and
 `allo:rayVisibility` ignored, the DistantLight intensity factor, ...) cost on a normal day and on
-eclipse days, and writes docs/bench_light_linking.md and .png (or into --out).
-tests/system/test_outside_client.py loads this file for the same functions.
+eclipse days, and writes docs/benchmarks/bench_light_linking.md and .png (or into --out).
+tests/system/test_outside_client.py imports this module for the same functions.
 
-    PYTHONPATH=. python scripts/bench_light_linking.py [--size 96x54] [--samples 16]
+    python -m scripts.bench_light_linking [--size 96x54] [--samples 16]
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
+from scripts import benchinfo
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
-import benchinfo  # noqa: E402
 
 # Object indices the child gives the imported objects, by the USD prim their object came from.
 STATION_INDEX, BODY_INDEX, ANOMALY_INDEX = 1, 3, 2
@@ -171,8 +171,8 @@ def import_render(layer: Path, out_dir: Path, quality: dict, resolution: tuple[i
     if set(undo) - set(DEPARTURES):
         raise ValueError(f"unknown importer departures {sorted(set(undo) - set(DEPARTURES))}; known: {sorted(DEPARTURES)}")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    env["PYTHONPATH"] = str(ROOT)
-    r = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(args)],
+    env["PYTHONPATH"] = str(ROOT)   # the checkout: this package and allo_usd
+    r = subprocess.run([sys.executable, "-m", "scripts.bench_light_linking", "--child", json.dumps(args)],
                        capture_output=True, text=True, env=env, cwd=out_dir, timeout=900)
     if r.returncode != 0:
         raise RuntimeError(f"Blender import render of {layer} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
@@ -186,8 +186,8 @@ def project_render(layer: Path, out_dir: Path) -> tuple[np.ndarray, np.ndarray, 
     """The project's own render of `layer`: linear EXR (times the layer's exposure), mask, description."""
     from PIL import Image
 
+    from allo_usd import read_scene
     from allo_usd.run.job import render_layer
-    from allo_usd.usd.read import read_scene
 
     meta = render_layer(layer, out_dir, force=True)
     ch = read_exr(out_dir / meta["files"]["exr"])
@@ -297,7 +297,7 @@ def main(argv=None) -> None:
     p.add_argument("--samples", type=int, default=16, help="Cycles samples, both renders (default 16)")
     p.add_argument("--poses", default="3,17", help="demo camera poses, comma-separated (default 3,17)")
     p.add_argument("--work", type=Path, default=ROOT / "out" / "bench_light_linking", help="scratch folder")
-    p.add_argument("--out", type=Path, default=ROOT / "docs", help="where bench_light_linking.md/.png go (default docs)")
+    p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks", help="where bench_light_linking.md/.png go (default docs)")
     a = p.parse_args(argv)
     if a.child:
         return _child(json.loads(a.child))
@@ -314,7 +314,7 @@ def main(argv=None) -> None:
     write_report(rows, (w, h), a.samples, a.out, benchinfo.finish(run))
 
 
-def write_report(rows: list[dict], size, samples: int, docs: Path = ROOT / "docs", run: dict | None = None) -> None:
+def write_report(rows: list[dict], size, samples: int, docs: Path = ROOT / "docs" / "benchmarks", run: dict | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -327,7 +327,7 @@ def write_report(rows: list[dict], size, samples: int, docs: Path = ROOT / "docs
              "",
              benchinfo.header(run or benchinfo.finish(benchinfo.start())),
              "",
-             f"`scripts/bench_light_linking.py`: demo scenes (committed base stage, demo seed, no anomaly) at "
+             f"`python -m scripts.bench_light_linking`: demo scenes (committed base stage, demo seed, no anomaly) at "
              f"{size[0]}x{size[1]}, {samples} samples, no denoising, rendered by allo-usd and, after "
              "`bpy.ops.wm.usd_import` into a fresh Blender with only the camera exposure applied (usd-core "
              "`ComputeLinearExposureScale` -> Cycles film exposure), by Cycles with the same samples, seed and "

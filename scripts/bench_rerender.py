@@ -1,7 +1,7 @@
 """What a re-render on another machine's CPU kernel changes: the same layers rendered with Cycles'
 default CPU kernel choice twice and with a lower kernel forced, each run in a fresh process.
 
-    .venv/bin/python scripts/bench_rerender.py LAYER_OR_DIR [...] [--size 480x270] [--samples N]
+    .venv/bin/python -m scripts.bench_rerender LAYER_OR_DIR [...] [--size 480x270] [--samples N]
         [--limit N] [--threads N] [--out out/bench/rerender] [--docs docs]
 
 LAYER_OR_DIR: scene layers, or directories: a demo (`allo-usd demo --out DIR`: DIR/layers/*.usda),
@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import platform
-import shlex
 import subprocess
 import sys
 import time
@@ -37,11 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
+from scripts import benchinfo
+
 ROOT = Path(__file__).resolve().parents[1]
-if __name__ == "__main__":  # run from a checkout
-    sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
-import benchinfo  # noqa: E402
 
 NO_AVX2_ENV = "CYCLES_CPU_NO_AVX2"   # allo_usd.blender.device.NO_AVX2_ENV (not imported: that module is bpy's side)
 RUNS = (("run1", {}), ("run2", {}), ("forced", {NO_AVX2_ENV: "1"}))
@@ -124,7 +121,7 @@ def run(name: str, env_extra: dict, out: Path, layers: list[Path], threads: int 
     env.update(env_extra)
     prior = env.get(ENV_ROOTS)
     env[ENV_ROOTS] = os.pathsep.join([*roots, *([prior] if prior else [])])
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(run_dir),
+    cmd = [sys.executable, "-m", "scripts.bench_rerender", "--child", str(run_dir),
            *(["--threads", str(threads)] if threads else []), *map(str, layers)]
     t0 = time.perf_counter()
     with open(run_dir / "log.txt", "w") as log:
@@ -319,7 +316,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--limit", type=int, default=None, help="at most this many scenes")
     ap.add_argument("--threads", type=int, default=None, help="Cycles threads (default: the layer's, 0 = all cores)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "rerender", help="work directory")
-    ap.add_argument("--docs", type=Path, default=ROOT / "docs", help="where bench_rerender.md/.png go")
+    ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "benchmarks", help="where bench_rerender.md/.png go")
     ap.add_argument("--no-render", action="store_true",
                     help="compare the runs already in OUT/runs (same layers and --out) and rewrite the report")
     ap.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
@@ -328,7 +325,7 @@ def main(argv: list[str] | None = None) -> None:
         child(args.child, [Path(p) for p in args.layers], args.threads)
         return
     given = argv if argv is not None else sys.argv[1:]
-    command = "python scripts/bench_rerender.py " + " ".join(shlex.quote(a) for a in given)
+    command = benchinfo.command_line([__file__, *given])
 
     from allo_usd.usd.safety import allowed_roots
 
@@ -343,7 +340,7 @@ def main(argv: list[str] | None = None) -> None:
     roots = sorted({str(r) for layer in layers for r in allowed_roots(layer)})  # what each layer may read itself
     record_file = out / "runs" / "runs.json"   # how and when the runs were made, for --no-render
     runs = {"seconds": {}, "command": command, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "bench_run": benchinfo.start(["scripts/bench_rerender.py", *given])}
+            "bench_run": benchinfo.start([__file__, *given])}
     if args.no_render:
         if not record_file.is_file():
             raise SystemExit(f"--no-render: no runs in {out / 'runs'}; run without --no-render first")

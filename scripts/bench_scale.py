@@ -1,4 +1,4 @@
-"""Benchmark the paper's scale (issue 26) and write docs/bench_scale.md and docs/bench_scale.png.
+"""Benchmark the paper's scale and write docs/benchmarks/bench_scale.md and docs/benchmarks/bench_scale.png.
 
 What it times, each in a subprocess through the real command line (peak memory from the child's
 rusage, the machine's load average before and after every figure):
@@ -21,9 +21,9 @@ The page cache is dropped with /proc/sys/vm/drop_caches where the process may wr
 file of the tree and the render folder is evicted with posix_fadvise(POSIX_FADV_DONTNEED) (the
 table says which was used).
 
-    python scripts/bench_scale.py --quick              # the paper plan over 14 days: 1,972 scenes
-    python scripts/bench_scale.py                      # the paper plan: 51,409 scenes
-    python scripts/bench_scale.py --plan demo --skip-author --out /tmp/docs
+    python -m scripts.bench_scale --quick              # the paper plan over 14 days: 1,972 scenes
+    python -m scripts.bench_scale                      # the paper plan: 51,409 scenes
+    python -m scripts.bench_scale --plan demo --skip-author --out /tmp/docs
 """
 
 from __future__ import annotations
@@ -45,14 +45,14 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from scripts import benchinfo  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "scripts"))
-import benchinfo  # noqa: E402  (scripts/: the header every docs/bench_*.md opens with)
 
 CLI = [sys.executable, "-c", "from allo_usd.cli import main; main()"]
 QUICK_DAYS = 14  # the paper plan over its first 14 days: 1,972 scenes
 GOALS = {"author": 120.0, "author_noop": 30.0, "resume": 60.0}  # seconds, the issue's "done means"
-REAL_SIZES = "EXR 5.6 MB, PNG 1.2 MB, mask 21 KB, JSON 7 KB"  # a real 1080p render's outputs (issue 26)
+REAL_SIZES = "EXR 5.6 MB, PNG 1.2 MB, mask 21 KB, JSON 7 KB"  # a real 1080p render's outputs
 STAMP = "bench-scale.json"  # in --work: what the render folder was built from
 SETTLE_S = 300  # after removing a previous benchmark's scratch trees: ext4 stops skipping freed inodes
 LINKS_PER_SOURCE = 20000  # scenes per synthesised source file: the render folder's link and the dataset's make two
@@ -128,8 +128,7 @@ def drop_caches(roots: list[Path]) -> str:
 # ---------------------------------------------------------------- the plan and its tree
 
 def plan_file(name: str, work: Path) -> Path:
-    from allo_usd.plan.io import save_plan
-    from allo_usd.plan.model import demo_plan, paper_plan
+    from allo_usd import demo_plan, paper_plan, save_plan
 
     if name not in ("paper", "quick", "demo"):
         return Path(name)
@@ -138,8 +137,7 @@ def plan_file(name: str, work: Path) -> Path:
     else:
         plan = paper_plan()
         if name == "quick":
-            sys.path.insert(0, str(ROOT / "scripts"))
-            from bench_author import scaled_plan
+            from scripts.bench_author import scaled_plan
 
             plan = scaled_plan(plan, QUICK_DAYS)
     path = work / f"plan-{name}.toml"
@@ -152,7 +150,7 @@ def calibrate() -> float:
     """CPU seconds of a fixed single-threaded workload (Python integer arithmetic and small numpy
     passes), reported beside each author run. On a shared virtual machine the speed moves by a
     third from hour to hour, unseen by the load average; this workload lives in the CPU's caches,
-    so it sees a slower core but not contention for the shared cache and memory (docs/bench_scale.md
+    so it sees a slower core but not contention for the shared cache and memory (docs/benchmarks/bench_scale.md
     records a morning when it stayed flat while unchanged code ran 12-30% slower)."""
     t = time.process_time()
     s = 0
@@ -340,7 +338,7 @@ def _templates(layers: list[Path], src: dict[str, Path]) -> dict[str, dict]:
     the first normal and the first anomalous layer read in full (read_scene: ~1.5 s each)."""
     from allo_usd.output.annotations import image_annotations
     from allo_usd.output.contact import read_pixels
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
     from pxr import Sdf
 
     out = {}
@@ -376,7 +374,7 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
     from allo_usd.core.files import sha256_file
     from allo_usd.run.dispatch import find_layers
     from allo_usd.run.manifest import MANIFEST, append_rows
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
 
     layers = find_layers(tree)
     step = max(1, len(layers) // max(sample, 1))
@@ -418,10 +416,10 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
 VERIFY_SAMPLE = """
 import sys, time
 from pathlib import Path
-from allo_usd.run.dispatch import dispatch
+import allo_usd
 layers = [Path(p) for p in sys.argv[2:]]
 t0 = time.perf_counter()
-s = dispatch(layers, Path(sys.argv[1]), workers=1, retries=0, timeout=1, progress=False, verify=True)
+s = allo_usd.render(layers, Path(sys.argv[1]), workers=1, retries=0, timeout=1, progress=False, verify=True)
 print(len(s.rendered), len(s.skipped), len(s.failed), time.perf_counter() - t0)
 """
 
@@ -467,7 +465,7 @@ def dataset_runs(renders: Path, work: Path, layers: list[Path], add: int) -> lis
 
 # ---------------------------------------------------------------- the report
 
-NOTES = "notes_bench_scale.md"   # beside the report: findings measured by hand, included in every report
+METHOD = "## Method"   # the report's last section: findings measured by hand below the generated paragraph are kept
 
 
 def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, sizes: dict, plan: str) -> None:
@@ -517,19 +515,29 @@ def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, siz
                           f"{x['seconds']:.1f} s, {x['cpu']:.1f} CPU s, load {x['load'][0]} -> {x['load'][1]}, "
                           f"calibration {x['calibration'][0]:.2f} / {x['calibration'][1]:.2f}, "
                           f"file create {x['create_us']:.0f} us" for x in r["runs"]) + "."]
-    notes = out / NOTES
-    if notes.is_file():   # what was measured by hand beside the script (kept across its runs)
-        lines += ["", notes.read_text().strip()]
-    lines += ["", "Peak RSS is the largest process of the command (its own or a child's: /usr/bin/time's %M, else "
+    lines += ["", METHOD, "", "Peak RSS is the largest process of the command (its own or a child's: /usr/bin/time's %M, else "
               "wait4's, which counts this script's own RSS too). The resume "
               "check is `allo-usd render TREE --out RENDERS` over the finished folder: the scan for scene layers, "
               "the manifest load and compaction and, per scene, the layer's refusal check, its checksum, the quick "
               "check of its outputs (size, mtime_ns, inode from the manifest row; the JSON is one of them, and the row "
               "carries the JSON's input paths and passes, so no JSON is opened) and its inputs' identity (each file "
               "checksummed once per run: the scene layer by the scan that reads it). `--verify` reads and checksums every output instead (distinct files: "
-              "the sample's outputs are copies), timed on the sample and scaled to the plan.", ""]
+              "the sample's outputs are copies), timed on the sample and scaled to the plan."]
+    lines += [*_hand_findings(out / "bench_scale.md"), ""]
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_scale.md").write_text("\n".join(lines))
+
+
+def _hand_findings(report: Path) -> list[str]:
+    """The paragraphs of an existing report's Method section after its first (generated) one: what
+    was measured by hand (profiles, file-system findings, run-to-run spread), kept across runs."""
+    if not report.is_file():
+        return []
+    method = report.read_text().split(f"\n{METHOD}\n", 1)
+    if len(method) < 2:
+        return []
+    paragraphs = method[1].split("\n## ", 1)[0].strip().split("\n\n")[1:]
+    return [x for p in paragraphs for x in ("", p)]
     fig, ax = plt.subplots(figsize=(9, 0.5 + 0.5 * len(rows)))
     labels = [r["what"] for r in rows]
     ax.barh(labels, [r["seconds"] for r in rows], color="#4477aa")
@@ -553,7 +561,7 @@ def main() -> None:
     ap.add_argument("--verify-sample", type=int, default=50, help="scenes timed with --verify (distinct outputs)")
     ap.add_argument("--add", type=int, default=1000, help="records the dataset re-run adds")
     ap.add_argument("--jobs", type=int, default=2, help="processes that build the render folder")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs", help="where bench_scale.md and .png go")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks", help="where bench_scale.md and .png go")
     ap.add_argument("--build-only", action="store_true",
                     help="fill the cache and build the render folder, time nothing (a later run reuses both)")
     ap.add_argument("--evict", choices=("drop", "fadvise"), default="drop",

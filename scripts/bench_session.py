@@ -7,8 +7,8 @@
     each layer as a worker does; RSS after each scene.
 (c) Byte identity on the real stage: the first distinct scenes rendered incrementally vs fresh.
 
-Writes docs/bench_session.md and docs/bench_session.png. Usage:
-    .venv/bin/python scripts/bench_session.py [--scenes 200] [--out out/bench_session]
+Writes docs/benchmarks/bench_session.md and docs/benchmarks/bench_session.png. Usage:
+    .venv/bin/python -m scripts.bench_session [--scenes 200] [--out out/bench_session]
 """
 
 from __future__ import annotations
@@ -17,16 +17,15 @@ import argparse
 import json
 import os
 import statistics
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from scripts import benchinfo
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
-import benchinfo  # noqa: E402
 
 
 def rss_mb() -> float:
@@ -133,7 +132,7 @@ def bench_switch(layers: list[Path], repeats: int) -> dict:
     from allo_usd.blender.build import build_scene
     from allo_usd.blender.render import render_current
     from allo_usd.blender.session import Session
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
 
     a_layer, b_layer = layers[0], layers[5]   # normal on day 0 pose 3 -> anomaly on day 45 pose 42
     t0 = time.perf_counter()
@@ -171,7 +170,7 @@ def bench_memory(layers: list[Path], n: int) -> dict:
     import bpy
 
     from allo_usd.blender.session import Session
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
 
     session = Session()
     rss, apply_s, render_s, ids = [], [], [], []
@@ -190,7 +189,7 @@ def bench_memory(layers: list[Path], n: int) -> dict:
 def bench_identity(layers: list[Path], k: int) -> dict:
     from allo_usd.blender.render import render_scene
     from allo_usd.blender.session import Session
-    from allo_usd.usd.read import read_scene
+    from allo_usd import read_scene
 
     descs = [read_scene(layers[(i * 7) % len(layers)]) for i in range(k)]
     session = Session()
@@ -208,7 +207,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--identity", type=int, default=10)
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench_session")
-    ap.add_argument("--docs", type=Path, default=ROOT / "docs")
+    ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "benchmarks")
     ap.add_argument("--replot", action="store_true", help="rewrite the docs from OUT/results.json only")
     ap.add_argument("--quick", action="store_true",
                     help="smoke run: preview scenes 64x36 at 2 samples, memory scenes 32x18 at 1 sample, no denoise")

@@ -1,10 +1,10 @@
 """Images per hour: 1 worker x all threads, 1 worker x 1 thread, N workers x 1 thread (local pool).
 
-    .venv/bin/python scripts/bench_workers.py [--scenes 24] [--width 320 --height 180 --samples 32]
+    .venv/bin/python -m scripts.bench_workers [--scenes 24] [--width 320 --height 180 --samples 32]
 
 Authors `--scenes` layers over the committed base stage (camera circling the station), renders
 them once per configuration into a fresh directory (full renders, then mask-only renders), and
-writes docs/bench_workers.md and docs/bench_workers.png. Other processes on the machine load
+writes docs/benchmarks/bench_workers.md and docs/benchmarks/bench_workers.png. Other processes on the machine load
 the CPU too: the report records the load average before and after each run.
 """
 
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from scripts import benchinfo
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # scripts/: benchinfo, the shared header
-import benchinfo  # noqa: E402
 
 
 def make_layers(root: Path, n: int, resolution, samples: int, mask_only: bool = False) -> list[Path]:
@@ -53,14 +53,14 @@ def make_layers(root: Path, n: int, resolution, samples: int, mask_only: bool = 
 
 def run_configs(layers: list[Path], configs, tmp: Path, tag: str, first_file: str) -> tuple[list[dict], bool]:
     """Render `layers` once per (workers, threads); images per hour and whether outputs agree."""
-    from allo_usd.run.dispatch import dispatch
+    import allo_usd
 
     results = []
     for workers, threads in configs:
         load0 = os.getloadavg()[0]
         out = tmp / f"{tag}_{workers}x{threads}"
         t0 = time.perf_counter()
-        summary = dispatch(layers, out, workers=workers, threads=threads, progress=False)
+        summary = allo_usd.render(layers, out, workers=workers, threads=threads, progress=False)
         seconds = time.perf_counter() - t0
         if summary.failed:
             sys.exit(f"failed: {summary.failed}")
@@ -80,7 +80,7 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=180)
     ap.add_argument("--samples", type=int, default=32)
-    ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     args = ap.parse_args()
     run = benchinfo.start()
 

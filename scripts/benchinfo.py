@@ -1,13 +1,13 @@
-"""The one header every docs/bench_*.md opens with: when, where and how its figures were measured.
+"""The one header every docs/benchmarks/bench_*.md opens with: when, where and how its figures were measured.
 
 A benchmark figure is only worth what its context says: the commit (a later commit may be faster
 or slower), the date, the CPU (its model and the SIMD sets Embree, Cycles and OIDN pick their
 kernels by), the core count, the load average before and after (other work on a shared machine
-slows wall time), and the command that made it (so anyone can re-run it). Every scripts/bench_*.py
-and scripts/check_determinism.py calls this module, and tests/system/test_bench_smoke.py checks that each
-docs/bench_*.md names a commit that exists, the CPU, the load and the command.
+slows wall time), and the command that made it (so anyone can re-run it). Every scripts.bench_*
+module calls this one, and tests/system/test_bench_smoke.py checks that each docs/benchmarks/bench_*.md names
+a commit that exists, the CPU, the load and the command.
 
-    import benchinfo                       # scripts/ is on sys.path when a script runs
+    from scripts import benchinfo
     run = benchinfo.start()                # before the first measurement: commit, date, CPU, load before
     ...                                    # measure
     benchinfo.finish(run)                  # after the last one: load after
@@ -67,14 +67,17 @@ def cpu_info(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict:
 
 
 def command_line(argv: list[str] | None = None) -> str:
-    """The command as one would type it in the checkout: `python scripts/NAME.py ARGS`."""
+    """The command as one would type it at the checkout's root: `python -m scripts.NAME ARGS` for a
+    module of the checkout (under -m, sys.argv[0] is its file), `python FILE ARGS` for any other file."""
     argv = list(sys.argv if argv is None else argv)
     script = Path(argv[0]) if argv else Path("?")
     try:
-        script = script.resolve().relative_to(ROOT)
+        module = script.resolve().relative_to(ROOT)
     except ValueError:
-        pass
-    return shlex.join(["python", str(script), *argv[1:]])
+        return shlex.join(["python", str(script), *argv[1:]])
+    if module.suffix != ".py":
+        return shlex.join(["python", str(module), *argv[1:]])
+    return shlex.join(["python", "-m", ".".join(module.with_suffix("").parts), *argv[1:]])
 
 
 def _utc_now() -> str:

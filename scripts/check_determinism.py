@@ -1,5 +1,4 @@
-#!/usr/bin/env python
-"""Do authored bytes depend on the CPU's SIMD path or BLAS kernel? (issue 23: same bytes on every machine)
+"""Do authored bytes depend on the CPU's SIMD path or BLAS kernel? (the same bytes on every machine)
 
 Authors, each in a fresh subprocess, (a) the demo plan, (b) a slice of the paper plan spread over the
 year, anomalous scenes included, and (c) the base stage (scripts/make_base_stage.py), under each
@@ -27,10 +26,10 @@ Writes DOCS/determinism.md (a header, one row per workload and variant, the diff
 attributes, a diff excerpt), DOCS/determinism.png (differing files per variant) and OUT/results.json.
 Exit status 1 if any file differs from the baseline, 2 if a run failed.
 
-    python scripts/check_determinism.py                       # full size (8 to 16 min on 2 cores)
-    python scripts/check_determinism.py --rev HEAD            # the committed code (git archive), not the working tree
-    python scripts/check_determinism.py --report-only --out DIR   # rewrite the report from DIR's kept trees
-    python scripts/check_determinism.py --quick --variants baseline,npy-sse3 --out /tmp/d --docs /tmp/d
+    python -m scripts.check_determinism                       # full size (8 to 16 min on 2 cores)
+    python -m scripts.check_determinism --rev HEAD            # the committed code (git archive), not the working tree
+    python -m scripts.check_determinism --report-only --out DIR   # rewrite the report from DIR's kept trees
+    python -m scripts.check_determinism --quick --variants baseline,npy-sse3 --out /tmp/d --docs /tmp/d
 """
 
 from __future__ import annotations
@@ -71,7 +70,7 @@ SIMD_FLAGS = re.compile(r"^(sse\w*|pni|ssse3|avx\w*|fma\w*|f16c|aes|vaes|pclmulq
 # Days worth having in the paper slice when its spacing allows (README, Conventions): the lunar eclipse
 # (three sun lamps, the Moon's lit fraction 0.948) and the station's umbra.
 SLICE_DAYS = (date(2030, 12, 10), date(2030, 9, 27))
-OWN_OUTPUTS = ("docs/determinism.md", "docs/determinism.png")   # not counted as making the tree dirty
+OWN_OUTPUTS = ("docs/reliability/determinism.md", "docs/reliability/determinism.png")   # not counted as making the tree dirty
 
 
 # ---------------------------------------------------------------------------------------------
@@ -319,19 +318,22 @@ class Job:
     differing: list = field(default_factory=list)
 
 
-def run_child(spec: dict, env_extra: dict, cwd: Path, pythonpath: Path | None, log: Path,
+def run_child(spec: dict, env_extra: dict, cwd: Path, code_root: Path, log: Path,
               timeout: float) -> tuple[int, float, str]:
+    """`python -m scripts.check_determinism --child SPEC` in `cwd`, with PYTHONPATH led by `code_root`
+    (the allo_usd under test: this checkout, or --rev's export) and then this checkout, whose scripts
+    package serves an export that has none."""
     env = dict(os.environ)
     for k in THREAD_VARS:
         env.setdefault(k, "1")          # two runs share the cores; blas-threads sets them itself
     env.update(env_extra)
-    if pythonpath is not None:
-        env["PYTHONPATH"] = os.pathsep.join([str(pythonpath), *filter(None, [env.get("PYTHONPATH")])])
+    roots = dict.fromkeys([str(code_root), str(REPO)])
+    env["PYTHONPATH"] = os.pathsep.join([*roots, *filter(None, [env.get("PYTHONPATH")])])
     cwd.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with open(log, "w") as f:
         try:
-            r = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(spec)],
+            r = subprocess.run([sys.executable, "-m", "scripts.check_determinism", "--child", json.dumps(spec)],
                                env=env, cwd=cwd, stdout=f, stderr=subprocess.STDOUT, timeout=timeout)
             rc = r.returncode
         except subprocess.TimeoutExpired:
@@ -537,8 +539,8 @@ def write_report(args, jobs: list[Job], variants: list[Variant], info: dict, doc
     simd = " ".join(f for f in cpu["flags"] if SIMD_FLAGS.match(f))
     base_probe = next((j.in_force for j in jobs if j.variant == "baseline" and j.in_force), {})
     blas_versions = "; ".join(f"{o['library']}: {o.get('config', '?')}" for o in base_probe.get("openblas", []))
-    L = ["# Determinism across SIMD paths and BLAS kernels (issue 23)", "",
-         "Written by `scripts/check_determinism.py`: each workload is authored in a fresh subprocess under each "
+    L = ["# Determinism across SIMD paths and BLAS kernels", "",
+         "Written by `python -m scripts.check_determinism`: each workload is authored in a fresh subprocess under each "
          "environment variant, and every file of its tree is compared byte for byte with the baseline's tree. "
          "\"In force\" is what the subprocess itself reported after its work: the kernel of each OpenBLAS it "
          "loaded (`openblas_get_corename`), the highest numpy dispatch target enabled "
@@ -700,7 +702,7 @@ def _own_pin(jobs: list[Job]) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=REPO / "out" / "determinism", help="scratch directory (trees, logs)")
-    ap.add_argument("--docs", type=Path, default=REPO / "docs", help="where determinism.md/.png go")
+    ap.add_argument("--docs", type=Path, default=REPO / "docs" / "reliability", help="where determinism.md/.png go")
     ap.add_argument("--slice", type=int, default=None, help="paper-slice size in scenes (default 2000; --quick 30)")
     ap.add_argument("--variants", default=None, help="comma-separated subset (baseline is always run); "
                                                      "default: all")
@@ -751,13 +753,12 @@ def main(argv=None) -> int:
     if args.rev:
         src = out / "src"
         commit = export_rev(args.rev, src)
-        source, dirty_before, pythonpath, code_root = f"`git archive {args.rev}`; working-tree edits not included", \
-            None, src, src
+        source, dirty_before, code_root = f"`git archive {args.rev}`; working-tree edits not included", None, src
     else:
         dirty, dirty_before = working_tree_state()
         commit = (git("rev-parse", "--short", "HEAD") or "unknown") + ("+dirty" if dirty else "")
-        source, pythonpath, code_root = (f"working tree; uncommitted edits fingerprint {dirty_before}" if dirty
-                                         else "working tree"), None, REPO
+        source, code_root = (f"working tree; uncommitted edits fingerprint {dirty_before}" if dirty
+                             else "working tree"), REPO
 
     # The plans: the demo's and the paper's, written by the CLI, and the paper slice, in one prep process.
     plans = out / "plans"
@@ -765,14 +766,14 @@ def main(argv=None) -> int:
     prep_log = out / "prep.log"
     for flag, name in (("--demo", "demo.toml"), ("--paper", "paper.toml")):
         rc, _, tail = run_child({"kind": "author", "argv": ["plan", flag, "--out", str(plans / name)]}, {}, plans,
-                                pythonpath, prep_log, 300)
+                                code_root, prep_log, 300)
         if rc != 0:
             raise SystemExit(f"error: allo-usd plan {flag} failed:\n{tail}")
     slice_info = {}
     if "paper-slice" in workloads:
         spec = {"kind": "prep", "argv": [str(plans), str(n_slice), str(plans / "paper.toml"),
                                          *(d.isoformat() for d in SLICE_DAYS)]}
-        rc, _, tail = run_child(spec, {}, plans, pythonpath, prep_log, 600)
+        rc, _, tail = run_child(spec, {}, plans, code_root, prep_log, 600)
         if rc != 0:
             raise SystemExit(f"error: could not make the paper slice:\n{tail}")
         slice_info = json.loads(next(line for line in reversed(prep_log.read_text().splitlines())
@@ -807,7 +808,7 @@ def main(argv=None) -> int:
         probe.unlink(missing_ok=True)
         spec = {**specs[job.workload](Path(job.out)), "probe": str(probe)}
         job.rc, job.seconds, job.stderr_tail = run_child(spec, job.env, out / "cwd" / f"{job.workload}.{job.variant}",
-                                                         pythonpath, logs / f"{job.workload}.{job.variant}.log",
+                                                         code_root, logs / f"{job.workload}.{job.variant}.log",
                                                          args.timeout)
         if probe.is_file():
             job.in_force = json.loads(probe.read_text())
@@ -846,10 +847,12 @@ def main(argv=None) -> int:
     workloads_doc = "; ".join(filter(None, [
         "demo = the demo plan" + (" (its first 7 scenes)" if args.quick else " (16 scenes)") if "demo" in workloads else "",
         slice_doc,
-        "base-stage = scripts/make_base_stage.py --out DIR" + _own_pin(jobs) if "base-stage" in workloads else ""]))
+        "base-stage = python -m scripts.make_base_stage --out DIR" + _own_pin(jobs)
+        if "base-stage" in workloads else ""]))
     info = {"commit": commit, "source": source, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "cpu": cpu, "glibc": glibc_tunable(), "load_before": load_before, "load_after": load_after,
-            "command": shlex.join(["python", "scripts/check_determinism.py", *(sys.argv[1:] if argv is None else argv)]),
+            "command": shlex.join(["python", "-m", "scripts.check_determinism",
+                                   *(sys.argv[1:] if argv is None else argv)]),
             "workloads": workloads, "workloads_doc": workloads_doc, "tree_changed": tree_changed,
             "total_seconds": time.perf_counter() - t_start, "slice": slice_info}
     md = write_report(args, jobs, variants, info, args.docs)

@@ -1,8 +1,7 @@
-#!/usr/bin/env python
 """Regenerate the base stage and every asset under stages/ (deterministic; the files are committed).
 
-    python scripts/make_base_stage.py                       # procedural station -> stages/
-    python scripts/make_base_stage.py --station ISS_2016.glb --units in --up-axis=-z --out out/stages_iss
+    python -m scripts.make_base_stage                       # procedural station -> stages/
+    python -m scripts.make_base_stage --station ISS_2016.glb --units in --up-axis=-z --out out/stages_iss
 
 An imported model's orientation and unit are its format's (glTF: +Y up, metres) or --up-axis /
 --units (allo_usd.assets.importer); NASA's ISS_2016.glb breaks glTF's rule (inches, +Z nadir),
@@ -10,7 +9,7 @@ so it needs both given (--units auto reads its inches from its size).
 
 Byte-identical on every x86-64 machine, whatever its BLAS kernel or SIMD features: every value that
 reaches a file is computed with allo_usd.core.fixedmath (no BLAS, no libm or SVML transcendentals),
-so no environment pin is needed (scripts/check_determinism.py shows it; docs/determinism.md).
+so no environment pin is needed (scripts/check_determinism.py shows it; docs/reliability/determinism.md).
 """
 
 from __future__ import annotations

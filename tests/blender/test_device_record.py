@@ -54,7 +54,7 @@ def test_bench_rerender_writes_its_table_and_plot(rendered, tmp_path):
     layer, _, _ = rendered["normal"]
     docs = tmp_path / "docs"
     env = {k: v for k, v in os.environ.items() if k != "CYCLES_CPU_NO_AVX2"}
-    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_rerender.py"), str(layer), "--size", "32x18",
+    r = subprocess.run([sys.executable, "-m", "scripts.bench_rerender", str(layer), "--size", "32x18",
                         "--samples", "1", "--out", str(tmp_path / "work"), "--docs", str(docs)],
                        capture_output=True, text=True, env=env, cwd=ROOT, timeout=120)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 
 import numpy as np
 import pytest
@@ -49,10 +48,9 @@ def test_cli_asset_import_of_the_iss(tmp_path):
 @needs_iss
 @pytest.mark.render
 def test_base_stage_from_the_real_iss_renders(tmp_path):
-    spec = importlib.util.spec_from_file_location("make_base_stage", ROOT / "scripts" / "make_base_stage.py")
-    gen = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gen)
-    base = gen.build(tmp_path / "stages", str(ISS), "in", "-z")  # the file breaks glTF's +Y up: say so
+    from scripts import make_base_stage
+
+    base = make_base_stage.build(tmp_path / "stages", str(ISS), "in", "-z")  # the file breaks glTF's +Y up: say so
     assert validation_errors(base) == []
 
     from allo_usd.usd.scene_layer import write_scene_layer

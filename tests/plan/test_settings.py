@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from dataclasses import fields
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -75,17 +72,9 @@ def test_bad_override_and_resolution():
         preset_spec("draft", (0, 36), 1.0)
 
 
-def _bench():
-    path = Path(__file__).resolve().parents[2] / "scripts" / "bench_accuracy.py"
-    spec = importlib.util.spec_from_file_location("bench_accuracy", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod   # its dataclasses look their module up while they are made
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_bench_metrics_and_front():
-    b = _bench()
+    from scripts import bench_accuracy as b
+
     rng = np.random.default_rng(0)
     ref = rng.uniform(0, 0.8, (36, 64, 3)).astype(np.float32)
     same = b.metrics(ref, ref)

@@ -19,12 +19,12 @@ from pathlib import Path
 
 import pytest
 
+from scripts import benchinfo
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPTS = ROOT / "scripts"
 TESTS = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs" / "benchmarks"
-sys.path.insert(0, str(SCRIPTS))
-import benchinfo  # noqa: E402
 
 SHA = re.compile(r"commit `?([0-9a-f]{7,40})`?( \(dirty\))?")
 
@@ -138,7 +138,7 @@ def _git(*args: str) -> subprocess.CompletedProcess:
 
 
 def header_lines(text: str) -> list[str]:
-    """The benchinfo header lines of a docs/bench_*.md: right under its title, before the first table."""
+    """The benchinfo header lines of a docs/benchmarks/bench_*.md: right under its title, before the first table."""
     top = text.split("\n|", 1)[0].splitlines()[:12]
     return [line for line in top if line.startswith(benchinfo.HEADER_START)]
 
@@ -157,7 +157,8 @@ def _check(script: str, out: Path) -> dict[str, str]:
             heads = header_lines(text)   # the run's own header: this checkout's commit, this CPU, the command
             assert heads, f"{name} has no {benchinfo.HEADER_START!r} header line"
             assert SHA.search(heads[-1]).group(1) == _git("rev-parse", "HEAD").stdout.strip(), heads[-1]
-            assert f"command: `python scripts/{script} " in heads[-1] and benchinfo.cpu_info()["model"] in heads[-1]
+            assert f"command: `python -m scripts.{script.removesuffix('.py')} " in heads[-1] \
+                and benchinfo.cpu_info()["model"] in heads[-1]
     if PLOTS[script]:
         from PIL import Image
 
@@ -178,8 +179,8 @@ def test_bench_smoke(script, tmp_path, request):
     for k, run in enumerate(SMOKE[script]):
         args = [a.format(out=out, tmp=tmp_path, layer=layer, layer2=layer2) for a in run]
         t0 = time.perf_counter()
-        r = subprocess.run([sys.executable, str(SCRIPTS / script), *args], capture_output=True, text=True, cwd=ROOT,
-                           timeout=240)
+        r = subprocess.run([sys.executable, "-m", f"scripts.{script.removesuffix('.py')}", *args],
+                           capture_output=True, text=True, cwd=ROOT, timeout=240)
         assert r.returncode == 0, f"{script} {' '.join(args)}:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
         print(f"{script} run {k + 1}: {time.perf_counter() - t0:.1f} s")
         texts = _check(script, out)
@@ -223,13 +224,14 @@ def test_benchinfo_header(tmp_path):
     sha = _git("rev-parse", "HEAD").stdout.strip()
     dirty = bool(_git("status", "--porcelain", "--untracked-files=no").stdout.strip())
     assert SHA.search(head).groups() == (sha, " (dirty)" if dirty else None), head
-    assert head.startswith(benchinfo.HEADER_START) and "command: `python scripts/bench_sky.py --runs 1 --out 'a b'`" in head
+    assert head.startswith(benchinfo.HEADER_START)
+    assert "command: `python -m scripts.bench_sky --runs 1 --out 'a b'`" in head
     assert "before" in head and "after" in head and "not recorded" not in head
     assert all(f in head for f in benchinfo.cpu_info()["simd"])
 
 
 def test_every_bench_doc_names_its_commit_cpu_load_and_command():
-    """Each docs/bench_*.md opens with a header naming a commit that exists in this repository's
+    """Each docs/benchmarks/bench_*.md opens with a header naming a commit that exists in this repository's
     history, the CPU, the load and the command (benchinfo.header, or the same written by hand for a
     doc measured before the header existed)."""
     docs = sorted(DOCS.glob("bench_*.md"))

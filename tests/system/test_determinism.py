@@ -12,7 +12,6 @@ Also: scripts/check_determinism.py --quick runs and writes its table.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import re
@@ -23,31 +22,19 @@ from pathlib import Path
 
 import pytest
 
+from scripts import check_determinism as cd
 from tests.support.goldens import LIMIT, author_demo
 
 pytestmark = pytest.mark.slow   # about 30 s: five authoring subprocesses and the script's quick run
 
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "scripts" / "check_determinism.py"
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("check_determinism", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module   # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-cd = _script()
 
 CHILD = """
 import json, sys
 from pathlib import Path
-sys.path[:0] = [sys.argv[1], sys.argv[2]]
 from tests.support.goldens import author_demo
-author_demo(Path(sys.argv[3]))
-from check_determinism import in_force
+author_demo(Path(sys.argv[1]))
+from scripts.check_determinism import in_force
 print(json.dumps(in_force()))
 """
 
@@ -69,7 +56,7 @@ VARIANTS = _variants()
 
 def _author_in_subprocess(env_extra: dict[str, str], out: Path) -> dict:
     env = {**os.environ, **env_extra}   # OPENBLAS_CORETYPE / OPENBLAS_L2_SIZE untouched
-    r = subprocess.run([sys.executable, "-c", CHILD, str(ROOT), str(SCRIPT.parent), str(out)], env=env,
+    r = subprocess.run([sys.executable, "-c", CHILD, str(out)], env=env, cwd=ROOT,   # -c puts the cwd first on sys.path
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, f"authoring under {env_extra} failed:\n{r.stderr[-3000:]}"
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -125,14 +112,14 @@ def test_variant_took_effect(trees, variant):
 
 def test_check_determinism_quick(tmp_path):
     out, docs = tmp_path / "out", tmp_path / "docs"
-    r = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--variants", "npy-sse3", "--out", str(out),
-                        "--docs", str(docs)], capture_output=True, text=True, timeout=600)
+    r = subprocess.run([sys.executable, "-m", "scripts.check_determinism", "--quick", "--variants", "npy-sse3",
+                        "--out", str(out), "--docs", str(docs)], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert r.returncode in (0, 1), f"exit {r.returncode}:\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
     md = (docs / "determinism.md").read_text()
     header = "| workload | variant | environment | files compared | files differing | in force | seconds |"
     assert header in md
     for key in ("- commit: `", "- date: ", "- CPU: ", "SIMD flags: ", "- numpy ", "OpenBLAS: ",
-                "- load average (1, 5, 15 min): before ", "- command: `python scripts/check_determinism.py --quick"):
+                "- load average (1, 5, 15 min): before ", "- command: `python -m scripts.check_determinism --quick"):
         assert key in md, f"{key!r} missing from the header"
     rows = {tuple(c.strip() for c in line.strip("|").split("|")[:2]): line
             for line in md.splitlines() if line.startswith("| ") and not line.startswith(("| workload", "|---"))}

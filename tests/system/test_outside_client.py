@@ -15,18 +15,13 @@ tools"): every DistantLight's intensity times 4, and its angle doubled. What it 
 linking, allo:rayVisibility) is measured by scripts/bench_light_linking.py, not undone.
 
 The machinery (authoring the demo layer, the child process, the comparison) lives in
-scripts/bench_light_linking.py, loaded here like other tests load their scripts.
+scripts/bench_light_linking.py, imported here as scripts.bench_light_linking.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-
 import numpy as np
 import pytest
-
-from allo_usd.core.paths import ROOT
 
 pytestmark = pytest.mark.render
 
@@ -34,20 +29,11 @@ SIZE = (96, 54)
 SAMPLES = 16
 
 
-def _bench():
-    name = "bench_light_linking"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module  # dataclasses look their module up while the file executes
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
 @pytest.fixture(scope="module")
 def normal_day(tmp_path_factory):
     """Demo scene 0's day and pose (d000_p03) over the committed base stage, both renders."""
-    bench = _bench()
+    from scripts import bench_light_linking as bench
+
     work = tmp_path_factory.mktemp("outside_client")
     layer = bench.demo_layer(work / "layers", day=0, pose=3, resolution=SIZE, samples=SAMPLES)
     undone, as_imported = bench.compare_all(layer, work / "renders", (tuple(bench.DEPARTURES), ()))

@@ -20,8 +20,8 @@ def test_committed_stage_matches_generator(tmp_path):
     """The script, run as users run it (with the machine's own BLAS kernel and SIMD features: the
     maths that reaches a file is CPU-independent, allo_usd.core.fixedmath), rebuilds the committed
     files byte for byte."""
-    subprocess.run([sys.executable, str(ROOT / "scripts" / "make_base_stage.py"), "--out", str(tmp_path)],
-                   check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "scripts.make_base_stage", "--out", str(tmp_path)],
+                   check=True, capture_output=True, cwd=ROOT)
     made = {p.relative_to(tmp_path): p for p in tmp_path.rglob("*") if p.is_file()}
     committed = {p.relative_to(STAGES): p for p in STAGES.rglob("*") if p.is_file()}
     assert sorted(made) == sorted(committed)
