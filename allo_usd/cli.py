@@ -82,7 +82,7 @@ def _timeout_seconds(text):
 
 
 def _render_samples_max() -> int:
-    from allo_usd.usd.read import RENDER_SAMPLES
+    from allo_usd.usd.reader_bounds import RENDER_SAMPLES
 
     return RENDER_SAMPLES[1]
 

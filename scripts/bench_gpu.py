@@ -50,7 +50,7 @@ def demo_layer() -> Path:
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
     from allo_usd.usd.compose import copy_base_stage, copy_schema
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
 
     tree = BENCH / "layers"
     found = sorted(tree.glob("*.usda")) if tree.is_dir() else []

@@ -275,7 +275,7 @@ def demo_layer(tree: Path, day: int, pose: int = 3, resolution=(96, 54), samples
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
     from allo_usd.usd.compose import copy_base_stage
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
 
     tree.mkdir(parents=True, exist_ok=True)
     stage = copy_base_stage(BASE_STAGE, tree)

@@ -53,7 +53,7 @@ from allo_usd.scene.raycast import RayScene, pixel_rays
 from allo_usd.core.constants import EXPOSURE
 from allo_usd.core.paths import BASE_STAGE
 from allo_usd.core.timefmt import format_utc
-from allo_usd.usd.read import scene_inputs
+from allo_usd.usd.stage_geometry import scene_inputs
 from allo_usd.scene.resolve import SceneInputs, build_spec, resolve_camera, resolve_placements
 from allo_usd.sky.ephemeris import default_epochs
 from allo_usd.sky.model import compute_sky

@@ -48,7 +48,7 @@ def author_layers(out: Path, resolution, samples, denoise) -> list[Path]:
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.core.timefmt import format_utc
     from allo_usd.scene.resolve import resolve_scene
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
@@ -96,7 +96,7 @@ def distinct_layers(out: Path, n: int, resolution, samples: int, denoise: bool) 
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.core.timefmt import format_utc
     from allo_usd.scene.resolve import resolve_scene
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit

@@ -9,7 +9,7 @@ Euler angles (docs/physics.md section 4); a quaternion keeps it a rotation at an
 
 Every value from the description goes in through `assign`, which reads it back: Blender clamps an
 out-of-range float silently (a focal length of 1e-30 becomes 1 mm), so a value it would change is
-a LayerError instead. The reader (`allo_usd.usd.read`) already bounds every value to the bpy hard
+a LayerError instead. The reader (`allo_usd.usd.reader_bounds`) already bounds every value to the bpy hard
 limits; this catches a description made some other way. A texture Blender cannot decode is a
 LayerError too (Blender only logs it and renders magenta or black).
 

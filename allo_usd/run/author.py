@@ -72,7 +72,7 @@ class AuthorContext:
         from allo_usd.core.constants import EXPOSURE
         from allo_usd.scene.resolve import sun_and_bodies
         from allo_usd.usd.hazard import hazard_asset_path
-        from allo_usd.usd.read import scene_inputs
+        from allo_usd.usd.stage_geometry import scene_inputs
 
         self.plan, self.out_dir, self.stop = plan, Path(out_dir), stop
         self.base_stage = plan.resolve_base_stage()

@@ -37,7 +37,7 @@ from allo_usd.core.constants import EXPOSURE
 from allo_usd.core.timefmt import format_utc
 from allo_usd.scene.resolve import SceneInputs, resolve_scene
 from allo_usd.scene.tracking import sun_tracking_angles
-from allo_usd.usd.read import scene_inputs
+from allo_usd.usd.stage_geometry import scene_inputs
 from allo_usd.plan.settings import RenderSpec
 from allo_usd.scene.spec import SceneSpec
 from allo_usd.output.writers import linear_to_srgb8, mask_overlay, write_png

@@ -26,7 +26,7 @@ from allo_usd.plan.settings import canonical_passes
 from allo_usd.core.files import relpath
 from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, done_record, file_sha256, index_row,
                                    input_hashes, output_paths, outputs_sha256, render_identity, render_versions)
-from allo_usd.usd.read import layer_outputs
+from allo_usd.usd.sniff import layer_outputs
 
 
 def apply_effects(desc, rgb: np.ndarray) -> tuple[np.ndarray, dict]:

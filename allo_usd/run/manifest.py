@@ -40,8 +40,7 @@ from pathlib import Path
 from allo_usd import __version__
 from allo_usd.core.errors import DiskFullError, LayerError
 from allo_usd.core.files import DISK_FULL_ERRNOS, atomic_path, relpath, sha256_file, temp_name_re
-from allo_usd.usd.read import layer_outputs
-from allo_usd.usd.sniff import refusal
+from allo_usd.usd.sniff import layer_outputs, refusal
 
 MANIFEST = "manifest.jsonl"
 WORKDIR = ".allo-tmp"  # Blender's render files, one directory per worker pid

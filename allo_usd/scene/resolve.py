@@ -30,7 +30,7 @@ DAY_SCENES_KEPT = 4   # posed station BVHs SceneInputs keeps (~0.1 s to build ea
 
 
 class StationGeometry(Protocol):
-    """Where the base stage's geometry comes from: allo_usd.usd.read.StageGeometry reads it from a
+    """Where the base stage's geometry comes from: allo_usd.usd.stage_geometry.StageGeometry reads it from a
     base stage; anything else that answers these three calls will do (the scene layer reads no USD)."""
 
     def poses(self) -> list: ...                                        # CameraPose, pose numbers 1..50

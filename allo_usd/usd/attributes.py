@@ -26,7 +26,7 @@ class AlloAttribute:
         return self.name.rsplit(":", 1)[1]
 
     def typed(self, value) -> tuple[str, object]:
-        """(Sdf type, value): one entry of scene_layer.Prim.attrs."""
+        """(Sdf type, value): one entry of usda_writer.Prim.attrs."""
         return self.sdf_type, value
 
 

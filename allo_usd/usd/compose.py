@@ -31,7 +31,8 @@ from pathlib import Path
 from allo_usd.core.files import atomic_directory, folder_realpath, memo_realpath, relpath
 from allo_usd.scene.spec import CameraSpec, SceneSpec, SunSpec
 from allo_usd.usd.scene_layer import (anomaly_asset_path, check_base_stage, pose_prims, scene_custom, scene_prims,
-                                      sky_prims, validate_spec, write_layer)
+                                      sky_prims, validate_spec)
+from allo_usd.usd.usda_writer import write_layer
 
 SKY_DIR, POSE_DIR, SCENE_DIR, STAGE_DIR, SCHEMA_DIR = "sky", "poses", "scenes", "stages", "schema"
 HAZARD_DIR = "hazards"   # a plan's own hazards, converted (allo_usd.usd.hazard)

@@ -259,7 +259,7 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
     from allo_usd.assets.mesh import fan_triangulate
     from allo_usd.core.errors import LayerError
     from allo_usd.usd.dependencies import tf_message
-    from allo_usd.usd.read import MAX_PRIMS, mesh_topology, world_matrix
+    from allo_usd.usd.reader_bounds import MAX_PRIMS, mesh_topology, world_matrix
 
     def fail(why: str) -> PlanError:
         return PlanError(f"{what} {name!r}: {path} {why}")

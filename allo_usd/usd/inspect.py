@@ -32,7 +32,8 @@ from allo_usd.core.errors import LayerError
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
-from allo_usd.usd.read import camera_exposure, open_stage, sun_irradiance, world_matrix
+from allo_usd.usd.read import camera_exposure, open_stage, sun_irradiance
+from allo_usd.usd.reader_bounds import world_matrix
 
 ROOTS = (layout.WORLD, layout.RENDER)
 ABSENT = "<absent>"
@@ -275,7 +276,7 @@ def describe(layer: str | Path) -> dict:
 def _joints(stage, start: Path) -> dict:
     """The procedural station's joints as the scene composes them: {name: {angle (degrees), lower,
     upper, from (the layer holding the angle: the sky layer when the plan tracks the Sun)}}."""
-    from allo_usd.usd.read import joint_op, station_joints
+    from allo_usd.usd.stage_geometry import joint_op, station_joints
 
     out = {}
     for name, prim in station_joints(stage).items():

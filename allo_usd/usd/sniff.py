@@ -1,7 +1,8 @@
 """Cheap looks at a layer file before anything opens it for real: is it a scene layer (text
-.usda, or a binary crate .usdc/.usd), what a render of it costs (pixels x samples), and pxr
-loaded once with Ctrl-C held back (pxr's module loader swallows a KeyboardInterrupt that lands
-while it imports its C++ modules, and leaves pxr half-loaded: allo_usd.core.interrupts)."""
+.usda, or a binary crate .usdc/.usd), what a render of it costs (pixels x samples), which passes
+it orders (`layer_outputs`, for resume checks), and pxr loaded once with Ctrl-C held back (pxr's
+module loader swallows a KeyboardInterrupt that lands while it imports its C++ modules, and
+leaves pxr half-loaded: allo_usd.core.interrupts)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from allo_usd.core.files import read_head
 from allo_usd.core.interrupts import interrupt_held
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
+from allo_usd.plan.settings import DEFAULT_PASSES
 
 HEAD_BYTES = 16384           # how much of a file the scan reads: a scene layer names its sceneId in its header
 LAYER_SUFFIXES = (".usda", ".usdc", ".usd")
@@ -174,6 +176,23 @@ def render_cost(path: Path) -> tuple[int, int] | None:
         return w * h, int(samples.default)
     except (AttributeError, TypeError, ValueError):
         return None
+
+
+def layer_outputs(layer: Path) -> tuple[str, ...]:
+    """The passes a scene layer orders (its own override of the product, else the base's default
+    passes), read from the layer file alone: cheap enough for resume checks."""
+    from pxr import Sdf, Tf
+
+    from allo_usd.usd.read import VAR_PASSES
+
+    try:
+        sdf = Sdf.Layer.FindOrOpen(str(layer))
+    except Tf.ErrorException:
+        return DEFAULT_PASSES  # unreadable: read_scene will say what is wrong with it
+    rel = sdf.GetRelationshipAtPath(f"{layout.IMAGE_PRODUCT}.orderedVars") if sdf else None
+    if not rel or not rel.targetPathList.explicitItems:
+        return DEFAULT_PASSES
+    return tuple(VAR_PASSES.get(t.name, t.name) for t in rel.targetPathList.explicitItems)
 
 
 _LOADED = False

@@ -134,7 +134,7 @@ def test_denoiser_follows_the_layer(tiny_base, tmp_path):
 def test_depth_and_mask_only_outputs(tiny_base, tmp_path, rendered):
     from dataclasses import replace
 
-    from allo_usd.usd.read import layer_outputs
+    from allo_usd.usd.sniff import layer_outputs
 
     base = make_spec(anomaly=True)
     with_depth = replace(base, render=replace(base.render, passes=("rgb", "exr", "mask", "depth")))

@@ -55,10 +55,10 @@ def test_base_stage_from_the_real_iss_renders(tmp_path):
 
     from allo_usd.usd.scene_layer import write_scene_layer
     from allo_usd.run.job import render_layer
-    from allo_usd.usd.read import read_triangles
+    from allo_usd.usd.stage_geometry import read_triangles
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.scene.resolve import resolve_scene
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
     from allo_usd.plan.settings import RenderSpec

@@ -182,7 +182,7 @@ def test_camera_quaternions_are_the_scalar_reference(tmp_path):
     from allo_usd.core.paths import BASE_STAGE
     from allo_usd.plan.model import demo_plan
     from allo_usd.run.author import author
-    from allo_usd.usd.read import read_rig
+    from allo_usd.usd.stage_geometry import read_rig
 
     author(demo_plan(), tmp_path / "tree", limit=7, progress=False, workers=1)
     rig = {p.index: p for p in read_rig(BASE_STAGE)}

@@ -52,7 +52,8 @@ def test_plan_passes_reach_the_layers_usd_render_product(tiny_base, tmp_path):
 
     from allo_usd.plan.model import Quality
     from allo_usd.plan.settings import RenderSpec
-    from allo_usd.usd.read import layer_outputs, read_scene
+    from allo_usd.usd.read import read_scene
+    from allo_usd.usd.sniff import layer_outputs
 
     q = Quality(passes=["instance", "depth", "normal"])  # any order: recorded in PASSES order
     assert q.passes == ["depth", "normal", "instance"]
@@ -227,7 +228,7 @@ def test_a_plans_passes_are_authored_into_its_layers(tmp_path):
     from allo_usd.core.paths import BASE_STAGE
     from allo_usd.plan.model import Anomalies, Dates, Plan, Poses, Quality
     from allo_usd.run.author import author_plan
-    from allo_usd.usd.read import layer_outputs
+    from allo_usd.usd.sniff import layer_outputs
 
     plan = Plan(name="passes", dates=Dates(days=1), poses=Poses(train=[1], test=[41]), anomalies=Anomalies(assets=[]),
                 quality=Quality(resolution=(64, 36), samples=4, passes=["instance", "mask"]),

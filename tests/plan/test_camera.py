@@ -258,7 +258,7 @@ def test_predicted_area_agrees_with_the_rendered_anomaly_for_a_plan_lens(tiny_ba
     from allo_usd.run.job import render_layer
     from allo_usd.scene.placement import place
     from allo_usd.scene.spec import AnomalySpec
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
 
     lens = _plan(**{**PLAN_CAMERA, "resolution": [160, 90], "principal_point_offset_px": [15.0, -10.0],
                     "focal_length_mm": 35.0}).camera_model()[0]

@@ -166,7 +166,7 @@ def test_composed_values_equal_resolve_scene(authored, tmp_path):
     from allo_usd.usd.scene_layer import write_scene_layer
     from allo_usd.core.constants import EXPOSURE
     from allo_usd.scene.resolve import resolve_scene
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
     from allo_usd.plan.settings import preset_spec
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit

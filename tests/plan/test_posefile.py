@@ -138,7 +138,7 @@ def test_read_pose_file_errors(tmp_path):
 
 
 def test_distance_cap_is_the_readers():
-    from allo_usd.usd.read import MAX_CAMERA_DISTANCE_M
+    from allo_usd.usd.reader_bounds import MAX_CAMERA_DISTANCE_M
 
     assert MAX_POSE_DISTANCE_M == MAX_CAMERA_DISTANCE_M
 
@@ -172,7 +172,7 @@ def test_round_trip(tmp_path_factory, poses, suffix):
 
 
 def _base_poses():
-    from allo_usd.usd.read import StageGeometry
+    from allo_usd.usd.stage_geometry import StageGeometry
 
     return {p.index: p for p in StageGeometry(BASE_STAGE).poses()}
 
@@ -312,7 +312,7 @@ def test_default_sigmas_and_rig_poses_author_no_new_attributes(tmp_path):
 
 def test_pose_inside_the_station_is_refused_with_its_line(pose_csv, tmp_path):
     from allo_usd.run.author import author
-    from allo_usd.usd.read import StageGeometry
+    from allo_usd.usd.stage_geometry import StageGeometry
 
     points, _ = StageGeometry(BASE_STAGE).station_triangles()
     inside = UserPose("in_the_wall", "test", tuple(map(float, points[0])), (1.0, 0.0, 0.0, 0.0), 0)

@@ -35,7 +35,7 @@ def author_demo_tree(out: Path, resolution=(64, 36), samples: int = 1) -> list[P
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
     from allo_usd.usd.compose import copy_base_stage, copy_schema
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
 
     tree = out / "layers"
     tree.mkdir(parents=True)

@@ -197,7 +197,7 @@ def test_double_fast_layout_is_tf_layout_and_sdfs():
     _float's memo gives each value's own text (not a zero's sign for another zero)."""
     from pxr import Sdf
 
-    from allo_usd.usd import scene_layer as S
+    from allo_usd.usd import usda_writer as S
 
     def layout(x: float) -> str:
         if x == 0.0:

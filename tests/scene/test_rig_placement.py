@@ -144,7 +144,8 @@ def test_five_depths_along_the_view_ray_and_determinism():
 def test_predicted_area_matches_the_rendered_mask(tiny_base, tmp_path):
     from allo_usd.usd.scene_layer import write_scene_layer
     from allo_usd.blender.render import render_scene
-    from allo_usd.usd.read import read_scene, read_triangles
+    from allo_usd.usd.read import read_scene
+    from allo_usd.usd.stage_geometry import read_triangles
     from allo_usd.scene.spec import AnomalySpec, CameraSpec
 
     from tests.support.helpers import make_spec

@@ -106,7 +106,7 @@ def test_at_the_beta_limit_a_wing_stops_there(sky, tmp_path):
 
 
 def test_joint_limits_respected_all_year(sky):
-    from allo_usd.usd.read import read_joint_angles
+    from allo_usd.usd.stage_geometry import read_joint_angles
 
     joints = read_joint_angles(BASE_STAGE)
     assert sorted(joints) == sorted(["AlphaS", "AlphaP", "RadiatorS", "RadiatorP"]
@@ -164,7 +164,7 @@ def test_model_station_cannot_track(tmp_path):
 
 
 def test_scene_inputs_pose_the_station_per_day(sky):
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
 
     inputs = scene_inputs(BASE_STAGE, sky, "2030-01-01T00:00:00Z", track_sun=True)
     rest = scene_inputs(BASE_STAGE, sky, "2030-01-01T00:00:00Z")
@@ -188,7 +188,7 @@ def _tracking_layer(sky, tmp_path, resolution=(64, 36)):
     from allo_usd.scene.resolve import build_spec
     from allo_usd.scene.spec import CameraSpec
     from allo_usd.usd.compose import write_composed_scene, write_pose_layer
-    from allo_usd.usd.read import scene_inputs
+    from allo_usd.usd.stage_geometry import scene_inputs
 
     inputs = scene_inputs(BASE_STAGE, sky, "2030-01-01T00:00:00Z", track_sun=True)
     pos, rot = _array_view()
@@ -257,7 +257,7 @@ def test_a_file_pose_a_wing_sweeps_through_fails_naming_the_day_the_pose_and_the
     from allo_usd.run.author import author_plan
     from allo_usd.scene.raycast import RayScene
     from allo_usd.scene.rig import too_close
-    from allo_usd.usd.read import StageGeometry
+    from allo_usd.usd.stage_geometry import StageGeometry
 
     day = RENDER_DAY
     geometry = StageGeometry(BASE_STAGE)

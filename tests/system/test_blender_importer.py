@@ -91,7 +91,7 @@ def test_composed_scene_offers_one_camera(demo_layer):
     from pxr import Usd, UsdGeom
 
     from allo_usd.core.camera_model import DEFAULT_CAMERA
-    from allo_usd.usd import read
+    from allo_usd.usd import read, stage_geometry
 
     stage = read.open_stage(demo_layer)
     cameras = [str(p.GetPath()) for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdGeom.Camera)]
@@ -99,8 +99,8 @@ def test_composed_scene_offers_one_camera(demo_layer):
     rig = stage.GetPrimAtPath(layout.RIG).GetChildren()
     assert len(rig) == 50 and all(p.IsA(UsdGeom.Xform) and p.HasAPI("AlloCameraPoseAPI") for p in rig)
     base = demo_layer.parents[3] / "stages" / "base.usda"
-    assert [p.index for p in read.read_rig(base)] == list(range(1, 51))
-    assert read.read_rig_lens(base) == DEFAULT_CAMERA   # the lens the rig's views were chosen through (Table I)
+    assert [p.index for p in stage_geometry.read_rig(base)] == list(range(1, 51))
+    assert stage_geometry.read_rig_lens(base) == DEFAULT_CAMERA   # the lens the rig's views were chosen through (Table I)
 
 
 def test_blenders_importer_brings_in_one_camera(demo_layer):
@@ -182,7 +182,7 @@ def test_rig_records_the_lens_its_views_were_chosen_through(tmp_path):
     from allo_usd.scene.spec import CameraPose
     from allo_usd.usd import schema
     from allo_usd.usd.base_stage import define_rig
-    from allo_usd.usd.read import read_rig, read_rig_lens
+    from allo_usd.usd.stage_geometry import read_rig, read_rig_lens
 
     schema.register()
     lens = CameraModel(50.0, 24.0, 13.5, (0.5, 1e9), (6.0, -4.0))

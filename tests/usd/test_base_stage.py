@@ -12,7 +12,7 @@ from pxr import Usd, UsdGeom, UsdLux, UsdRender, UsdSemantics
 
 from allo_usd.usd import schema
 from allo_usd.core.paths import BASE_STAGE, ROOT, STAGES
-from allo_usd.usd.read import read_rig
+from allo_usd.usd.stage_geometry import read_rig
 
 
 @pytest.mark.slow
@@ -79,7 +79,7 @@ def test_every_base_pose_looks_at_structure_5_to_40_m_away():
     """Each committed pose's view, ray cast on a 32x18 grid: the optical axis hits structure 5-40 m
     away, most structure in frame is 5-40 m away, and it neither leaves the frame empty nor fills it."""
     from allo_usd.scene.raycast import RayScene
-    from allo_usd.usd.read import read_triangles
+    from allo_usd.usd.stage_geometry import read_triangles
     from allo_usd.scene.rig import COVERAGE_RANGE, MAX_NEAR, MIN_IN_RANGE, view_quality
 
     pts, tris = read_triangles(BASE_STAGE, "/World/Station")

@@ -91,7 +91,7 @@ def test_mesh_conversion_uses_the_given_units_and_colours(tmp_path):
     from pxr import Sdf, Usd, UsdShade
 
     from allo_usd.usd.hazard import convert_hazard
-    from allo_usd.usd.read import read_triangles
+    from allo_usd.usd.stage_geometry import read_triangles
 
     write_stl(tmp_path / "bracket.stl")
     path = convert_hazard(hazard(tmp_path / "bracket.stl"), tmp_path / "out")
@@ -252,7 +252,7 @@ def test_the_rendered_mask_covers_the_projected_mesh(authored, tmp_path):
 
     from allo_usd.run.job import render_layer
     from allo_usd.scene.raycast import RayScene
-    from allo_usd.usd.read import StageGeometry
+    from allo_usd.usd.stage_geometry import StageGeometry
     from pxr import Usd, UsdGeom
 
     root, layers = authored
@@ -293,7 +293,7 @@ def test_asset_import_is_the_same_importer_for_usd_files(tmp_path):
 
     from allo_usd.cli import app
     from allo_usd.usd.hazard import load_hazard
-    from allo_usd.usd.read import read_triangles
+    from allo_usd.usd.stage_geometry import read_triangles
 
     src = _usd_box(tmp_path / "part.usda")
     r = CliRunner().invoke(app, ["asset", "import", str(src), "--out", str(tmp_path / "out"), "--label", "anomaly"])

@@ -114,7 +114,7 @@ def test_author_converts_a_usd_hazard_from_the_command_line(tmp_path):
 
 @pytest.mark.process
 def test_asset_import_converts_a_usd_file_from_the_command_line(tmp_path):
-    from allo_usd.usd.read import read_triangles
+    from allo_usd.usd.stage_geometry import read_triangles
 
     src = usd_hazard(tmp_path / "in")
     r = sandboxed_cli("asset", "import", src, "--out", tmp_path / "out", "--label", "anomaly")
@@ -248,7 +248,7 @@ def test_an_edited_sublayer_is_caught_on_resume(tmp_path, monkeypatch):
     from allo_usd.core.errors import PlanError
     from allo_usd.plan.io import load_plan
     from allo_usd.run.author import author_plan
-    from allo_usd.usd.read import read_triangles
+    from allo_usd.usd.stage_geometry import read_triangles
     from allo_usd.usd.safety import ENV_ROOTS
 
     monkeypatch.delenv(ENV_ROOTS, raising=False)   # the hazard's own folder only, as from the command line

@@ -12,7 +12,7 @@ from pxr import Gf, Sdf, Vt
 
 from allo_usd.core.errors import LayerError
 from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX
-from allo_usd.usd import read
+from allo_usd.usd import reader_bounds
 from allo_usd.usd.read import read_scene
 from allo_usd.usd.scene_layer import write_scene_layer
 
@@ -201,7 +201,7 @@ def test_huge_texture_is_refused(layer, tmp_path):
     huge = tmp_path / "huge.png"
     with open(huge, "wb") as f:  # sparse: takes no disk space
         f.write(_png_bytes())
-        f.truncate(read.MAX_TEXTURE_BYTES + 1)
+        f.truncate(reader_bounds.MAX_TEXTURE_BYTES + 1)
     _use_texture(layer, huge)
     refused(layer, "huge.png", "MiB")
 
@@ -254,7 +254,7 @@ def test_points_beyond_the_bound_are_refused(layer):
 
 def test_a_mesh_beyond_the_point_budget_is_refused(layer, monkeypatch):
     # A 2 GB mesh is refused by the same check: the bound is lowered here, not the mesh made huge.
-    monkeypatch.setattr(read, "MAX_MESH_POINTS", 10)
+    monkeypatch.setattr(reader_bounds, "MAX_MESH_POINTS", 10)
     refused(layer, "points", "at most 10")
 
 
@@ -274,17 +274,17 @@ def _nest(layer, under: str, depth: int) -> None:
 
 
 def test_deep_nesting_is_refused_before_the_slow_part(layer):
-    _nest(layer, "/World/Station", read.MAX_DEPTH + 10)
-    refused(layer, "nested", str(read.MAX_DEPTH))
+    _nest(layer, "/World/Station", reader_bounds.MAX_DEPTH + 10)
+    refused(layer, "nested", str(reader_bounds.MAX_DEPTH))
 
 
 def test_nesting_within_the_bound_reads(layer):
-    _nest(layer, "/World/Station", read.MAX_DEPTH - 10)
+    _nest(layer, "/World/Station", reader_bounds.MAX_DEPTH - 10)
     assert read_scene(layer).meshes
 
 
 def test_too_many_prims_is_refused(layer, monkeypatch):
-    monkeypatch.setattr(read, "MAX_PRIMS", 20)
+    monkeypatch.setattr(reader_bounds, "MAX_PRIMS", 20)
     refused(layer, "prims", "20")
 
 
@@ -297,17 +297,17 @@ def test_world_matrix_checks_each_ancestor_once(layer):
     deep = [p for p in stage.Traverse() if p.GetName().startswith("N") and p.GetPath().HasPrefix("/World/Station")]
     cache, checked = UsdGeom.XformCache(), set()
     visits = []
-    original = read._check_op_values
+    original = reader_bounds._check_op_values
 
     def counting(prim):
         visits.append(prim.GetPath())
         original(prim)
-    read._check_op_values = counting
+    reader_bounds._check_op_values = counting
     try:
         for p in deep:
-            read.world_matrix(cache, p, checked=checked)
+            reader_bounds.world_matrix(cache, p, checked=checked)
     finally:
-        read._check_op_values = original
+        reader_bounds._check_op_values = original
     assert len(visits) == len(set(visits)) == len(deep) + 2  # + /World/Station and /World
 
 
@@ -358,20 +358,20 @@ def test_reader_bounds_lie_within_blenders_hard_limits():
         lo, hi = limits(rna_type, name)
         assert lo <= bounds[0] * scale and bounds[1] * scale <= hi, (name, bounds, (lo, hi))
 
-    inside(read.LENS_MM, bpy.types.Camera, "lens")
-    assert read.LENS_MM[0] == limits(bpy.types.Camera, "lens")[0]  # Blender's own minimum: 1 mm
-    inside(read.SENSOR_MM, bpy.types.Camera, "sensor_width")
-    inside(read.SENSOR_MM, bpy.types.Camera, "sensor_height")
-    inside(read.CLIP_M, bpy.types.Camera, "clip_start")
-    inside(read.CLIP_M, bpy.types.Camera, "clip_end")
-    inside(read.SUN_ANGLE_DEG, bpy.types.SunLight, "angle", math.pi / 180)
-    inside(read.SPOT_CONE_DEG, bpy.types.SpotLight, "spot_size", 2 * math.pi / 180)  # a full cone of 2 x half angle
-    inside(read.SPOT_SOFTNESS, bpy.types.SpotLight, "spot_blend")
-    inside(read.SPOT_RADIUS_M, bpy.types.SpotLight, "shadow_soft_size")
+    inside(reader_bounds.LENS_MM, bpy.types.Camera, "lens")
+    assert reader_bounds.LENS_MM[0] == limits(bpy.types.Camera, "lens")[0]  # Blender's own minimum: 1 mm
+    inside(reader_bounds.SENSOR_MM, bpy.types.Camera, "sensor_width")
+    inside(reader_bounds.SENSOR_MM, bpy.types.Camera, "sensor_height")
+    inside(reader_bounds.CLIP_M, bpy.types.Camera, "clip_start")
+    inside(reader_bounds.CLIP_M, bpy.types.Camera, "clip_end")
+    inside(reader_bounds.SUN_ANGLE_DEG, bpy.types.SunLight, "angle", math.pi / 180)
+    inside(reader_bounds.SPOT_CONE_DEG, bpy.types.SpotLight, "spot_size", 2 * math.pi / 180)  # a full cone of 2 x half angle
+    inside(reader_bounds.SPOT_SOFTNESS, bpy.types.SpotLight, "spot_blend")
+    inside(reader_bounds.SPOT_RADIUS_M, bpy.types.SpotLight, "shadow_soft_size")
     for rna in (bpy.types.SunLight, bpy.types.SpotLight):
-        inside((0.0, read.MAX_COLOUR), rna, "color")
+        inside((0.0, reader_bounds.MAX_COLOUR), rna, "color")
         # the spot's power 4 pi^2 r^2 L, at the largest radius and radiance, is still a finite float32
-        inside((0.0, 4 * math.pi ** 2 * read.SPOT_RADIUS_M[1] ** 2 * read.MAX_LIGHT), rna, "energy")
+        inside((0.0, 4 * math.pi ** 2 * reader_bounds.SPOT_RADIUS_M[1] ** 2 * reader_bounds.MAX_LIGHT), rna, "energy")
     cycles = bpy.context.scene.cycles.bl_rna
     render = bpy.context.scene.render.bl_rna
 
@@ -379,12 +379,12 @@ def test_reader_bounds_lie_within_blenders_hard_limits():
         p = rna.properties[name]
         assert p.hard_min <= bounds[0] and bounds[1] <= p.hard_max, (name, bounds, (p.hard_min, p.hard_max))
 
-    inside_of(cycles, "seed", read.RENDER_SEED)
-    inside_of(cycles, "samples", read.RENDER_SAMPLES)
-    inside_of(cycles, "max_bounces", read.RENDER_BOUNCES)
-    inside_of(cycles, "adaptive_threshold", read.RENDER_ADAPTIVE)
-    inside_of(cycles, "film_exposure", read.RENDER_EXPOSURE)
-    inside_of(render, "threads", (1, read.RENDER_THREADS[1]))  # 0 is AUTO, not a thread count
+    inside_of(cycles, "seed", reader_bounds.RENDER_SEED)
+    inside_of(cycles, "samples", reader_bounds.RENDER_SAMPLES)
+    inside_of(cycles, "max_bounces", reader_bounds.RENDER_BOUNCES)
+    inside_of(cycles, "adaptive_threshold", reader_bounds.RENDER_ADAPTIVE)
+    inside_of(cycles, "film_exposure", reader_bounds.RENDER_EXPOSURE)
+    inside_of(render, "threads", (1, reader_bounds.RENDER_THREADS[1]))  # 0 is AUTO, not a thread count
     inside_of(render, "resolution_x", (MIN_SIDE_PX, MAX_SIDE_PX))
     inside_of(render, "resolution_y", (MIN_SIDE_PX, MAX_SIDE_PX))
     mat = bpy.data.materials.new("bounds")
@@ -392,10 +392,10 @@ def test_reader_bounds_lie_within_blenders_hard_limits():
         bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
         for socket in ("Metallic", "Roughness"):
             p = bsdf.inputs[socket].bl_rna.properties["default_value"]
-            assert (p.hard_min, p.hard_max) == read.UNIT_INTERVAL
+            assert (p.hard_min, p.hard_max) == reader_bounds.UNIT_INTERVAL
         for socket in ("Base Color", "Emission Color"):
             p = bsdf.inputs[socket].bl_rna.properties["default_value"]
-            assert p.hard_min <= 0.0 and read.MAX_COLOUR <= p.hard_max
+            assert p.hard_min <= 0.0 and reader_bounds.MAX_COLOUR <= p.hard_max
     finally:
         bpy.data.materials.remove(mat)
 

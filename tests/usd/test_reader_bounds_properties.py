@@ -1,7 +1,7 @@
 """Property tests of the reader's bounds (issue 13): a valid scene layer with random opinions over
 its camera, lights, materials, render settings, sensor and transforms (finite, NaN, inf, huge, tiny,
 negative numbers, and values of the wrong type) either reads into a description whose every value
-lies inside the documented bounds (allo_usd.usd.read, docs/reliability/reliability.md, section 2), or is refused
+lies inside the documented bounds (allo_usd.usd.reader_bounds, docs/reliability/reliability.md, section 2), or is refused
 with a LayerError. Never another exception, never a value Blender would clamp."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pxr import Gf, Sdf
 
 from allo_usd.core.errors import LayerError
 from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX
-from allo_usd.usd import read as R
+from allo_usd.usd import reader_bounds as R
 from allo_usd.usd.description import SceneDescription
 from allo_usd.usd.read import read_scene
 from allo_usd.usd.scene_layer import write_scene_layer

@@ -1,4 +1,4 @@
-"""The direct .usda writer (scene_layer.fast_layer_text) gives Sdf's ExportToString byte for byte
+"""The direct .usda writer (usda_writer.fast_layer_text) gives Sdf's ExportToString byte for byte
 (issue 26): numbers (doubles, floats rounded to float32, ints, bools) over random bit patterns and
 edge values, the vector and quaternion types, token arrays, strings, relationships, prim metadata,
 customLayerData and documentation, random prim trees, and every layer authoring writes for the
@@ -13,8 +13,8 @@ import random
 import numpy as np
 import pytest
 
-from allo_usd.usd import scene_layer
-from allo_usd.usd.scene_layer import Prim, fast_layer_text, layer_text, sdf_layer_text
+from allo_usd.usd import usda_writer
+from allo_usd.usd.usda_writer import Prim, fast_layer_text, layer_text, sdf_layer_text
 
 pxr = pytest.importorskip("pxr")
 from pxr import Gf, Sdf, Vt  # noqa: E402
@@ -49,7 +49,7 @@ def _sdf_array(type_name, values) -> list[str]:
 def test_doubles_are_written_as_sdf_writes_them():
     values = _random_doubles(30000)
     want = _sdf_array(Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray(values))
-    got = [scene_layer._double(v) for v in values]
+    got = [usda_writer._double(v) for v in values]
     bad = [(v, g, w) for v, g, w in zip(values, got, want) if g != w]
     assert not bad, bad[:10]
 
@@ -58,7 +58,7 @@ def test_floats_are_written_as_sdf_writes_them():
     values = [v for v in _random_doubles(30000) if abs(v) < 3.4e38]
     values += [float(np.float32(v)) for v in values[:5000]] + [1.4e-45, -1.4e-45, 3.3999e38, 1e-46]
     want = _sdf_array(Sdf.ValueTypeNames.FloatArray, Vt.FloatArray(values))
-    got = [scene_layer._float(v) for v in values]
+    got = [usda_writer._float(v) for v in values]
     bad = [(v, g, w) for v, g, w in zip(values, got, want) if g != w]
     assert not bad, bad[:10]
 
@@ -175,13 +175,13 @@ def test_every_layer_authoring_writes_is_written_directly(tmp_path, monkeypatch)
     from allo_usd.run.author import author
 
     calls = []
-    real = scene_layer.layer_text
+    real = usda_writer.layer_text
 
     def recording(prims, sublayers, custom, doc):
         calls.append((prims, sublayers, custom, doc))
         return real(prims, sublayers, custom, doc)
 
-    monkeypatch.setattr(scene_layer, "layer_text", recording)
+    monkeypatch.setattr(usda_writer, "layer_text", recording)
     author(demo_plan(), tmp_path / "tree", limit=9, progress=False, workers=1)
     assert len(calls) >= 9
     kinds = {doc.split()[1] for *_, doc in calls}
