@@ -294,7 +294,7 @@ def _record_one(args) -> dict:
     """The render JSON (what job.render_layer writes, with this folder's synthesised pixels and one
     real layer's annotations for its kind) and the manifest row of one layer; the checksums of
     hard-linked outputs are their source's."""
-    from allo_usd import __version__
+    from allo_usd.core.version import __version__
     from allo_usd.core.files import relpath
     from allo_usd.core.provenance import library_versions
     from allo_usd.output.writers import write_json

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd import __version__
+from allo_usd.core.version import __version__
 from allo_usd.core.interrupts import import_held
 from allo_usd.core.provenance import library_versions
 from allo_usd.output.annotations import image_annotations

@@ -37,7 +37,7 @@ import shutil
 import stat
 from pathlib import Path
 
-from allo_usd import __version__
+from allo_usd.core.version import __version__
 from allo_usd.core.errors import DiskFullError, LayerError
 from allo_usd.core.files import DISK_FULL_ERRNOS, atomic_path, relpath, sha256_file, temp_name_re
 from allo_usd.usd.read import layer_outputs

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
-from allo_usd import __version__
+from allo_usd.core.version import __version__
 from allo_usd.usd import schema
 from allo_usd.sky import eclipse as sky_eclipse
 from allo_usd.core.sensor import SensorParams
