@@ -14,7 +14,7 @@ import pytest
 from allo_usd.core import provenance
 from allo_usd.core.paths import BASE_STAGE, ROOT
 from allo_usd.core.provenance import LIBRARIES, TREE_VERSIONS, library_versions, record_tree_versions
-from allo_usd.run.manifest import render_identity, render_versions
+from allo_usd.output.identity import render_identity, render_versions
 
 
 def one_scene_plan():
