@@ -66,15 +66,19 @@ class RenderRecord:
         return cls(**values)
 
     @classmethod
-    def load(cls, path: Path, roots=None) -> "RenderRecord | None":
-        """The record at `path` through the read gate (core.files.read_user_json: a FIFO or /dev/zero
-        named NAME.json is never opened, a huge or deeply nested one never parsed: InputRefused),
-        or None when the JSON is no render record: not an object, or without the "scene" and "files"
-        keys (a plan or a report beside the renders). `roots`: folders the file must lie in."""
-        meta = read_user_json(path, MAX_RECORD_BYTES, "render record", roots=roots)
-        if not isinstance(meta, dict) or "scene" not in meta or "files" not in meta:
+    def from_json(cls, value) -> "RenderRecord | None":
+        """The record a parsed JSON file holds, or None when it is no render record: not an object,
+        or without the "scene" and "files" keys (a plan or a report beside the renders)."""
+        if not isinstance(value, dict) or "scene" not in value or "files" not in value:
             return None
-        return cls.of(meta)
+        return cls.of(value)
+
+    @classmethod
+    def load(cls, path: Path, roots=None) -> "RenderRecord | None":
+        """from_json of the file at `path` read through the read gate (core.files.read_user_json: a
+        FIFO or /dev/zero named NAME.json is never opened, a huge or deeply nested one never parsed:
+        InputRefused). `roots`: folders the file must lie in."""
+        return cls.from_json(read_user_json(path, MAX_RECORD_BYTES, "render record", roots=roots))
 
     @classmethod
     def given(cls, meta: "RenderRecord | dict") -> "RenderRecord":

@@ -82,10 +82,6 @@ def demo_spec(inputs: SceneInputs, index: int, resolution=(480, 270), samples: i
     raise PlacementError(f"demo scene {scene_id}: no valid anomaly placement in 12 days")
 
 
-def demo_specs(inputs: SceneInputs, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> list:
-    return [demo_spec(inputs, i, resolution, samples, seed) for i in range(len(DEMO_SCENES))]
-
-
 def write_demo_layer(spec: SceneSpec, tree: Path, base_stage: Path, seed: int = DEMO_SEED) -> Path:
     """Author one demo scene by composition into `tree`: its day's sky layer, its camera-sample
     layer (each written once) and the scene layer `tree/SCENE_ID.usda` over them."""
