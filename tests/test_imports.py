@@ -128,7 +128,8 @@ def test_the_root_check_sees_a_planted_root_import():
     at = PACKAGE / "run" / "job.py"
     for code in ("from allo_usd import __version__\n", "import allo_usd\n", "from .. import x\n"):
         assert root_imports(at, code) == [1], code
-    assert root_imports(at, "from allo_usd.core.version import __version__\nfrom . import job\nimport allo_usd.core\n") == []
+    submodules = "from allo_usd.core.version import __version__\nfrom . import job\nimport allo_usd.core\n"
+    assert root_imports(at, submodules) == []
 
 
 def _allowed(mod: str, prefixes: tuple[str, ...]) -> bool:

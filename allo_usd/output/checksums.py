@@ -13,7 +13,6 @@ from pathlib import Path
 
 from allo_usd.core.files import sha256_file
 
-
 _SHA256: dict[tuple, str] = {}
 _SHA256_BOUND = 1 << 20  # entries (~200 B each); a paper plan's resume needs ~100,000
 

@@ -78,7 +78,6 @@ def resume_check(layer: Path, out_dir: Path, row: dict | None, verify: bool = Fa
     return True, index_row(layer, out_dir, meta)
 
 
-
 def manifest_row(layer: Path, out_dir: Path, meta: RenderRecord) -> dict:
     """The manifest row of a scene whose render record is `meta`: what is_verified checks (identity,
     each output's checksum and the stat it was taken at, the JSON's included) and what a reader of
@@ -221,7 +220,6 @@ def check_row(row: dict | None, layer: Path, out_dir: Path, verify: bool = False
     if now == recorded and carried is not None:
         return row
     return {**row, "stat": now, **(record_fields(meta) if carried is None else {})}
-
 
 
 # ---------------------------------------------------------------- manifest.jsonl

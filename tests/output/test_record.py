@@ -1,6 +1,6 @@
-"""The render record NAME.json has one definition (allo_usd.output.record.RenderRecord): what a render
-writes is byte for byte what the dict the render job built before wrote, what a reader loads gives
-back those bytes, and docs/render_record.md lists exactly its fields."""
+"""The render record NAME.json has one definition (allo_usd.output.record.RenderRecord): a record
+writes byte for byte what its dict literal form writes (so finished renders stay done), a real
+render's JSON loads to its own bytes, and docs/render_record.md lists exactly its fields."""
 
 from __future__ import annotations
 
@@ -28,8 +28,8 @@ def _values(amodal: bool, instance: bool) -> dict:
             "objects": ("/World/Station", "/World/Bodies/Sun"), "seconds": 12.34567, "amodal_seconds": 0.98765}
 
 
-def _old_dict(v: dict, amodal: bool, instance: bool) -> dict:
-    """The record as the render job wrote it as a dict literal (key order, optional keys)."""
+def _dict_form(v: dict, amodal: bool, instance: bool) -> dict:
+    """The record as a dict literal, keys in the render job's order, the optional ones only with their passes."""
     counts = v["counts"]
     return {
         "layer": "/r/layers/s.usda", "layer_relative": "../layers/s.usda", "layer_sha256": "c" * 64,
@@ -68,16 +68,16 @@ def _record(v: dict, amodal: bool, instance: bool) -> RenderRecord:
 
 @pytest.mark.parametrize("amodal", [False, True])
 @pytest.mark.parametrize("instance", [False, True])
-def test_a_record_writes_the_bytes_of_the_old_dict(tmp_path, amodal, instance):
+def test_a_record_writes_the_bytes_of_its_dict_form(tmp_path, amodal, instance):
     v = _values(amodal, instance)
-    old, rec = _old_dict(v, amodal, instance), _record(v, amodal, instance)
-    assert rec.as_dict() == old and list(rec.as_dict()) == list(old)
-    write_json(tmp_path / "old.json", old)
+    literal, rec = _dict_form(v, amodal, instance), _record(v, amodal, instance)
+    assert rec.as_dict() == literal and list(rec.as_dict()) == list(literal)
+    write_json(tmp_path / "literal.json", literal)
     rec.write(tmp_path / "new.json")
-    assert (tmp_path / "new.json").read_bytes() == (tmp_path / "old.json").read_bytes()
-    assert rec.json_text() == (tmp_path / "old.json").read_text()
+    assert (tmp_path / "new.json").read_bytes() == (tmp_path / "literal.json").read_bytes()
+    assert rec.json_text() == (tmp_path / "literal.json").read_text()
     loaded = RenderRecord.load(tmp_path / "new.json")
-    assert loaded.json_text() == (tmp_path / "old.json").read_text()
+    assert loaded.json_text() == (tmp_path / "literal.json").read_text()
 
 
 def test_a_rendered_json_loads_to_its_own_bytes(rendered):
