@@ -34,7 +34,7 @@ import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-__version__ = "0.1.0"
+from allo_usd.core.version import __version__  # noqa: E402
 
 # public name -> (module, attribute)
 _API = {

@@ -257,7 +257,7 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
     (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is a DiskFullError."""
     from allo_usd.core.files import RunLock
     from allo_usd.run.dispatch import LOCK
-    from allo_usd.run.job import render_layer
+    from allo_usd.run.job import render_record
     from allo_usd.run.worker import disk_full_error, output_to
     from allo_usd.usd.sniff import refusal
 
@@ -267,15 +267,15 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
     with RunLock(out, LOCK, "render"):
         try:
             with output_to(out / "logs" / "render.log"):  # Blender's own prints
-                meta = render_layer(layer, out, force=force, threads=threads or None, save_blend=save_blend,
-                                    device=device, passes=passes)
+                meta = render_record(layer, out, force=force, threads=threads or None, save_blend=save_blend,
+                                     device=device, passes=passes)
         except (OSError, RuntimeError) as exc:
             full = disk_full_error(exc, out)
             if full is None:
                 raise
             raise full from None
     _show_device_notes()
-    typer.echo(f"{layer} -> {out}: {meta['render_seconds']:.2f} s, classes {meta['class_pixels']}")
+    typer.echo(f"{layer} -> {out}: {meta.render_seconds:.2f} s, classes {meta.class_pixels}")
     if save_blend is not None:
         typer.echo(f"Blender scene saved as {save_blend}")
 
@@ -552,10 +552,10 @@ _PXR_COMMANDS = {"render", "inspect", "diff", "demo", "author", "asset", "pack"}
 
 def version_line() -> str:
     """`allo-usd X (bpy Y, usd-core Z)`: the installed distributions' versions, from package metadata
-    (allo_usd.run.manifest.render_versions: bpy is not imported)."""
+    (allo_usd.output.identity.render_versions: bpy is not imported)."""
     from importlib.metadata import PackageNotFoundError, version
 
-    from allo_usd.run.manifest import render_versions
+    from allo_usd.output.identity import render_versions
 
     versions = render_versions()
     try:

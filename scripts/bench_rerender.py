@@ -149,7 +149,7 @@ def read_png(path: Path) -> np.ndarray:
 
 
 def compare(a_dir: Path, b_dir: Path, stem: str) -> dict:
-    """The measures of one scene between two runs (files named as allo_usd.run.manifest.output_paths)."""
+    """The measures of one scene between two runs (files named as allo_usd.output.render_outputs.output_paths)."""
     files = {"png": f"{stem}.png", "exr": f"{stem}.exr", "mask": f"{stem}_mask.png"}
     row: dict = {}
     for key, name in files.items():

@@ -14,7 +14,7 @@ The finished render folder has real-size outputs: one synthesised image (PNG), l
 normal and an anomalous mask at the plan's resolution, hard-linked into every scene (the sample's
 are copies, so that `--verify` reads distinct data), and for each scene a render JSON that is the
 real record of its own layer (read_scene, the dependency walk's inputs and identity, annotations of
-its mask) and a manifest row made with allo_usd.run.manifest.manifest_row. The authored tree is
+its mask) and a manifest row made with allo_usd.run.render_index.manifest_row. The authored tree is
 kept in `--cache` and reused; the render folder in `--work` is rebuilt only when the tree changes.
 
 The page cache is dropped with /proc/sys/vm/drop_caches where the process may write it, else every
@@ -292,21 +292,25 @@ def _record_one(args) -> dict:
     """The render JSON (what job.render_layer writes, with this folder's synthesised pixels and one
     real layer's annotations for its kind) and the manifest row of one layer; the checksums of
     hard-linked outputs are their source's."""
-    from allo_usd import __version__
+    from allo_usd.core.version import __version__
     from allo_usd.core.files import relpath
     from allo_usd.core.provenance import library_versions
     from allo_usd.output.writers import write_json
-    from allo_usd.run import manifest as m
+    from allo_usd.output.checksums import file_sha256, remember_digest
+    from allo_usd.output.identity import input_hashes, outputs_sha256, render_identity, render_versions
+    from allo_usd.output.record import RenderRecord
+    from allo_usd.output.render_outputs import output_paths
+    from allo_usd.run.render_index import manifest_row
 
     layer, out, src, digests, copy, cpu, templates, group = args
     layer, out = Path(layer), Path(out)
     src = {k: f"{v}.{group}" if group else v for k, v in src.items()}   # this scene's copy of the sources
     files, sdf = _inputs(layer, check=copy)
-    inputs = m.input_hashes(layer, files)
+    inputs = input_hashes(layer, files)
     scene = _scene_meta(sdf, layer.parent)
     kind = "anomaly" if scene.get("variant") == "anomaly" else "normal"
     template = templates[kind]
-    paths = m.output_paths(layer, out, tuple(template["passes"]))
+    paths = output_paths(layer, out, tuple(template["passes"]))
     pick = {"rgb": "png", "exr": "exr", "mask": f"mask_{kind}"}
     for key, path in paths.items():
         if key == "meta":
@@ -318,19 +322,19 @@ def _record_one(args) -> dict:
             shutil.copyfile(src[pick[key]], path)
         else:
             os.link(src[pick[key]], path)
-            m.remember_digest(path, os.stat(path), digests[pick[key]])  # the same inode: the source's bytes, checksummed once
+            remember_digest(path, os.stat(path), digests[pick[key]])  # the same inode: the source's bytes, checksummed once
     meta = {
         **template,
-        "layer": str(layer.resolve()), "layer_relative": relpath(layer, out), "layer_sha256": m.file_sha256(layer),
-        "identity": m.render_identity(inputs), "inputs": inputs, "versions": m.render_versions(),
+        "layer": str(layer.resolve()), "layer_relative": relpath(layer, out), "layer_sha256": file_sha256(layer),
+        "identity": render_identity(inputs), "inputs": inputs, "versions": render_versions(),
         "libraries": library_versions(), "package_version": __version__,
         "device": {"asked": "cpu", "used": "cpu", "backend": None, "gpus": [], "cpu_model": cpu},
-        "scene": scene, "files": {k: p.name for k, p in paths.items()}, "outputs_sha256": m.outputs_sha256(paths),
+        "scene": scene, "files": {k: p.name for k, p in paths.items()}, "outputs_sha256": outputs_sha256(paths),
         "synthetic": "bench_scale.py: pixels synthesised, annotations one real layer's of its kind, the rest this "
                      "layer's own record",
     }
     write_json(paths["meta"], meta)
-    return {**m.manifest_row(layer, out, meta), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    return {**manifest_row(layer, out, RenderRecord.of(meta)), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
 
 
 def _templates(layers: list[Path], src: dict[str, Path]) -> dict[str, dict]:
@@ -373,7 +377,7 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
 
     from allo_usd.core.files import sha256_file
     from allo_usd.run.dispatch import find_layers
-    from allo_usd.run.manifest import MANIFEST, append_rows
+    from allo_usd.run.render_index import MANIFEST, append_rows
     from allo_usd import read_scene
 
     layers = find_layers(tree)

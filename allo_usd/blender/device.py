@@ -21,7 +21,7 @@ whenever a warm session's device changes (allo_usd.blender.session).
 
 The device changes a render's noise pattern and last bits, not what the scene means, so it is
 recorded in each render's JSON (`record`), not in the layer, and not in the render identity
-(allo_usd.run.manifest): a scene rendered on the CPU counts as done on a GPU machine too
+(allo_usd.output.identity): a scene rendered on the CPU counts as done on a GPU machine too
 (re-render with --force). Determinism per device: README "GPU rendering".
 
 The JSON also records the CPU kernel Cycles renders with (`cycles_cpu`: "AVX2" or "default", by

@@ -50,9 +50,5 @@ class RenderFailedError(AlloError, RuntimeError):
     file): the dispatcher retries it like a crash instead of recording the layer as bad."""
 
 
-class RenderCrashError(AlloError, RuntimeError):
-    """A render worker died (segfault, out of memory, killed) more times than the retry budget."""
-
-
 class PlanError(AlloError, ValueError):
     """A dataset plan is invalid, unreadable or cannot be authored; the message names the field and the fix."""

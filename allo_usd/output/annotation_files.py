@@ -43,6 +43,7 @@ from allo_usd.output.contact import read_pixels
 from allo_usd.output.dataset_files import COLUMNS, Refused, place, source_file
 from allo_usd.output.writers import write_png
 from allo_usd.output.pass_files import PASS_COLUMNS
+from allo_usd.output.record import RenderRecord
 
 RECORDS = "annotations/records.json"
 INSTANCES = "instances.json"
@@ -83,23 +84,23 @@ def read_depth_exr(path: Path) -> np.ndarray:
         return np.asarray(channels[name].pixels, dtype=np.float32)
 
 
-def _render_json(out: Path, row: dict) -> tuple[dict, Path | None]:
-    """(the row's render JSON, its path), ({}, None) when it is gone or unreadable."""
+def _render_json(out: Path, row: dict) -> tuple[RenderRecord, Path | None]:
+    """(the row's render record, its path), (an empty record, None) when it is gone or unreadable."""
 
     if not row.get("source"):
-        return {}, None
+        return RenderRecord(), None
     path = Path(out) / row["source"]
     try:
         meta = read_user_json(path, MAX_RECORD_BYTES, "render record")
     except Exception:  # noqa: BLE001 - a missing or hostile record only costs its pose
-        return {}, None
-    return (meta, path) if isinstance(meta, dict) else ({}, None)
+        return RenderRecord(), None
+    return (RenderRecord.of(meta), path) if isinstance(meta, dict) else (RenderRecord(), None)
 
 
-def _amodal_mask(meta: dict, meta_path: Path | None, shape) -> np.ndarray | None:
+def _amodal_mask(meta: RenderRecord, meta_path: Path | None, shape) -> np.ndarray | None:
     """The render's STEM_amodal.png as a boolean mask (labels.ANOMALY pixels), None if not rendered."""
 
-    files = meta.get("files") if isinstance(meta.get("files"), dict) else {}
+    files = meta.files if isinstance(meta.files, dict) else {}
     if meta_path is None or "amodal" not in files:
         return None
     try:
@@ -122,12 +123,13 @@ def _link(src: Path, dst: Path) -> None:
     place(src, dst, link=True)
 
 
-def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: dict | None = None,
+def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: RenderRecord | dict | None = None,
                    visible=None) -> dict:
     """One image's record: COCO instance, BOP entries and the per-image BOP files (written here).
     `mask`: the row's 3-class mask when the caller has it decoded; `visible`: its anomaly pixels
     (dataset_files.AnomalyPixels) when the caller has them (the dataset, placing an anomaly);
-    `meta`: the row's render JSON when the caller has it read (else it is read here)."""
+    `meta`: the row's render record (or its JSON object) when the caller has it read (else it is
+    read here)."""
 
     from PIL import Image
 
@@ -145,8 +147,8 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: d
     if meta is None:
         meta, meta_path = _render_json(out, row)
     else:
-        meta_path = out / row["source"] if row.get("source") else None
-    annotations = meta.get("annotations") if isinstance(meta.get("annotations"), dict) else {}
+        meta, meta_path = RenderRecord.given(meta), out / row["source"] if row.get("source") else None
+    annotations = meta.annotations if isinstance(meta.annotations, dict) else {}
     anomaly = annotations.get("anomaly") if isinstance(annotations.get("anomaly"), dict) else {}
     folder = f"bop/{row['category']}/{row['split']}/{bop.chunk_of(index)}"
     rgb = f"{folder}/rgb/{index:06d}.png"
@@ -169,8 +171,7 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: d
         visible = visible.full() if visible is not None and mask is None else mask == ANOMALY
         rec["coco"] = coco.instance(visible)
         amodal = _amodal_mask(meta, meta_path, shape)
-        model = bop.model(anomaly, (meta.get("scene") or {}).get("anomaly") if isinstance(meta.get("scene"), dict)
-                          else None)
+        model = bop.model(anomaly, (meta.scene or {}).get("anomaly") if isinstance(meta.scene, dict) else None)
         model["path"] = _model_path(model["path"], row, out)
         rec["bop"] |= {"pose": bop.pose(anomaly), "model": model,
                        "info": bop.gt_info(visible, amodal, anomaly, depth_units)}
@@ -183,7 +184,7 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: d
         if amodal is not None:
             files.append(f"{folder}/mask/{index:06d}_000000.png")
             write_png(out / files[-1], amodal.astype(np.uint8) * np.uint8(255))
-    table = meta.get("instances")
+    table = meta.instances
     if row.get("instance") and isinstance(table, dict):
         rec["instances"] = {"instance": row["instance"], "objects": {str(k): str(v) for k, v in table.items()}}
     rec["files"] = files

@@ -59,6 +59,7 @@ import math
 import numpy as np
 
 from allo_usd.core.labels import ANOMALY
+from allo_usd.output.record import RenderRecord
 from allo_usd.sky.model import BODIES
 from allo_usd.usd.layout import body_path
 
@@ -315,9 +316,11 @@ def _dict(value) -> dict:
     return value if isinstance(value, dict) else {}
 
 
-def annotation_columns(meta: dict) -> dict:
-    """The CAMERA_COLUMNS and ANNOTATION_COLUMNS of a render record; "" where it records nothing."""
-    cam = _dict(_get(meta, "annotations", "camera"))
+def annotation_columns(meta: RenderRecord | dict) -> dict:
+    """The CAMERA_COLUMNS and ANNOTATION_COLUMNS of a render record (or its JSON object); "" where it
+    records nothing."""
+    meta = RenderRecord.given(meta)
+    cam = _dict(_get(meta.annotations, "camera"))
     k = cam.get("K_px")
     k_ok = _matrix(k, 3) != ""
     row = {"width": _num(cam.get("width"), True), "height": _num(cam.get("height"), True),
@@ -327,7 +330,7 @@ def annotation_columns(meta: dict) -> dict:
            "clip_near": _num(cam.get("clip_near_m")), "clip_far": _num(cam.get("clip_far_m")),
            "K_px": _matrix(k, 3), "cam_to_world_usd": _matrix(cam.get("cam_to_world_usd"), 4),
            "world_to_cam_opencv": _matrix(cam.get("world_to_cam_opencv"), 4)}
-    anomaly = _dict(_get(meta, "annotations", "anomaly"))
+    anomaly = _dict(_get(meta.annotations, "anomaly"))
     bbox = anomaly.get("bbox_xyxy_px")
     bbox = bbox if isinstance(bbox, list) and len(bbox) == 4 else [None] * 4
     centre = anomaly.get("center_cam_opencv_m")
@@ -336,9 +339,9 @@ def annotation_columns(meta: dict) -> dict:
     row |= {"anomaly_pixels": _num(anomaly.get("pixels"), True),
             "anomaly_cam_x": _num(centre[0]), "anomaly_cam_y": _num(centre[1]), "anomaly_cam_z": _num(centre[2]),
             "anomaly_distance_m": _num(anomaly.get("distance_m")),
-            "station_fraction": _num(meta.get("station_fraction"))}
+            "station_fraction": _num(meta.station_fraction)}
     for body in BODIES:
-        row[f"{body}_pixels"] = _num(_get(meta, "bodies", body, "pixels"), True)
-        seen = _get(meta, "annotations", "in_view", body)
+        row[f"{body}_pixels"] = _num(_get(meta.bodies, body, "pixels"), True)
+        seen = _get(meta.annotations, "in_view", body)
         row[f"{body}_in_view"] = seen if isinstance(seen, bool) else ""
     return row

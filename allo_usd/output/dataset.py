@@ -48,7 +48,7 @@ Why these choices:
   anomalib's recursive glob would otherwise load as an image) and indexed images that no row
   lists. Ctrl-C stops after the scene in hand (a second Ctrl-C stops at once, still safely)
   and raises AssemblyInterrupted; manifest.parquet is rewritten when a run ends.
-- Re-runs cost what changed (issue 26): a record that passed check_render is trusted while it and
+- Re-runs cost what changed: a record that passed check_render is trusted while it and
   the image and mask it names keep the stat (size, mtime_ns, inode) recorded then, in
   annotations/records.json's state (make's and the render manifest's quick check: a re-render
   replaces the files, an edit changes size or mtime), so its mask is not decoded again; a split's
@@ -87,6 +87,7 @@ from allo_usd.output.annotation_files import compute_record, load_cache, write_a
 from allo_usd.output.dataset_files import (COLUMNS, FOLDERS, AnomalyPixels, Refused, inside, place, real_folder, real_path,
                                           source_entry, source_file)
 from allo_usd.output.pass_files import PASS_COLUMNS, pass_columns, passes_missing, place_passes
+from allo_usd.output.record import RenderRecord
 from allo_usd.output.writers import write_png
 
 LAYOUTS = ("mvtec",)
@@ -115,23 +116,22 @@ class RefusedRenders(UserWarning):
     """Render records refused as untrustworthy (left out of the dataset; `allo-usd dataset` exits 1)."""
 
 
-class Brief(dict):
+class Brief(RenderRecord):
     """What planning reads of a render record whose JSON kept the stat at which it passed
-    check_render (issue 26: a re-run does not parse 51,409 JSONs to find 1,000 new ones): its
-    scene's split, variant and anomaly, its files, the class pixel counts _kind and the dark warning
-    read, its layer_sha256, and whether it has an annotations table. Kept in records.json's state
-    beside the stat; a record that is placed again is read whole (_whole)."""
+    check_render (a re-run does not parse 51,409 JSONs to find 1,000 new ones): its scene's split,
+    variant and anomaly, its files, the class pixel counts _kind and the dark warning read, its
+    layer_sha256, and whether it has an annotations table. A RenderRecord with only those fields,
+    kept in records.json's state (as_dict) beside the stat and read back with Brief.of; a record
+    that is placed again is read whole (_whole)."""
 
     @classmethod
-    def of(cls, meta: dict) -> "Brief":
-        scene, pixels = meta.get("scene"), meta.get("class_pixels")
+    def of_record(cls, meta: RenderRecord) -> "Brief":
+        scene, pixels = meta.scene, meta.class_pixels
         scene, pixels = (scene if isinstance(scene, dict) else {}), (pixels if isinstance(pixels, dict) else {})
-        brief = cls({k: meta[k] for k in ("files", "layer_sha256") if k in meta})
-        brief["scene"] = {k: scene[k] for k in ("split", "variant", "anomaly") if k in scene}
-        brief["class_pixels"] = {k: pixels[k] for k in ("station_and_bodies", "anomaly") if k in pixels}
-        if isinstance(meta.get("annotations"), dict):
-            brief["annotations"] = {}
-        return brief
+        return cls(files=meta.files, layer_sha256=meta.layer_sha256,
+                   scene={k: scene[k] for k in ("split", "variant", "anomaly") if k in scene},
+                   class_pixels={k: pixels[k] for k in ("station_and_bodies", "anomaly") if k in pixels},
+                   annotations={} if isinstance(meta.annotations, dict) else None)
 
 
 def _json_stat(path: Path) -> list[int] | None:
@@ -144,9 +144,9 @@ def _json_stat(path: Path) -> list[int] | None:
     return [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev] if stat.S_ISREG(st.st_mode) else None
 
 
-def _read_record(meta_path: Path, root: Path, refused: list | None) -> dict | None:
+def _read_record(meta_path: Path, root: Path, refused: list | None) -> RenderRecord | None:
     """A render record through the read gate (core.files.read_user_json), None when it is not one
-    (refusals appended to `refused` as "PATH: why"; scan's rules)."""
+    (RenderRecord.from_json; refusals appended to `refused` as "PATH: why"; scan's rules)."""
     try:
         meta = read_user_json(meta_path, MAX_RECORD_BYTES, "render record", roots=(root,))
     except InputRefused as exc:
@@ -155,13 +155,11 @@ def _read_record(meta_path: Path, root: Path, refused: list | None) -> dict | No
         if refused is not None:
             refused.append(f"{meta_path}: {exc.reason}")
         return None
-    if not isinstance(meta, dict) or "scene" not in meta or "files" not in meta:
-        return None  # not a render record (e.g. a plan or report beside the renders)
-    return meta
+    return RenderRecord.from_json(meta)  # None: not a render record (e.g. a plan or report beside the renders)
 
 
 def scan(render_dirs, progress: bool = False, refused: list | None = None, known: dict | None = None,
-         stats: dict | None = None) -> list[tuple[Path, dict]]:
+         stats: dict | None = None) -> list[tuple[Path, RenderRecord]]:
     """(json path, metadata) of every finished scene in the render directories, by name. Each
     NAME.json is read through the read gate (core.files.read_user_json): a FIFO, a device such as
     /dev/zero, a directory, a link out of its render folder, a file over MAX_RECORD_BYTES or JSON
@@ -173,7 +171,7 @@ def scan(render_dirs, progress: bool = False, refused: list | None = None, known
     from tqdm import tqdm
 
     known = known or {}
-    found: dict[str, tuple[Path, dict]] = {}
+    found: dict[str, tuple[Path, RenderRecord]] = {}
     for d in map(Path, render_dirs):
         if not d.is_dir():
             raise AlloError(f"render directory {d} does not exist; pass directories that `allo-usd render` wrote")
@@ -191,7 +189,7 @@ def scan(render_dirs, progress: bool = False, refused: list | None = None, known
             if stats is not None:
                 stats[str(meta_path)] = st
             name = meta_path.stem
-            if name in found and found[name][1].get("layer_sha256") != meta.get("layer_sha256"):
+            if name in found and found[name][1].layer_sha256 != meta.layer_sha256:
                 raise AlloError(f"two different scenes are named {name!r}: {found[name][0]} and {meta_path}; "
                                 "rename one layer (names must be unique within a dataset)")
             found[name] = (meta_path, meta)
@@ -308,22 +306,17 @@ def image_size(path: Path) -> tuple[int, int]:
         raise Refused(f"{path.name} is not a readable image ({exc})") from None
 
 
-def check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int]]:
-    """(kind, (width, height)) of a render record with an image, or Refused saying why it cannot
-    be filed. The record is not trusted: its split and variant come from fixed sets (SPLITS,
-    VARIANTS), names are plain tokens, every file it names is a regular file of its own render
-    directory, its images agree in size with each other and with its resolution, its class pixels
-    add up to the image, and the kind agrees with the mask (an anomalous scene's mask, read here,
-    must show the anomaly; a normal scene's pixel counts must show none). `_kind` then leaves out
-    anomalous training scenes and invisible anomalies, as before."""
-    kind, size, _ = _check_render(meta_path, meta)
-    return kind, size
-
-
-def _check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int], AnomalyPixels | None]:
-    """check_render's answer, and the anomaly's pixels of the mask it decoded (an anomalous scene
-    with anomaly pixels), kept so that placing the scene does not decode its mask again."""
-    name, scene, files = meta_path.stem, meta.get("scene"), meta.get("files")
+def check_render(meta_path: Path, meta: RenderRecord) -> tuple[str, tuple[int, int], AnomalyPixels | None]:
+    """(kind, (width, height), the anomaly's pixels of the mask it decoded or None) of a render record
+    with an image, or Refused saying why it cannot be filed. The record is not trusted: its split and
+    variant come from fixed sets (SPLITS, VARIANTS), names are plain tokens, every file it names is a
+    regular file of its own render directory, its images agree in size with each other and with its
+    resolution, its class pixels add up to the image, and the kind agrees with the mask (an anomalous
+    scene's mask, read here, must show the anomaly; a normal scene's pixel counts must show none).
+    `_kind` then leaves out anomalous training scenes and invisible anomalies. The anomaly's pixels
+    (an anomalous scene with anomaly pixels) are kept so that placing the scene does not decode its
+    mask again."""
+    name, scene, files = meta_path.stem, meta.scene, meta.files
     if not NAME.match(name):
         raise Refused(f"scene name {name!r} is not a plain name ([A-Za-z0-9_.-])")
     if not isinstance(scene, dict) or not isinstance(files, dict):
@@ -337,10 +330,10 @@ def _check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int], An
     size = image_size(rgb)
     if image_size(mask) != size:
         raise Refused(f"its mask is {'x'.join(map(str, image_size(mask)))}, its image {'x'.join(map(str, size))}")
-    resolution = meta.get("resolution")
+    resolution = meta.resolution
     if resolution is not None and list(resolution) != list(size):
         raise Refused(f"its JSON says {resolution}, its image is {'x'.join(map(str, size))}")
-    pixels = meta.get("class_pixels")
+    pixels = meta.class_pixels
     if not isinstance(pixels, dict):
         raise Refused("its JSON has no class_pixels")
     counts = {k: _count(pixels.get(k, 0)) for k in ("background", "station_and_bodies", "anomaly")}
@@ -358,10 +351,10 @@ def _check_render(meta_path: Path, meta: dict) -> tuple[str, tuple[int, int], An
     return VARIANTS[scene["variant"]], size, None
 
 
-def _kind(scene: dict, meta: dict, kind: str) -> str | None:
+def _kind(scene: dict, meta: RenderRecord, kind: str) -> str | None:
     """`kind`, or None for a scene the dataset leaves out: anomalous in the train split, or an
     anomaly with no visible pixel (a wrong label either way)."""
-    if kind == "anomaly" and (scene["split"] != "test" or meta["class_pixels"].get("anomaly", 0) == 0):
+    if kind == "anomaly" and (scene["split"] != "test" or meta.class_pixels.get("anomaly", 0) == 0):
         return None
     return kind
 
@@ -393,14 +386,15 @@ def file_columns(category: str, index: int, name: str, split: str, kind: str, wh
             "kind": kind}
 
 
-def scene_columns(name: str, meta: dict) -> dict:
+def scene_columns(name: str, meta: RenderRecord) -> dict:
     """What the scene is: its pose, day and anomaly (from the render's JSON)."""
-    scene = meta["scene"]
+    scene = meta.scene
     anomaly = scene.get("anomaly") or {}
     return {"scene_id": scene.get("sceneId", name), "pose": scene.get("pose"), "day": scene.get("day"),
             "epoch": scene.get("epoch"), "anomaly_asset": anomaly.get("asset", ""),
             "anomaly_variant": anomaly.get("assetVariant", ""), "depth_index": anomaly.get("depthIndex", ""),
-            "depth_offset": anomaly.get("depthOffset", ""), "anomaly_fraction": meta.get("anomaly_fraction", 0.0)}
+            "depth_offset": anomaly.get("depthOffset", ""),
+            "anomaly_fraction": 0.0 if meta.anomaly_fraction is None else meta.anomaly_fraction}
 
 
 def from_root(path, out: Path) -> str:
@@ -419,24 +413,29 @@ def from_root(path, out: Path) -> str:
     return tail if memo[key] == "." else f"{memo[key]}/{tail}"
 
 
-def provenance_columns(meta_path: Path, meta: dict, out: Path) -> dict:
+def provenance_columns(meta_path: Path, meta: RenderRecord, out: Path) -> dict:
     """Where the image came from: seeds, the scene layer, the render record, the image's hash
     (layer and source relative to the dataset root)."""
-    scene = meta["scene"]
+    scene = meta.scene
     seed_path = scene.get("seedPath", "")
     return {"seed": scene.get("seed"), "plan_seed": plan_seed(seed_path), "seed_path": seed_path,
-            "layer": from_root(meta.get("layer", ""), out), "layer_sha256": meta.get("layer_sha256", ""),
-            "sha256": sha256_file(meta_path.parent / meta["files"]["rgb"]), "source": from_root(meta_path, out)}
+            "layer": from_root(meta.layer or "", out), "layer_sha256": _or_blank(meta.layer_sha256),
+            "sha256": sha256_file(meta_path.parent / meta.files["rgb"]), "source": from_root(meta_path, out)}
 
 
-def _row(category, index, name, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> dict:
+def _or_blank(value):
+    """A record's value for a manifest cell, "" when the record has none."""
+    return "" if value is None else value
+
+
+def _row(category, index, name, meta_path: Path, meta: RenderRecord, kind: str, where: str, out: Path) -> dict:
     """The manifest row of one scene (its files are placed by _place_row)."""
-    files = file_columns(category, index, name, meta["scene"]["split"], kind, where)
+    files = file_columns(category, index, name, meta.scene["split"], kind, where)
     return (files | pass_columns(files["image"], meta_path, meta)   # depth/, normal/, instance/ (output.pass_files)
             | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out))
 
 
-def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool,
+def _place_row(row: dict, meta_path: Path, meta: RenderRecord, out: Path, link: bool,
                visible: AnomalyPixels | None = None) -> AnomalyPixels | None:
     """Put one scene's files in the tree: its passes, 3-class mask, binary ground truth, then the
     image. Returns the anomaly's pixels when it has a ground truth (`visible`: check_render's, else
@@ -444,7 +443,7 @@ def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool,
     another decode."""
     src = meta_path.parent
     place_passes(row, meta_path, meta, out, link)
-    mask_src, rgb_src = (source_file(src, meta["files"][k]) for k in ("mask", "rgb"))
+    mask_src, rgb_src = (source_file(src, meta.files[k]) for k in ("mask", "rgb"))
     place(mask_src, inside(out, row["allo_mask"]), link)
     if row["mask"]:
         visible = visible if visible is not None else AnomalyPixels.of(read_pixels(mask_src))
@@ -455,23 +454,23 @@ def _place_row(row: dict, meta_path: Path, meta: dict, out: Path, link: bool,
     return visible
 
 
-def _unchanged(old: dict, meta_path: Path, meta: dict, kind: str, where: str, out: Path) -> bool:
+def _unchanged(old: dict, meta_path: Path, meta: RenderRecord, kind: str, where: str, out: Path) -> bool:
     """A row whose source, layer, kind and folder are the same and whose files are links to the
     render: skip hashing again (job.py replaces outputs by rename, so a linked file never changes
     content). A row in another folder (the other `defects` choice) is placed again."""
-    split = meta["scene"]["split"]
-    if isinstance(meta.get("annotations"), dict) and not old.get("fx"):
+    split = meta.scene["split"]
+    if isinstance(meta.annotations, dict) and not old.get("fx"):
         return False  # a row from before the camera/annotation columns: fill them in
     if passes_missing(old, meta_path, meta, out):
         return False  # a pass the row lacks (a row from before the pass columns, or a file gone)
     if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (
-            from_root(meta_path, out), meta.get("layer_sha256", ""), kind, split,
+            from_root(meta_path, out), _or_blank(meta.layer_sha256), kind, split,
             file_columns(old["category"], int(old["index"]), old["name"], split, kind, where)["image"]):
         return False
     src = meta_path.parent
     try:
-        return (os.path.samefile(out / old["image"], src / meta["files"]["rgb"])
-                and os.path.samefile(out / old["allo_mask"], src / meta["files"]["mask"])
+        return (os.path.samefile(out / old["image"], src / meta.files["rgb"])
+                and os.path.samefile(out / old["allo_mask"], src / meta.files["mask"])
                 and (not old["mask"] or (out / old["mask"]).is_file()))
     except OSError:
         return False
@@ -601,7 +600,7 @@ def _stat_of(path) -> list[int]:
     return [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev]
 
 
-def _check(meta_path: Path, meta: dict, prior, json_stat: list[int] | None = None
+def _check(meta_path: Path, meta: RenderRecord, prior, json_stat: list[int] | None = None
            ) -> tuple[str, tuple[int, int], dict | None, AnomalyPixels | None]:
     """check_render's (kind, size) of a record, the evidence to keep for the next run (the stat
     (size, mtime_ns, inode, device) of the record, its image and its mask, taken before the check,
@@ -612,7 +611,7 @@ def _check(meta_path: Path, meta: dict, prior, json_stat: list[int] | None = Non
     anomalous mask again; the file-name rules (source_file) are applied every time. `json_stat`:
     the record's stat taken before scan read it. `meta` may be a Brief only where `prior` holds
     (_plan_rows reads the whole record otherwise)."""
-    files = meta.get("files")
+    files = meta.files
     try:
         evidence = {"json": json_stat if json_stat is not None else _stat_of(meta_path),
                     **{k: source_entry(meta_path.parent, files.get(k))[1] for k in ("rgb", "mask")}}
@@ -620,12 +619,13 @@ def _check(meta_path: Path, meta: dict, prior, json_stat: list[int] | None = Non
         evidence = None   # check_render says why
     if _holds(evidence, prior):
         if "brief" not in prior and not isinstance(meta, Brief):   # kept by a run before Briefs
-            prior = {**prior, "brief": Brief.of(meta)}
+            prior = {**prior, "brief": Brief.of_record(meta).as_dict()}
         return prior["kind"], (prior["size"][0], prior["size"][1]), prior, None
     if isinstance(meta, Brief):
         raise _Stale(meta_path)
-    kind, size, visible = _check_render(meta_path, meta)
-    proof = None if evidence is None else {**evidence, "kind": kind, "size": list(size), "brief": Brief.of(meta)}
+    kind, size, visible = check_render(meta_path, meta)
+    proof = None if evidence is None else {**evidence, "kind": kind, "size": list(size),
+                                           "brief": Brief.of_record(meta).as_dict()}
     return kind, size, proof, visible
 
 
@@ -642,7 +642,7 @@ def _holds(evidence: dict | None, prior) -> bool:
         and all(isinstance(v, int) and not isinstance(v, bool) for v in size)
 
 
-def _whole(meta_path: Path, refused: list, stats: dict) -> dict | None:
+def _whole(meta_path: Path, refused: list, stats: dict) -> RenderRecord | None:
     """The whole render record in place of its Brief (its stat taken again before it is read)."""
     stats[str(meta_path)] = _json_stat(meta_path)
     return _read_record(meta_path, meta_path.parent, refused)
@@ -658,7 +658,7 @@ def _known(checked: dict, out: Path, render_dirs) -> dict:
             name = key[len(prefix):]
             if key.startswith(prefix) and "/" not in name and isinstance(proof, dict) \
                     and isinstance(proof.get("brief"), dict) and isinstance(proof.get("json"), list):
-                known[str(d / name)] = (proof["json"], Brief(proof["brief"]))
+                known[str(d / name)] = (proof["json"], Brief.of(proof["brief"]))
     return known
 
 
@@ -684,7 +684,7 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
     prefixes = {}   # render folder: its path from OUT (the state's keys: no machine's path)
     for meta_path, meta in found:
         name = meta_path.stem
-        if isinstance(meta.get("files"), dict) and "rgb" not in meta["files"]:
+        if isinstance(meta.files, dict) and "rgb" not in meta.files:
             mask_only.append(name)
             continue
         if meta_path.parent not in prefixes:
@@ -704,28 +704,28 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
             continue
         if proof is not None:
             evidence[key] = proof
-        kind = _kind(meta["scene"], meta, kind)
+        kind = _kind(meta.scene, meta, kind)
         if kind is None:
             left_out.append(name)
             continue
-        where = folder(meta["scene"], kind, defects)
+        where = folder(meta.scene, kind, defects)
         if kind == "anomaly" and where.lower() == NORMAL:
             raise AlloError(f"{meta_path}: its anomaly asset is named {where!r}, and MVTec loaders read a folder of "
                             f"that name as normal images; fix: --defects merged, or rename the asset")
         sizes.setdefault(size, []).append(name)
-        if meta["class_pixels"].get("station_and_bodies", 0) == 0:
+        if meta.class_pixels.get("station_and_bodies", 0) == 0:
             dark.append(name)
         old = rows.get((category, name))
         if old and link and _unchanged(old, meta_path, meta, kind, where, out):
             continue
         if isinstance(meta, Brief):   # to be placed: its row needs the whole record
             whole = _whole(meta_path, refused, stats)
-            if whole is None or Brief.of(whole) != meta or stats.get(str(meta_path)) != evidence[key]["json"]:
+            if whole is None or Brief.of_record(whole) != meta or stats.get(str(meta_path)) != evidence[key]["json"]:
                 refused.append(f"{meta_path}: it changed while the dataset was being assembled; run again")
                 evidence.pop(key, None)
                 continue
             meta = whole
-        if all_black(source_file(meta_path.parent, meta["files"]["rgb"]), size):
+        if all_black(source_file(meta_path.parent, meta.files["rgb"]), size):
             black.append(name)
         index = int(old["index"]) if old else next_index
         next_index += old is None

@@ -18,6 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from allo_usd.output.dataset_files import PASS_COLUMNS, Refused, inside, place, source_file
+from allo_usd.output.record import RenderRecord
 
 SUFFIXES = {"depth": ".exr", "normal": ".exr", "instance": ".png"}
 
@@ -27,10 +28,10 @@ def pass_path(image: str, name: str) -> str:
     return str(Path(name) / Path(image).with_suffix(SUFFIXES[name])).replace("\\", "/")
 
 
-def pass_sources(meta_path: Path, meta: dict) -> dict[str, Path]:
+def pass_sources(meta_path: Path, meta: RenderRecord) -> dict[str, Path]:
     """{pass: its file in the render folder} for each pass of PASS_COLUMNS the record names and
     that is a regular file of its render folder (dataset_files.source_file); others are left out."""
-    files = meta.get("files") if isinstance(meta.get("files"), dict) else {}
+    files = meta.files if isinstance(meta.files, dict) else {}
     found = {}
     for name in PASS_COLUMNS:
         if name in files:
@@ -41,20 +42,20 @@ def pass_sources(meta_path: Path, meta: dict) -> dict[str, Path]:
     return found
 
 
-def pass_columns(image: str, meta_path: Path, meta: dict) -> dict:
+def pass_columns(image: str, meta_path: Path, meta: RenderRecord) -> dict:
     """The row's PASS_COLUMNS: each rendered pass's dataset path, "" for a pass not rendered."""
     found = pass_sources(meta_path, meta)
     return {name: pass_path(image, name) if name in found else "" for name in PASS_COLUMNS}
 
 
-def place_passes(row: dict, meta_path: Path, meta: dict, out: Path, link: bool) -> None:
+def place_passes(row: dict, meta_path: Path, meta: RenderRecord, out: Path, link: bool) -> None:
     """Put the row's pass files in the tree (dataset_files.place: atomic, links when allowed)."""
     for name, src in pass_sources(meta_path, meta).items():
         if row.get(name):
             place(src, inside(out, row[name]), link)
 
 
-def passes_missing(old: dict, meta_path: Path, meta: dict, out: Path) -> bool:
+def passes_missing(old: dict, meta_path: Path, meta: RenderRecord, out: Path) -> bool:
     """Does the render have a pass that the old row does not list (a row from before these columns,
     or a scene re-rendered with more passes) or whose file left the tree? Then the row is placed again."""
     return any(not old.get(name) or not (Path(out) / old[name]).is_file() for name in pass_sources(meta_path, meta))

@@ -88,8 +88,13 @@ def write_rgb_exr(path: Path, rgb_linear: np.ndarray, attributes: dict | None = 
 
 def write_json(path: Path, obj) -> Path:
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=_jsonable) + "\n")
+        tmp.write_text(json_text(obj))
     return Path(path)
+
+
+def json_text(obj) -> str:
+    """The text write_json writes: indented, keys sorted (the bytes depend on the values only)."""
+    return json.dumps(obj, indent=2, sort_keys=True, default=_jsonable) + "\n"
 
 
 def _jsonable(v):

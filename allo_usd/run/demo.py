@@ -57,7 +57,7 @@ def demo_passes() -> tuple[str, ...]:
     amodal mask where the renderer has that pass), so that the demo dataset shows depth/, instance/,
     instances.json and BOP's depth PNGs and masks. Depth and instance ids come from the same Cycles
     render (no extra samples); the amodal pass is one mask-only sample of the anomaly alone."""
-    from allo_usd.run.manifest import PASS_FILES
+    from allo_usd.output.render_outputs import PASS_FILES
 
     return ("rgb", "exr", "mask", "depth", "instance") + (("amodal",) if "amodal" in PASS_FILES else ())
 
@@ -80,10 +80,6 @@ def demo_spec(inputs: SceneInputs, index: int, resolution=(480, 270), samples: i
         except PlacementError:
             continue
     raise PlacementError(f"demo scene {scene_id}: no valid anomaly placement in 12 days")
-
-
-def demo_specs(inputs: SceneInputs, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> list:
-    return [demo_spec(inputs, i, resolution, samples, seed) for i in range(len(DEMO_SCENES))]
 
 
 def write_demo_layer(spec: SceneSpec, tree: Path, base_stage: Path, seed: int = DEMO_SEED) -> Path:
@@ -147,7 +143,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
 
     from allo_usd.core.provenance import record_tree_versions
     from allo_usd.output.dataset import read_pixels
-    from allo_usd.run.job import render_layer
+    from allo_usd.run.job import render_record
     from allo_usd.run.worker import output_to
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
@@ -169,13 +165,13 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
             spec = demo_spec(inputs, i, resolution, samples)
             layer = write_demo_layer(spec, tree, stage)
             with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
-                # skipped when done for these very layer bytes (allo_usd.run.manifest.is_done); a
+                # skipped when done for these very layer bytes (allo_usd.run.render_index.is_done); a
                 # changed layer, e.g. another resolution, renders again
-                meta = render_layer(layer, out_dir / "renders", device=device)
-            bar.write(f"{spec.scene_id}: {meta['render_seconds']:.1f} s, anomaly {meta['anomaly_fraction']:.3%}, "
+                meta = render_record(layer, out_dir / "renders", device=device)
+            bar.write(f"{spec.scene_id}: {meta.render_seconds:.1f} s, anomaly {meta.anomaly_fraction:.3%}, "
                       f"sun {spec.sun.eclipse_state}")
-            rgb = read_pixels(out_dir / "renders" / meta["files"]["rgb"])
-            mask = read_pixels(out_dir / "renders" / meta["files"]["mask"])
+            rgb = read_pixels(out_dir / "renders" / meta.files["rgb"])
+            mask = read_pixels(out_dir / "renders" / meta.files["mask"])
             rows.append((spec.scene_id, rgb, mask))
             bar.update(1)
     manifest = demo_dataset(out_dir / "renders", out_dir / "dataset", resolution)

@@ -22,8 +22,10 @@ from typing import Callable
 from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock, ensure_output_dir, read_whole_small
 from allo_usd.core.threads import in_threads
-from allo_usd.run.manifest import (MANIFEST, append_jsonl, append_rows, check_output_names, clean_stale,
-                                   compact_manifest, prefetch, remember_sha256, resume_check)
+from allo_usd.output.checksums import remember_sha256
+from allo_usd.output.render_outputs import check_output_names
+from allo_usd.run.render_index import (MANIFEST, append_jsonl, append_rows, clean_stale, compact_manifest, prefetch,
+                                       resume_check)
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
 from allo_usd.usd.safety import ENV_ROOTS, roots_cached, tree_roots
 from allo_usd.usd.sniff import refusal
@@ -75,7 +77,7 @@ def _read_candidate(path: Path) -> tuple[bool, bytes | None]:
     if whole is None:
         return False, None
     data, st = whole
-    remember_sha256(path, st, data)   # the resume check's checksum of the layer (manifest.file_sha256's cache)
+    remember_sha256(path, st, data)   # the resume check's checksum of the layer (checksums.file_sha256's cache)
     return False, data
 
 
@@ -147,7 +149,7 @@ def find_layers(source: str | Path | list) -> list[Path]:
             raise AlloError(f"two layers share the name {p.stem!r} ({stems[p.stem]}, {p}); outputs are named "
                             "after the layer, so rename one")
         stems[p.stem] = p
-    check_output_names(layers)  # no output name of one layer may be another's (allo_usd.run.manifest)
+    check_output_names(layers)  # no output name of one layer may be another's (allo_usd.output.render_outputs)
     for p in ([] if isinstance(source, Path) and source.is_dir() else layers):  # named by the caller
         why = refusal(p)
         if why:
@@ -643,7 +645,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     the run with DeviceError); see allo_usd.blender.device.
     `progress` None shows a bar on a terminal and, where stderr is not one (a pipe, nohup, a CI log),
     a plain line at most every `progress_interval` seconds and a final one; True the bar, False nothing.
-    A scene is skipped when done by the rule every entry point shares (allo_usd.run.manifest.is_done,
+    A scene is skipped when done by the rule every entry point shares (allo_usd.run.render_index.is_done,
     resume_check: a verified manifest row, else its render JSON); one another entry point rendered
     (render_layer, the demo) gets its manifest row from its JSON. A row's outputs are trusted on their
     recorded size, mtime and inode (the quick check: nothing is read); `verify` reads and checksums

@@ -3,7 +3,8 @@
 The unit of work for local pools and Dask alike. Outputs are written atomically and the
 metadata JSON goes last, so its presence (naming the render's identity: the checksums of every
 file the composition read, and the versions that affect pixels) marks a finished scene and
-re-runs skip it while that identity holds (allo_usd.run.manifest.is_done).
+re-runs skip it while that identity holds (allo_usd.run.render_index.is_done). The JSON is a
+RenderRecord (allo_usd.output.record; its fields: docs/render_record.md).
 
 The JSON also records what rendered (`device`: the device asked for and used, the GPU backend and
 names or the CPU model, and Blender's version and build, allo_usd.blender.device.record). The
@@ -16,16 +17,18 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd import __version__
+from allo_usd.core.version import __version__
 from allo_usd.core.interrupts import import_held
 from allo_usd.core.provenance import library_versions
 from allo_usd.output.annotations import image_annotations
-from allo_usd.output.writers import (write_exr, write_instance_png, write_json, write_mask_png, write_rgb_exr,
-                                    write_rgb_png)
+from allo_usd.output.checksums import file_sha256
+from allo_usd.output.identity import done_record, input_hashes, outputs_sha256, render_identity, render_versions
+from allo_usd.output.record import RenderRecord
+from allo_usd.output.render_outputs import check_output_names, output_paths
+from allo_usd.output.writers import write_exr, write_instance_png, write_mask_png, write_rgb_exr, write_rgb_png
 from allo_usd.plan.settings import canonical_passes
 from allo_usd.core.files import relpath
-from allo_usd.run.manifest import (MANIFEST, append_jsonl, check_output_names, done_record, file_sha256, index_row,
-                                   input_hashes, output_paths, outputs_sha256, render_identity, render_versions)
+from allo_usd.run.render_index import MANIFEST, append_jsonl, index_row
 from allo_usd.usd.sniff import layer_outputs
 
 
@@ -60,10 +63,16 @@ def object_pixels(ids: np.ndarray, objects: tuple[str, ...]) -> dict:
             "bodies": {b.lower(): {"pixels": under(body_path(b))} for b in ("Sun", "Earth", "Moon")}}
 
 
-def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
-                 workdir: Path | None = None, session=None, save_blend: Path | None = None,
-                 device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True) -> dict:
-    """Render one layer into out_dir; returns its metadata (also written as JSON).
+def render_layer(layer: Path, out_dir: Path, *args, **kwargs) -> dict:
+    """Render one layer into out_dir; returns its metadata (also written as JSON): render_record's
+    record as the JSON's object, for callers outside the package (allo_usd.render_layer)."""
+    return render_record(layer, out_dir, *args, **kwargs).as_dict()
+
+
+def render_record(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
+                  workdir: Path | None = None, session=None, save_blend: Path | None = None,
+                  device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True) -> RenderRecord:
+    """Render one layer into out_dir; returns its record (a RenderRecord, also written as NAME.json).
 
     `threads` overrides the layer's allo:render:threads for this process only (the layer is not
     edited): a pool of N workers on C cores runs each with C // N threads. Cycles gives the same
@@ -80,7 +89,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     records both ("passes" written, "layer_passes"), and a render with other passes than its layer's
     is never skipped as done.
     A scene is skipped (its JSON returned) when done by the rule every entry point shares
-    (allo_usd.run.manifest.done_record: the JSON beside the outputs is the record), whoever rendered
+    (allo_usd.output.identity.done_record: the JSON beside the outputs is the record), whoever rendered
     it. A render into a folder that holds a dispatcher's manifest.jsonl appends the scene's row there
     (`index`; the dispatcher's workers pass False: their parent writes the row), so the index never
     names outputs that a later render replaced.
@@ -102,7 +111,7 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     if passes is not None and passes == layer_outputs(layer):
         passes = None  # what the layer orders anyway
     if not force and save_blend is None and passes is None:
-        meta = done_record(layer, out_dir)  # the rule every entry point uses (allo_usd.run.manifest.is_done)
+        meta = done_record(layer, out_dir)  # the rule every entry point uses (allo_usd.run.render_index.is_done)
         if meta is not None:
             return meta
     import_held("bpy")   # Blender's start-up swallows a Ctrl-C (and leaves numpy half-loaded): held until it is in
@@ -136,34 +145,33 @@ def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int |
     if "amodal" in paths:
         write_mask_png(paths["amodal"], result.amodal)
     counts = np.bincount(result.mask.ravel(), minlength=3)
-    meta = {
-        "layer": str(Path(layer).resolve()),   # where it was rendered from (this machine's path)
-        "layer_relative": relpath(Path(layer), Path(out_dir)),  # from the render folder: moves with the tree
-        "layer_sha256": file_sha256(layer),
-        "identity": render_identity(inputs),
-        "inputs": inputs,
-        "versions": render_versions(),
-        "libraries": library_versions(),   # every library that computes values, and the lock (core.provenance)
-        "package_version": __version__,
-        "device": record(used),
-        "cycles_cpu": cycles_cpu(),   # the CPU kernel Cycles used and the CPU flags that pick it
-        "render_seconds": round(result.seconds, 3),
-        **({"amodal_seconds": round(result.amodal_seconds, 3)} if "amodal" in paths else {}),
-        "resolution": list(desc.render.resolution),
-        "class_pixels": {"background": int(counts[0]), "station_and_bodies": int(counts[1]),
-                         "anomaly": int(counts[2])},
-        "anomaly_fraction": float(counts[2] / result.mask.size),
+    meta = RenderRecord(
+        layer=str(Path(layer).resolve()),   # where it was rendered from (this machine's path)
+        layer_relative=relpath(Path(layer), Path(out_dir)),  # from the render folder: moves with the tree
+        layer_sha256=file_sha256(layer),
+        identity=render_identity(inputs),
+        inputs=inputs,
+        versions=render_versions(),
+        libraries=library_versions(),   # every library that computes values, and the lock (core.provenance)
+        package_version=__version__,
+        device=record(used),
+        cycles_cpu=cycles_cpu(),   # the CPU kernel Cycles used and the CPU flags that pick it
+        render_seconds=round(result.seconds, 3),
+        amodal_seconds=round(result.amodal_seconds, 3) if "amodal" in paths else None,
+        resolution=list(desc.render.resolution),
+        class_pixels={"background": int(counts[0]), "station_and_bodies": int(counts[1]), "anomaly": int(counts[2])},
+        anomaly_fraction=float(counts[2] / result.mask.size),
         **object_pixels(result.ids, result.objects),
-        "passes": list(desc.render.outputs), "layer_passes": list(layer_passes),
-        **({"instances": {str(i): p for i, p in enumerate(result.objects, start=1)}} if "instance" in paths else {}),
-        "scene": desc.meta,
-        "effects": effects,
-        "files": {k: p.name for k, p in paths.items()},
-        "outputs_sha256": outputs_sha256(paths),  # what is_done checks: the JSON alone vouches for its outputs
+        passes=list(desc.render.outputs), layer_passes=list(layer_passes),
+        instances={str(i): p for i, p in enumerate(result.objects, start=1)} if "instance" in paths else None,
+        scene=desc.meta,
+        effects=effects,
+        files={k: p.name for k, p in paths.items()},
+        outputs_sha256=outputs_sha256(paths),  # what is_done checks: the JSON alone vouches for its outputs
         # K, pose, clipping, the anomaly's box and place, the bodies in view (conventions: output/annotations.py)
-        "annotations": image_annotations(desc, result.mask, result.amodal),
-    }
-    write_json(paths["meta"], meta)
+        annotations=image_annotations(desc, result.mask, result.amodal),
+    )
+    meta.write(paths["meta"])
     if index and (Path(out_dir) / MANIFEST).is_file():  # a dispatcher's folder: its index follows the record
         append_jsonl(Path(out_dir) / MANIFEST, index_row(layer, out_dir, meta))
     return meta

@@ -15,7 +15,7 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
 from allo_usd.core.files import DISK_FULL_ERRNOS
-from allo_usd.run.manifest import WORKDIR, manifest_row
+from allo_usd.run.render_index import WORKDIR, manifest_row
 from allo_usd.usd.safety import ENV_ROOTS
 
 
@@ -45,7 +45,7 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
                  before_render: Callable[[str], None] | None, device: str = "auto") -> dict:
     global _SESSION
     _fix_bpy_path()
-    from allo_usd.run.job import render_layer
+    from allo_usd.run.job import render_record
 
     if roots:
         os.environ[ENV_ROOTS] = roots
@@ -63,8 +63,8 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
             from allo_usd.blender.session import Session
 
             _SESSION = Session()  # one Blender scene per process, patched from scene to scene
-        meta = render_layer(layer_p, out_p, force=True, threads=threads, workdir=render_workdir(out_p), session=_SESSION,
-                            device=device, index=False)  # the parent writes the manifest row
+        meta = render_record(layer_p, out_p, force=True, threads=threads, workdir=render_workdir(out_p),
+                             session=_SESSION, device=device, index=False)  # the parent writes the manifest row
     except DiskFullError as exc:
         return error("disk_full", exc, prefix=False)
     except RenderFailedError as exc:  # not the layer's fault: retried
@@ -80,7 +80,7 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
         return error("disk_full", full, prefix=False) if full is not None else error("error", exc)
     return {"status": "ok", **manifest_row(layer_p, out_p, meta),   # the row the dispatcher appends
             "worker": f"{os.uname().nodename}:{os.getpid()}", "full_build": bool(_SESSION.last.full_build),
-            "device_notice": meta["device"].get("notice"),  # the dispatcher shows it once per run
+            "device_notice": meta.device.get("notice"),  # the dispatcher shows it once per run
             "cores": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
 
 

@@ -40,7 +40,7 @@ ALLO_ASSET_ROOTS, never the project's stages/ or a tree. A refusal says so and h
 The layers it found (`Walk.layer_files`) are the hazard's inputs, checksummed in its record.
 
 The walk returns the files it read, root first (depth first, each file once): the inputs of a
-render, whose checksums make its identity (allo_usd.run.manifest.render_identity). A layer's
+render, whose checksums make its identity (allo_usd.output.identity.render_identity). A layer's
 own list of what it names is cached per process by (real path, mtime_ns, size, inode), so the
 shared sky, pose and base layers of a tree are opened once per process, not once per scene; the
 roots, sizes and file types are checked again on every walk.

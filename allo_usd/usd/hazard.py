@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd import __version__
+from allo_usd.core.version import __version__
 from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.core.errors import AlloError, PlanError
 from allo_usd.core.files import atomic_directory, file_problem, sha256_file

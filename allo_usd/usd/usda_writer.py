@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from allo_usd import __version__
+from allo_usd.core.version import __version__
 from allo_usd.usd import schema
 from allo_usd.usd import layout
 from allo_usd.core.files import write_text_atomic

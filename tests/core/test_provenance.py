@@ -14,7 +14,7 @@ import pytest
 from allo_usd.core import provenance
 from allo_usd.core.paths import BASE_STAGE, ROOT
 from allo_usd.core.provenance import LIBRARIES, TREE_VERSIONS, library_versions, record_tree_versions
-from allo_usd.run.manifest import render_identity, render_versions
+from allo_usd.output.identity import render_identity, render_versions
 
 
 def one_scene_plan():
@@ -54,7 +54,7 @@ def test_an_installed_wheel_names_no_lock(monkeypatch):
 
 def test_the_render_identity_covers_numpy():
     """numpy draws the sensor noise (Generator streams may change between numpy releases) and encodes
-    sRGB: a render made with another numpy is not done (allo_usd.run.manifest)."""
+    sRGB: a render made with another numpy is not done (allo_usd.output.identity)."""
     versions = render_versions()
     assert versions["numpy"] == np.__version__
     inputs = {"./s.usda": "0" * 64}

@@ -194,7 +194,7 @@ def test_the_resume_check_reads_a_fifo_record_as_not_done(tmp_path):
     os.mkfifo(fifo)
     (tmp_path / "zero.json").symlink_to("/dev/zero")
     (tmp_path / "deep.json").write_text(_deep(100_000))
-    code = ("from allo_usd.run.manifest import _meta\n"
+    code = ("from allo_usd.run.render_index import _meta\n"
             f"print([_meta(p) for p in ({str(fifo)!r}, {str(tmp_path / 'zero.json')!r}, "
             f"{str(tmp_path / 'deep.json')!r})])\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=HANG,

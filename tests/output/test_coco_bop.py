@@ -23,7 +23,7 @@ from allo_usd.output.bop import DEPTH_SCALE
 from allo_usd.output.dataset import assemble, read_manifest
 from allo_usd.output.pass_files import PASS_COLUMNS
 from allo_usd.run.job import render_layer
-from allo_usd.run.manifest import PASS_FILES
+from allo_usd.output.render_outputs import PASS_FILES
 from allo_usd.usd.scene_layer import write_scene_layer
 
 from tests.support.helpers import make_spec

@@ -19,7 +19,7 @@ from PIL import Image
 
 from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.run.dispatch import core_sets, dispatch, find_layers
-from allo_usd.run.manifest import MANIFEST, WORKDIR, append_jsonl, clean_stale, is_done, is_verified, load_manifest
+from allo_usd.run.render_index import MANIFEST, WORKDIR, append_jsonl, clean_stale, is_done, is_verified, load_manifest
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
 from allo_usd.core.files import temp_name_re
 

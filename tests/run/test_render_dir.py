@@ -17,7 +17,7 @@ import pytest
 
 from allo_usd.core.errors import AlloError
 from allo_usd.run.dispatch import find_layers
-from allo_usd.run.manifest import MANIFEST, is_done, is_verified, load_manifest
+from allo_usd.run.render_index import MANIFEST, is_done, is_verified, load_manifest
 
 pytestmark = pytest.mark.render
 
@@ -148,7 +148,7 @@ def test_a_scene_render_layer_finished_is_done_for_render_and_back(demo):
 def test_done_still_means_outputs_and_inputs_unchanged(demo, tmp_path):
     """The JSON vouches for its outputs by checksum: a changed output or input is not done for any
     entry point; a JSON without output checksums (an older record) is not enough for the dispatcher."""
-    from allo_usd.run.manifest import done_record
+    from allo_usd.output.identity import done_record
 
     root, layers, _, _ = demo
     copy = tmp_path / "copy"

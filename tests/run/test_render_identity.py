@@ -15,8 +15,9 @@ from hypothesis import strategies as st
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import sha256_file
 from allo_usd.run.dispatch import dispatch, find_layers
-from allo_usd.run.manifest import (check_output_names, is_done, is_verified, load_manifest, output_paths,
-                                   render_identity, render_versions)
+from allo_usd.output.identity import render_identity, render_versions
+from allo_usd.output.render_outputs import check_output_names, output_paths
+from allo_usd.run.render_index import is_done, is_verified, load_manifest
 from allo_usd.usd.scene_layer import write_scene_layer
 
 from tests.support.helpers import make_spec

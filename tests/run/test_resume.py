@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from allo_usd.run import manifest as manifest_mod
+from allo_usd.run import render_index as manifest_mod
 from allo_usd.run.dispatch import dispatch
-from allo_usd.run.manifest import MANIFEST, is_done, is_verified, load_manifest, resume_check
+from allo_usd.run.render_index import MANIFEST, is_done, is_verified, load_manifest, resume_check
 from allo_usd.usd.scene_layer import write_scene_layer
 
 from tests.support.helpers import make_spec

@@ -27,7 +27,7 @@ def crash_after(scenes, out_dir: Path, others, scene: str, timeout: float = 300.
     reached the run), so the death cannot take a task of theirs with it."""
     if scene not in scenes:
         return
-    from allo_usd.run.manifest import load_manifest
+    from allo_usd.run.render_index import load_manifest
 
     deadline = time.monotonic() + timeout
     while not set(others) <= set(load_manifest(out_dir)) and time.monotonic() < deadline:

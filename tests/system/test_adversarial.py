@@ -29,7 +29,8 @@ import pytest
 
 from allo_usd.core.errors import AlloError
 from allo_usd.run.dispatch import FAILED, dispatch
-from allo_usd.run.manifest import is_done, load_manifest, output_paths
+from allo_usd.output.render_outputs import output_paths
+from allo_usd.run.render_index import is_done, load_manifest
 from allo_usd.usd.safety import ENV_ROOTS
 
 from tests.support.helpers import make_spec

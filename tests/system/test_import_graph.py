@@ -23,9 +23,10 @@ def module_name(path: Path) -> str:
     return ".".join(parts)
 
 
-def imports_of(path: Path) -> list[tuple[str, int]]:
-    """Every module `path` imports (at top level or inside functions), absolute, with its line."""
-    tree = ast.parse(path.read_text())
+def imports_of(path: Path, source: str | None = None) -> list[tuple[str, int]]:
+    """Every module `path` imports (at top level or inside functions), absolute, with its line
+    (`source`: this text read as if it were the file at `path`)."""
+    tree = ast.parse(path.read_text() if source is None else source)
     mod = module_name(path)
     is_pkg = path.name == "__init__.py"
     out = []
@@ -103,6 +104,32 @@ def test_no_lower_layer_imports_a_higher_one():
             if rank[layer_of(t)] > rank[layer_of(m)]:
                 bad.append(f"{m} ({layer_of(m) or 'top'}) imports {t} ({layer_of(t) or 'top'})")
     assert not bad, "backward edges:\n" + "\n".join(sorted(bad))
+
+
+def root_imports(path: Path, source: str | None = None) -> list[int]:
+    """The lines of `path` that import the package root itself (`import allo_usd`, `from allo_usd
+    import x`, `from .. import x` reaching it), not one of its submodules."""
+    return [line for target, line in imports_of(path, source) if target == "allo_usd"]
+
+
+def test_no_layer_imports_the_package_root():
+    """The root's lazy API names modules of every layer (allo_usd.run.author, allo_usd.run.dispatch,
+    ...), so a module of a layer that imports the root (`from allo_usd import __version__`) closes a
+    circle through allo_usd/__init__.py; the version lives in allo_usd.core.version. Only the top
+    level (the root and the command line beside it, which the root never names) may use the root."""
+    bad = [f"{m}:{line} imports the package root allo_usd" for m, path in project_modules().items()
+           if layer_of(m) for line in root_imports(path)]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_root_check_sees_a_planted_root_import():
+    """The walk is not vacuous: each form of importing the root from a layer's module is found, and
+    importing a submodule is not taken for it."""
+    at = PACKAGE / "run" / "job.py"
+    for code in ("from allo_usd import __version__\n", "import allo_usd\n", "from .. import x\n"):
+        assert root_imports(at, code) == [1], code
+    submodules = "from allo_usd.core.version import __version__\nfrom . import job\nimport allo_usd.core\n"
+    assert root_imports(at, submodules) == []
 
 
 def _allowed(mod: str, prefixes: tuple[str, ...]) -> bool:

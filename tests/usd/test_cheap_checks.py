@@ -281,7 +281,7 @@ def test_a_resume_decision_reads_each_layer_once(tmp_path, tiny_base):
     """The dispatcher's scan reads a scene layer once, to sniff it and checksum it; the resume
     check's checksum of the layer comes from that read (file_sha256's cache holds it under the
     layer's stat), and an edited layer is a new stat, so it is read again."""
-    from allo_usd.run import manifest as m
+    from allo_usd.output import checksums as m
     from allo_usd.run.dispatch import find_layers
     from allo_usd.usd.scene_layer import write_scene_layer
 

@@ -172,7 +172,7 @@ def test_dispatch_a_share_of_the_fuzzed_layers(valid_layer, tiny_base, tmp_path)
     pool beside good layers: the good ones render and verify, every bad one is in failed.jsonl
     (once, not retried) with the message the reader gives in this process; the parent lives on."""
     from allo_usd.run.dispatch import FAILED, dispatch
-    from allo_usd.run.manifest import is_done, load_manifest
+    from allo_usd.run.render_index import is_done, load_manifest
 
     batch = valid_layer.parent.parent / "batch"  # beside layers/: relative sublayer paths still resolve
     batch.mkdir(exist_ok=True)
