@@ -7,6 +7,7 @@ inner loop that answers in about a minute. `make test` runs everything."""
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing.process
 import signal
 import subprocess
@@ -137,16 +138,34 @@ class _NoBpy:
         return None
 
 
-@pytest.fixture(autouse=True)
-def _unit_tier_guard(request, monkeypatch):
-    if not request.config.getoption("--unit"):
+@contextlib.contextmanager
+def _unit_tier_guard():
+    """No process and no bpy while a unit-tier test sets up its fixtures (a session fixture first
+    used by it included) and runs."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(subprocess.Popen, "__init__", _refuse("starts a process (subprocess)"))
+        patch.setattr(multiprocessing.process.BaseProcess, "start", _refuse("starts a process (multiprocessing)"))
+        finder = _NoBpy()
+        sys.meta_path.insert(0, finder)
+        try:
+            yield
+        finally:
+            sys.meta_path.remove(finder)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    if not item.config.getoption("--unit"):
         yield
         return
-    monkeypatch.setattr(subprocess.Popen, "__init__", _refuse("starts a process (subprocess)"))
-    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", _refuse("starts a process (multiprocessing)"))
-    finder = _NoBpy()
-    sys.meta_path.insert(0, finder)
-    try:
+    with _unit_tier_guard():
         yield
-    finally:
-        sys.meta_path.remove(finder)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    if not item.config.getoption("--unit"):
+        yield
+        return
+    with _unit_tier_guard():
+        yield

@@ -55,6 +55,7 @@ def test_catalogue_covers_the_paper_hazard_kinds():
 # --- every build ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("key", ALL, ids=[f"{n}-{v}" for n, v in ALL])
+@pytest.mark.slow
 def test_builds_sized_centred_and_within_budget(assets, key):
     asset = assets[key]
     assert asset.name == key[0]
@@ -134,11 +135,13 @@ def test_deterministic(assets, name):
             np.testing.assert_array_equal(a.face_indices, b.face_indices)
 
 
+@pytest.mark.slow
 def test_default_variant_is_the_first(assets):
     for name in ANOMALY_IDS:
         assert _fingerprint(build_anomaly(name)) == _fingerprint(assets[(name, ANOMALY_VARIANTS[name][0])])
 
 
+@pytest.mark.slow
 def test_ids_are_distinct_shapes(assets):
     extents = {n: tuple(np.round(np.sort(np.ptp(build_anomaly(n).bounds(), axis=0)), 4)) for n in ANOMALY_IDS}
     assert len(set(extents.values())) == 16
@@ -165,6 +168,7 @@ def test_unknown_variant_lists_the_valid_variants():
 
 @settings(max_examples=40, deadline=None)
 @given(st.text(max_size=20).filter(lambda s: s not in ANOMALY_VARIANTS))
+@pytest.mark.slow
 def test_any_other_name_raises(name):
     with pytest.raises(UnknownAnomalyError):
         build_anomaly(name)

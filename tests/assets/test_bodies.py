@@ -48,6 +48,7 @@ def test_earth_plain_pixel_mean_is_not_what_is_normalised():
     assert lin.mean() > _area_mean(lin) + 0.005
 
 
+@pytest.mark.slow
 def test_module_measure_matches_the_independent_one():
     from allo_usd.assets.bodies import EARTH_ALBEDO, MOON_ALBEDO, area_weighted_reflectance
 

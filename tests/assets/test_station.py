@@ -25,6 +25,7 @@ def _parts(station, prefix: str):
     return [p for p in station.parts if p.name.startswith(prefix)]
 
 
+@pytest.mark.slow
 def test_name_and_basic_shape(station):
     assert station.name == "Station"
     lo, hi = station.bounds()

@@ -17,6 +17,7 @@ ISS = ROOT.parent / "shared" / "assets" / "ISS_2016.glb"
 needs_iss = pytest.mark.skipif(not ISS.is_file(), reason=f"NASA ISS_2016.glb not found at {ISS} (not in the repo)")
 
 
+@pytest.mark.slow
 def test_cli_sky_writes_a_year(tmp_path):
     result = CliRunner().invoke(app, ["sky", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output

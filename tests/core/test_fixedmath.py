@@ -173,6 +173,7 @@ def test_sums_of_products_are_the_written_out_python_sums():
     np.testing.assert_array_equal(fm.cross(v[:10], v[10:20]), np.cross(v[:10], v[10:20]))
 
 
+@pytest.mark.slow
 def test_camera_quaternions_are_the_scalar_reference(tmp_path):
     """A sample of written values: each demo camera's orientation in its pose layer equals the same
     computation done in plain Python floats (the base pose's matrix, Rz(yaw) Ry(pitch) Rx(roll) from

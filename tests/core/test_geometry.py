@@ -36,6 +36,7 @@ direction = st.one_of(vec3.filter(lambda v: np.linalg.norm(v) > 1e-6), near_vert
 
 @settings(max_examples=400, deadline=None)
 @given(quat)
+@pytest.mark.slow
 def test_quaternion_matrix_round_trip(q):
     r = quat_to_matrix(q)
     assert_rotation(r)
@@ -60,6 +61,7 @@ def test_half_turns_and_identity_round_trip(q):  # every branch of Shepperd's me
 
 @settings(max_examples=400, deadline=None)
 @given(vec3, direction, st.floats(0.1, 1e6))
+@pytest.mark.slow
 def test_look_at_is_orthonormal_and_points_at_the_target(position, view, distance):
     target = position + unit(view) * distance
     assume(np.linalg.norm(target - position) > 1e-3 * distance)  # not lost to float64 cancellation
@@ -83,6 +85,7 @@ def test_look_at_exactly_vertical(sign):
 
 @settings(max_examples=400, deadline=None)
 @given(direction)
+@pytest.mark.slow
 def test_rotation_towards_maps_z_to_the_direction(d):
     r = rotation_towards(d)
     assert_rotation(r)

@@ -73,6 +73,7 @@ def test_a_render_json_records_the_libraries(rendered):
     assert "numpy" not in layer.read_text() and np.__version__ not in layer.read_text()
 
 
+@pytest.mark.slow
 def test_an_authored_tree_records_each_runs_versions(tmp_path, monkeypatch):
     from allo_usd.run.author import TREE_ENTRIES, author_plan
 

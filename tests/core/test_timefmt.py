@@ -91,6 +91,7 @@ def _angle(a, b) -> float:
 
 
 @pytest.mark.parametrize("perilune", [POINT_NINE, MICROS], ids=["0.9s", "0.123456s"])
+@pytest.mark.slow
 def test_authored_layers_and_inspect_record_the_exact_perilune(tmp_path, perilune):
     out = tmp_path / "tree"
     plan = small_plan(perilune_epoch=perilune)

@@ -190,6 +190,7 @@ def _brute_in_view(direction, radius, half_x, half_y, n=801):
     return float(np.arccos(np.clip(rays @ d, -1, 1)).min()), step
 
 
+@pytest.mark.slow
 def test_disc_in_view_agrees_with_brute_force():
     rng = np.random.default_rng(3)
     half_x, half_y = 0.72, 0.405

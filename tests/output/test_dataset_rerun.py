@@ -54,6 +54,7 @@ def parsed(monkeypatch):
     return seen
 
 
+@pytest.mark.slow
 def test_a_rerun_parses_only_the_records_that_changed(tmp_path, parsed):
     renders, out = tmp_path / "renders", tmp_path / "ds"
     for i in range(3):

@@ -80,6 +80,7 @@ def test_a_record_writes_the_bytes_of_its_dict_form(tmp_path, amodal, instance):
     assert loaded.json_text() == (tmp_path / "literal.json").read_text()
 
 
+@pytest.mark.render
 def test_a_rendered_json_loads_to_its_own_bytes(rendered):
     """A real render's NAME.json: loaded and written again, the same bytes; render_layer's answer is its object."""
     for layer, meta, out in rendered.values():

@@ -153,6 +153,7 @@ def test_a_plan_of_a_billion_scenes_is_refused_arithmetically():
         make_plan({"name": "x", "dates": {"start": "1900-01-01", "days": 20_000}, "seeds": list(range(1000))})
 
 
+@pytest.mark.slow
 def test_scenes_are_enumerated_lazily_and_counted_without_enumerating():
     from allo_usd.plan.enumeration import count_scenes, enumerate_scenes, iter_scenes
 
@@ -171,6 +172,7 @@ def test_scenes_are_enumerated_lazily_and_counted_without_enumerating():
         assert count_scenes(plan) == len(keys) and list(iter_scenes(plan)) == keys
 
 
+@pytest.mark.slow
 def test_author_limit_does_not_enumerate_the_whole_plan(tmp_path, monkeypatch):
     """`author --limit N` takes the first N scenes from the lazy enumeration."""
     import allo_usd.plan.enumeration as enumeration

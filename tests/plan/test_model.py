@@ -20,6 +20,7 @@ from allo_usd.plan.io import load_plan, make_plan, save_plan, schema_text
 from tests.usd.test_validation import validation_errors
 
 
+@pytest.mark.slow
 def test_paper_plan_matches_table_ii():
     plan = paper_plan()
     keys = enumerate_scenes(plan)
@@ -103,6 +104,7 @@ def _sublayers(path: Path) -> list[str]:
     return list(layer.subLayerPaths)
 
 
+@pytest.mark.slow
 def test_tiny_plan_layout_and_sizes(authored):
     out, paths = authored
     keys = enumerate_scenes(tiny_plan())
@@ -136,6 +138,7 @@ def test_tiny_plan_layout_and_sizes(authored):
     assert max(by_sample.values(), default=0) >= 2
 
 
+@pytest.mark.slow
 def test_every_layer_validates(authored):
     out, _ = authored
     authored_layers = sorted(p for d in ("sky", "poses", "scenes") for p in (out / d).rglob("*.usda"))
@@ -147,6 +150,7 @@ def test_every_layer_validates(authored):
         assert validation_errors(p) == [], p
 
 
+@pytest.mark.slow
 def test_reauthoring_is_byte_identical_and_resumes(authored, tmp_path_factory):
     from allo_usd.run.author import author_plan
 
@@ -162,6 +166,7 @@ def test_reauthoring_is_byte_identical_and_resumes(authored, tmp_path_factory):
     assert all(p.stat().st_mtime_ns == t for p, t in mtimes.items())
 
 
+@pytest.mark.slow
 def test_composed_values_equal_resolve_scene(authored, tmp_path):
     from allo_usd.usd.scene_layer import write_scene_layer
     from allo_usd.core.constants import EXPOSURE
@@ -258,6 +263,7 @@ def test_a_moved_tree_opens_with_plain_usd(authored, tmp_path, monkeypatch):
     assert read_scene(layers[-1]).meta["sceneId"] == paths[-1].stem
 
 
+@pytest.mark.slow
 def test_an_existing_tree_stage_that_differs_is_refused(authored, tmp_path):
     import shutil
 
@@ -338,6 +344,7 @@ def test_reserve_groups_are_seeded_apart_from_the_plan():
         make_plan({"name": "x", "anomalies": {"reserve_groups_per_slot": -1}})
 
 
+@pytest.mark.slow
 def test_topup_meets_every_quota_exactly(topped_up):
     out, done = topped_up
     plan = topup_plan()
@@ -393,6 +400,7 @@ def test_topup_meets_every_quota_exactly(topped_up):
             ("30", "30", n_lost, n_lost, n_groups, "0")
 
 
+@pytest.mark.slow
 def test_limit_tops_up_the_scenes_within_it(tmp_path):
     from allo_usd.run.author import author
 

@@ -5,6 +5,8 @@ file content is either a plan or a PlanError. Never another exception."""
 
 from __future__ import annotations
 
+import pytest
+
 import tempfile
 from datetime import date, timezone
 from pathlib import Path
@@ -84,6 +86,7 @@ PLAN_DICTS = st.builds(
 
 @EXAMPLES
 @given(data=PLAN_DICTS)
+@pytest.mark.slow
 def test_any_plan_dict_is_a_plan_that_round_trips_or_a_plan_error(data):
     try:
         plan = make_plan(data)

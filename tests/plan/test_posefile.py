@@ -152,6 +152,7 @@ _poses = st.lists(st.tuples(st.from_regex(r"[A-Za-z][A-Za-z0-9_-]{0,10}", fullma
 
 @settings(max_examples=60, deadline=None)
 @given(poses=_poses, suffix=st.sampled_from([".csv", ".json"]))
+@pytest.mark.slow
 def test_round_trip(tmp_path_factory, poses, suffix):
     written = []
     for name, split, pos, q in poses:
@@ -255,6 +256,7 @@ def exact_tree(pose_csv, tmp_path_factory):
     return out, author(file_plan(pose_csv, sigmas=(0.0, 0.0)), out, progress=False, workers=1)
 
 
+@pytest.mark.slow
 def test_file_poses_author_at_their_pose_with_their_record(exact_tree, pose_csv):
     from allo_usd.usd.inspect import describe, format_description
 
@@ -281,6 +283,7 @@ def test_file_poses_author_at_their_pose_with_their_record(exact_tree, pose_csv)
     assert "inputs/" not in (out / "plan.toml").read_text()   # the plan as given, not the tree copy
 
 
+@pytest.mark.slow
 def test_perturbation_uses_the_plans_sigmas(pose_csv, tmp_path):
     from allo_usd.core.seeds import scene_seed
     from allo_usd.run.author import author
@@ -297,6 +300,7 @@ def test_perturbation_uses_the_plans_sigmas(pose_csv, tmp_path):
     np.testing.assert_allclose(pos, np.array(pose.position) + dpos, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_default_sigmas_and_rig_poses_author_no_new_attributes(tmp_path):
     from allo_usd.run.author import author
 
@@ -310,6 +314,7 @@ def test_default_sigmas_and_rig_poses_author_no_new_attributes(tmp_path):
     assert not (tmp_path / "inputs").exists()
 
 
+@pytest.mark.slow
 def test_pose_inside_the_station_is_refused_with_its_line(pose_csv, tmp_path):
     from allo_usd.run.author import author
     from allo_usd.usd.stage_geometry import StageGeometry
@@ -323,6 +328,7 @@ def test_pose_inside_the_station_is_refused_with_its_line(pose_csv, tmp_path):
     assert not (out / "scenes").exists() and not (out / "poses").exists() and not (out / "inputs").exists()
 
 
+@pytest.mark.slow
 def test_edited_pose_file_on_resume_is_refused(pose_csv, tmp_path):
     from allo_usd.run.author import author
 

@@ -47,6 +47,7 @@ def error_line(r: subprocess.CompletedProcess) -> str:
 # The tree remembers its plan
 
 
+@pytest.mark.slow
 def test_a_changed_plan_is_refused_and_the_tree_keeps_its_record(tmp_path):
     out = tmp_path / "tree"
     author(small_plan((160, 90)), out, progress=False)
@@ -60,6 +61,7 @@ def test_a_changed_plan_is_refused_and_the_tree_keeps_its_record(tmp_path):
         author(small_plan((160, 90), days=2).model_copy(update={"name": "other"}), out, progress=False)
 
 
+@pytest.mark.slow
 def test_the_same_plan_resumes_with_any_limit_and_from_its_own_file(tmp_path):
     out = tmp_path / "tree"
     plan = small_plan(train=(1, 2))
@@ -73,6 +75,7 @@ def test_the_same_plan_resumes_with_any_limit_and_from_its_own_file(tmp_path):
     author(plan.model_copy(update={"base_stage": os.path.relpath(BASE_STAGE)}), out, progress=False)
 
 
+@pytest.mark.slow
 def test_author_scene_refuses_a_tree_of_another_plan(tmp_path):
     from allo_usd.plan.enumeration import enumerate_scenes
 

@@ -34,6 +34,7 @@ def names(layer: Path) -> set[str]:
 
 @settings(max_examples=400, deadline=None)
 @given(st.lists(STEMS, min_size=2, max_size=6))
+@pytest.mark.slow
 def test_output_names_of_accepted_layers_never_overlap(stems):
     layers = [Path(f"dir{i}") / f"{s}.usda" for i, s in enumerate(stems)]  # other folders, one output dir
     try:

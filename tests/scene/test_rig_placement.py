@@ -27,6 +27,7 @@ def _scene_of(*boxes):
 CUBE = box("c", (0.4, 0.4, 0.4), "m")
 
 
+@pytest.mark.slow
 def test_perturbation_has_the_paper_statistics():
     pose = CameraPose(1, "train", np.zeros(3), np.eye(3))
     rng = np.random.default_rng(1)
@@ -173,6 +174,7 @@ def _random_rotation(rng):
     return quat_to_matrix(q)
 
 
+@pytest.mark.slow
 def test_object_frame_casting_equals_world_frame_casting():
     """The anomaly's BVH is built once in its own frame and the rays are moved into it; on random
     poses and cameras this gives the same visible fraction as a BVH of the posed object."""
@@ -311,6 +313,7 @@ def _far_station():
     return box("block", (6, 6, 6), "m").transformed(_t(0, 0, -17))
 
 
+@pytest.mark.slow
 def test_placed_objects_stay_near_station_structure():
     """Every accepted depth has station geometry within NEAR_STRUCTURE_M of the object's centre
     (exact closest-point distance), and sits in front of the structure its ray meets, even when
@@ -339,6 +342,7 @@ def test_placed_objects_stay_near_station_structure():
     assert placed >= 50
 
 
+@pytest.mark.slow
 def test_a_group_is_redrawn_until_all_five_depths_pass():
     """A 40 cm cube in front of the tiny station: every group places all five depths, each
     checked again here at the full resolution."""
@@ -375,6 +379,7 @@ def test_an_object_too_small_for_five_depths_falls_back_with_reasons():
     assert all(("under 0.1%" in p.skipped_reason or "camera" in p.skipped_reason) for p in skipped), skipped
 
 
+@pytest.mark.slow
 def test_screened_placements_hold_at_the_render_resolution():
     """Candidates are screened at 480 px wide and confirmed at 1920x1080: every recorded fraction is
     the 1080p pixel-centre fraction (exactly, for objects under 8,000 px; within 1% above), and every
@@ -398,6 +403,7 @@ def test_screened_placements_hold_at_the_render_resolution():
                 assert abs(p.area_fraction - exact) <= 0.01 * exact, (p.area_fraction, exact)
 
 
+@pytest.mark.slow
 def test_part_pixels_and_subgrid_cast_every_pixel_the_object_can_cover():
     """The part boxes' pixels that limit the rays cast never leave out a pixel whose centre ray meets
     the object, on the full grid or on a sub-grid, at every pose (a long thin object: its box is
@@ -465,6 +471,7 @@ def test_pixel_rays_equal_the_matrix_form_bit_for_bit():
             assert np.array_equal(d.view(np.uint64), want.view(np.uint64)) and np.array_equal(o[-1], np.ones(3))
 
 
+@pytest.mark.slow
 def test_part_pixels_keep_every_pixel_and_the_count(monkeypatch):
     """The part boxes' pixels hold every pixel the object covers at any number of parts, and
     visible_fraction gives the same value (the same bits) with that cull, with fewer parts, or with

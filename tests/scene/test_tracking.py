@@ -120,6 +120,7 @@ def test_joint_limits_respected_all_year(sky):
             assert joints[name]["lower"] <= angle <= joints[name]["upper"], (day, name, angle)
 
 
+@pytest.mark.slow
 def test_rest_pose_is_the_static_station():
     """The articulated station at rest is the flat one the camera rig was chosen on, triangle for triangle."""
     from allo_usd.assets.station import build_station, station_triangles
@@ -163,6 +164,7 @@ def test_model_station_cannot_track(tmp_path):
         load_plan(plan)
 
 
+@pytest.mark.slow
 def test_scene_inputs_pose_the_station_per_day(sky):
     from allo_usd.usd.stage_geometry import scene_inputs
 
@@ -216,6 +218,7 @@ def test_inspect_shows_the_joint_angles_and_their_layer(sky, tmp_path):
     assert "joints   AlphaS -165.98" in format_description(d)
 
 
+@pytest.mark.slow
 def test_articulated_budget():
     from allo_usd.assets.station import build_station
 
@@ -248,6 +251,7 @@ def test_raycast_of_the_day_matches_cycles(sky, tmp_path):
     assert agree_rest < agree - 0.03, (agree_rest, agree)
 
 
+@pytest.mark.slow
 def test_a_file_pose_a_wing_sweeps_through_fails_naming_the_day_the_pose_and_the_fix(sky, tmp_path):
     """A pose-file pose clear of the rest-pose station but inside a wing as turned on the plan's first
     day: with sigma 0 no camera can be drawn there, and the error says which day, which pose line,
@@ -312,6 +316,7 @@ def test_the_radiators_turn_edge_on_to_the_sun(sky, tmp_path, day):
         np.testing.assert_allclose(abs(n @ radiator_normal(angles)), 1.0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_the_radiators_sweep_clear_of_the_station():
     """Across the radiator joints' whole range (every 5 degrees), no radiator panel, rail or hinge
     member crosses any other part of the station, nor any station edge a radiator part: a joint angle

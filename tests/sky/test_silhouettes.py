@@ -145,6 +145,7 @@ def measure(name: str, distances) -> np.ndarray:
 
 
 @pytest.mark.parametrize("name", ["Sun", "Earth", "Moon"])
+@pytest.mark.slow
 def test_mean_outline_is_the_true_angular_radius(name, distances):
     rows = measure(name, distances[name])
     mean, lo, hi = rows[:, 0], rows[:, 1].min(), rows[:, 2].max()
@@ -153,6 +154,7 @@ def test_mean_outline_is_the_true_angular_radius(name, distances):
     assert lo > -1e-3 and hi < 1e-3  # the polygon's ripple about the circle stays well under a 1e-3
 
 
+@pytest.mark.slow
 def test_pole_views_at_every_distance():
     """Seen over a pole the limb runs parallel to the rings: the worst case, which depends on where the
     limb falls between two rings, so the distance is swept finely, from the Moon's perilune out past

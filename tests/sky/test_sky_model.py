@@ -50,6 +50,7 @@ def test_orbit_constants():
 
 @FAST
 @given(m=st.floats(-50.0, 50.0), e=st.floats(0.0, 0.995))
+@pytest.mark.slow
 def test_kepler_solver_converges(m, e):
     big_e = solve_kepler(np.array([m]), e)
     wrapped = math.remainder(m, 2 * math.pi)
@@ -196,6 +197,7 @@ def test_sky_is_read_only_and_at_gives_plain_values(year):
 @FAST
 @given(when=st.datetimes(min_value=datetime(1900, 1, 1), max_value=datetime(2053, 10, 1),
                          timezones=st.just(UTC)))
+@pytest.mark.slow
 def test_icrf_to_station_is_a_rotation(when):
     sky = compute_sky([when])
     m = sky.icrf_to_station[0]
@@ -289,6 +291,7 @@ def test_total_lunar_eclipse_turns_the_moon_lamp_off_and_a_solar_eclipse_barely_
 
 @FAST
 @given(sep=st.floats(0.0, 0.02), dist=st.floats(3.6e8, 4.1e8), r=st.floats(1.0, 100.0))
+@pytest.mark.slow
 def test_body_lit_fraction_of_a_small_body_is_the_point_value(sep, dist, r):
     """A body much smaller than the shadow sees what its centre sees (the two-disc lit fraction)."""
     sun = np.array([[C.AU_M, 0.0, 0.0]])
@@ -299,6 +302,7 @@ def test_body_lit_fraction_of_a_small_body_is_the_point_value(sep, dist, r):
     assert got[0] == pytest.approx(point[0], abs=1e-4)
 
 
+@pytest.mark.slow
 def test_body_lit_fraction_quadrature_converges():
     """256 points against 4,096 through a lunar and a solar eclipse: within 0.005."""
     from datetime import timedelta
@@ -351,6 +355,7 @@ radius = st.floats(1e-4, 0.6)
 
 @FAST
 @given(r1=radius, r2=radius, d=st.floats(0.0, 1.5))
+@pytest.mark.slow
 def test_overlap_symmetric_and_bounded(r1, r2, d):
     a = disc_overlap_area(r1, r2, d)
     assert a == pytest.approx(disc_overlap_area(r2, r1, d), rel=1e-12, abs=1e-300)
@@ -419,6 +424,7 @@ def test_angle_between_is_accurate_near_zero():
 @FAST
 @given(seed=st.integers(0, 2**31), dist_b=st.floats(2.0e6, 4.0e8), frac=st.floats(0.0, 3.0),
        body=st.sampled_from(["moon", "earth"]))
+@pytest.mark.slow
 def test_classification_stable_under_tiny_perturbation(seed, dist_b, frac, body):
     rng = np.random.default_rng(seed)
     d = rng.normal(size=3)
@@ -462,6 +468,7 @@ def test_two_occluders_exact_area():
 # ------------------------------------------------------------------------------------ report
 
 
+@pytest.mark.slow
 def test_write_sky_report(tmp_path, year):
     csv_path, png_path = write_sky_report(year, tmp_path / "out" / "sky.csv", tmp_path / "out" / "sky.png")
     with open(csv_path, newline="") as fh:

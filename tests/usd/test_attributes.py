@@ -3,6 +3,8 @@ module spells an attribute name itself."""
 
 from __future__ import annotations
 
+import pytest
+
 import ast
 from pathlib import Path
 
@@ -54,6 +56,7 @@ def _string_constants(path: Path):
             yield node.lineno, node.value
 
 
+@pytest.mark.slow
 def test_no_attribute_name_spelled_outside_the_table():
     names = set(A.BY_NAME)
     found = [f"{path.relative_to(PACKAGE)}:{line}: {value!r}"
@@ -62,6 +65,7 @@ def test_no_attribute_name_spelled_outside_the_table():
     assert not found, "spell these through allo_usd.usd.attributes:\n" + "\n".join(found)
 
 
+@pytest.mark.slow
 def test_no_prim_path_spelled_outside_the_layout():
     """Prim paths of the stage live in allo_usd.usd.layout (string constants starting /World or /Render)."""
     found = [f"{path.relative_to(PACKAGE)}:{line}: {value!r}"

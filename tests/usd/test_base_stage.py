@@ -75,6 +75,7 @@ def test_rig_has_50_disjoint_poses():
         np.testing.assert_allclose(p.rotation @ p.rotation.T, np.eye(3), atol=1e-9)
 
 
+@pytest.mark.slow
 def test_every_base_pose_looks_at_structure_5_to_40_m_away():
     """Each committed pose's view, ray cast on a 32x18 grid: the optical axis hits structure 5-40 m
     away, most structure in frame is 5-40 m away, and it neither leaves the frame empty nor fills it."""

@@ -157,6 +157,7 @@ def test_syntax_error_keeps_usds_file_line_col(layer):
     assert "pxrInternal" not in str(info.value)
 
 
+@pytest.mark.slow
 def test_walk_lists_every_file_an_authored_scene_reads(tmp_path, monkeypatch):
     """Root first, then its stack (pose, sky, base stage), the base stage's layers and textures,
     and the anomaly asset with its variants' geometry."""

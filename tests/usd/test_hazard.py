@@ -191,6 +191,7 @@ def authored(tmp_path_factory):
     return root, layers
 
 
+@pytest.mark.slow
 def test_the_tree_carries_the_converted_hazard_and_layers_reference_it(authored):
     from pxr import Sdf
 
@@ -230,6 +231,7 @@ def test_same_plan_gives_byte_identical_hazards_and_layers_elsewhere(authored, t
     assert [p.read_bytes() for p in layers] == [p.read_bytes() for p in again]
 
 
+@pytest.mark.slow
 def test_an_edited_hazard_file_is_refused_on_resume(tmp_path):
     from allo_usd.run.author import author_plan
 

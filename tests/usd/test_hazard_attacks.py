@@ -242,6 +242,7 @@ def test_a_fifo_sublayer_is_refused_by_stat_not_read(tmp_path):
 # ------------------------------------------------------------------------- break 2: the record covers every file
 
 
+@pytest.mark.slow
 def test_an_edited_sublayer_is_caught_on_resume(tmp_path, monkeypatch):
     """The hazard file is unchanged, its sublayer is not: resuming is refused (as for an edited hazard
     file), and --replace converts the new geometry."""

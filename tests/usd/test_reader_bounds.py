@@ -66,6 +66,7 @@ def refused(layer, *needles: str) -> str:
 
 @pytest.mark.parametrize("clip", [(float("nan"), float("nan")), (0.0, 100.0), (5.0, 1.0), (1.0, 1.0),
                                   (0.05, float("inf")), (0.05, 1e20), (-1.0, 10.0)])
+@pytest.mark.slow
 def test_camera_clipping_range_is_finite_ordered_and_within_blender(layer, clip):
     override(layer, CAMERA, "clippingRange", T.Float2, Gf.Vec2f(*clip))
     refused(layer, f"{CAMERA}.clippingRange")

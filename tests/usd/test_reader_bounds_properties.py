@@ -184,12 +184,14 @@ PROPERTY = settings(max_examples=30, deadline=None, suppress_health_check=[Healt
 
 @PROPERTY
 @given(opinions=st.lists(OPINION, min_size=1, max_size=3))
+@pytest.mark.slow
 def test_random_values_read_within_bounds_or_are_refused(valid_text, opinions):
     _read_or_refuse(_author(valid_text, opinions))
 
 
 @PROPERTY
 @given(scales=st.lists(SCALE, min_size=1, max_size=2), opinions=st.lists(OPINION, max_size=1))
+@pytest.mark.slow
 def test_random_transforms_read_within_bounds_or_are_refused(valid_text, scales, opinions):
     _read_or_refuse(_author(valid_text, opinions, scales))
 

@@ -168,6 +168,7 @@ def test_empty_relationships_duplicate_paths_and_odd_names_go_through_sdf():
     assert fast_layer_text([], [], {"n": 2 ** 63}, "d") is None
 
 
+@pytest.mark.slow
 def test_every_layer_authoring_writes_is_written_directly(tmp_path, monkeypatch):
     """The demo plan's first scenes (normal and anomalous: scene, pose and sky layers): each layer's
     text is Sdf's, and none needed the Sdf fallback."""
