@@ -516,7 +516,8 @@ def test_a_tree_built_from_one_model_refuses_another(tmp_path):
     import trimesh
 
     from allo_usd.assets.station import build_station
-    from allo_usd.run.author import STATION_MARKER, with_tree_stage
+    from allo_usd.run.author import with_tree_stage
+    from allo_usd.usd.tree import STATION_MARKER
     from allo_usd.plan.model import Station
 
     pts, tris = build_station().triangle_soup()

@@ -41,11 +41,13 @@ from dataclasses import asdict, dataclass, field
 from itertools import groupby, islice
 from pathlib import Path
 
-from allo_usd.usd.compose import (TreeLinks, pose_layer_path, scene_layer_path, sky_layer_path,
-                                  write_composed_scene, write_pose_layer, write_sky_layer)
+from allo_usd.usd.compose import TreeLinks, write_composed_scene, write_pose_layer, write_sky_layer
+from allo_usd.usd.tree import (BASE_STAGE_FILE, COUNTS_CSV, LAYER_DIRS, POSE_INPUTS, RESERVES_CSV, SKIPPED_CSV,
+                               STAGE_DIR, STATION_MARKER, TREE_ENTRIES, TREE_LOCK, TREE_PLAN, existing_scene_ids,
+                               hazard_asset_path, pose_layer_path, scene_layer_path, sky_layer_path, tree_base_stage)
 from allo_usd.core.camera_model import DEFAULT_CAMERA
 from allo_usd.core.files import atomic_directory, file_problem, write_text_atomic
-from allo_usd.core.provenance import TREE_VERSIONS, record_tree_versions
+from allo_usd.core.provenance import record_tree_versions
 from allo_usd.core.errors import AlloError, DiskFullError, LayerError, PlacementError, PlanError
 from allo_usd.core.timefmt import format_utc
 from allo_usd.plan.model import Plan
@@ -71,7 +73,6 @@ class AuthorContext:
     def __init__(self, plan: Plan, out_dir: Path, sky, stop=None):
         from allo_usd.core.constants import EXPOSURE
         from allo_usd.scene.resolve import sun_and_bodies
-        from allo_usd.usd.hazard import hazard_asset_path
         from allo_usd.usd.read import scene_inputs
 
         self.plan, self.out_dir, self.stop = plan, Path(out_dir), stop
@@ -503,24 +504,13 @@ def summary_lines(counts: list[dict], topup: bool = True) -> list[str]:
             continue
         lines.append(f"SHORT: {r['asset']}: {int(r['authored']):,} of {int(r['planned']):,} "
                      f"({int(r['short']):,} missing: it used every reserve group the top-up bound allows, "
-                     f"{int(r['reserve_groups']):,}, see reserves.csv; fix: raise anomalies.reserve_groups_per_slot, "
+                     f"{int(r['reserve_groups']):,}, see {RESERVES_CSV}; fix: raise anomalies.reserve_groups_per_slot, "
                      f"or leave this asset out of the plan)")
     return lines
 
 
 # ---------------------------------------------------------------------------------------------
 # Authoring a plan
-
-
-def _existing(out_dir: Path) -> set[str]:
-    root = out_dir / "scenes"
-    found = set()
-    for split in ("train", "test"):
-        for kind in ("normal", "anomaly"):
-            d = root / split / kind
-            if d.is_dir():
-                found.update(e.name[:-5] for e in os.scandir(d) if e.name.endswith(".usda"))
-    return found
 
 
 def rig_notes(ctx: AuthorContext) -> list[str]:
@@ -543,9 +533,6 @@ def rig_notes(ctx: AuthorContext) -> list[str]:
     return out
 
 
-STATION_MARKER = "station_source.json"  # in a model-built stages/: which file (and sha256) it was built from
-
-
 def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
     """The plan, pointed at the output tree's own base stage `out_dir/stages/base.usda`, made before
     any worker starts. A procedural station's tree gets a byte copy of the plan's base stage and its
@@ -555,7 +542,7 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
     so the tree can be moved or copied as a whole and re-authoring elsewhere gives the same bytes
     (for a model-built stage, on machines whose OpenBLAS rounds alike: scripts/make_base_stage.py
     pins that kernel for the committed stage)."""
-    from allo_usd.usd.compose import copy_base_stage, tree_base_stage
+    from allo_usd.usd.compose import copy_base_stage
 
     base = tree_base_stage(out_dir)
     if plan.station.source == "procedural":
@@ -578,7 +565,7 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
         recorded = json.loads(marker.read_text()) if marker.is_file() else None
         if recorded != made_from:
             raise PlanError(f"{base.parent} was built from {recorded or 'another station'}, not from {made_from}; "
-                            "fix: author this plan into a new output directory (or delete that stages/ folder)")
+                            f"fix: author this plan into a new output directory (or delete that {STAGE_DIR}/ folder)")
     else:
         from allo_usd.usd.build_stage import build_base_stage
 
@@ -610,12 +597,6 @@ class Authored:
 # ---------------------------------------------------------------------------------------------
 # The tree: one writer at a time, the plan it was made from, a readable base stage
 
-POSE_INPUTS = "inputs"             # the tree's byte copy of the plan's pose file (with_tree_poses)
-TREE_PLAN = "plan.toml"            # the plan a tree was authored from (its record, and its root for usd.safety)
-TREE_LOCK = ".allo-author.lock"    # one author run at a time per tree (core.files.RunLock)
-# What authoring writes at the top of a tree (plan.toml aside): `replace` removes exactly these.
-TREE_ENTRIES = ("scenes", "sky", "poses", "stages", "hazards", "schema", "counts.csv", "skipped.csv", "reserves.csv",
-                POSE_INPUTS, TREE_VERSIONS)
 _TRASH = re.compile(r"^\.replaced\.[a-z0-9_]{8}$")   # a replace's trash (mkdtemp), left if the run was killed
 # Plan fields the tree checks by content, not by name: the base stage's path and the station's
 # source (stages/ must be a byte copy of the plan's stage, or built from the same model file).
@@ -697,7 +678,7 @@ def check_tree_plan(plan: Plan, out_dir: Path) -> bool:
 
     record = out_dir / TREE_PLAN
     if not record.is_file():
-        found = [n for n in ("scenes", "sky", "poses") if (out_dir / n).is_dir()]
+        found = [n for n in LAYER_DIRS if (out_dir / n).is_dir()]
         if found:
             raise _refuse(out_dir, f"holds authored layers ({', '.join(found)}/) but no {TREE_PLAN}, so the plan "
                                    "they were made from is unknown")
@@ -720,8 +701,6 @@ def replace_tree(out_dir: Path) -> list[str]:
     nothing else: each entry is renamed into one hidden trash directory (a symlink moves as a
     link, its target untouched), which is then deleted. Only a folder that is a tree (plan.toml or
     stages/base.usda at its top) is touched. Returns the names removed."""
-    from allo_usd.usd.compose import tree_base_stage
-
     out_dir = Path(out_dir)
     for stale in out_dir.iterdir():   # a replace killed before it emptied its trash
         if _TRASH.match(stale.name) and stale.is_dir() and not stale.is_symlink():
@@ -731,8 +710,8 @@ def replace_tree(out_dir: Path) -> list[str]:
         return []
     if not (out_dir / TREE_PLAN).is_file() and not tree_base_stage(out_dir).is_file():
         raise PlanError(f"{out_dir} holds {', '.join(present)} but is not an authored tree (no {TREE_PLAN}, no "
-                        "stages/base.usda), so --replace leaves it alone; fix: author into a fresh --out, or "
-                        "remove those entries yourself")
+                        f"{STAGE_DIR}/{BASE_STAGE_FILE}), so --replace leaves it alone; fix: author into a fresh "
+                        "--out, or remove those entries yourself")
     trash = Path(tempfile.mkdtemp(dir=out_dir, prefix=".replaced."))
     for name in present:
         os.rename(out_dir / name, trash / name)
@@ -793,7 +772,7 @@ def open_tree(plan: Plan, out_dir: Path, replace: bool = False):
     and the sky of every plan day. `author` and `author_scene` start here."""
     from allo_usd.sky.model import compute_sky
     from allo_usd.sky.orbit import Orbit
-    from allo_usd.usd.compose import copy_schema, tree_base_stage
+    from allo_usd.usd.compose import copy_schema
     from allo_usd.usd.hazard import write_hazards
 
     out_dir = Path(out_dir)
@@ -871,10 +850,10 @@ def _author_tree(ctx: AuthorContext, keys: list[SceneKey], progress: bool, worke
     for day in sorted({k.day for k in keys}):
         ensure_sky_layer(ctx, day)
 
-    skipped_path, reserves_path = out_dir / "skipped.csv", out_dir / "reserves.csv"
+    skipped_path, reserves_path = out_dir / SKIPPED_CSV, out_dir / RESERVES_CSV
     skipped = read_skipped(skipped_path)
     ledger = read_reserves(reserves_path)
-    done = _existing(out_dir) | set(skipped)
+    done = existing_scene_ids(out_dir) | set(skipped)
     samples = [list(g) for _, g in groupby(keys, key=lambda k: (k.sample_id, k.split))]
     todo = [s for s in samples if any(k.scene_id not in done for k in s)]
     n_todo = sum(len(s) for s in todo)
@@ -903,7 +882,7 @@ def _author_tree(ctx: AuthorContext, keys: list[SceneKey], progress: bool, worke
                                    f"finished layers are kept and no partial file is left; fix: re-run the "
                                    f"same command to resume")
     counts = count_rows(plan, keys, skipped, topup)
-    _write_csv(out_dir / "counts.csv", COUNT_FIELDS, counts)
+    _write_csv(out_dir / COUNTS_CSV, COUNT_FIELDS, counts)
     reserves = topup.authored() if topup is not None else []
     paths = [scene_layer_path(out_dir, k.split, k.kind, k.scene_id) for k in [*keys, *reserves]
              if k.scene_id not in skipped]
