@@ -520,7 +520,7 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done).
 
     Anomalous depths that the placement check skips are topped up from reserve placements of the
-    same seed, asset and variant, so each reaches its planned count (allo_usd.run.author). With
+    same seed, asset and variant, so each reaches its planned count (allo_usd.run.topup). With
     --limit N the quotas are those of the first N scenes, and their skipped depths are topped up
     too. Ends with planned vs authored counts (also in OUT/counts.csv); exits 1 if an asset stays
     short because its reserve groups ran out (anomalies.reserve_groups_per_slot).
@@ -529,7 +529,8 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     author run at a time per OUT; a second one is refused (exit 2).
     """
     ensure_output_dir(out)
-    from allo_usd.run.author import AuthoringInterrupted, author as author_tree, summary_lines
+    from allo_usd.run.author import AuthoringInterrupted, author as author_tree
+    from allo_usd.run.ledgers import summary_lines
     from allo_usd.plan.io import load_plan
 
     try:

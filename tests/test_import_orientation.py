@@ -90,7 +90,7 @@ def test_the_plans_station_takes_up_axis_and_units():
 @needs_iss
 @pytest.mark.slow
 def test_the_plans_up_axis_reaches_the_trees_base_stage(tmp_path):
-    from allo_usd.run.author import with_tree_stage
+    from allo_usd.run.author_tree import with_tree_stage
     from allo_usd.usd.tree import STATION_MARKER
     from allo_usd.usd.read import read_triangles
 

@@ -143,7 +143,7 @@ def test_sky_and_pose_layer_paths_name_their_day_and_sample(tmp_path):
     assert len({pose_layer_path(tmp_path, k.seed, k.sample_id) for k in keys}) == len({k.sample_id for k in keys})
 
 
-def test_the_tree_paths_compose_and_the_hazards_use_are_the_modules(tmp_path):
+def test_the_base_stage_schema_and_hazard_paths_are_the_trees(tmp_path):
     from allo_usd.usd import hazard
 
     assert tree.tree_base_stage(tmp_path) == tmp_path / STAGE_DIR / tree.BASE_STAGE_FILE
@@ -209,7 +209,7 @@ def test_an_authored_tree_holds_only_the_modules_names_and_the_cli_names_them(tm
     from allo_usd.core.paths import BASE_STAGE
     from allo_usd.plan.io import save_plan
     from allo_usd.plan.model import AnomalyChoice, Anomalies, Dates, Plan, Poses, Quality
-    from allo_usd.run.author import replace_tree
+    from allo_usd.run.author_tree import replace_tree
 
     plan = Plan(name="names", dates=Dates(days=1), poses=Poses(train=[1], test=[41]),
                 anomalies=Anomalies(assets=[AnomalyChoice(id="power_drill")], depths=[0]),
@@ -236,7 +236,15 @@ def test_no_module_but_the_tree_spells_a_tree_name():
     assert not found, "tree names spelled outside allo_usd.usd.tree (import them from there):\n" + "\n".join(found)
 
 
-@pytest.mark.parametrize("source", [
+def _planted(tmp_path: Path, statement: str) -> list[str]:
+    """What the check finds in a package holding one module whose one function runs `statement`."""
+    planted = tmp_path / "allo_usd" / "run" / "planted.py"
+    planted.parent.mkdir(parents=True)
+    planted.write_text(f"def f(out, seed, name, meta, x, rec, Path):\n    {statement}\n")
+    return tree_names_outside(tmp_path / "allo_usd")
+
+
+@pytest.mark.parametrize("statement", [
     'out / "scenes"',
     'Path(out, "sky", name)',
     'f"{out}/poses/{seed}"',
@@ -245,23 +253,18 @@ def test_no_module_but_the_tree_spells_a_tree_name():
     'print("layers in sky/, poses/ and stages/")',
     'x = ("counts.csv", "skipped.csv")',
 ])
-def test_the_check_sees_a_name_spelled_again(tmp_path, source):
+def test_the_check_sees_a_name_spelled_again(tmp_path, statement):
     """The check is not vacuous: each way of spelling a name is found in a planted module."""
-    planted = tmp_path / "allo_usd" / "run" / "planted.py"
-    planted.parent.mkdir(parents=True)
-    planted.write_text(f"def f(out, seed, name, Path):\n    {source}\n")
-    assert len(tree_names_outside(tmp_path / "allo_usd")) >= 1
+    assert len(_planted(tmp_path, statement)) >= 1
 
 
-@pytest.mark.parametrize("source", [
+@pytest.mark.parametrize("statement", [
     'meta.get("inputs")',
     'row = {"inputs": sorted(x)}',
     'rec["inputs"]',
     'print("render: 3 scenes/h")',
     'DEFAULT = "out/sky"',
 ])
-def test_the_check_leaves_other_meanings_alone(tmp_path, source):
-    planted = tmp_path / "allo_usd" / "run" / "planted.py"
-    planted.parent.mkdir(parents=True)
-    planted.write_text(f"def f(meta, x, rec):\n    {source}\n")
-    assert tree_names_outside(tmp_path / "allo_usd") == []
+def test_the_check_leaves_other_meanings_alone(tmp_path, statement):
+    """JSON keys, a rate and a default folder that only share a word with the tree are not names."""
+    assert _planted(tmp_path, statement) == []
