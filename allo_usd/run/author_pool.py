@@ -66,8 +66,8 @@ class _Pool:
 
 @contextmanager
 def open_runner(ctx: AuthorContext, plan: Plan, out_dir: Path, sky, workers: int):
-    """The runner of a run: `ctx` itself for one worker, else a pool of `workers` processes, stopped at
-    once (not after their queued chunks) when the block ends in an error or Ctrl-C."""
+    """The runner of a run: an InlineRunner over `ctx` for one worker, else a pool of `workers`
+    processes, stopped at once (not after their queued chunks) when the block ends in an error or Ctrl-C."""
     if workers <= 1:
         yield InlineRunner(ctx)
         return
@@ -94,8 +94,8 @@ def _caller_main_hidden():
     """While the pool lives, spawned workers do not run the caller's script. multiprocessing's spawn
     re-imports `__main__` in every child (from its __spec__ name or its __file__), so a script without
     an `if __name__ == "__main__":` guard would author again in each worker, recursively. The workers
-    need nothing from it (their functions and initializer live in this package), so the two attributes spawn
-    reads are hidden while workers start, and put back after."""
+    need nothing from it (their functions and initializer live in this package), so the two
+    attributes spawn reads are hidden while workers start, and put back after."""
     import sys
 
     main = sys.modules.get("__main__")

@@ -33,7 +33,7 @@ ELSEWHERE = {
     ("core.paths", "stages"): "the package's own data folder (the shipped base stage), not a tree",
     ("core.paths", "base.usda"): "the shipped base stage, which the tree copies under the same name",
     ("core.paths", "stages/base.usda"): "the package's data marker",
-    ("plan.model", "stages/base.usda"): "a plan's default base stage: the shipped one, relative to the working directory",
+    ("plan.model", "stages/base.usda"): "a plan's default base stage: the shipped one, or one in the working directory",
 }
 
 
