@@ -20,15 +20,17 @@ from allo_usd.core.errors import AlloError  # noqa: E402
 from allo_usd.core.files import ensure_output_dir, ensure_output_file  # noqa: E402
 from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX, resolution_problem  # noqa: E402
 from allo_usd.plan.settings import PASSES, canonical_passes  # noqa: E402
+from allo_usd.usd.tree import COUNTS_CSV, POSE_DIR, SCENE_DIR, SKIPPED_CSV, SKY_DIR, STAGE_DIR  # noqa: E402
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
                   help="Author, record and render the ALLO lunar-orbit anomaly dataset as USD layers.")
 asset_app = typer.Typer(no_args_is_help=True, rich_markup_mode="markdown", help="Convert real meshes into USD assets.")
 app.add_typer(asset_app, name="asset")
 
-TREE_HELP = ("An authored tree (the OUT of `allo-usd author`) whose scenes/, sky/, poses/ and stages/ your layer may "
-             "read, for a layer of your own outside the tree that sublayers one of its scene layers (repeatable; "
-             "nothing else of OUT is granted). ALLO_ASSET_ROOTS lists further allowed directories.")
+TREE_HELP = (f"An authored tree (the OUT of `allo-usd author`) whose {SCENE_DIR}/, {SKY_DIR}/, {POSE_DIR}/ and "
+             f"{STAGE_DIR}/ your layer may read, for a layer of your own outside the tree that sublayers one of its "
+             "scene layers (repeatable; nothing else of OUT is granted). ALLO_ASSET_ROOTS lists further allowed "
+             "directories.")
 
 
 # ---------------------------------------------------------------- numbers given on the command line
@@ -512,12 +514,13 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
                                                      "else 1"),
                                        help="Processes. Default: 2 for large plans, else 1."),
            replace: bool = typer.Option(False, "--replace", help="OUT was authored from another plan: delete "
-                                        "its layers (scenes/, sky/, poses/, stages/, the CSVs) and author this one."),
+                                        f"its layers ({SCENE_DIR}/, {SKY_DIR}/, {POSE_DIR}/, {STAGE_DIR}/, the CSVs) "
+                                        "and author this one."),
            progress: bool = typer.Option(True, help="Show a progress bar.")):
     """Author a plan's scene layers over shared sky and camera-sample layers (resumes; skips done).
 
     Anomalous depths that the placement check skips are topped up from reserve placements of the
-    same seed, asset and variant, so each reaches its planned count (allo_usd.run.author). With
+    same seed, asset and variant, so each reaches its planned count (allo_usd.run.topup). With
     --limit N the quotas are those of the first N scenes, and their skipped depths are topped up
     too. Ends with planned vs authored counts (also in OUT/counts.csv); exits 1 if an asset stays
     short because its reserve groups ran out (anomalies.reserve_groups_per_slot).
@@ -526,7 +529,8 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     author run at a time per OUT; a second one is refused (exit 2).
     """
     ensure_output_dir(out)
-    from allo_usd.run.author import AuthoringInterrupted, author as author_tree, summary_lines
+    from allo_usd.run.author import AuthoringInterrupted, author as author_tree
+    from allo_usd.run.ledgers import summary_lines
     from allo_usd.plan.io import load_plan
 
     try:
@@ -538,8 +542,8 @@ def author(plan_file: Path = typer.Argument(..., help="Plan file (.toml or .yaml
     except KeyboardInterrupt:  # before the first scene: nothing but finished files was written
         typer.echo("interrupted before authoring began; re-run the same command", err=True)
         raise SystemExit(130) from None
-    typer.echo(f"{len(done.paths)} scene layers under {out / 'scenes'}; skipped depths in {out / 'skipped.csv'}, "
-               f"planned vs authored in {out / 'counts.csv'}")
+    typer.echo(f"{len(done.paths)} scene layers under {out / SCENE_DIR}; skipped depths in {out / SKIPPED_CSV}, "
+               f"planned vs authored in {out / COUNTS_CSV}")
     topup = plan.anomalies.reserve_groups_per_slot > 0
     for line in summary_lines(done.counts, topup):
         typer.echo(line, err=line.startswith("SHORT"))

@@ -35,11 +35,12 @@ COLUMNS = ("size", "samples", "RGB render s", "amodal render s", "amodal / RGB",
 def demo_layer(work: Path) -> Path:
     """The demo plan's first anomalous scene, authored into `work` (once)."""
     from allo_usd import author_plan, demo_plan
+    from allo_usd.usd.tree import SCENE_DIR
 
-    found = sorted((work / "scenes").rglob("*_z*.usda")) if (work / "scenes").is_dir() else []
+    found = sorted((work / SCENE_DIR).rglob("*_z*.usda")) if (work / SCENE_DIR).is_dir() else []
     if not found:
         author_plan(demo_plan(), work, limit=7, progress=False, workers=1)
-        found = sorted((work / "scenes").rglob("*_z*.usda"))
+        found = sorted((work / SCENE_DIR).rglob("*_z*.usda"))
     if not found:
         raise SystemExit(f"the demo plan authored no anomalous scene into {work}; pass --layer")
     return found[0]

@@ -34,8 +34,12 @@ from itertools import groupby  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from allo_usd import author_plan, enumerate_scenes, paper_plan
-from allo_usd.run.author import (AuthorContext, drive, InlineRunner, author_sample, ensure_sky_layer, summary_lines,
-                                 with_tree_stage)
+from allo_usd.run.author import drive
+from allo_usd.run.author_pool import InlineRunner
+from allo_usd.run.author_tree import with_tree_stage
+from allo_usd.run.ledgers import summary_lines
+from allo_usd.run.samples import AuthorContext, author_sample, ensure_sky_layer
+from allo_usd.usd.tree import POSE_DIR, SCENE_DIR, SKY_DIR
 from allo_usd.sky.model import compute_sky
 from allo_usd.sky.orbit import Orbit
 from scripts import benchinfo
@@ -194,9 +198,9 @@ def main() -> None:
                       f"{100 * sum(lost.values()) / sum(planned.values()):.1f} | {n_groups} | "
                       f"{sum(filled.values())} | {sum(lost.values()) - sum(filled.values())} |", ""]
         lines += ["Layer sizes:", "",
-                  f"- scene layers: {sizes(list((out / 'scenes').rglob('*.usda')))}",
-                  f"- pose layers: {sizes(list((out / 'poses').rglob('*.usda')))}",
-                  f"- sky layers: {sizes(list((out / 'sky').rglob('*.usda')))}", ""]
+                  f"- scene layers: {sizes(list((out / SCENE_DIR).rglob('*.usda')))}",
+                  f"- pose layers: {sizes(list((out / POSE_DIR).rglob('*.usda')))}",
+                  f"- sky layers: {sizes(list((out / SKY_DIR).rglob('*.usda')))}", ""]
     lines[2:2] = [benchinfo.header(benchinfo.finish(run)), ""]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))

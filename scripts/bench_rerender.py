@@ -55,6 +55,8 @@ def size(text: str) -> tuple[int, int]:
 
 def find_layers(items: list[str], limit: int | None) -> list[Path]:
     """Scene layers named by `items` (files, or demo / tree / plain directories), in order, no repeats."""
+    from allo_usd.usd.tree import SCENE_DIR
+
     found: list[Path] = []
     for item in items:
         p = Path(item)
@@ -62,8 +64,8 @@ def find_layers(items: list[str], limit: int | None) -> list[Path]:
             layers = [p]
         elif (p / "layers").is_dir():
             layers = sorted((p / "layers").glob("*.usda"))
-        elif (p / "scenes").is_dir():
-            layers = sorted((p / "scenes").rglob("*.usda"))
+        elif (p / SCENE_DIR).is_dir():
+            layers = sorted((p / SCENE_DIR).rglob("*.usda"))
         elif p.is_dir():
             layers = sorted(p.glob("*.usda"))
         else:

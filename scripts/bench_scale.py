@@ -189,7 +189,9 @@ def author_runs(plan: Path, cache: Path, work: Path, skip: bool, repeat: int = 3
     only after the last timing, since on this machine's file system a create right after a large
     deletion costs up to ten times as much (`create_probe`). With `skip`, only what fills an empty
     cache (not reported)."""
-    have = (cache / "counts.csv").is_file()  # written when an author run ends
+    from allo_usd.usd.tree import COUNTS_CSV
+
+    have = (cache / COUNTS_CSV).is_file()  # written when an author run ends
     if skip:
         if not have:
             run([*CLI, "author", str(plan), "--out", str(cache)], "author, to fill the cache")
@@ -379,11 +381,12 @@ def build_renders(tree: Path, renders: Path, sample: int, jobs: int, cpu: str) -
     from allo_usd.run.dispatch import find_layers
     from allo_usd.run.render_index import MANIFEST, append_rows
     from allo_usd import read_scene
+    from allo_usd.usd.tree import TREE_PLAN
 
     layers = find_layers(tree)
     step = max(1, len(layers) // max(sample, 1))
     sampled = layers[::step][:sample]
-    stamp = {"tree": str(tree.resolve()), "layers": len(layers), "plan": (tree / "plan.toml").read_text(),
+    stamp = {"tree": str(tree.resolve()), "layers": len(layers), "plan": (tree / TREE_PLAN).read_text(),
              "sample": [p.stem for p in sampled], "links_per_source": LINKS_PER_SOURCE}
     stamp_path = renders.parent / STAMP
     if stamp_path.is_file() and json.loads(stamp_path.read_text()) == stamp and (renders / MANIFEST).is_file():

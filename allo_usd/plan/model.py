@@ -406,7 +406,7 @@ class Quality(_Model):
 class Render(_Model):
     """How this plan's scenes are rendered, not what they show: never written into a layer (a scene
     rendered on another device means the same), so a tree's plan comparison leaves it out
-    (allo_usd.run.author.UNCOMPARED) and `render --device` overrides it for a run."""
+    (allo_usd.run.author_tree.UNCOMPARED) and `render --device` overrides it for a run."""
 
     device: str = Field("auto", description="The Cycles device: auto (a GPU when Cycles finds one, else the CPU "
                                             "with a one-line notice), cpu (never probes for a GPU), gpu (fails "
@@ -712,7 +712,7 @@ def paper_plan() -> Plan:
       round-robin over the 16 assets and their variants), and the last placement keeps only
       depths 0-3. Depths that the ray-cast check skips when authoring are recorded in
       skipped.csv and topped up from reserve groups of the same (seed, asset, variant)
-      (`reserve_group`; allo_usd.run.author), so each asset keeps its planned share of the 15,024.
+      (`reserve_group`; allo_usd.run.topup), so each asset keeps its planned share of the 15,024.
     """
     return Plan(name="allo-paper", dates=Dates(start=date(2030, 1, 1), days=365, step_days=1),
                 counts=Counts(normal_train=29_085, normal_test=7_300, anomalous_test=15_024),

@@ -23,7 +23,7 @@ q_cv = (w, x, y, z) that is q = q_cv * (0, 1, 0, 0), i.e. (w, x, y, z) -> (-x, w
 world-to-camera pose (rvec, tvec) first becomes camera-to-world: R_cv = R(rvec).T and
 position = -R(rvec).T @ tvec.
 
-No pxr here (the plan layer): allo_usd.run.author turns these into the scene layer's CameraPoses.
+No pxr here (the plan layer): allo_usd.run.samples (AuthorContext) turns these into the scene layer's CameraPoses.
 """
 
 from __future__ import annotations

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from allo_usd.usd.compose import (copy_base_stage, pose_layer_path, sky_layer_path, write_composed_scene,
-                                  write_pose_layer, write_sky_layer)
+from allo_usd.usd.compose import copy_base_stage, write_composed_scene, write_pose_layer, write_sky_layer
+from allo_usd.usd.tree import pose_layer_path, sky_layer_path
 from allo_usd.core.errors import PlacementError
 from allo_usd.core.paths import BASE_STAGE
 from allo_usd.core.constants import EXPOSURE

@@ -29,6 +29,7 @@ from allo_usd.run.render_index import (MANIFEST, append_jsonl, append_rows, clea
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
 from allo_usd.usd.safety import ENV_ROOTS, roots_cached, tree_roots
 from allo_usd.usd.sniff import refusal
+from allo_usd.usd.tree import POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR, SUPPORT_DIRS, TREE_PLAN
 
 Hook = Callable[[str], None]
 
@@ -61,9 +62,6 @@ class Summary:
 
 
 # ---------------------------------------------------------------- which layers
-
-SUPPORT_DIRS = ("sky", "poses", "stages", "schema", "hazards")  # a tree's shared layers (allo_usd.usd.compose)
-
 
 def _read_candidate(path: Path) -> tuple[bool, bytes | None]:
     """(refused, its bytes when it is a small regular file): the refusal check (never opened when
@@ -101,14 +99,13 @@ def _scene_layers_under(root: Path) -> list[Path]:
     base stage's assets, the schema plugin; a paper plan has ~39,000 pose layers not worth opening).
     A layer name that is not a regular file (a FIFO, a device) is kept unopened: the dispatcher
     records it as a failed layer."""
-    from allo_usd.usd.compose import SCENE_DIR
     from allo_usd.usd.safety import is_authored_tree
     from allo_usd.usd.sniff import LAYER_SUFFIXES
 
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
         here = Path(dirpath)
-        if SCENE_DIR in dirnames and (here / "plan.toml").is_file():
+        if SCENE_DIR in dirnames and (here / TREE_PLAN).is_file():
             dirnames[:] = [SCENE_DIR]
         else:
             support = SUPPORT_DIRS if is_authored_tree(here) else ()
@@ -135,9 +132,9 @@ def find_layers(source: str | Path | list) -> list[Path]:
                 layers = _scene_layers_under(source)
             if not layers:
                 raise AlloError(f"no scene layers under {source} (a scene layer is a .usda whose customLayerData "
-                                "holds allo.sceneId; sky/, poses/ and stages/ layers are shared sublayers, not "
-                                f"scenes); author a plan there with `allo-usd author PLAN --out {source}`, or "
-                                "pass the directory that holds the scene layers")
+                                f"holds allo.sceneId; {SKY_DIR}/, {POSE_DIR}/ and {STAGE_DIR}/ layers are shared "
+                                f"sublayers, not scenes); author a plan there with `allo-usd author PLAN --out "
+                                f"{source}`, or pass the directory that holds the scene layers")
         elif os.path.exists(source):
             layers = [source]
         else:

@@ -25,6 +25,7 @@ from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.usd.asset import commit_layer, new_layer, stage_metadata, write_asset, write_variant_asset
 from allo_usd.scene.spec import CameraPose
 from allo_usd.core import fixedmath as fm
+from allo_usd.usd.tree import BASE_STAGE_FILE
 
 # UsdGeom.Camera lens values are tenths of a scene unit (docs/physics.md section 6).
 FOCAL_LENGTH = FOCAL_LENGTH_MM / 100.0
@@ -98,7 +99,7 @@ def write_base_stage(stages_dir: Path, station: Asset, bodies: dict[str, Asset],
     schema.register()
     stages_dir = Path(stages_dir)
     write_assets(stages_dir, station, bodies, anomalies, station_doc)
-    path = stages_dir / "base.usda"
+    path = stages_dir / BASE_STAGE_FILE
     layer, tmp = new_layer(path)
     layer.documentation = ("allo-usd base stage: a station in lunar orbit (station frame: +Z zenith away "
                            "from the Moon, +X flight direction), the Sun, Earth and Moon at true scale, "

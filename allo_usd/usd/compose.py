@@ -1,7 +1,8 @@
 """Authoring by composition: shared sky and camera-sample layers, and small scene layers over them.
 
 A plan of 51,409 scenes has only 365 skies and ~39,000 camera samples, so what a day or a
-camera sample decides is written once and reused:
+camera sample decides is written once and reused (each folder's and file's name, and each layer's
+path: allo_usd.usd.tree):
 
     OUT/stages/base.usda (+ station/, bodies/, anomalies/)  the tree's own copy of the base stage
     OUT/sky/dDDD.usda                          sun light, bodies, eclipse state, epoch (per day)
@@ -33,14 +34,7 @@ from allo_usd.scene.spec import CameraSpec, SceneSpec, SunSpec
 from allo_usd.usd.scene_layer import (anomaly_asset_path, check_base_stage, pose_prims, scene_custom, scene_prims,
                                       sky_prims, validate_spec)
 from allo_usd.usd.usda_writer import write_layer
-
-SKY_DIR, POSE_DIR, SCENE_DIR, STAGE_DIR, SCHEMA_DIR = "sky", "poses", "scenes", "stages", "schema"
-HAZARD_DIR = "hazards"   # a plan's own hazards, converted (allo_usd.usd.hazard)
-
-
-def tree_base_stage(out_dir: Path) -> Path:
-    """Where a tree's own copy of the base stage lives."""
-    return Path(out_dir) / STAGE_DIR / "base.usda"
+from allo_usd.usd.tree import tree_base_stage, tree_schema
 
 
 def base_stage_files(base_stage: Path) -> list[str]:
@@ -76,11 +70,6 @@ def copy_base_stage(base_stage: Path, out_dir: Path) -> Path:
         return dest  # the plan already names the tree's own copy
     _copy_into_tree(base_stage.parent, base_stage_files(base_stage), dest.parent, out_dir)
     return dest
-
-
-def tree_schema(out_dir: Path) -> Path:
-    """The folder of a tree's copy of the schema plugin (what PXR_PLUGINPATH_NAME names)."""
-    return Path(out_dir) / SCHEMA_DIR
 
 
 def copy_schema(out_dir: Path) -> Path:
@@ -125,18 +114,6 @@ def _inside(top: str, target: str, once) -> bool:
 def _uncached(key: tuple, make):
     """TreeLinks.once without a run to remember answers in: make()."""
     return make()
-
-
-def sky_layer_path(out_dir: Path, day: int) -> Path:
-    return Path(out_dir, SKY_DIR, f"d{day:03d}.usda")   # one Path built (a run names ~200,000 paths)
-
-
-def pose_layer_path(out_dir: Path, seed: int, sample_id: str) -> Path:
-    return Path(out_dir, POSE_DIR, f"s{seed}", f"{sample_id.split('_', 1)[1]}.usda")
-
-
-def scene_layer_path(out_dir: Path, split: str, kind: str, scene_id: str) -> Path:
-    return Path(out_dir, SCENE_DIR, split, kind, f"{scene_id}.usda")
 
 
 def write_sky_layer(path: Path, *, day: int, epoch: str, perilune_epoch: str, sun: SunSpec, bodies: dict,

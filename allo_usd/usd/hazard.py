@@ -45,24 +45,14 @@ from allo_usd.assets.mesh import Asset, Material, MeshPart
 from allo_usd.core.errors import AlloError, PlanError
 from allo_usd.core.files import atomic_directory, file_problem, sha256_file
 from allo_usd.plan.model import HAZARD_USD_SUFFIXES, USER_VARIANT
-from allo_usd.usd.compose import HAZARD_DIR
+from allo_usd.usd.tree import HAZARD_MARKER, hazard_asset_path, hazard_root
 from allo_usd.core import fixedmath as fm
 
-SOURCE_MARKER = "source.json"
 CONVERTED = "converted"               # source.json's record of what the conversion made (not compared)
 SIZE_M = (0.01, 20.0)                 # a hazard's largest extent, metres (a tool .. a loose panel)
 STATION_SIZE_M = (0.01, 500.0)        # `asset import --label station`: the ISS, the largest built, is 109 m
 MAX_TRIANGLES = 2_000_000             # after triangulation (the built-in hazards have < 20k)
 MAX_FILE_BYTES = 512 << 20
-
-
-def hazard_root(out_dir: Path, asset: str) -> Path:
-    return Path(out_dir) / HAZARD_DIR / asset
-
-
-def hazard_asset_path(out_dir: Path, asset: str) -> Path:
-    """The interface layer of a tree's converted hazard (what scene layers reference)."""
-    return hazard_root(out_dir, asset) / f"{asset}.usda"
 
 
 def made_from(choice) -> dict:
@@ -123,7 +113,7 @@ def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
     for choice in plan.anomalies.user_hazards():
         want = made_from(choice)
         root = hazard_root(out_dir, choice.id)
-        marker, path = root / SOURCE_MARKER, hazard_asset_path(out_dir, choice.id)
+        marker, path = root / HAZARD_MARKER, hazard_asset_path(out_dir, choice.id)
         if marker.is_file() and path.is_file():
             try:
                 recorded = json.loads(marker.read_text())
@@ -139,7 +129,7 @@ def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
             with atomic_directory(root) as tmp:
                 _, info = _convert(choice, tmp, want["sha256"])
                 converted = {"triangles": info["triangles"], "droppedTriangles": info["droppedTriangles"]}
-                (tmp / SOURCE_MARKER).write_text(json.dumps({**want, CONVERTED: converted}, indent=1,
+                (tmp / HAZARD_MARKER).write_text(json.dumps({**want, CONVERTED: converted}, indent=1,
                                                             sort_keys=True) + "\n")
         out[choice.id] = path
     return out

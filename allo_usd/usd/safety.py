@@ -46,15 +46,15 @@ from pathlib import Path
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import folder_realpath, memo_realpath
 from allo_usd.core.paths import STAGES
+from allo_usd.usd.tree import (BASE_STAGE_FILE, GRANTED_DIRS, POSE_DIR, SCENE_DIR, SCHEMA_DIR, SKY_DIR, STAGE_DIR,
+                               TREE_PLAN, tree_base_stage)
 
 ENV_ROOTS = "ALLO_ASSET_ROOTS"
 
 
 def _tree_folders(tree: Path) -> tuple[Path, ...]:
     """The authored folders of a tree (OUT/scenes, sky, poses, stages, hazards): all a tree grants."""
-    from allo_usd.usd.compose import HAZARD_DIR, POSE_DIR, SCENE_DIR, SKY_DIR, STAGE_DIR
-
-    return tuple(tree / d for d in (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR, HAZARD_DIR))
+    return tuple(tree / d for d in GRANTED_DIRS)
 
 
 def linked_folders(tree: str | Path) -> list[tuple[Path, Path]]:
@@ -62,8 +62,6 @@ def linked_folders(tree: str | Path) -> list[tuple[Path, Path]]:
     folders it grants (_tree_folders) and schema/, which `author` writes and compares. `tree` is a
     real path. A tree with one is granted nothing, whether the user names it (`--tree`, tree_roots)
     or a layer lies in it (allowed_roots): a `hazards -> /` link would otherwise open every file."""
-    from allo_usd.usd.compose import SCHEMA_DIR
-
     tree = Path(tree)
     found = []
     for folder in (*_tree_folders(tree), tree / SCHEMA_DIR):
@@ -75,10 +73,8 @@ def linked_folders(tree: str | Path) -> list[tuple[Path, Path]]:
 
 def is_authored_tree(path: str | Path) -> bool:
     """A folder `allo-usd author` wrote: it holds plan.toml or stages/base.usda (regular files)."""
-    from allo_usd.usd.compose import STAGE_DIR
-
     path = Path(path)
-    return (path / "plan.toml").is_file() or (path / STAGE_DIR / "base.usda").is_file()
+    return (path / TREE_PLAN).is_file() or tree_base_stage(path).is_file()
 
 
 def tree_roots(tree: str | Path, option: str = "--tree") -> tuple[Path, ...]:
@@ -87,11 +83,11 @@ def tree_roots(tree: str | Path, option: str = "--tree") -> tuple[Path, ...]:
     real = Path(os.path.realpath(tree))
     if not real.is_dir():
         raise LayerError(f"{option} {tree} is not a directory; pass the folder `allo-usd author` wrote (OUT, which "
-                         "holds plan.toml, scenes/, sky/, poses/ and stages/)")
+                         f"holds {TREE_PLAN}, {SCENE_DIR}/, {SKY_DIR}/, {POSE_DIR}/ and {STAGE_DIR}/)")
     if not is_authored_tree(real):
-        raise LayerError(f"{option} {tree} is not an authored tree (it holds neither plan.toml nor stages/base.usda); "
-                         "pass the folder `allo-usd author` wrote (OUT, not a folder inside it), or add the "
-                         f"directory your layer needs to {ENV_ROOTS}")
+        raise LayerError(f"{option} {tree} is not an authored tree (it holds neither {TREE_PLAN} nor "
+                         f"{STAGE_DIR}/{BASE_STAGE_FILE}); pass the folder `allo-usd author` wrote (OUT, not a "
+                         f"folder inside it), or add the directory your layer needs to {ENV_ROOTS}")
     for folder, target in linked_folders(real):
         raise LayerError(f"{option} {tree}: {folder} is a symbolic link to {target}; a tree grants only its own "
                          f"folders: replace the link with the folder's files, or add {target} to {ENV_ROOTS}")
@@ -129,11 +125,9 @@ def _tree_of(path: str | Path) -> Path | None:
 
 def _plan_root(layer_path: Path) -> Path | None:
     """The top of the authored tree whose `scenes/` folder holds the layer, if any."""
-    from allo_usd.usd.compose import SCENE_DIR
-
     real = Path(os.path.realpath(layer_path))
     for d in real.parents:
-        if (d / "plan.toml").is_file() and (d / SCENE_DIR) in real.parents:
+        if (d / TREE_PLAN).is_file() and (d / SCENE_DIR) in real.parents:
             return d
     return None
 

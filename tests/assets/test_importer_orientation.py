@@ -90,7 +90,8 @@ def test_the_plans_station_takes_up_axis_and_units():
 @needs_iss
 @pytest.mark.slow
 def test_the_plans_up_axis_reaches_the_trees_base_stage(tmp_path):
-    from allo_usd.run.author import STATION_MARKER, with_tree_stage
+    from allo_usd.run.author_tree import with_tree_stage
+    from allo_usd.usd.tree import STATION_MARKER
     from allo_usd.usd.stage_geometry import read_triangles
 
     plan = make_plan({"name": "iss", "dates": {"days": 1}, "poses": {"train": [1], "test": []},

@@ -97,7 +97,7 @@ def test_plan_render_device_validates_and_round_trips(tmp_path):
 
 
 def test_the_device_is_not_part_of_what_a_tree_compares():
-    from allo_usd.run.author import plan_differences
+    from allo_usd.run.author_tree import plan_differences
 
     a = make_plan({"name": "x", "render": {"device": "cpu"}})
     b = make_plan({"name": "x", "render": {"device": "gpu"}})

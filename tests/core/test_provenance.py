@@ -75,7 +75,8 @@ def test_a_render_json_records_the_libraries(rendered):
 
 @pytest.mark.slow
 def test_an_authored_tree_records_each_runs_versions(tmp_path, monkeypatch):
-    from allo_usd.run.author import TREE_ENTRIES, author_plan
+    from allo_usd.run.author import author_plan
+    from allo_usd.usd.tree import TREE_ENTRIES
 
     tree = tmp_path / "tree"
     [layer] = author_plan(one_scene_plan(), tree, progress=False)

@@ -416,7 +416,8 @@ def test_limit_tops_up_the_scenes_within_it(tmp_path):
 def test_topup_cap_is_honoured_and_reported(topped_up, tmp_path):
     from typer.testing import CliRunner
 
-    from allo_usd.run.author import author, summary_lines
+    from allo_usd.run.author import author
+    from allo_usd.run.ledgers import summary_lines
     from allo_usd.cli import app
 
     # Off: the planned scenes are the same bytes as with the top-up, and every skipped depth is short.
@@ -458,7 +459,7 @@ def test_topup_cap_is_honoured_and_reported(topped_up, tmp_path):
 def _interrupt_at(monkeypatch, n: int, reserve: bool):
     """Ctrl-C in the parent at the n-th sample it writes (reserve groups, or planned ones), halfway
     through the sample: its first scene is written, the rest are not."""
-    import allo_usd.run.author as authoring
+    import allo_usd.run.samples as authoring
 
     real, calls = authoring.write_sample, []
 
@@ -525,7 +526,8 @@ def test_a_tree_built_from_one_model_refuses_another(tmp_path):
     import trimesh
 
     from allo_usd.assets.station import build_station
-    from allo_usd.run.author import STATION_MARKER, with_tree_stage
+    from allo_usd.run.author_tree import with_tree_stage
+    from allo_usd.usd.tree import STATION_MARKER
     from allo_usd.plan.model import Station
 
     pts, tris = build_station().triangle_soup()

@@ -129,7 +129,7 @@ def test_layers_without_a_plan_record_are_refused(tmp_path):
 
 @pytest.mark.process
 def test_a_second_author_run_is_one_clear_error(tmp_path):
-    from allo_usd.run.author import tree_lock
+    from allo_usd.run.author_tree import tree_lock
 
     out = tmp_path / "tree"
     plan = save_plan(small_plan(), tmp_path / "plan.toml")

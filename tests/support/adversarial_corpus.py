@@ -198,6 +198,8 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     """Write the corpus under out_dir (which should be empty) and return its cases."""
     import uuid
 
+    from allo_usd.usd.tree import HAZARD_DIR, SCENE_DIR, TREE_PLAN
+
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     canary = canary or f"ALLO-CANARY-{uuid.uuid4().hex}"
@@ -341,9 +343,9 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     # ---- an ancestor plan.toml does not open its tree to a layer below it
     tree = out / "plantree"
     (tree / "private").mkdir(parents=True)
-    (tree / "plan.toml").write_text('name = "hostile"\n')
+    (tree / TREE_PLAN).write_text('name = "hostile"\n')
     (tree / "private" / "secret.usda").write_text(canary_layer(canary))
-    folder = tree / "scenes" / "x"
+    folder = tree / SCENE_DIR / "x"
     folder.mkdir(parents=True)
     layer = w.bad(folder, "plan_escape", "sandbox", CLI_ERROR,
                   lambda t: with_sublayer(t, "../../private/secret.usda"), run="single",
@@ -354,9 +356,9 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     # ---- a tree's own folder linked out of it grants nothing (issue 25): hazards/ -> outside/
     tree = out / "linktree"
     tree.mkdir()
-    (tree / "plan.toml").write_text('name = "hostile"\n')
-    os.symlink(outside, tree / "hazards")
-    folder = tree / "scenes" / "x"
+    (tree / TREE_PLAN).write_text('name = "hostile"\n')
+    os.symlink(outside, tree / HAZARD_DIR)
+    folder = tree / SCENE_DIR / "x"
     folder.mkdir(parents=True)
     layer = w.bad(folder, "hazard_link", "sandbox", CLI_ERROR,
                   lambda t: with_sublayer(t, "../../hazards/secret.usda"), run="single",

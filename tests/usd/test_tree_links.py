@@ -14,7 +14,7 @@ import pytest
 from allo_usd.core.errors import LayerError
 from allo_usd.plan.model import Quality, demo_plan
 from allo_usd.run.author import author_scene
-from allo_usd.usd.compose import HAZARD_DIR, POSE_DIR, SCHEMA_DIR, SKY_DIR, STAGE_DIR
+from allo_usd.usd.tree import HAZARD_DIR, POSE_DIR, SCHEMA_DIR, SKY_DIR, STAGE_DIR
 from allo_usd.usd.dependencies import walk
 
 from tests.support.helpers import one_line_error, sandboxed_cli

@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from allo_usd.core.errors import LayerError
-from allo_usd.usd.compose import copy_schema, tree_schema
+from allo_usd.usd.compose import copy_schema
+from allo_usd.usd.tree import tree_schema
 from allo_usd.usd.schema import API_SCHEMAS, PLUGIN, PLUGIN_FILES
 
 from tests.plan.test_model import tiny_plan
