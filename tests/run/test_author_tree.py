@@ -18,7 +18,7 @@ from allo_usd.plan.io import load_plan, save_plan
 from allo_usd.plan.model import AnomalyChoice, Anomalies, Dates, Plan, Poses, Quality
 from allo_usd.run.author import author, author_scene
 
-TREE_LOCK = ".allo-author.lock"   # allo_usd.run.author.TREE_LOCK
+TREE_LOCK = ".allo-author.lock"   # allo_usd.usd.tree.TREE_LOCK
 CLI = [sys.executable, "-c", "from allo_usd.cli import main; main()"]
 
 
