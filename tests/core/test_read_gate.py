@@ -23,7 +23,7 @@ from allo_usd.core.files import (MAX_JSON_DEPTH, MAX_RECORD_BYTES, InputRefused,
 from allo_usd.plan.posefile import MAX_POSE_FILE_BYTES, read_pose_file
 
 from tests.support.helpers import ROOT
-from tests.output.test_dataset_hostile import fake_render
+from tests.support.renders import fake_render
 
 HANG = 90   # seconds: far above what any of these commands takes, far below forever
 POSE_HEADER = "name,split,x,y,z,qw,qx,qy,qz\n"

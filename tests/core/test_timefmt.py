@@ -25,7 +25,7 @@ from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 from allo_usd.sky.model import compute_sky
 from allo_usd.sky.orbit import Orbit
 
-from tests.run.test_author_tree import small_plan
+from tests.support.plans import small_plan
 
 UTC = timezone.utc
 POINT_NINE = datetime(2030, 1, 1, 0, 0, 0, 900000, tzinfo=UTC)

@@ -26,7 +26,7 @@ from allo_usd.output.annotation_files import compute_record
 from allo_usd.output.dataset import assemble, read_manifest
 from allo_usd.output.dataset_files import FOLDERS, AnomalyPixels, inside, real_path
 
-from tests.output.test_dataset_hostile import edit, fake_render
+from tests.support.renders import edit, fake_render
 
 
 def _assemble(renders: Path, out: Path) -> list[str]:

@@ -10,8 +10,8 @@ from PIL import Image
 
 from allo_usd.run.demo import run_demo
 
-from tests.plan.test_model import plain_usd_report
-from tests.usd.test_validation import validation_errors
+from tests.support.plans import plain_usd_report
+from tests.support.validation import validation_errors
 
 pytestmark = pytest.mark.render
 

@@ -68,7 +68,7 @@ def test_the_example_authors_every_kind_of_scene(authored):
 
 
 def test_every_layer_passes_usd_validation(authored):
-    from tests.usd.test_validation import validation_errors
+    from tests.support.validation import validation_errors
 
     _, tree = authored
     for layer in sorted((tree / "scenes").rglob("*.usda")):

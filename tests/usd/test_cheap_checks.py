@@ -28,7 +28,7 @@ from allo_usd.output.dataset import assemble, read_manifest
 from allo_usd.usd import sniff
 from allo_usd.usd.safety import allowed_roots, roots_cached
 
-from tests.output.test_dataset_hostile import fake_render
+from tests.support.renders import fake_render
 
 
 def _nest(depth: int) -> str:

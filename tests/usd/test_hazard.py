@@ -208,7 +208,7 @@ def test_the_tree_carries_the_converted_hazard_and_layers_reference_it(authored)
 def test_layers_pass_usd_validation_and_inspect_names_the_source(authored):
     from allo_usd.usd.inspect import describe, format_description
 
-    from tests.usd.test_validation import validation_errors
+    from tests.support.validation import validation_errors
 
     _, layers = authored
     assert validation_errors(layers[0]) == []
