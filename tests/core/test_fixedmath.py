@@ -285,7 +285,8 @@ def test_a_scalar_gets_the_bits_of_the_vectorised_path(name):
 def test_two_argument_scalars_get_the_bits_of_the_vectorised_path(name):
     f = getattr(fm, name)
     n = SCALAR_N
-    y = np.concatenate([SCALAR_RNG.normal(size=n), SCALAR_RNG.normal(size=n) * 1e-300, SCALAR_RNG.normal(size=n) * 1e300,
+    y = np.concatenate([SCALAR_RNG.normal(size=n), SCALAR_RNG.normal(size=n) * 1e-300,
+                        SCALAR_RNG.normal(size=n) * 1e300,
                         _edges(0.0, -0.0, 1.0, -1.0, 0.0, -0.0, 1e308, -1e308, 3.0)])
     x = np.concatenate([SCALAR_RNG.normal(size=n), SCALAR_RNG.normal(size=n), SCALAR_RNG.normal(size=n) * 1e-300,
                         _edges(1.0, 1.0, -1.0, -1.0, -1.0, -2.0, 1e-308, 1e-308, 4.0)])

@@ -1,4 +1,4 @@
-"""Recorded times round-trip to the microsecond (issue 16): the perilune epoch a plan gives with
+"""Recorded times round-trip to the microsecond: the perilune epoch a plan gives with
 fractional seconds is the one the layers, `inspect --json` and the tree's plan record, and the sky
 recomputed from the record is the sky that was authored. The DE421 range the errors print is the
 range the checks accept, at the exact boundary instants."""

@@ -1,8 +1,9 @@
 """`dataset` does not trust render JSON: it writes only inside --out, reads only files of the render
 folder, takes split and kind from fixed sets, refuses to mix resolutions and says when a folder
-holds no renders (issue 13: "The record is the truth").
+holds no renders (the record is the truth).
 
-Renders here are synthetic (numpy images in job.py's JSON format), so no Cycles run is needed."""
+Renders here are synthetic (numpy images in job.py's JSON format, tests/support/renders.py), so no
+Cycles run is needed."""
 
 from __future__ import annotations
 

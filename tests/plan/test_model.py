@@ -110,7 +110,7 @@ def test_tiny_plan_layout_and_sizes(authored):
     reserve_groups = len(_csv(out / "reserves.csv"))
     assert len(list((out / "poses").rglob("*.usda"))) <= 4 + 2 + 2 + reserve_groups   # depths share a pose layer
     for p in paths:
-        assert p.stat().st_size <= 4096, p  # issue 6: a scene layer's own file is at most 4 KB
+        assert p.stat().st_size <= 4096, p  # a scene layer's own file is at most 4 KB
         layer = Sdf.Layer.FindOrOpen(str(p))
         subs = list(layer.subLayerPaths)
         assert subs[0].startswith("../../../poses/s2030/") and subs[1].startswith("../../../sky/d00"), subs

@@ -1,5 +1,5 @@
 """An authored tree remembers its plan, one author run at a time writes it, and a broken base
-stage is one clear error (issue 13: "The record is the truth")."""
+stage is one clear error (the record is the truth)."""
 
 from __future__ import annotations
 

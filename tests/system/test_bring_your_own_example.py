@@ -1,4 +1,4 @@
-"""The README's worked example (issue 17: a plan with its own hazard, camera, pose file and tracking
+"""The README's worked example (a plan with its own hazard, camera, pose file and tracking
 arrays), run as the README writes it: the plan and pose file it shows are the example's files, its
 `allo-usd` commands author, inspect and render the example from a copy of its folder."""
 

@@ -1,4 +1,4 @@
-"""Your own hazards (issue 17): a plan's anomaly list names a mesh file next to the built-in ids; it is
+"""Your own hazards: a plan's anomaly list names a mesh file next to the built-in ids; it is
 converted into the tree (allo_usd.usd.hazard), placed, authored, rendered and recorded like a built-in one."""
 
 from __future__ import annotations
