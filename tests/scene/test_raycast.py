@@ -4,7 +4,7 @@ rays (pixel_rays, pixel_ray_columns, subgrid_ray_columns over the cells placemen
 returns) is R @ (x, y, -1) normalised, as written out here; a few rays' hits on Python floats are
 the numpy path's; the surface-crossing walk behind `hits` and `inside` is the numpy walk written out
 here; and the helpers (_unitize, intrinsic_rows, part_boxes, hits_from, occluded) are their plain
-forms. Each former form is a named reference implementation in this file."""
+forms. Each plain form is a named reference implementation (reference_*) in this file."""
 
 from __future__ import annotations
 
