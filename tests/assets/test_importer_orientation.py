@@ -1,5 +1,5 @@
 """An imported model's orientation and units come from its format or from explicit options
-(`asset import --up-axis/--units`, a plan's [station]), never from its file name (issue 13)."""
+(`asset import --up-axis/--units`, a plan's [station]), never from its file name."""
 
 from __future__ import annotations
 

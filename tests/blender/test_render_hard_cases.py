@@ -1,4 +1,4 @@
-"""Issue 5 hard cases: an eclipsed station lit only by the inspection light (and body shine),
+"""Hard cases: an eclipsed station lit only by the inspection light (and body shine),
 an anomaly tiny and far, and one that fills the frame."""
 
 from __future__ import annotations

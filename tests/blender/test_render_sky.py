@@ -139,7 +139,7 @@ def _render_spec(spec, base, path):
 
 
 def test_umbra_station_is_lit_by_earthshine_and_the_earth_stays_sunlit(sky, tiny_base, tmp_path):
-    """Issue 5's eclipsed scene: in the Moon's umbra, the spotlight off, the station gets only the
+    """The eclipsed scene: in the Moon's umbra, the spotlight off, the station gets only the
     light of the sunlit Earth (about 0.1 W/m^2: far below one 8-bit level, so linear values are checked)."""
     sun, bodies = sun_and_bodies(sky, UMBRA_DAY)
     assert sun.eclipse_state == "umbra" and sun.irradiance == 0.0

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from allo_usd.cli import app
 from allo_usd.core.paths import ROOT
 
-from tests.usd.test_validation import validation_errors
+from tests.support.validation import validation_errors
 
 ISS = ROOT.parent / "shared" / "assets" / "ISS_2016.glb"
 needs_iss = pytest.mark.skipif(not ISS.is_file(), reason=f"NASA ISS_2016.glb not found at {ISS} (not in the repo)")

@@ -1,4 +1,4 @@
-"""What a new user trips over (issue 24, points 9 and 12): messages that say what is wrong and how to
+"""What a new user trips over: messages that say what is wrong and how to
 mend it, and a sky plot whose distance panel is drawn at a sampling that resolves the orbit."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""Hostile command-line options (issue 25, breaks 1, 6d, 7c and 10a): every number a command takes
+"""Hostile command-line options: every number a command takes
 is a finite number in its range, and a bad one is one line that prints what was given;
-`--timeout nan` no longer turns the per-scene limit off and a 0.5 s limit is reported as 0.5 s;
+`--timeout nan` does not turn the per-scene limit off and a 0.5 s limit is reported as 0.5 s;
 a malformed `--scheduler` is one line at once and an unreachable one within 10 s; `--save-blend`
 never overwrites a file without `--force`, never writes through a link or into a device, FIFO
 or directory, wants `.blend`, says so before anything renders, and writes atomically."""

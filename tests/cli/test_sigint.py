@@ -1,4 +1,4 @@
-"""Ctrl-C is honoured at any time (issue 25, break 9): `allo-usd author` of a plan with a mesh
+"""Ctrl-C is honoured at any time: `allo-usd author` of a plan with a mesh
 hazard, stopped by SIGINT at several moments (one of them while trimesh imports scipy, where
 trimesh's `except BaseException` swallowed the KeyboardInterrupt and the run went on to exit 0),
 always ends with exit 130 and one line, and a re-run of the same command finishes the tree with

@@ -1,13 +1,16 @@
 """allo_usd.core.fixedmath: accurate, and the same bits as plain scalar IEEE arithmetic.
 
 What makes authored files the same on every x86-64 machine is that every value reaching a file is
-computed from correctly rounded operations in a fixed order. Two checks guard it here:
+computed from correctly rounded operations in a fixed order. Three checks guard it here:
 - accuracy: each function is within 1 ulp (a few for tan, log2, power) of the C library's on random
   inputs, and exact on the special values that matter (signed zeros, infinities, powers of two);
 - independence from numpy's SIMD loops: the vectorised functions give, bit for bit, what a plain
   Python transcription of fdlibm gives on Python floats (CPython does each float operation on its
   own, so no SIMD width, FMA contraction, BLAS kernel or libm variant can enter), and the sums of
-  products equal the same sums written out in Python.
+  products equal the same sums written out in Python;
+- one answer whatever the route: a scalar gets the bits of the vectorised path, tan's scalar path
+  is sine over cosine, and matmul (by columns, on Python floats for small matrices) and
+  matmul_lists give the broadcast sum in index order (reference_matmul).
 tests/system/test_determinism.py authors real trees under other numpy feature sets; this file checks the
 parts in isolation and on many more inputs.
 """
@@ -151,16 +154,11 @@ def test_sin_cos_equal_a_scalar_python_transcription_bit_for_bit():
     assert fm.cos(x).tolist() == [_ref_cos(float(v)) for v in x]
 
 
-def test_sums_of_products_are_the_written_out_python_sums():
+def test_norms_are_the_written_out_python_sums_and_products_agree_with_numpy():
+    """Lengths are the sums of squares written out in Python floats; products, cross products and
+    determinants agree with numpy's (test_matmul_is_the_broadcast_sum_in_index_order checks the
+    products' bits)."""
     a, b = RNG.normal(size=(50, 3, 3)), RNG.normal(size=(50, 3, 3))
-    got = fm.matmul(a, b)
-    for k in range(50):
-        for i in range(3):
-            for j in range(3):
-                s = float(a[k, i, 0]) * float(b[k, 0, j])
-                s = s + float(a[k, i, 1]) * float(b[k, 1, j])
-                s = s + float(a[k, i, 2]) * float(b[k, 2, j])
-                assert got[k, i, j] == s
     v = RNG.normal(size=(200, 3))
     lengths = fm.norm(v, axis=1)
     assert lengths.tolist() == [math.sqrt((float(x) * float(x) + float(y) * float(y)) + float(z) * float(z)) for x, y, z in v]
@@ -243,3 +241,184 @@ def test_srgb8_codes_are_the_transfer_rounded_and_decided_by_comparisons():
     assert np.all(np.diff(_SRGB8_THRESHOLDS) > 0) and len(_SRGB8_THRESHOLDS) == 255
     assert linear_to_srgb8(np.array([np.nan, -1.0, np.inf, 2.0, _SRGB8_THRESHOLDS[99]])).tolist() == [0, 0, 255, 255, 100]
     assert linear_to_srgb8(np.zeros((2, 3, 3), dtype=np.float32)).shape == (2, 3, 3)
+
+
+# --- the scalar path and the small-matrix products: the same bits as the vectorised forms -----------
+
+SCALAR_RNG = np.random.default_rng(26)
+SCALAR_N = 6000
+
+
+def _bits(a) -> list[int]:
+    return np.asarray(a, dtype=np.float64).reshape(-1).view(np.int64).tolist()
+
+
+def _edges(*values) -> np.ndarray:
+    return np.array(values, dtype=np.float64)
+
+
+ANGLES = np.concatenate([SCALAR_RNG.uniform(-7, 7, SCALAR_N), SCALAR_RNG.uniform(-8e5, 8e5, SCALAR_N),
+                         SCALAR_RNG.normal(0, 1e-8, SCALAR_N),
+                         np.arange(-400, 401) * (math.pi / 4),   # where the reduction's later stages run
+                         _edges(0.0, -0.0, 2.0 ** -27, -(2.0 ** -27), 2.0 ** -28, 5e-324, fm.REDUCTION_LIMIT * 0.999)])
+UNIT = np.concatenate([SCALAR_RNG.uniform(-1, 1, SCALAR_N), 1 - SCALAR_RNG.uniform(0, 1e-9, SCALAR_N),
+                       -1 + SCALAR_RNG.uniform(0, 1e-9, SCALAR_N),
+                       _edges(0.0, -0.0, 0.5, -0.5, 0.975, -0.975, 1.0, -1.0, 2.0 ** -27, 2.0 ** -58, 1e-300)])
+POSITIVE = np.concatenate([np.exp(SCALAR_RNG.uniform(-700, 700, SCALAR_N)), SCALAR_RNG.uniform(0.6, 1.5, SCALAR_N),
+                           _edges(1.0, 2.0, 0.5, 5e-324, 1e308, math.sqrt(0.5), 1 - 2.0 ** -53)])
+REAL = np.concatenate([SCALAR_RNG.uniform(-3, 3, SCALAR_N), SCALAR_RNG.standard_cauchy(SCALAR_N) * 1e3,
+                       _edges(0.0, -0.0, 0.4375, 0.6875, 1.1875, 2.4375, -2.4375, 1e300, -5e-324)])
+ONE_ARG = {"sin": ANGLES, "cos": ANGLES,
+           "tan": np.concatenate([ANGLES[:2 * SCALAR_N], np.arange(-40, 41) * (math.pi / 2)]),
+           "arcsin": UNIT, "arccos": UNIT, "arctan": REAL, "log": POSITIVE, "log2": POSITIVE}
+
+
+@pytest.mark.parametrize("name", sorted(ONE_ARG))
+def test_a_scalar_gets_the_bits_of_the_vectorised_path(name):
+    f, x = getattr(fm, name), ONE_ARG[name]
+    vectorised = f(x)
+    assert _bits([f(float(v)) for v in x]) == _bits(vectorised)   # Python floats
+    assert _bits([f(v) for v in x]) == _bits(vectorised)          # numpy float64 scalars
+    assert all(type(f(float(v))) is float for v in x[:50])
+
+
+@pytest.mark.parametrize("name", ["arctan2", "hypot"])
+def test_two_argument_scalars_get_the_bits_of_the_vectorised_path(name):
+    f = getattr(fm, name)
+    n = SCALAR_N
+    y = np.concatenate([SCALAR_RNG.normal(size=n), SCALAR_RNG.normal(size=n) * 1e-300,
+                        SCALAR_RNG.normal(size=n) * 1e300,
+                        _edges(0.0, -0.0, 1.0, -1.0, 0.0, -0.0, 1e308, -1e308, 3.0)])
+    x = np.concatenate([SCALAR_RNG.normal(size=n), SCALAR_RNG.normal(size=n), SCALAR_RNG.normal(size=n) * 1e-300,
+                        _edges(1.0, 1.0, -1.0, -1.0, -1.0, -2.0, 1e-308, 1e-308, 4.0)])
+    assert _bits([f(float(a), float(b)) for a, b in zip(y, x)]) == _bits(f(y, x))
+
+
+def test_special_scalars_still_take_the_vectorised_path():
+    """inf, nan, a zero divisor and out-of-range arguments are decided as the vectorised path decides them."""
+    for name in ("sin", "cos", "tan", "arctan", "arcsin", "arccos", "log", "log2"):
+        f = getattr(fm, name)
+        for v in (math.inf, -math.inf, math.nan, 1.5, -1.5, 0.0, -0.0, -2.0):
+            got, want = f(v), f(np.array([v]))[0]
+            assert _bits(got) == _bits(want) or (math.isnan(got) and math.isnan(want)), (name, v)
+    for a, b in [(1.0, 0.0), (-1.0, -0.0), (0.0, 0.0), (1e308, 1e-308), (math.inf, 1.0), (1.0, math.nan)]:
+        got, want = fm.arctan2(a, b), fm.arctan2(np.array([a]), np.array([b]))[0]
+        assert _bits(got) == _bits(want) or (math.isnan(got) and math.isnan(want)), (a, b)
+    with pytest.raises(AlloError, match="reduce the angle"):
+        fm.cos(1e7)
+    with pytest.raises(AlloError, match="reduce the angle"):
+        fm.tan(-1e7)
+
+
+def reference_tan(x: float) -> float:
+    """tan as the vectorised sine over the vectorised cosine (one reduction each): the form the
+    scalar tan's one-reduction path must equal bit for bit."""
+    return fm._sincos(np.array([x]), False)[0] / fm._sincos(np.array([x]), True)[0]
+
+
+def test_tan_scalar_is_sin_over_cos():
+    rng = np.random.default_rng(1)
+    xs = np.concatenate([rng.uniform(-4, 4, 20000), rng.uniform(-1e5, 1e5, 5000), rng.uniform(-1e-8, 1e-8, 500),
+                         [0.0, -0.0, 1e-300, fm.PI / 2, -fm.PI / 2, fm.PI, 2.0 ** -27, -(2.0 ** -27)]])
+    for x in xs.tolist():
+        want = reference_tan(x)
+        got = fm.tan(x)
+        assert _bits(np.float64(want)) == _bits(np.float64(got)), x
+        assert fm._s_sin_cos(x) == (fm._s_sincos(x, False), fm._s_sincos(x, True))
+
+
+def reference_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(.., n, k) @ (.., k, m) as the broadcast sum in index order, a[.., :, 0] b[.., 0, :] +
+    a[.., :, 1] b[.., 1, :] + ...: the plain numpy form fixedmath.matmul (by columns from
+    _ROWS_BY_COLUMN rows, on Python floats below), _matmul_small and matmul_lists must equal bit for bit."""
+    out = a[..., :, 0, None] * b[..., 0, None, :]
+    for i in range(1, a.shape[-1]):
+        out = out + a[..., :, i, None] * b[..., i, None, :]
+    return out
+
+
+_SPECIALS = np.array([np.inf, -np.inf, np.nan, 1e308, -1e308, 5e-324, -0.0, 0.0])
+
+
+def _matmul_inputs(case: str, arg):
+    """(a, b) pairs for one case of the matmul test."""
+    if case == "by column":      # around the row count where the products go column by column
+        rows, inner, cols = arg
+        a, b = SCALAR_RNG.normal(size=(rows, inner)) * 1e3, SCALAR_RNG.normal(size=(inner, cols))
+        a[0, 0], a[1, 0], b[0, 0] = -0.0, 1e-320, -0.0
+        yield a, b
+    elif case == "small":        # few rows and columns, empty ones, every scale, a special value now and then
+        rng = np.random.default_rng(5)
+        shapes = [((3, 3), (3, 3)), ((1, 3), (3, 3)), ((2, 4), (4, 1)), ((4, 2), (2, 4)), ((0, 3), (3, 3)),
+                  ((3, 3), (3, 0)), ((1, 1), (1, 1))]
+        for _ in range(300):
+            for sa, sb in shapes:
+                a = rng.normal(size=sa) * 10.0 ** rng.uniform(-5, 5)
+                b = rng.normal(size=sb) * 10.0 ** rng.uniform(-5, 5)
+                if a.size and rng.random() < 0.2:
+                    a.flat[rng.integers(a.size)] = rng.choice(_SPECIALS)
+                yield a, b
+    elif case == "lists":        # random shapes up to 4x4, special values
+        rng = np.random.default_rng(9)
+        special = [np.inf, -np.inf, np.nan, -0.0, 0.0, 1e308, 5e-324]
+        for _ in range(500):
+            n, k, m = (int(x) for x in rng.integers(1, 5, 3))
+            a, b = rng.normal(size=(n, k)) * 10.0 ** rng.integers(-5, 5), rng.normal(size=(k, m))
+            if rng.random() < 0.3:
+                a.flat[rng.integers(a.size)] = rng.choice(special)
+            yield a, b
+    else:                        # a batch of 3x3 products
+        rng = np.random.default_rng(20300101)
+        yield rng.normal(size=(50, 3, 3)), rng.normal(size=(50, 3, 3))
+
+
+_MATMUL_CASES = ([("by column", (rows, inner, cols)) for rows in (fm._ROWS_BY_COLUMN - 1, fm._ROWS_BY_COLUMN, 5000)
+                  for inner, cols in ((3, 3), (3, 1), (1, 4), (4, 2))]
+                 + [("small", None), ("lists", None), ("batch", None)])
+
+
+@pytest.mark.parametrize("case, arg", _MATMUL_CASES)
+def test_matmul_is_the_broadcast_sum_in_index_order(case, arg):
+    """fixedmath.matmul, by columns or on Python floats, and matmul_lists give the broadcast sum's
+    bits, signed zeros, subnormals, infinities and NaN included; a batch of 3x3 products is the sum
+    written out one Python float operation at a time."""
+    for a, b in _matmul_inputs(case, arg):
+        with np.errstate(all="ignore"):
+            want = reference_matmul(a, b)
+            got = fm.matmul(a, b)
+        assert got.shape == want.shape and got.dtype == np.float64 and got.flags.c_contiguous
+        assert _bits(got) == _bits(want), (a, b)
+        if a.ndim == 2 and a.size and b.size:
+            lists = np.array(fm.matmul_lists(a.tolist(), b.tolist()), dtype=np.float64)
+            assert _bits(lists) == _bits(want), (a, b)
+        if a.ndim == 3:
+            for k in range(a.shape[0]):
+                for i in range(3):
+                    for j in range(3):
+                        s = float(a[k, i, 0]) * float(b[k, 0, j])
+                        s = s + float(a[k, i, 1]) * float(b[k, 1, j])
+                        s = s + float(a[k, i, 2]) * float(b[k, 2, j])
+                        assert got[k, i, j] == s
+
+
+def test_norm_of_a_small_vector_is_the_numpy_sum():
+    for v in [SCALAR_RNG.normal(size=n) * s for n in (1, 3, 4, 16) for s in (1.0, 1e-200, 1e200)] + \
+             [np.zeros(3), _edges(-0.0), _edges(np.inf, 1.0), SCALAR_RNG.normal(size=(3, 3))]:
+        flat = v.reshape(-1)
+        with np.errstate(over="ignore"):
+            s = flat[0] * flat[0]
+            for k in range(1, flat.size):
+                s = s + flat[k] * flat[k]
+        assert _bits(fm.norm(v)) == _bits(np.sqrt(s)) and type(fm.norm(v)) is float
+    assert math.isnan(fm.norm(_edges(np.nan, 1.0)))
+    assert fm.norm(np.ones(3), keepdims=True).shape == (1,)
+
+
+def test_norm_quiet_state_restores_numpy_error_state():
+    before = np.geterr()
+    with np.errstate(over="raise", invalid="warn", divide="raise"):
+        inside = np.geterr()
+        big = np.array([[1e200, 1e200, 0.0], [np.inf, 1.0, 1.0]])
+        assert np.isinf(fm.norm(big, axis=-1)).all()     # no FloatingPointError from the guarded sum
+        assert np.geterr() == inside
+    assert np.geterr() == before

@@ -1,4 +1,6 @@
-"""Property tests of the float64 rotation helpers: quaternions, look-at frames, aiming a light."""
+"""Property tests of the float64 rotation helpers (quaternions, look-at frames, aiming a light), and
+the shorter routes in allo_usd.core.geometry (the identity check, check_finite, matrix_to_quat on
+Python floats) giving the decisions and bits of their plain forms."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from allo_usd.core import geometry
 from allo_usd.core.errors import AlloError
 from allo_usd.core.geometry import look_at, matrix_to_quat, quat_to_matrix, rotation_towards
 
@@ -131,3 +134,80 @@ def test_tiny_and_huge_directions_keep_their_direction(scale):
     d = np.array([0.3, -0.5, 0.8]) * scale
     np.testing.assert_allclose(rotation_towards(d)[:, 2], unit([0.3, -0.5, 0.8]), atol=1e-15)
     np.testing.assert_allclose(quat_to_matrix(np.array([1.0, 0, 0, 0]) * scale), np.eye(3), atol=1e-15)
+
+
+# --- the shorter routes give the decisions and bits of their plain forms --------------------------
+
+def _bits(a) -> bytes:
+    return np.ascontiguousarray(np.asarray(a, dtype=np.float64)).tobytes()
+
+
+def test_identity_check_is_allcloses_decision():
+    rng = np.random.default_rng(7)
+    for _ in range(20000):
+        m = np.eye(3) + rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-8, -4)
+        if rng.random() < 0.02:
+            m[rng.integers(3), rng.integers(3)] = rng.choice([np.nan, np.inf, -np.inf])
+        assert geometry._near_identity(m) == np.allclose(m, np.eye(3), atol=1e-6)
+
+
+@pytest.mark.parametrize("value", [(1.0, 2.0, 3.0), (1.0, float("nan")), [[1, 2], [3, float("inf")]], np.zeros((5, 5)),
+                                   np.full(20, np.inf), np.full(16, -np.inf), 5.0, float("-inf"), [], 5e-324, 1e308])
+def test_check_finite_decides_as_isfinite(value):
+    finite = bool(np.isfinite(np.asarray(value, dtype=np.float64)).all())
+    if finite:
+        got = geometry.check_finite("v", value)
+        want = np.asarray(value, dtype=np.float64)
+        assert np.ascontiguousarray(got).tobytes() == np.ascontiguousarray(want).tobytes()
+    else:
+        with pytest.raises(AlloError):
+            geometry.check_finite("v", value)
+
+
+def reference_matrix_to_quat(r):
+    """matrix_to_quat on numpy arrays (the checks included, the orthonormality product as the
+    broadcast sum in index order): the form its Python-float route must equal bit for bit."""
+    from allo_usd.core import fixedmath as fm
+
+    r = geometry.check_finite("rotation matrix", r)
+    rrt = r[:, 0, None] * r.T[0, None, :]
+    for i in range(1, 3):
+        rrt = rrt + r[:, i, None] * r.T[i, None, :]
+    if abs(fm.det3(r) - 1.0) > 1e-6 or not np.allclose(rrt, np.eye(3), atol=1e-6):
+        raise AlloError("not a rotation")
+    t = r[0, 0] + r[1, 1] + r[2, 2]
+    k = int(np.argmax(np.array([t, r[0, 0], r[1, 1], r[2, 2]])))
+    if k == 0:
+        s = np.sqrt(1.0 + t) * 2
+        q = np.array([0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s])
+    elif k == 1:
+        s = np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        q = np.array([(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s])
+    elif k == 2:
+        s = np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        q = np.array([(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s])
+    else:
+        s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        q = np.array([(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s])
+    q /= fm.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def test_matrix_to_quat_is_its_array_form():
+    rng = np.random.default_rng(9)
+    mats = [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+    for _ in range(3000):
+        q = rng.normal(size=4)
+        if rng.random() < 0.3:          # near 180 degrees about some axis: every branch of Shepperd's method
+            q[0] *= 1e-4
+        mats.append(geometry.quat_to_matrix(q / np.linalg.norm(q)))
+    for m in mats:
+        m = m + rng.normal(size=(3, 3)) * 1e-9 * rng.integers(0, 2)
+        assert _bits(geometry.matrix_to_quat(m)) == _bits(reference_matrix_to_quat(m))
+    for bad in (np.diag([1.0, 1.0, -1.0]), np.eye(3) * 1.01, np.array([[1.0, 1e-5, 0], [0, 1, 0], [0, 0, 1]])):
+        with pytest.raises(AlloError, match="not orthonormal"):
+            geometry.matrix_to_quat(bad)
+    with pytest.raises(AlloError, match="3x3"):
+        geometry.matrix_to_quat(np.eye(4))
+    with pytest.raises(AlloError, match="NaN"):
+        geometry.matrix_to_quat(np.full((3, 3), np.nan))

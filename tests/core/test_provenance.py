@@ -1,4 +1,4 @@
-"""The versions that computed the bytes (issue 23): every render's JSON records `libraries`, every
+"""The versions that computed the bytes: every render's JSON records `libraries`, every
 authored tree a `versions.json` (allo_usd.core.provenance); none of it enters a USD layer."""
 
 from __future__ import annotations

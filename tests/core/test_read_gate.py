@@ -1,11 +1,12 @@
-"""One read gate for every file read from a user (issue 25, part C; core.files.read_user_bytes/_text/_json):
+"""One read gate for every file read from a user (core.files.read_user_bytes/_text/_json):
 a FIFO, a device (/dev/zero), a directory or a link out of the allowed folder is refused by os.stat
 before any open, an oversized file says "too big (N bytes > LIMIT)", and JSON nested deeper than
 MAX_JSON_DEPTH is refused by a bracket scan before json.loads could raise RecursionError. Used for pose
-files (breaks 6b, 7a, 7b), render records NAME.json in `dataset` and in the resume check (6c, 7a, 7b,
-10b) and plan files. Also: a layer's bad allo:split is refused by the reader, as `dataset` refuses it.
+files, render records NAME.json in `dataset` and in the resume check, and plan files. Also: a layer's
+bad allo:split is refused by the reader, as `dataset` refuses it.
 
-Commands that once hung on a FIFO run in a subprocess with a timeout, so a regression fails, not hangs."""
+Commands that would hang on a FIFO if the gate let it through run in a subprocess with a timeout, so
+a regression fails, not hangs."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from allo_usd.core.files import (MAX_JSON_DEPTH, MAX_RECORD_BYTES, InputRefused,
 from allo_usd.plan.posefile import MAX_POSE_FILE_BYTES, read_pose_file
 
 from tests.support.helpers import ROOT
-from tests.output.test_dataset_hostile import fake_render
+from tests.support.renders import fake_render
 
 HANG = 90   # seconds: far above what any of these commands takes, far below forever
 POSE_HEADER = "name,split,x,y,z,qw,qx,qy,qz\n"
@@ -119,7 +120,7 @@ def test_text_that_is_not_utf8_names_the_byte(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# Pose files (breaks 6b, 7a, 7b)
+# Pose files
 
 
 @pytest.mark.process
@@ -155,7 +156,7 @@ def test_deep_pose_json_is_one_plan_error_naming_its_line(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# Render records (breaks 6c, 7a, 7b, 10b)
+# Render records
 
 
 @pytest.mark.process

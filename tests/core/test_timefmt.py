@@ -1,4 +1,4 @@
-"""Recorded times round-trip to the microsecond (issue 16): the perilune epoch a plan gives with
+"""Recorded times round-trip to the microsecond: the perilune epoch a plan gives with
 fractional seconds is the one the layers, `inspect --json` and the tree's plan record, and the sky
 recomputed from the record is the sky that was authored. The DE421 range the errors print is the
 range the checks accept, at the exact boundary instants."""
@@ -25,7 +25,7 @@ from allo_usd.sky.ephemeris_range import DE421_END_UTC, DE421_START_UTC
 from allo_usd.sky.model import compute_sky
 from allo_usd.sky.orbit import Orbit
 
-from tests.run.test_author_tree import small_plan
+from tests.support.plans import small_plan
 
 UTC = timezone.utc
 POINT_NINE = datetime(2030, 1, 1, 0, 0, 0, 900000, tzinfo=UTC)

@@ -1,4 +1,4 @@
-"""The anomaly's pose and visibility annotations (issue 27, render side; conventions in
+"""The anomaly's pose and visibility annotations (render side; conventions in
 allo_usd/output/annotations.py) on real renders of a scene where the station's truss hides part of
 the anomaly: the BOP pose reprojects the model file's triangles onto the `amodal` pass, visib_fract
 is the mask counts' ratio (and the ray cast's without the pass), center_px and mask_centroid_px

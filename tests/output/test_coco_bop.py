@@ -1,4 +1,4 @@
-"""The dataset's COCO and BOP files and its pass folders (issue 27), on real tiny Cycles renders.
+"""The dataset's COCO and BOP files and its pass folders, on real tiny Cycles renders.
 
 A normal train scene, a normal test scene and an anomalous test scene are rendered at 64x36 with
 the depth, normal and instance passes (and `amodal` once the renderer has it); `allo-usd dataset`'s
@@ -166,7 +166,7 @@ def fabricate(src: Path, name: str, dst: Path, new: str, **scene) -> Path:
     return dst
 
 
-REDRAWN = ("manifest.csv", "manifest.parquet", "contact_sheets/")   # rewritten by every run, as before issue 27
+REDRAWN = ("manifest.csv", "manifest.parquet", "contact_sheets/")   # rewritten by every run
 
 
 def stats(out: Path) -> dict[str, tuple[int, int]]:

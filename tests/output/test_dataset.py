@@ -33,41 +33,9 @@ from allo_usd.core.errors import AlloError
 from allo_usd.run.job import render_layer
 
 from tests.support.helpers import make_spec
+from tests.support.renders import SCENES, fabricate, renders  # noqa: F401  (the fixture: four real renders)
 
 pytestmark = pytest.mark.render
-
-SCENES = {  # name: (spec kwargs, split override)
-    "d000_p01": (dict(day=0, pose=1, seed=11), None),
-    "d001_p02": (dict(day=1, pose=2, seed=12), None),
-    "d002_p41": (dict(day=2, seed=13), ("test", 41)),
-    "d003_p41_crate_z0": (dict(day=3, seed=14, anomaly=True), ("test", 41)),
-}
-
-
-@pytest.fixture(scope="module")
-def renders(tiny_base, tmp_path_factory):
-    """Four real 64x36 Cycles renders: 2 normal train, 1 normal test, 1 anomalous test."""
-    root = tmp_path_factory.mktemp("ds_render")
-    for name, (kw, split) in SCENES.items():
-        spec = make_spec(scene_id=name, **kw)
-        if split:
-            spec = replace(spec, split=split[0], pose=split[1])
-        render_layer(write_scene_layer(spec, root / "layers" / f"{name}.usda", tiny_base), root / "renders")
-    return root / "renders"
-
-
-def fabricate(src_dir: Path, src_name: str, dst_dir: Path, name: str, **scene) -> Path:
-    """A render record in job.py's exact format, copied from a real one under a new name."""
-    meta = json.loads((src_dir / f"{src_name}.json").read_text())
-    dst_dir.mkdir(parents=True, exist_ok=True)
-    files = {"rgb": f"{name}.png", "exr": f"{name}.exr", "mask": f"{name}_mask.png", "meta": f"{name}.json"}
-    for key in ("rgb", "exr", "mask"):
-        shutil.copyfile(src_dir / meta["files"][key], dst_dir / files[key])
-    meta["files"], meta["layer_sha256"] = files, hashlib.sha256(name.encode()).hexdigest()
-    meta["scene"].update(sceneId=name, **scene)
-    (dst_dir / f"{name}.json").write_text(json.dumps(meta))
-    return dst_dir
-
 
 def mvtec_pairs(category_dir: Path) -> dict:
     samples = [f.parts[-3:] for f in category_dir.glob("**/*") if f.suffix == ".png"]

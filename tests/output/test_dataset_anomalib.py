@@ -21,7 +21,7 @@ open-edge-platform/anomalib commit b7233686172e3485bfbe01272a8cd7a7e4576986:
   normal is train, abnormal and normal_test are test.
 - src/anomalib/data/utils/image.py, read_mask: Image.open(path).convert("L"), then > 0.
 
-The tree is assembled from real Cycles renders (tests/output/test_dataset.py's fixture) plus render
+The tree is assembled from real Cycles renders (tests/support/renders.py's fixture) plus render
 records copied from them under other anomaly assets, named so that folder order and index order
 disagree and one defect name is a prefix of another (where string and Path ordering differ).
 """
@@ -37,7 +37,7 @@ from PIL import Image
 
 from allo_usd.output.dataset import assemble, read_manifest
 
-from tests.output.test_dataset import fabricate, renders  # noqa: F401  (the fixture: four real renders)
+from tests.support.renders import fabricate, renders  # noqa: F401  (the fixture: four real renders)
 
 pytestmark = pytest.mark.render
 

@@ -1,59 +1,26 @@
 """`dataset` does not trust render JSON: it writes only inside --out, reads only files of the render
 folder, takes split and kind from fixed sets, refuses to mix resolutions and says when a folder
-holds no renders (issue 13: "The record is the truth").
+holds no renders (the record is the truth).
 
-Renders here are synthetic (numpy images in job.py's JSON format), so no Cycles run is needed."""
+Renders here are synthetic (numpy images in job.py's JSON format, tests/support/renders.py), so no
+Cycles run is needed."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import subprocess
 import sys
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pytest
-from PIL import Image
 
 from allo_usd.core.errors import AlloError
 from allo_usd.output.dataset import assemble, read_manifest
 
+from tests.support.renders import edit, fake_render
+
 CLI = [sys.executable, "-c", "from allo_usd.cli import main; main()", "dataset"]
-
-
-def fake_render(d: Path, name: str, split: str = "train", variant: str = "normal", size=(64, 36),
-                station: int = 600, anomaly: int = 0, black: bool = False, **scene) -> Path:
-    """A render record as allo_usd.run.job writes it: NAME.png, NAME_mask.png, NAME.json."""
-    d.mkdir(parents=True, exist_ok=True)
-    w, h = size
-    rng = np.random.default_rng(abs(hash(name)) % 2**32)
-    rgb = np.zeros((h, w, 3), np.uint8) if black else rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
-    mask = np.zeros(w * h, np.uint8)
-    mask[:station] = 1
-    mask[station:station + anomaly] = 2
-    Image.fromarray(rgb).save(d / f"{name}.png")
-    Image.fromarray(mask.reshape(h, w)).save(d / f"{name}_mask.png")
-    counts = {"background": w * h - station - anomaly, "station_and_bodies": station, "anomaly": anomaly}
-    meta = {"layer": str(d / f"{name}.usda"), "layer_sha256": hashlib.sha256(name.encode()).hexdigest(),
-            "package_version": "0", "render_seconds": 0.1, "resolution": [w, h], "class_pixels": counts,
-            "anomaly_fraction": anomaly / (w * h), "effects": {},
-            "scene": {"sceneId": name, "split": split, "variant": variant, "pose": 1, "day": 0, "seed": 1,
-                      "seedPath": "1/0/1/1", "provenance": {},
-                      **({"anomaly": {"asset": "crate", "assetVariant": "blue", "depthIndex": 0}}
-                         if variant == "anomaly" else {}), **scene},
-            "files": {"rgb": f"{name}.png", "exr": f"{name}.exr", "mask": f"{name}_mask.png",
-                      "meta": f"{name}.json"}}
-    (d / f"{name}.json").write_text(json.dumps(meta))
-    return d / f"{name}.json"
-
-
-def edit(meta_path: Path, change) -> None:
-    meta = json.loads(meta_path.read_text())
-    change(meta)
-    meta_path.write_text(json.dumps(meta))
 
 
 def run(render_dirs, out: Path, **kw) -> list[str]:

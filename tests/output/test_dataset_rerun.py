@@ -1,4 +1,4 @@
-"""The per-record shortcuts of `allo-usd dataset` (issue 26) give the answers of the work they skip.
+"""The per-record shortcuts of `allo-usd dataset` give the answers of the work they skip.
 
 - a re-run does not parse a render record whose JSON kept the stat at which it passed check_render
   (its Brief in records.json's state stands for it), and still notices a record whose JSON, image
@@ -8,7 +8,7 @@
 - the one-lstat real paths (real_path, inside, from_root) agree with os.path.realpath, links included;
 - a re-run that changes nothing leaves manifest.csv untouched.
 
-Renders here are synthetic (test_dataset_hostile.fake_render): no Cycles run."""
+Renders here are synthetic (tests/support/renders.py fake_render): no Cycles run."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from allo_usd.output.annotation_files import compute_record
 from allo_usd.output.dataset import assemble, read_manifest
 from allo_usd.output.dataset_files import FOLDERS, AnomalyPixels, inside, real_path
 
-from tests.output.test_dataset_hostile import edit, fake_render
+from tests.support.renders import edit, fake_render
 
 
 def _assemble(renders: Path, out: Path) -> list[str]:

@@ -160,7 +160,7 @@ def test_layer_carries_every_sensor_parameter(tiny_base, tmp_path):
     assert desc.render.exposure == pytest.approx(EXPOSURE, rel=1e-6)  # the camera's EV, stored as a float
     assert desc.effects.sensor == sensor.resolved(desc.render.exposure)
 
-    from tests.usd.test_validation import validation_errors
+    from tests.support.validation import validation_errors
 
     assert validation_errors(layer) == []
 

@@ -1,4 +1,4 @@
-"""A plan's own camera (`[camera]`, issue 17): validation, the UsdGeom.Camera values authored only for a
+"""A plan's own camera (`[camera]`): validation, the UsdGeom.Camera values authored only for a
 non-default lens, the reader's bounds on the aperture offsets, a render whose mask shows exactly what
 rays through the recorded K and pose hit (and not with the offset's sign flipped), and placement
 looking through the plan's camera."""

@@ -1,5 +1,5 @@
 """Plans mean one thing, and hostile plan files fail fast with a PlanError that names the field or
-file and the fix (issue 13): presets and explicit fields, date overflows, binary files, YAML
+file and the fix: presets and explicit fields, date overflows, binary files, YAML
 alias bombs, oversized files, and plans that expand to more scenes than anything could author."""
 
 from __future__ import annotations

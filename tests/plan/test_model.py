@@ -17,7 +17,8 @@ from allo_usd.plan.model import AnomalyChoice, Anomalies, Counts, Dates, Plan, P
 from allo_usd.plan.enumeration import anomaly_quotas, enumerate_scenes, reserve_cap, reserve_group
 from allo_usd.plan.io import load_plan, make_plan, save_plan, schema_text
 
-from tests.usd.test_validation import validation_errors
+from tests.support.plans import plain_usd_report, tiny_plan
+from tests.support.validation import validation_errors
 
 
 @pytest.mark.slow
@@ -73,12 +74,6 @@ def test_committed_json_schema_is_current():
 # ---------------------------------------------------------------------------------------------
 # Authoring a tiny plan
 
-def tiny_plan() -> Plan:
-    return Plan(name="tiny", dates=Dates(days=2), poses=Poses(train=[1, 2], test=[41]),
-                anomalies=Anomalies(assets=[AnomalyChoice(id="power_drill")], depths=[0, 1, 2, 3, 4]),
-                quality=Quality(resolution=(64, 36), samples=4), base_stage=str(BASE_STAGE))
-
-
 @pytest.fixture(scope="module")
 def authored(tmp_path_factory):
     from allo_usd.run.author import author_plan
@@ -117,7 +112,7 @@ def test_tiny_plan_layout_and_sizes(authored):
     reserve_groups = len(_csv(out / "reserves.csv"))
     assert len(list((out / "poses").rglob("*.usda"))) <= 4 + 2 + 2 + reserve_groups   # depths share a pose layer
     for p in paths:
-        assert p.stat().st_size <= 4096, p  # issue 6: a scene layer's own file is at most 4 KB
+        assert p.stat().st_size <= 4096, p  # a scene layer's own file is at most 4 KB
         layer = Sdf.Layer.FindOrOpen(str(p))
         subs = list(layer.subLayerPaths)
         assert subs[0].startswith("../../../poses/s2030/") and subs[1].startswith("../../../sky/d00"), subs
@@ -203,44 +198,6 @@ def test_composed_values_equal_resolve_scene(authored, tmp_path):
 
 # ---------------------------------------------------------------------------------------------
 # A self-contained tree: moved, it opens with plain usd-core
-
-PLAIN_USD = r"""
-import json, os, sys
-from pxr import Usd, UsdValidation
-root = os.path.realpath(sys.argv[1])
-validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
-report = {"validators": len(validators), "layers": {}}
-for path in sys.argv[2:]:
-    stage = Usd.Stage.Open(path)
-    used = [layer.realPath for layer in stage.GetUsedLayers() if not layer.anonymous]
-    errors = UsdValidation.ValidationContext(validators).Validate(stage)
-    report["layers"][path] = {
-        "composition_errors": [str(e) for e in stage.GetCompositionErrors()],
-        "outside": [u for u in used if os.path.commonpath([root, os.path.realpath(u)]) != root],
-        "used": len(used),
-        "anomaly_loaded": (len(stage.GetPrimAtPath("/World/Anomaly").GetAllChildren()) > 0
-                           if stage.GetPrimAtPath("/World/Anomaly") else None),
-        "validation_errors": [f"{e.GetName()}: {e.GetMessage()}" for e in errors
-                              if e.GetType() == UsdValidation.ValidationErrorType.Error]}
-report["allo_usd_imported"] = any(m.startswith("allo_usd") for m in sys.modules)
-print(json.dumps(report))
-"""
-
-
-def plain_usd_report(root: Path, layers: list[Path]) -> dict:
-    """Open each layer with usd-core alone, in a fresh process: no allo_usd import, no plugin path
-    or asset-root variables, run from an unrelated directory. Returns what it found."""
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k in ("PATH", "HOME", "LANG", "TMPDIR")}
-    proc = subprocess.run([sys.executable, "-c", PLAIN_USD, str(root), *map(str, layers)], env=env,
-                          cwd=Path(root).anchor, capture_output=True, text=True, check=True)
-    report = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert report["validators"] > 10 and report["allo_usd_imported"] is False
-    return report
-
 
 @pytest.mark.process
 def test_a_moved_tree_opens_with_plain_usd(authored, tmp_path, monkeypatch):

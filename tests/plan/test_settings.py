@@ -107,7 +107,7 @@ def test_plan_quality_preset_fills_what_the_plan_leaves_out():
     assert (final.denoise_prefilter, final.denoise_quality) == (PRESETS["final"]["denoise_prefilter"],
                                                                 PRESETS["final"]["denoise_quality"])
     assert Quality(preset="final", samples=100).samples == 100  # what the plan says wins
-    with pytest.raises(ValueError, match="preset"):                # an unknown name is refused (issue 13)
+    with pytest.raises(ValueError, match="preset"):                # an unknown name is refused
         Quality(preset="my-label")
     assert Quality().samples == PRESETS["preview"]["samples"]      # the default preset is preview
 

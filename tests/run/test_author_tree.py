@@ -1,5 +1,5 @@
 """An authored tree remembers its plan, one author run at a time writes it, and a broken base
-stage is one clear error (issue 13: "The record is the truth")."""
+stage is one clear error (the record is the truth)."""
 
 from __future__ import annotations
 
@@ -15,17 +15,12 @@ import pytest
 from allo_usd.core.errors import LayerError, PlanError
 from allo_usd.core.paths import BASE_STAGE
 from allo_usd.plan.io import load_plan, save_plan
-from allo_usd.plan.model import AnomalyChoice, Anomalies, Dates, Plan, Poses, Quality
 from allo_usd.run.author import author, author_scene
+
+from tests.support.plans import small_plan
 
 TREE_LOCK = ".allo-author.lock"   # allo_usd.usd.tree.TREE_LOCK
 CLI = [sys.executable, "-c", "from allo_usd.cli import main; main()"]
-
-
-def small_plan(resolution=(160, 90), days: int = 1, train=(1,), base_stage: Path = BASE_STAGE, **kw) -> Plan:
-    return Plan(name="tree", dates=Dates(days=days), poses=Poses(train=list(train), test=[41]),
-                anomalies=Anomalies(assets=[AnomalyChoice(id="power_drill")], depths=[0]),
-                quality=Quality(resolution=resolution, samples=4), base_stage=str(base_stage), **kw)
 
 
 def layer_bytes(out: Path) -> dict[str, bytes]:

@@ -10,8 +10,8 @@ from PIL import Image
 
 from allo_usd.run.demo import run_demo
 
-from tests.plan.test_model import plain_usd_report
-from tests.usd.test_validation import validation_errors
+from tests.support.plans import plain_usd_report
+from tests.support.validation import validation_errors
 
 pytestmark = pytest.mark.render
 
@@ -66,7 +66,7 @@ def test_every_demo_layer_validates(demo_dir):
     layers = sorted((demo_dir / "layers").glob("*.usda"))
     assert len(layers) == 4
     for layer in layers:
-        assert layer.stat().st_size <= 4096  # issue 6: a scene layer's own file is at most 4 KB
+        assert layer.stat().st_size <= 4096  # a scene layer's own file is at most 4 KB
         assert validation_errors(layer) == [], layer.name
     shared = sorted(p for d in ("sky", "poses") for p in (demo_dir / "layers" / d).rglob("*.usda"))
     assert [p.parent.name for p in shared].count("sky") == 4 and len(shared) == 8

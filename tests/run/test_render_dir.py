@@ -1,6 +1,6 @@
-"""Issue 24, what a new user trips over when rendering a directory: `render DIR` on the demo's own
-tree renders exactly its scene layers (1), one rule for "done" whatever rendered the scene (3),
-progress lines where stderr is not a terminal (8), and a render record that moves with its tree (10)."""
+"""What a new user trips over when rendering a directory: `render DIR` on the demo's own tree
+renders exactly its scene layers, one rule for "done" whatever rendered the scene, progress lines
+where stderr is not a terminal, and a render record that moves with its tree."""
 
 from __future__ import annotations
 
@@ -113,8 +113,8 @@ def test_only_the_layer_metadata_names_a_scene(tmp_path):
 
 
 def test_the_cli_renders_the_demo_tree_and_ends_with_a_progress_line_on_a_pipe(demo):
-    """The issue's command on the demo's tree (everything already done here): exit 0, and on a pipe
-    the run's last progress line (point 8) reaches stderr."""
+    """`allo-usd render` of the demo's tree (everything already done here): exit 0, and on a pipe
+    the run's last progress line reaches stderr."""
     root, layers, out, _ = demo
     r = subprocess.run(CLI + [str(root / "layers"), "--out", str(out), "--workers", "1"], capture_output=True,
                        text=True, timeout=300)

@@ -55,7 +55,7 @@ def test_a_stem_with_a_reserved_suffix_is_refused(stem):
 
 
 def test_a_and_a_mask_are_refused_before_anything_renders(tiny_base, tmp_path):
-    """The issue's case: a_mask.usda's RGB would be a.usda's class mask."""
+    """a_mask.usda's RGB would be a.usda's class mask."""
     from allo_usd.run.job import render_layer
 
     for stem in ("a", "a_mask"):
@@ -100,7 +100,7 @@ def test_resume_renders_again_when_a_shared_sublayer_or_texture_changes(tree, tm
     assert dispatch(root, out, workers=1, progress=False).skipped == [layer.stem]
     png = (out / f"{layer.stem}.png").read_bytes()
 
-    sky = root / "sky" / "d000.usda"  # the issue's edit: the shared sky's sun intensity to 0
+    sky = root / "sky" / "d000.usda"  # an edit of the shared sky: its sun intensity to 0
     sky.write_text(re.sub(r"inputs:intensity = [0-9.e+-]+", "inputs:intensity = 0", sky.read_text()))
     assert not is_done(layer, out) and not is_done(layer, out, load_manifest(out))
     summary = dispatch(root, out, workers=1, progress=False)

@@ -1,4 +1,4 @@
-"""The resume's quick check (issue 26): a finished output is trusted on the size, mtime_ns and inode
+"""The resume's quick check: a finished output is trusted on the size, mtime_ns and inode
 its manifest row recorded, without being read; `render --verify` / dispatch(verify=True) reads
 every byte. Real renders at 64x36, 2 samples, one worker."""
 

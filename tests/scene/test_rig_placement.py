@@ -8,16 +8,20 @@ import numpy as np
 import pytest
 
 from allo_usd.assets.primitives import box
+from allo_usd.core import fixedmath as fm
+from allo_usd.core.camera_model import DEFAULT_CAMERA, CameraModel
 from allo_usd.scene.spec import CameraPose
 from allo_usd.core.labels import ANOMALY, STATION
 from allo_usd.core.errors import DegenerateMeshError, PlacementError
-from allo_usd.core.geometry import look_at
+from allo_usd.core.geometry import box_corners, camera_intrinsics, look_at, quat_to_matrix
 from allo_usd.assets.mesh import MeshPart
+from allo_usd.scene import placement, rig
 from allo_usd.scene.placement import DEPTH_OFFSETS, check, place, visible_fraction
-from allo_usd.scene.raycast import RayScene, class_image
+from allo_usd.scene.raycast import RayScene, class_image, pixel_ray_columns, pixel_rays
 from allo_usd.scene.rig import ANGLE_SIGMA_RAD, POSITION_SIGMA_M, perturb
 
 from tests.support.helpers import tiny_station
+from tests.support.soups import blob, numpy_path, station_scene
 
 
 def _scene_of(*boxes):
@@ -451,26 +455,6 @@ def test_occlusion_query_agrees_with_first_hit():
 
 # ------------------------------------------------------------ speed-ups that change no decision
 
-def test_pixel_rays_equal_the_matrix_form_bit_for_bit():
-    """pixel_rays computes each direction component as its own array; the bits equal R @ (x, y, -1)
-    normalised per ray, as written out here."""
-    from allo_usd.core.geometry import camera_intrinsics
-    from allo_usd.scene.placement import random_rotation
-    from allo_usd.scene.raycast import pixel_rays
-
-    rng = np.random.default_rng(11)
-    for w, h in ((1920, 1080), (480, 270), (64, 36)):
-        k = camera_intrinsics(w, h)
-        for _ in range(10):
-            rot, idx = random_rotation(rng), np.sort(rng.choice(w * h, min(w * h, 3000), replace=False))
-            u, v = (idx % w) + 0.5, (idx // w) + 0.5
-            x, y = (u - k[0, 2]) / k[0, 0], -(v - k[1, 2]) / k[1, 1]
-            want = x[:, None] * rot[:, 0] + y[:, None] * rot[:, 1] - rot[:, 2]
-            want /= np.sqrt(want[:, 0] * want[:, 0] + want[:, 1] * want[:, 1] + want[:, 2] * want[:, 2])[:, None]
-            o, d = pixel_rays(np.ones(3), rot, w, h, idx)
-            assert np.array_equal(d.view(np.uint64), want.view(np.uint64)) and np.array_equal(o[-1], np.ones(3))
-
-
 @pytest.mark.slow
 def test_part_pixels_keep_every_pixel_and_the_count(monkeypatch):
     """The part boxes' pixels hold every pixel the object covers at any number of parts, and
@@ -535,3 +519,235 @@ def test_fallback_ranking_screens_less_and_ranks_as_screening_everything():
         assert got == want and len(asked) == len(set(asked))
         saved += len(table) - len(asked)
     assert saved > 0
+
+
+# ------------------------------------------------------------ placement's reference forms
+# Each computation placement does by a shorter route gives exactly the bits of its plain form,
+# written out below as a named reference implementation.
+
+def _bits(a) -> bytes:
+    """The array's dtype and bytes: equal only for the same dtype and the same bits."""
+    a = np.asarray(a)
+    return a.dtype.str.encode() + np.ascontiguousarray(a).tobytes()
+
+
+def reference_posed_fraction(station, anomaly, cam_pos, cam_rot, width, height, idx, lens, pose, sphere, stride):
+    """visible_fraction of a posed object for rays=None on (n, 3) arrays (pixel_rays, fm.matmul, first_hit
+    on broadcast origins): the plain form the per-component count must equal bit for bit."""
+    o, d = pixel_rays(cam_pos, cam_rot, width, height, idx, lens)
+    if not len(o):
+        return 0.0
+    if sphere is not None:
+        c, r = sphere
+        v = c - o[0]
+        t = fm.dot(d, v)
+        miss = (fm.dot(v, v) - t * t > r * r) | (t < -r)
+        keep = np.flatnonzero(~miss)
+        if keep.size == 0:
+            return 0.0
+        o, d = o[keep], d[keep]
+    position, rotation = np.asarray(pose[0], dtype=np.float64), np.asarray(pose[1], dtype=np.float64)
+    origin = fm.matmul(np.asarray(cam_pos, dtype=np.float64)[None] - position, rotation)
+    a_owner, a_dist = anomaly.first_hit(np.broadcast_to(origin, d.shape), fm.matmul(d, rotation))
+    hit = a_owner > 0
+    if not hit.any():
+        return 0.0
+    if station is None:
+        return float(hit.sum() * stride * stride / (width * height))
+    hidden = station.occluded(o[hit], d[hit], a_dist[hit])
+    return float((~hidden).sum() * stride * stride / (width * height))
+
+
+_posed_cases_seen: set = set()   # (without a station, fraction > 0) of each case of the test below
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_posed_fraction_is_the_n_by_3_count(seed):
+    rng = np.random.default_rng(100 + seed)
+    cam_pos = np.array([0.0, 0.0, 0.0])
+    cam_rot = quat_to_matrix(rng.normal(size=4))
+    position = -cam_rot[:, 2] * rng.uniform(3, 12) + rng.normal(size=3) * 0.5
+    # the station partly between the camera and the object (some rays hidden, some not)
+    anomaly, station = blob(200, seed), blob(60, seed + 50, 0.6 * position + cam_rot[:, 0] * 1.5)
+    pose = (position, quat_to_matrix(rng.normal(size=4)))
+    width, height, stride = 160, 90, int(rng.integers(1, 3))
+    idx = placement._box_indices((0, width - 1, 0, height - 1), width, stride)
+    for sphere in (None, (position, 3.0)):
+        for st in (None, station):
+            want = reference_posed_fraction(st, anomaly, cam_pos, cam_rot, width, height, idx, DEFAULT_CAMERA, pose,
+                                            sphere, stride)
+            got = placement._posed_fraction(st, anomaly, cam_pos, width, height, pose, stride, sphere,
+                                            pixel_ray_columns(cam_rot, width, height, idx, DEFAULT_CAMERA))
+            assert got.hex() == want.hex()
+            _posed_cases_seen.add((st is None, got > 0.0))
+
+
+def test_posed_fraction_cases_were_all_seen():
+    """Both counts (silhouette alone, and behind the station) were exercised with something visible."""
+    assert {(True, True), (False, True)} <= _posed_cases_seen, _posed_cases_seen
+
+
+def reference_sphere_box(cam_pos, cam_rot, width, height, centre, radius, lens):
+    """_sphere_box on numpy arrays (camera_intrinsics and fm.matmul): the plain form its Python-float
+    route must equal exactly."""
+    k = camera_intrinsics(width, height, lens)
+    c = fm.matmul(np.asarray(centre, dtype=np.float64) - np.asarray(cam_pos, dtype=np.float64), np.asarray(cam_rot))
+    depth = -c[2]
+    if depth <= radius * 1.01:
+        return None
+    bounds = []
+    for lateral in (c[0], c[1]):
+        h = fm.hypot(lateral, depth)
+        theta, beta = fm.arctan2(lateral, depth), fm.arcsin(min(1.0, radius / h))
+        bounds.append((fm.tan(theta - beta), fm.tan(theta + beta)))
+    (sx0, sx1), (sy0, sy1) = bounds
+    return placement._bounds_to_pixels(width, height, sx0 * k[0, 0] + k[0, 2], sx1 * k[0, 0] + k[0, 2],
+                                       k[1, 2] - sy1 * k[1, 1], k[1, 2] - sy0 * k[1, 1])
+
+
+@pytest.mark.parametrize("lens", [DEFAULT_CAMERA, CameraModel(principal_point_offset_px=(13.25, -7.5))])
+def test_sphere_box_is_its_matmul_form(lens):
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        cam = rng.normal(size=3) * 10
+        rot = quat_to_matrix(rng.normal(size=4))
+        centre = cam + rng.normal(size=3) * rng.uniform(0.5, 40)
+        radius = float(rng.uniform(0.01, 5.0))
+        w = int(rng.choice([480, 1920]))
+        h = w * 9 // 16
+        assert placement._sphere_box(cam, rot, w, h, centre, radius, lens) == \
+            reference_sphere_box(cam, rot, w, h, centre, radius, lens)
+
+
+def reference_rects_union(width, height, stride, u0, u1, v0, v1):
+    """placement._rects_union with each axis on its own and every part in the loop: the plain form
+    the stacked-axes union must equal bit for bit."""
+    phase, m = stride // 2, placement.CULL_MARGIN_PX
+    none = np.zeros(0, dtype=np.int64)
+    if phase >= width or phase >= height:
+        return none, none, none, none
+    t0 = np.maximum(-((phase - np.ceil(u0 - (0.5 + m)).astype(np.int64)) // stride), 0)
+    t1 = np.minimum((np.floor(u1 - (0.5 - m)).astype(np.int64) - phase) // stride, (width - 1 - phase) // stride)
+    r0 = np.maximum(-((phase - np.ceil(v0 - (0.5 + m)).astype(np.int64)) // stride), 0)
+    r1 = np.minimum((np.floor(v1 - (0.5 - m)).astype(np.int64) - phase) // stride, (height - 1 - phase) // stride)
+    some = (t0 <= t1) & (r0 <= r1)
+    if not some.any():
+        return none, none, none, none
+    c0, c1, w0, w1 = int(t0[some].min()), int(t1[some].max()), int(r0[some].min()), int(r1[some].max())
+    covered = np.zeros((w1 - w0 + 1, c1 - c0 + 1), dtype=bool)
+    for a, b, c, d in zip((r0 - w0).tolist(), (r1 - w0 + 1).tolist(), (t0 - c0).tolist(), (t1 - c0 + 1).tolist()):
+        if a < b and c < d:
+            covered[a:b, c:d] = True
+    jj, ii = np.nonzero(covered)
+    return phase + stride * np.arange(c0, c1 + 1), phase + stride * np.arange(w0, w1 + 1), ii, jj
+
+
+def test_rects_union_is_the_per_axis_form():
+    rng = np.random.default_rng(4)
+    cases = 0
+    for k in range(3000):
+        w, h, stride, parts = (int(rng.integers(1, 240)), int(rng.integers(1, 140)), int(rng.integers(1, 5)),
+                               int(rng.integers(1, 70)))
+        u0, v0 = rng.uniform(-40, w + 40, parts), rng.uniform(-40, h + 40, parts)
+        u1, v1 = u0 + rng.uniform(-4, 50, parts), v0 + rng.uniform(-4, 50, parts)
+        if k % 3 == 0:                                     # edges on and near pixel centres
+            u0, v0 = np.round(u0) + 0.5 + rng.choice([0.0, 0.05, -0.05, 0.0500001], parts), np.round(v0) + 0.45
+        got = placement._rects_union(w, h, stride, np.stack([u0, v0]), np.stack([u1, v1]))
+        want = reference_rects_union(w, h, stride, u0, u1, v0, v1)
+        assert all(g.dtype == np.int64 and _bits(g) == _bits(x) for g, x in zip(got, want)), (w, h, stride)
+        cases += bool(len(want[2]))
+    assert cases > 1500
+
+
+@pytest.mark.parametrize("size", [(64, 36), (480, 270), (1920, 1080)])
+def test_part_cull_margin_keeps_every_pixel_the_object_covers(size):
+    """CULL_MARGIN_PX (a twentieth of a pixel around each part box's image) never leaves out a pixel
+    whose ray embree finds on the object: the paper's hazard objects (thin cables and rails, hollow
+    hooks, boxy bags) from the camera clearance out to 40 m, on the full grid and on sub-grids. Every
+    pixel in the object's bounding-sphere box is cast as the reference."""
+    from allo_usd.assets.anomalies import ANOMALY_IDS, build_anomaly
+    w, h = size
+    rng = np.random.default_rng(w)
+    covered_total = 0
+    for name in ANOMALY_IDS:
+        pts, tris = build_anomaly(name).triangle_soup()
+        local = placement.anomaly_scene(pts, tris)
+        radius = float(fm.norm(pts, axis=1).max())
+        for _ in range(2 if w > 1000 else 4):
+            cam_rot = quat_to_matrix(rng.normal(size=4))
+            depth = radius + placement.CAMERA_CLEARANCE_M + rng.choice([0.0, rng.uniform(0.5, 4.0), 40.0])
+            lateral = rng.uniform(-0.3, 0.3, 2) * depth
+            pos = cam_rot @ np.array([lateral[0], lateral[1], -depth])
+            pose = (pos, quat_to_matrix(rng.normal(size=4)))
+            box = placement._sphere_box(np.zeros(3), cam_rot, w, h, pos, radius * 1.01)
+            if box is None:
+                continue
+            for stride in (1, 2, 3):
+                every = placement._box_indices(box, w, stride)
+                if not every.size:
+                    continue
+                covered = []
+                for part in np.array_split(every, -(-every.size // 100_000)):   # bounded memory at 1920x1080
+                    o, d = pixel_rays(np.zeros(3), cam_rot, w, h, part)
+                    owner, _ = local.first_hit(fm.matmul(o - pose[0], pose[1]), fm.matmul(d, pose[1]))
+                    covered.append(part[owner > 0])
+                covered = np.concatenate(covered)
+                cells = placement._parts_pixels(local, np.zeros(3), cam_rot, w, h, pose, stride)
+                cast = np.zeros(w * h, dtype=bool)
+                cast[cells.index(w) if cells is not None else every] = True
+                assert cast[covered].all(), (name, stride, int((~cast[covered]).sum()))
+                covered_total += covered.size
+    assert covered_total > 500
+
+
+def test_the_extent_kept_on_the_bvh_follows_the_points():
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(200, 3))
+    tris = rng.integers(0, 200, size=(100, 3))
+    scene = placement.anomaly_scene(pts, tris)
+    radius, corners = placement._extent(scene, pts)
+    assert radius == float(fm.norm(pts, axis=1).max()) and _bits(corners) == _bits(box_corners(pts))
+    assert placement._extent(scene, pts)[1] is corners             # kept
+    other = pts * 2.0
+    radius2, corners2 = placement._extent(scene, other)           # other points: computed afresh
+    assert radius2 == float(fm.norm(other, axis=1).max()) and _bits(corners2) == _bits(box_corners(other))
+
+
+def test_a_placement_is_the_same_with_the_extent_kept():
+    """Two groups of one asset on one BVH place as a fresh BVH each would."""
+    station = station_scene()
+    obj = (np.array([[-0.3, -0.2, -0.15], [0.3, -0.2, -0.15], [0.3, 0.2, -0.15], [-0.3, 0.2, -0.15],
+                     [-0.3, -0.2, 0.15], [0.3, -0.2, 0.15], [0.3, 0.2, 0.15], [-0.3, 0.2, 0.15]]))
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 6, 5], [4, 7, 6], [0, 4, 5], [0, 5, 1], [1, 5, 6], [1, 6, 2],
+                      [2, 6, 7], [2, 7, 3], [3, 7, 4], [3, 4, 0]])
+    cam_pos = np.array([15.0, 8.0, 5.0])
+    look = -cam_pos / fm.norm(cam_pos)
+    right = fm.cross(look, np.array([0.0, 0.0, 1.0]))
+    right /= fm.norm(right)
+    cam_rot = np.stack([right, fm.cross(right, look), -look], axis=1)
+    shared = placement.anomaly_scene(obj, faces)
+    for seed in (1, 2):
+        got = placement.place(station, obj, faces, cam_pos, cam_rot, np.random.default_rng(seed), 160, 90,
+                              check_width=None, anomaly=shared)
+        want = placement.place(station, obj, faces, cam_pos, cam_rot, np.random.default_rng(seed), 160, 90,
+                               check_width=None)
+        assert [(p.depth_index, None if p.position is None else _bits(p.position), p.area_fraction) for p in got] == \
+            [(p.depth_index, None if p.position is None else _bits(p.position), p.area_fraction) for p in want]
+    assert shared.memo["extent"][0] is obj
+
+
+def test_rig_clearance_and_line_of_sight_are_the_numpy_paths(monkeypatch):
+    """too_close and the one-ray look along a candidate's line of sight, on the station, give the
+    numpy path's answers and distances with the few-ray path on."""
+    scene = station_scene()
+    rng = np.random.default_rng(5)
+    lo, hi = scene.vertices.min(axis=0) - 2.0, scene.vertices.max(axis=0) + 2.0
+    points = lo + (hi - lo) * rng.random((300, 3))
+    got = [rig.too_close(scene, p) for p in points]
+    assert got == numpy_path(monkeypatch, lambda: [rig.too_close(scene, p) for p in points])
+    assert 0 < sum(got) < len(got)
+    rays = scene.vertices[rng.integers(len(scene.vertices), size=300)] - points + rng.normal(scale=0.5, size=(300, 3))
+    rays /= fm.norm(rays, axis=1, keepdims=True)
+    got = [scene.first_hit(p[None], r[None])[1][0] for p, r in zip(points, rays)]
+    want = numpy_path(monkeypatch, lambda: [scene.first_hit(p[None], r[None])[1][0] for p, r in zip(points, rays)])
+    assert _bits(got) == _bits(want) and np.isfinite(got).sum() > 50

@@ -353,7 +353,7 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
                   forbidden=(tree / "private" / "secret.usda",))
     w.cases[-1] = Case(**{**w.cases[-1].__dict__, "argv": ("render", str(layer))})
 
-    # ---- a tree's own folder linked out of it grants nothing (issue 25): hazards/ -> outside/
+    # ---- a tree's own folder linked out of it grants nothing: hazards/ -> outside/
     tree = out / "linktree"
     tree.mkdir()
     (tree / TREE_PLAN).write_text('name = "hostile"\n')
@@ -428,7 +428,7 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
           ("author", str(big), "--out", str(out / "plan_out" / "oversize"), "--no-progress", "--limit", "1"),
           "a 64 MB plan file (valid TOML)")
 
-    # ---- plans whose pose file is hostile (issue 25): the read gate refuses it unopened / unparsed
+    # ---- plans whose pose file is hostile: the read gate refuses it unopened / unparsed
     poses = plans / "poses"
     poses.mkdir()
     os.mkfifo(poses / "fifo.csv")
@@ -459,7 +459,7 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
               ("dataset", str(d), "--out", str(out / "dataset_out" / name)),
               f"a render JSON with {'split ../../escaped' if scene else 'file names /etc/hostname'}")
 
-    # ---- render records the read gate refuses unopened / unparsed (issue 25): left out with a note
+    # ---- render records the read gate refuses unopened / unparsed: left out with a note
     for name, make, note in (
             ("fifo_record", lambda f: os.mkfifo(f), "a FIFO named r0.json"),
             ("zero_record", lambda f: os.symlink("/dev/zero", f), "r0.json linked to /dev/zero"),

@@ -1,4 +1,4 @@
-"""The public API from a user's own script (issue 24, points 2 and 4): the README's Python API block
+"""The public API from a user's own script: the README's Python API block
 runs without an `if __name__ == "__main__":` guard (local render workers never import the caller's
 `__main__`), and the in-process renders keep Blender's own output off the terminal, in a log file."""
 

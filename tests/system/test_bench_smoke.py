@@ -1,4 +1,4 @@
-"""Every scripts/bench_*.py runs (issue 28, "benchmarks that stay true").
+"""Every scripts/bench_*.py runs, so the benchmarks stay true.
 
 Each script runs in a subprocess with the smallest arguments it accepts (a few scenes, 32x18 or
 64x36 pixels, 1-2 samples), writes into tmp_path (never into docs/ or out/), and its table (.md

@@ -1,16 +1,16 @@
-"""Issue 24, points 5 and 6: opening a scene in outside tools, and in Blender.
+"""Opening a scene in outside tools, and in Blender.
 
-Point 5: a composed scene offers exactly one camera, the one that renders it (/World/Camera). The
+Outside tools: a composed scene offers exactly one camera, the one that renders it (/World/Camera). The
 base stage's 50 rig poses are Xforms with AlloCameraPoseAPI (which records their lens), not
 UsdGeom.Camera prims, so usdview's camera menu (every UsdGeom.Camera on the stage) and Blender's
-importer (`bpy.ops.wm.usd_import`, one camera object per UsdGeom.Camera) see one camera. With the
-rig as cameras (before issue 24) the importer made 51.
+importer (`bpy.ops.wm.usd_import`, one camera object per UsdGeom.Camera) see one camera (with the
+rig as cameras the importer would make 51).
 
 The importer tests also measure what the importer leaves behind (README "Other USD tools"): it
 sets no active camera and reads none of the layer's render settings, so the resolution, engine,
 view transform and exposure stay Blender's defaults.
 
-Point 6: `allo-usd render LAYER --save-blend FILE` is the faithful route to a .blend. A fresh Python
+Blender: `allo-usd render LAYER --save-blend FILE` is the faithful route to a .blend. A fresh Python
 process with bpy opens the file, renders it without changing anything, and gets the project's image:
 the render's linear values, rounded to half, are the project's EXR bit for bit, and the project's
 own 8-bit encoding of them is its PNG byte for byte. The PNG Blender itself writes from that

@@ -1,4 +1,4 @@
-"""The README's worked example (issue 17: a plan with its own hazard, camera, pose file and tracking
+"""The README's worked example (a plan with its own hazard, camera, pose file and tracking
 arrays), run as the README writes it: the plan and pose file it shows are the example's files, its
 `allo-usd` commands author, inspect and render the example from a copy of its folder."""
 
@@ -68,7 +68,7 @@ def test_the_example_authors_every_kind_of_scene(authored):
 
 
 def test_every_layer_passes_usd_validation(authored):
-    from tests.usd.test_validation import validation_errors
+    from tests.support.validation import validation_errors
 
     _, tree = authored
     for layer in sorted((tree / "scenes").rglob("*.usda")):

@@ -1,4 +1,4 @@
-"""Authored bytes do not depend on the CPU's SIMD path (issue 23: same bytes on every machine).
+"""Authored bytes do not depend on the CPU's SIMD path (the same bytes on every machine).
 
 The demo plan's first 7 scenes (the set tests/system/test_golden.py compares) are authored in fresh
 subprocesses with numpy's dispatched loops pushed down (NPY_DISABLE_CPU_FEATURES: no AVX2/FMA3, and

@@ -1,4 +1,4 @@
-"""requirements.lock (issue 23, "same bytes on every machine"): every dependency, transitive ones
+"""requirements.lock (the same bytes on every machine): every dependency, transitive ones
 included, pinned to one version with its sha256 hashes; in agreement with pyproject.toml's ranges; and
 installed in this environment exactly as locked (else: `make env`). Reads files and package metadata
 only: no network."""

@@ -1,4 +1,4 @@
-"""Issue 14's outside-client test: a demo layer read by Blender 5.0's own USD importer.
+"""The outside-client test: a demo layer read by Blender 5.0's own USD importer.
 
 A spec-following client (`bpy.ops.wm.usd_import` into a fresh Blender, in a child process) gets
 only the spec-level mapping applied by hand: the camera's exposure from the standard

@@ -1,4 +1,4 @@
-"""Issue 14: a scene layer means to a spec-following USD tool what it means to this project's Cycles.
+"""A scene layer means to a spec-following USD tool what it means to this project's Cycles.
 
 Each test reads the authored attributes with plain pxr and applies the standard's definition
 (UsdLux for lights, UsdGeom.Camera for exposure), then checks that the reader and Blender agree:

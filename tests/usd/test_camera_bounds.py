@@ -1,7 +1,7 @@
-"""A plan's [camera] bounds and the layer reader's agree after the float32 round trip, at every edge
-(issue 25, break 8): a plan at each edge authors a layer the reader accepts, reading back the edge
-itself; just outside each edge the plan refuses, naming the field. Before, focal_length_mm = 1.0 (inside
-the plan's 1..100,000 mm) was stored as 0.0099999998 scene units and the reader refused every scene."""
+"""A plan's [camera] bounds and the layer reader's agree after the float32 round trip, at every edge:
+a plan at each edge authors a layer the reader accepts, reading back the edge itself; just outside
+each edge the plan refuses, naming the field. focal_length_mm = 1.0 (inside the plan's 1..100,000 mm)
+is stored as 0.0099999998 scene units, and the reader accepts it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The cheap paths of issue 26 (part C) give the answers of the full checks they stand in for.
+"""The cheap paths of the checks give the answers of the full checks they stand in for.
 
 - the JSON read gate parses first and refuses depth from the parsed value (no bracket scan per record);
 - the dispatcher's allowed_roots cache answers for one decision only: a fresh check (a render
@@ -9,7 +9,7 @@
   was drawn from: a re-run re-checks a record whose files changed and redraws only the sheets whose
   rows changed; an anomaly's BOP mask_visib is its ground-truth mask (one file, hard-linked).
 
-Renders here are synthetic (test_dataset_hostile.fake_render): no Cycles run."""
+Renders here are synthetic (tests/support/renders.py fake_render): no Cycles run."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from allo_usd.output.dataset import assemble, read_manifest
 from allo_usd.usd import sniff
 from allo_usd.usd.safety import allowed_roots, roots_cached
 
-from tests.output.test_dataset_hostile import fake_render
+from tests.support.renders import fake_render
 
 
 def _nest(depth: int) -> str:

@@ -1,4 +1,4 @@
-"""Your own hazards (issue 17): a plan's anomaly list names a mesh file next to the built-in ids; it is
+"""Your own hazards: a plan's anomaly list names a mesh file next to the built-in ids; it is
 converted into the tree (allo_usd.usd.hazard), placed, authored, rendered and recorded like a built-in one."""
 
 from __future__ import annotations
@@ -209,7 +209,7 @@ def test_the_tree_carries_the_converted_hazard_and_layers_reference_it(authored)
 def test_layers_pass_usd_validation_and_inspect_names_the_source(authored):
     from allo_usd.usd.inspect import describe, format_description
 
-    from tests.usd.test_validation import validation_errors
+    from tests.support.validation import validation_errors
 
     _, layers = authored
     assert validation_errors(layers[0]) == []

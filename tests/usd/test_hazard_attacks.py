@@ -1,4 +1,4 @@
-"""Your own hazards, attacked (issue 25, part B): a USD hazard works from the command line; every file
+"""Your own hazards, attacked: a USD hazard works from the command line; every file
 its composition reads is checked before USD opens it (allo_usd.usd.dependencies.walk_hazard: inside
 the hazard's own folder, regular files, no variable expressions) and is part of source.json's record,
 so an edit to a sublayer is caught on resume; and every triangle a conversion drops is counted in the
@@ -86,13 +86,13 @@ def tree_text(tree) -> str:
     return "".join(p.read_bytes().decode("latin-1") for p in tree.rglob("*") if p.is_file()) if tree.exists() else ""
 
 
-# ------------------------------------------------------------------------- break 5: USD hazards from the CLI
+# ------------------------------------------------------------------------- USD hazards from the CLI
 
 
 @pytest.mark.process
 def test_author_converts_a_usd_hazard_from_the_command_line(tmp_path):
     """`allo-usd author` with a plan naming a two-file .usda hazard: converted, authored, and every file
-    it composes recorded in source.json (before the fix: 'the allo-usd schema did not register')."""
+    it composes recorded in source.json (no 'the allo-usd schema did not register')."""
     from allo_usd.core.files import sha256_file
 
     usd_hazard(tmp_path)
@@ -124,7 +124,7 @@ def test_asset_import_converts_a_usd_file_from_the_command_line(tmp_path):
     assert len(tris) == 12 and sorted(round(float(e), 6) for e in pts.max(axis=0) - pts.min(axis=0)) == [0.1, 0.2, 0.5]
 
 
-# ------------------------------------------------------------------------- break 2: nothing outside is read
+# ------------------------------------------------------------------------- nothing outside is read
 
 
 HEAD = '#usda 1.0\n(\n    metersPerUnit = 1\n    upAxis = "Z"\n'
@@ -220,12 +220,12 @@ def test_asset_import_refuses_an_outside_sublayer_in_one_line(tmp_path):
     assert not (tmp_path / "asset").exists() or not any((tmp_path / "asset").iterdir())
 
 
-# ------------------------------------------------------------------------- break 6a: a FIFO sublayer
+# ------------------------------------------------------------------------- a FIFO sublayer
 
 
 @pytest.mark.process
 def test_a_fifo_sublayer_is_refused_by_stat_not_read(tmp_path):
-    """`asset import` and `author` both refuse it by name at once (before the fix both hung on the read)."""
+    """`asset import` and `author` both refuse it by name at once (neither hangs on the read)."""
     main = usd_hazard(tmp_path, sub="geo/pipe.usda")
     (tmp_path / "geo" / "pipe.usda").unlink()
     os.mkfifo(tmp_path / "geo" / "pipe.usda")
@@ -239,7 +239,7 @@ def test_a_fifo_sublayer_is_refused_by_stat_not_read(tmp_path):
         one_line_error(r, "pipe.usda", "is not a regular file", hidden=CANARY)
 
 
-# ------------------------------------------------------------------------- break 2: the record covers every file
+# ------------------------------------------------------------------------- the record covers every file
 
 
 @pytest.mark.slow
@@ -271,7 +271,7 @@ def test_an_edited_sublayer_is_caught_on_resume(tmp_path, monkeypatch):
     assert round(float(pts[:, 0].max() - pts[:, 0].min()), 6) == 0.7
 
 
-# ------------------------------------------------------------------------- break 4: dropped triangles are recorded
+# ------------------------------------------------------------------------- dropped triangles are recorded
 
 
 SQUARE = "v 0 0 0\nv 0.5 0 0\nv 0 0.5 0\nv {x} {y} {z}\nf 1 2 3\nf 2 4 3\n"
@@ -324,7 +324,7 @@ def test_a_zero_area_usd_triangle_is_a_counted_drop(tmp_path):
 @pytest.mark.process
 def test_the_records_show_a_dropped_triangle(tmp_path, monkeypatch):
     """A hazard OBJ with a NaN vertex, one of its two faces dropped: source.json, the layer's provenance
-    and `asset import`'s line all say 1 dropped (before the fix: droppedTriangles = 0)."""
+    and `asset import`'s line all say 1 dropped (droppedTriangles = 1, not 0)."""
     from pxr import Sdf
 
     from allo_usd.plan.io import load_plan

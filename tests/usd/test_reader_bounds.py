@@ -1,4 +1,4 @@
-"""Issue 13: the reader bounds every value Blender would clamp or choke on, and broken input fails
+"""The reader bounds every value Blender would clamp or choke on, and broken input fails
 with one clear LayerError (naming the attribute, the value, the allowed range and the fix).
 
 Each layer here is a valid scene layer with one opinion overridden through Sdf (an `over` in the

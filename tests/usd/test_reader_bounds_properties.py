@@ -1,4 +1,4 @@
-"""Property tests of the reader's bounds (issue 13): a valid scene layer with random opinions over
+"""Property tests of the reader's bounds: a valid scene layer with random opinions over
 its camera, lights, materials, render settings, sensor and transforms (finite, NaN, inf, huge, tiny,
 negative numbers, and values of the wrong type) either reads into a description whose every value
 lies inside the documented bounds (allo_usd.usd.reader_bounds, docs/reliability/reliability.md, section 2), or is refused

@@ -1,7 +1,7 @@
 """A tree's own folders that are symbolic links are refused for the tree's own layers exactly as
-`--tree` refuses them (issue 25, break 3). Before, a tree's scene layers got `hazards/` (and sky/,
-poses/, stages/) as roots after the link was followed, so `hazards -> /` let a scene read any file:
-the render succeeded and recorded the outside file among its inputs."""
+`--tree` refuses them. A tree's scene layers must not get `hazards/` (and sky/, poses/, stages/)
+as roots after the link is followed: `hazards -> /` would let a scene read any file, and the render
+would succeed and record the outside file among its inputs."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ from allo_usd.usd.compose import copy_schema
 from allo_usd.usd.tree import tree_schema
 from allo_usd.usd.schema import API_SCHEMAS, PLUGIN, PLUGIN_FILES
 
-from tests.plan.test_model import tiny_plan
+from tests.support.plans import tiny_plan
 
 # Runs in a fresh interpreter that imports only pxr: what any usd-core user has.
 PROBE = r"""

@@ -1,8 +1,8 @@
-"""The direct .usda writer (usda_writer.fast_layer_text) gives Sdf's ExportToString byte for byte
-(issue 26): numbers (doubles, floats rounded to float32, ints, bools) over random bit patterns and
-edge values, the vector and quaternion types, token arrays, strings, relationships, prim metadata,
+"""The direct .usda writer (allo_usd.usd.usda_writer) gives Sdf's ExportToString byte for byte:
+numbers (doubles, floats rounded to float32, ints, bools) over random bit patterns and edge values,
+the vector and quaternion types, token arrays, strings, relationships, prim metadata,
 customLayerData and documentation, random prim trees, and every layer authoring writes for the
-demo plan. Anything it does not know must go through Sdf (fast_layer_text returns None), never be
+demo plan. Anything it does not know must go through Sdf (the direct writer returns None), never be
 written differently."""
 
 from __future__ import annotations
@@ -191,3 +191,40 @@ def test_every_layer_authoring_writes_is_written_directly(tmp_path, monkeypatch)
         fast = fast_layer_text(*args)
         assert fast is not None, args[3]
         assert fast == sdf_layer_text(*args), args[3]
+
+
+def test_double_repr_range_is_the_digit_layout_and_sdfs():
+    """_double's repr route (1e-4 <= |x| < 1e15) writes what the digit layout it skips writes, and
+    what Sdf writes, at the range's edges, whole numbers and random values of every magnitude; and
+    _float's memo gives each value's own text (not a zero's sign for another zero)."""
+    S = usda_writer
+
+    def layout(x: float) -> str:
+        """The digit layout (_digits, _shortest) for every finite double: the reference the repr
+        route must equal."""
+        if x == 0.0:
+            return "-0" if str(x)[0] == "-" else "0"
+        mantissa, _, e = repr(abs(x)).partition("e")
+        digits, exp = S._digits(mantissa, int(e) if e else 0)
+        return ("-" if x < 0 else "") + S._shortest(digits, exp)
+
+    rng = np.random.default_rng(30)
+    edges = [1e-4, np.nextafter(1e-4, 0), 1e15, np.nextafter(1e15, 0), 1e14, 123.0, -123.0, 0.5, 2.0 ** 53 + 2,
+             100000000000000.5, 5e-324, -0.0, 0.0]
+    values = [float(v) for v in [*edges, *(rng.normal(size=20000) * 10.0 ** rng.integers(-8, 18, 20000)),
+                                 *range(-300, 300)]]
+    assert [S._double(v) for v in values] == [layout(v) for v in values]
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    spec = Sdf.CreatePrimInLayer(layer, "/P")
+    sample = values[:400]
+    for i, v in enumerate(sample):
+        Sdf.AttributeSpec(spec, f"a{i}", Sdf.ValueTypeNames.Double).default = v
+    written = {}
+    for line in layer.ExportToString().splitlines():
+        if line.strip().startswith("double a"):
+            name, _, text = line.strip()[len("double "):].partition(" = ")
+            written[int(name[1:])] = text
+    assert [written[i] for i in range(len(sample))] == [S._double(v) for v in sample]
+    for v in (0.1, -0.1, 0.0, -0.0, 1e-50, -1e-50, 0.1):
+        assert S._float(v) == S._float_text(v)
+    assert (S._float(0.0), S._float(-0.0)) == ("0", "-0")

@@ -5,24 +5,11 @@ UsdValidation validators, so this is the compliance check."""
 
 from __future__ import annotations
 
-from pxr import Usd, UsdValidation
-
-from allo_usd.usd import schema
 from allo_usd.usd.scene_layer import write_scene_layer
 from allo_usd.core.paths import BASE_STAGE
 
 from tests.support.helpers import make_spec
-
-
-def validation_errors(path, warnings: bool = False) -> list[str]:
-    """Errors (and, with `warnings`, warnings too) that all registered validators find on `path`."""
-    schema.register()
-    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
-    assert len(validators) > 10
-    errors = UsdValidation.ValidationContext(validators).Validate(Usd.Stage.Open(str(path)))
-    return [f"{e.GetName()}: {e.GetMessage()}" for e in errors
-            if e.GetType() == UsdValidation.ValidationErrorType.Error
-            or (warnings and e.GetType() == UsdValidation.ValidationErrorType.Warn)]
+from tests.support.validation import validation_errors
 
 
 def test_committed_base_stage_validates():
