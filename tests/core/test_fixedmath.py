@@ -283,6 +283,7 @@ def test_a_scalar_gets_the_bits_of_the_vectorised_path(name):
 
 
 @pytest.mark.parametrize("name", ["arctan2", "hypot"])
+@pytest.mark.slow
 def test_two_argument_scalars_get_the_bits_of_the_vectorised_path(name):
     f = getattr(fm, name)
     n = SCALAR_N
@@ -316,6 +317,7 @@ def reference_tan(x: float) -> float:
     return fm._sincos(np.array([x]), False)[0] / fm._sincos(np.array([x]), True)[0]
 
 
+@pytest.mark.slow
 def test_tan_scalar_is_sin_over_cos():
     rng = np.random.default_rng(1)
     xs = np.concatenate([rng.uniform(-4, 4, 20000), rng.uniform(-1e5, 1e5, 5000), rng.uniform(-1e-8, 1e-8, 500),

@@ -142,6 +142,7 @@ def _bits(a) -> bytes:
     return np.ascontiguousarray(np.asarray(a, dtype=np.float64)).tobytes()
 
 
+@pytest.mark.slow
 def test_identity_check_is_allcloses_decision():
     rng = np.random.default_rng(7)
     for _ in range(20000):

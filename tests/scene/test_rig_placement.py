@@ -642,6 +642,7 @@ def reference_rects_union(width, height, stride, u0, u1, v0, v1):
     return phase + stride * np.arange(c0, c1 + 1), phase + stride * np.arange(w0, w1 + 1), ii, jj
 
 
+@pytest.mark.slow
 def test_rects_union_is_the_per_axis_form():
     rng = np.random.default_rng(4)
     cases = 0
@@ -660,6 +661,7 @@ def test_rects_union_is_the_per_axis_form():
 
 
 @pytest.mark.parametrize("size", [(64, 36), (480, 270), (1920, 1080)])
+@pytest.mark.slow
 def test_part_cull_margin_keeps_every_pixel_the_object_covers(size):
     """CULL_MARGIN_PX (a twentieth of a pixel around each part box's image) never leaves out a pixel
     whose ray embree finds on the object: the paper's hazard objects (thin cables and rails, hollow

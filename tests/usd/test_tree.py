@@ -231,6 +231,7 @@ def test_an_authored_tree_holds_only_the_modules_names_and_the_cli_names_them(tm
 # No other module spells a tree name
 
 
+@pytest.mark.slow
 def test_no_module_but_the_tree_spells_a_tree_name():
     found = tree_names_outside()
     assert not found, "tree names spelled outside allo_usd.usd.tree (import them from there):\n" + "\n".join(found)
