@@ -3,7 +3,7 @@
 The sky module places them at true scale (scale = body radius, translate = true position),
 so one unit sphere per body serves every day. "Unit" means the drawn outline: the mesh is a 192 x 96
 UV sphere whose vertices lie slightly outside radius 1 (by 1.3e-4, `body_sphere`), so that the polygon's
-outline has, on average around it, the true radius from any view (tests/test_silhouettes.py); vertices
+outline has, on average around it, the true radius from any view (tests/sky/test_silhouettes.py); vertices
 on the unit sphere would draw every body a little small. The Sun's sphere emits nothing and is cut out
 everywhere (UsdPreviewSurface opacity 0 under opacityThreshold 0.5: no renderer draws it, and it is
 not refractive glass, which opacity 0 with threshold 0 may be): the Sun is the station's UsdLux
@@ -32,7 +32,7 @@ dielectric specular layer over the diffuse base. A plane of base colour 0.11 (ro
 at normal incidence then reflects 0.123 of the light instead of 0.110, and the Moon seen at
 quarter phase renders 1.40x the Lambertian prediction (the Earth 1.02x). With ior 1 the
 reflectance is the base colour (0.1099, 0.3057 measured) and the rendered bodies match the
-Lambertian prediction (tests/test_bodies.py).
+Lambertian prediction (tests/assets/test_bodies.py).
 """
 
 from __future__ import annotations
@@ -191,7 +191,7 @@ def earth_texture(h: int = 512, w: int = 1024) -> np.ndarray:
 
 def body_sphere(material: str, textured: bool = True) -> MeshPart:
     """The unit sphere every body is drawn with: its outline, seen from any direction at any distance, has
-    the true mean radius to within 9e-5 (primitives.sphere_outline_scale; tests/test_silhouettes.py).
+    the true mean radius to within 9e-5 (primitives.sphere_outline_scale; tests/sky/test_silhouettes.py).
     Untextured (the Sun's), it carries no UVs: they are most of the file's size."""
     part = uv_sphere("Surface", sphere_outline_scale(BODY_SEGMENTS, BODY_RINGS), material,
                      segments=BODY_SEGMENTS, rings=BODY_RINGS)

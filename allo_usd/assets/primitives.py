@@ -125,7 +125,7 @@ def sphere_outline_scale(segments: int, rings: int) -> float:
     T = tan(b) / b and S = sin(b) cos(b) / b for the angular radius b: 1 far away, but T = 1.12 and
     S = 0.80 for the Moon at the orbit's perilune (1.87 radii). c = 1/2 balances the far worst case
     (1/2 - 5/6 = -1/3) against the near one (1.12 / 2 - 0.80 / 3 = +0.30); the middle of D's range, 7/12,
-    would leave +0.39 near perilune. tests/test_silhouettes.py measures the committed meshes.
+    would leave +0.39 near perilune. tests/sky/test_silhouettes.py measures the committed meshes.
     """
     if segments != 2 * rings:
         raise ValueError(f"sphere_outline_scale needs segments = 2 x rings, got {segments} x {rings}")

@@ -596,7 +596,7 @@ ALPHA_JOINTS = {1: "AlphaS", -1: "AlphaP"}
 # The S1/P1 thermal radiators turn about their beam (station Y) on the thermal radiator rotary joints
 # (TRRJ), edge-on to the Sun so it heats them least. Rest 0 is the pose the static station was built in
 # (panels 35 degrees aft of nadir). The limits keep the 22 m panels clear of the modules forward of the
-# truss and of the truss itself (tests/test_sun_tracking.py sweeps them: docs/physics.md section 14).
+# truss and of the truss itself (tests/scene/test_tracking.py sweeps them: docs/physics.md section 14).
 RADIATOR_JOINTS = {1: "RadiatorS", -1: "RadiatorP"}
 RADIATOR_LIMITS = (-85.0, 85.0)
 ALPHA_REST = float(fm.degrees(SARJ_ANGLE))

@@ -7,7 +7,7 @@ the render is mask-only:
 1 sample, no bounces, no adaptive sampling, no denoiser, no depth or normal pass, no compositor.
 The object index pass then holds the anomaly wherever a camera ray meets it, whatever hides it in
 the main render. Both renders take the first sample at the same place (same seed), so the visible
-anomaly pixels of the class mask are a subset of these (tests/test_pose_annotations.py).
+anomaly pixels of the class mask are a subset of these (tests/output/test_annotations_pose.py).
 
 Everything changed is put back afterwards (in a `finally`), value for value as read from Blender, so
 a warm session (blender.session) goes on patching the scene it believes it shows, and the next render

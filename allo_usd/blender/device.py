@@ -252,7 +252,7 @@ def build_march() -> str | None:
 def cycles_kernel(flags: tuple[str, ...] | None = None) -> str:
     """The CPU kernel Cycles picks on this machine: "AVX2" when the CPU has every flag of
     CYCLES_AVX2_FLAGS (Cycles' own test, ccl::system_cpu_support_avx2) and CYCLES_CPU_NO_AVX2 is unset,
-    else "default". tests/test_rerender_record.py checks it against Cycles' report in-process
+    else "default". tests/blender/test_device_record.py checks it against Cycles' report in-process
     (`_cycles.system_info()`), which is not called here: it also initialises the GPU libraries."""
     import os
 

@@ -22,7 +22,7 @@ flag) are unchanged; geometry is compared by a digest computed once per MeshDesc
 than half of the description's points could be kept (another base stage), the session builds
 from scratch.
 
-Byte-identical to a fresh build (tests/test_session.py, and 10/10 scenes on the real stage in
+Byte-identical to a fresh build (tests/blender/test_session.py, and 10/10 scenes on the real stage in
 scripts/bench_session.py): Cycles with the same seed renders the same scene to the same bytes.
 What makes the patched scene "the same scene":
 - every value is set through the same builder code a fresh build uses (build.build_* and

@@ -30,7 +30,7 @@ import numpy as np
 from allo_usd.core.constants import FOCAL_LENGTH_MM, SENSOR_HEIGHT_MM, SENSOR_WIDTH_MM
 
 # What the layer reader (usd/reader_bounds.py) lets through to Blender, and so what a plan's [camera] may ask for.
-# Each lies inside the hard limits of the bpy RNA property the value ends in (tests/test_reader_bounds.py).
+# Each lies inside the hard limits of the bpy RNA property the value ends in (tests/usd/test_reader_bounds.py).
 LENS_MM = (1.0, 100_000.0)        # Camera.lens (Blender's hard minimum is 1 mm)
 SENSOR_MM = (1.0, 10_000.0)       # Camera.sensor_width / sensor_height (hard minimum 1 mm)
 CLIP_M = (1e-5, 1e13)             # Camera.clip_start / clip_end (hard minimum 1e-6 m); the Sun is 1.5e11 m away

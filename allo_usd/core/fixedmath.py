@@ -12,7 +12,7 @@ carried out one numpy ufunc at a time (+, -, *, /, sqrt, rint, ldexp, frexp, com
 masks), so no SIMD width, FMA contraction or library choice can change a result:
 - `sin`, `cos`, `tan`, `arcsin`, `arccos`, `arctan`, `arctan2`, `exp`, `log`, `log2`: fdlibm's
   algorithms (Sun Microsystems, freely redistributable; the FreeBSD msun versions), vectorised; each
-  is within 1 ulp of the true value (tests/test_fixedmath.py checks against `math` on random inputs);
+  is within 1 ulp of the true value (tests/core/test_fixedmath.py checks against `math` on random inputs);
 - `norm`, `dot`, `matmul`, `det3`, `cross`: sums of products written out in a fixed order;
 - `radians`, `degrees`: one multiplication, as numpy and math do it.
 Scalars in give Python floats out; arrays give float64 arrays. Range reduction for sin and cos is
@@ -21,7 +21,7 @@ rad); a larger argument is an error rather than a silently inaccurate value.
 
 Scalars take a path of their own (`_s_*`): the same fdlibm operations, in the same order, on Python
 floats. CPython carries out each float operation on its own, correctly rounded, so the bits are those
-of the vectorised code (tests/test_fixedmath.py checks both against each other on many inputs), at
+of the vectorised code (tests/core/test_fixedmath.py checks both against each other on many inputs), at
 a few microseconds a call instead of the ~100 us that a dozen one-element numpy ufuncs cost; the
 scene resolution of a plan calls these per scalar hundreds of thousands of times. Anything but a
 finite float in range (inf, nan, a zero divisor, an angle past the reduction limit) goes the

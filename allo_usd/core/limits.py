@@ -11,7 +11,7 @@ MAX_SIDE_PX = 8192
 MAX_PIXELS = 40_000_000
 
 # The smallest side Blender renders (RenderSettings.resolution_x/_y hard minimum; a smaller one is
-# silently rendered at 4 px). tests/test_reader_bounds.py checks it against bpy.
+# silently rendered at 4 px). tests/usd/test_reader_bounds.py checks it against bpy.
 MIN_SIDE_PX = 4
 
 

@@ -102,7 +102,7 @@ def sensor(entry: dict, width: int, height: int) -> dict:
 
 def pose(anomaly: dict) -> dict | None:
     """{cam_R_m2c, cam_t_m2c, model_scale} from the render JSON's `annotations.anomaly.pose`
-    (tests/test_coco_bop.py reprojects it), or None if it records none."""
+    (tests/output/test_coco_bop.py reprojects it), or None if it records none."""
     p = anomaly.get("pose") if isinstance(anomaly, dict) else None
     if not isinstance(p, dict):
         return None

@@ -19,7 +19,7 @@ the other choice moves the files (same indices) and removes the emptied folders.
 Why these choices:
 - anomalib's MVTec and Folder loaders glob EVERY image under the category directory, label an
   image normal if its folder is `good` (so no defect folder may be called that), and pair
-  sorted anomalous images with sorted masks by position (tests/test_dataset_layout.py). So the category directory holds
+  sorted anomalous images with sorted masks by position (tests/output/test_dataset_anomalib.py). So the category directory holds
   nothing but train/, test/ and ground_truth/ (the 3-class masks, sheets and manifest live
   beside it), and every file name starts with a unique fixed-width index: sorting images and
   masks then gives the same order whatever the scene names are (a bare `a.png`/`a_b.png` pair

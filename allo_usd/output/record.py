@@ -3,7 +3,7 @@
 
 It lives in the output layer, not in `run/` where the renders happen: the dataset
 (allo_usd.output.dataset) and its annotation files read records, and a layer may import only its own
-and lower layers (tests/test_imports.py); the render job (`run/`) builds it from above.
+and lower layers (tests/system/test_import_graph.py); the render job (`run/`) builds it from above.
 
 The JSON is `json.dumps(indent=2, sort_keys=True)` of `as_dict()` (allo_usd.output.writers.write_json),
 so its bytes depend on the values only, not on the order of the fields here: finished renders stay

@@ -6,7 +6,7 @@ STEM_instance.png, STEM_amodal.png (those of its passes) and STEM.json (its rend
 allo_usd.output.record). They are collision-free by construction: a stem ending in a reserved suffix
 (`_mask`, `_depth`, `_normal`, `_instance`, `_amodal`, in any case) is refused, and so are two stems
 of one run equal up to case (file systems that ignore case). Then no name of one layer can be a name
-of another (tests/test_render_identity.py checks every pair).
+of another (tests/run/test_render_identity.py checks every pair).
 """
 
 from __future__ import annotations

@@ -336,7 +336,7 @@ class Counts(_Model):
 
 
 # Effects and Quality take their fields' defaults from allo_usd.plan.settings.EffectFlags and
-# QualitySettings, the one declaration; tests/test_presets.py checks the field names agree.
+# QualitySettings, the one declaration; tests/plan/test_settings.py checks the field names agree.
 class Effects(_Model):
     """Mirrors allo_usd.scene.spec.EffectsSpec: what each scene asks the renderer to simulate."""
 

@@ -48,7 +48,7 @@ SPLITS = ("train", "test")
 MAX_POSES = 10_000                # poses in one file (the built-in rig has 50)
 MAX_POSE_FILE_BYTES = 4_000_000   # far above MAX_POSES lines
 QUAT_TOLERANCE = 1e-3             # | |q| - 1 | above this is refused, below it q is normalised
-MAX_POSE_DISTANCE_M = 1e4         # = allo_usd.usd.reader_bounds.MAX_CAMERA_DISTANCE_M (tests/test_pose_file.py checks)
+MAX_POSE_DISTANCE_M = 1e4         # = allo_usd.usd.reader_bounds.MAX_CAMERA_DISTANCE_M (tests/plan/test_posefile.py checks)
 NAME_PATTERN = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,63}$")
 SUFFIXES = (".csv", ".json")
 

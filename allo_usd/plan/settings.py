@@ -58,7 +58,7 @@ def canonical_passes(passes) -> tuple[str, ...]:
 # The one declaration of the quality settings and the effect switches. RenderSpec / EffectsSpec (a
 # scene's request), allo_usd.usd.description.RenderDesc / EffectsDesc (what a layer holds) inherit
 # them; the plan's pydantic Quality / Effects and the presets are checked against them
-# (tests/test_presets.py), and each has an allo:render:* / allo:effects:* attribute
+# (tests/plan/test_settings.py), and each has an allo:render:* / allo:effects:* attribute
 # (allo_usd.usd.attributes, `field`). Keyword-only, so subclasses keep their positional fields.
 @dataclass(frozen=True, kw_only=True)
 class QualitySettings:

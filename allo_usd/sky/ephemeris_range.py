@@ -1,5 +1,5 @@
 """The date range DE421 covers, as constants: plan validation needs it without opening the
-ephemeris (tests/test_ephemeris_range.py checks them against skyfield-data's de421.bsp)."""
+ephemeris (tests/plan/test_light_imports.py checks them against skyfield-data's de421.bsp)."""
 
 from __future__ import annotations
 

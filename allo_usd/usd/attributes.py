@@ -2,7 +2,7 @@
 
 Authoring (scene_layer, base_stage), reading (read) and inspection (inspect) take the names and
 Sdf value types from here, so a renamed or retyped attribute is changed in one place;
-tests/test_attributes.py checks this table against the schema file. No pxr here.
+tests/usd/test_attributes.py checks this table against the schema file. No pxr here.
 """
 
 from __future__ import annotations

@@ -137,7 +137,7 @@ class TreeLinks:
     paths of each scene layer, the largest single cost of a normal scene. A layer's directory is one
     of a handful (scenes/SPLIT/KIND, poses/sSEED, sky, stages, ...), so its resolution is kept; the
     file itself is resolved in full when it is a symlink, so the result is relpath's in every case
-    (tests/test_author_speed.py compares them, symlinked trees included)."""
+    (tests/usd/test_compose.py compares them, symlinked trees included)."""
 
     def __init__(self):
         self._dirs: dict = {}   # core.files.folder_realpath's memo

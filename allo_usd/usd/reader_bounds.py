@@ -34,7 +34,7 @@ OFFSET_TOLERANCE = 4e-6
 
 # What the reader lets through to Blender (docs/reliability.md, section 2). Each range lies
 # inside the hard limits of the bpy RNA property the value ends in, so Blender never clamps a value the
-# layer records: tests/test_reader_bounds.py reads those limits from bpy and checks every one.
+# layer records: tests/usd/test_reader_bounds.py reads those limits from bpy and checks every one.
 # LENS_MM, SENSOR_MM, CLIP_M, MAX_SHIFT: core.camera_model (a plan's [camera] is held to the same bounds).
 SUN_ANGLE_DEG = (0.0, 180.0)      # SunLight.angle, 0..pi
 SPOT_CONE_DEG = (0.5, 90.0)       # half angle; SpotLight.spot_size (the full cone) is 1..180 degrees
@@ -334,7 +334,7 @@ def as_stored(bounds: tuple[float, float]) -> tuple[float, float]:
     """`bounds` widened to what a float attribute can hold of them: the float32 at or just outside
     each end. A layer stores a lens value as a float32, so a plan's edge (focal_length_mm = 1, stored as
     0.0099999998 scene units) must pass. The plan's bounds and the reader's then agree at every edge
-    (tests/test_camera_bounds.py); `snap` brings such a value back to the edge before it reaches Blender."""
+    (tests/usd/test_camera_bounds.py); `snap` brings such a value back to the edge before it reaches Blender."""
     lo, hi = float(np.float32(bounds[0])), float(np.float32(bounds[1]))
     return min(lo, bounds[0]), max(hi, bounds[1])
 

@@ -3,7 +3,7 @@
 `write_layer` writes the text Sdf's ExportToString gives for the layer: written directly
 (`fast_layer_text`) when every value is of a kind whose text is known to be Sdf's, else authored
 with the Sdf API (`sdf_layer_text`; far cheaper than through Usd.Stage: docs/bench_author.md).
-The two give the same bytes (tests/test_author_fast_layer.py); the direct writer costs about a
+The two give the same bytes (tests/usd/test_usda_writer.py); the direct writer costs about a
 third. What the opinions are is decided elsewhere: a scene's in allo_usd.usd.scene_layer, the
 shared sky and camera-sample layers' in allo_usd.usd.compose.
 """
@@ -52,7 +52,7 @@ def _value_type(type_name: str) -> tuple:
 def layer_text(prims: list[Prim], sublayers: list[str], custom: dict, doc: str) -> str:
     """The .usda text of a layer holding `prims`: written directly (`fast_layer_text`) when every
     value is of a kind whose text is known to be Sdf's, else through the Sdf API (`sdf_layer_text`).
-    The two give the same bytes (tests/test_author_fast_layer.py); the direct writer costs about a third."""
+    The two give the same bytes (tests/usd/test_usda_writer.py); the direct writer costs about a third."""
     text = fast_layer_text(prims, sublayers, custom, doc)
     return sdf_layer_text(prims, sublayers, custom, doc) if text is None else text
 
