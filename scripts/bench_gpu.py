@@ -12,7 +12,7 @@ allo_usd.blender.device):
   and at --size, when there is one.
 Columns: wall seconds of the render call (the second run: the first pays kernel loading and, on
 a GPU, kernel compilation; both are in the CSV), whether the second render is byte-identical to
-the first (the determinism that README "GPU rendering" states, measured), and for GPU rows at the
+the first (the determinism that docs/guide/dispatch.md, "GPU rendering", states, measured), and for GPU rows at the
 CPU's size the PSNR (8-bit sRGB) of the GPU image against the CPU image of the same seed and
 settings (inf = identical). Writes OUT/bench_gpu.md, .csv and .png; without a GPU the table
 says so and holds the CPU rows only.

@@ -8,7 +8,7 @@ LAYER_OR_DIR: scene layers, or directories: a demo (`allo-usd demo --out DIR`: D
 an authored tree (DIR/scenes/**/*.usda) or any folder of layers (*.usda). Each layer is rendered
 through the real job (allo_usd.run.job.render_layer, --device cpu: PNG, EXR, mask, JSON) from a
 small layer of our own that sublayers it and sets only the resolution (--size) and, with
---samples, the samples (README "Your own layer on top"); the scene's seed, denoiser and
+--samples, the samples (docs/guide/layering.md); the scene's seed, denoiser and
 everything else are the layer's. Three runs, each a separate process:
 - `run1`, `run2`: the kernel Cycles picks on this machine (AVX2 on any x86-64 CPU with AVX2);
 - `forced`: CYCLES_CPU_NO_AVX2=1, Cycles' switch for its "default" kernel (x86-64-v2, no FMA):

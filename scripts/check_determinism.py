@@ -67,7 +67,7 @@ LIBM_SYMBOLS = ("sin", "cos", "tan", "sincos", "atan", "atan2", "asin", "acos", 
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 SIMD_FLAGS = re.compile(r"^(sse\w*|pni|ssse3|avx\w*|fma\w*|f16c|aes|vaes|pclmulqdq|vpclmulqdq|sha_ni|"
                         r"bmi1|bmi2|popcnt|abm|movbe|amx\w*)$")
-# Days worth having in the paper slice when its spacing allows (README, Conventions): the lunar eclipse
+# Days worth having in the paper slice when its spacing allows (docs/guide/scenes.md, Conventions): the lunar eclipse
 # (three sun lamps, the Moon's lit fraction 0.948) and the station's umbra.
 SLICE_DAYS = (date(2030, 12, 10), date(2030, 9, 27))
 OWN_OUTPUTS = ("docs/reliability/determinism.md", "docs/reliability/determinism.png")   # not counted as making the tree dirty

@@ -70,7 +70,7 @@ vertex in OBJ and STL files) runs, so those count too. A file whose triangles ar
 raises DegenerateMeshError; a file with no triangle mesh at all (empty, or garbage trimesh reads
 as nothing) raises AssetError.
 
-ISS_2016.glb (NASA, /work/shared/assets; see its README): 30,000 triangles in one mesh, one
+ISS_2016.glb (NASA's ISS model, which the tests read from shared/assets beside the checkout): 30,000 triangles in one mesh, one
 PBR material (baseColorTexture 1024x1024 JPEG, metallic 0, roughness 0.5, double sided),
 extent 3162 x 4268 x 1005 file units -> inches by the heuristic -> 80.3 x 108.4 x 25.5 m. 39
 triangles have exactly zero area and are dropped (29,961 kept). Despite glTF's Y-up rule its

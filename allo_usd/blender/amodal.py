@@ -11,7 +11,7 @@ anomaly pixels of the class mask are a subset of these (tests/output/test_annota
 
 Everything changed is put back afterwards (in a `finally`), value for value as read from Blender, so
 a warm session (blender.session) goes on patching the scene it believes it shows, and the next render
-is the one a fresh build would make. Cost against the RGB render: docs/bench_amodal.md.
+is the one a fresh build would make. Cost against the RGB render: docs/benchmarks/bench_amodal.md.
 """
 
 from __future__ import annotations

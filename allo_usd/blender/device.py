@@ -22,12 +22,12 @@ whenever a warm session's device changes (allo_usd.blender.session).
 The device changes a render's noise pattern and last bits, not what the scene means, so it is
 recorded in each render's JSON (`record`), not in the layer, and not in the render identity
 (allo_usd.output.identity): a scene rendered on the CPU counts as done on a GPU machine too
-(re-render with --force). Determinism per device: README "GPU rendering".
+(re-render with --force). Determinism per device: docs/guide/dispatch.md, "GPU rendering".
 
 The JSON also records the CPU kernel Cycles renders with (`cycles_cpu`: "AVX2" or "default", by
 Cycles' own rule from the CPU flags, which it records too): two machines with the same
-kernel and Blender build give the same bytes, others differ in the last bits (README "Re-rendering
-on another machine", docs/bench_rerender.md). It is not in the render identity either.
+kernel and Blender build give the same bytes, others differ in the last bits (docs/reliability/rerendering.md,
+docs/benchmarks/bench_rerender.md). It is not in the render identity either.
 """
 
 from __future__ import annotations
@@ -207,7 +207,7 @@ def record(device: Device) -> dict:
 # "AVX2" when the CPU passes Cycles' AVX2 test (SSE4.2, AVX with OS support, F16C, AVX2, FMA, BMI1,
 # BMI2: ccl::system_cpu_support_avx2) and CYCLES_CPU_NO_AVX2 is unset, otherwise "default" (compiled
 # for Blender's baseline, -march=x86-64-v2 in bpy 5.0.1: SSE4.2). The two kernels round differently
-# (FMA), so images differ in the last bits (docs/bench_rerender.md). Embree and OpenImageDenoise,
+# (FMA), so images differ in the last bits (docs/benchmarks/bench_rerender.md). Embree and OpenImageDenoise,
 # which ship with Blender, pick their own instruction sets from the same CPU flags (this bpy's Embree
 # has SSE2, AVX and AVX2 code; its OIDN names SSE4.1, AVX2 and AVX-512); CYCLES_CPU_NO_AVX2 changes
 # neither.
@@ -270,7 +270,7 @@ def cycles_cpu() -> dict:
       code paths from these);
     - `env`: CYCLES_CPU_NO_AVX2, only when it is set.
     Two renders of a layer give the same bytes when `kernel`, the AVX2/AVX-512 flags and the Blender
-    build match (README "Re-rendering on another machine")."""
+    build match (docs/reliability/rerendering.md)."""
     import os
 
     flags = cpu_flags()

@@ -37,7 +37,7 @@ What makes the patched scene "the same scene":
   geometry work, so it is kept as a guarantee;
 - the world is reused (build.configure_render no longer creates a `Space.001` per call).
 Persistent data (`use_persistent_data`, set by configure_render for both paths) lets Cycles keep
-unchanged geometry between renders. Switch cost and warm vs cold scenes: docs/bench_session.md
+unchanged geometry between renders. Switch cost and warm vs cold scenes: docs/benchmarks/bench_session.md
 (the station is small, so the render dominates either way).
 
 A Session must own the process's Blender scene: a fresh build elsewhere (render_scene, a file

@@ -1,6 +1,6 @@
 """Maths whose every result is the same double on every x86-64 machine: the values that reach a file.
 
-Why this exists (docs/determinism.md): numpy's transcendental ufuncs (`np.sin`, `np.arccos`, ...)
+Why this exists (docs/reliability/determinism.md): numpy's transcendental ufuncs (`np.sin`, `np.arccos`, ...)
 switch to Intel's SVML on AVX-512 CPUs, glibc's libm (what `math.sin` and numpy's other paths call)
 picks FMA variants of sin, cos, atan, acos, exp, log and pow through ifuncs, and `@`, `np.dot` and
 `np.linalg.norm` of a vector go through OpenBLAS, whose kernel depends on the CPU. Each of these

@@ -5,7 +5,7 @@ while it imports its C++ modules' wrappers; bpy's import (Blender's start-up) do
 leaves numpy half-loaded; trimesh wraps its optional imports (scipy, its path and voxel packages)
 and several loader steps in `except BaseException`. A Ctrl-C landing there was lost: the command
 ran on to exit 0. Their calls run inside `interrupt_held()`, which only notes a SIGINT and delivers
-it once the call is over, so the command stops right after the call (docs/reliability.md, "Ctrl-C
+it once the call is over, so the command stops right after the call (docs/reliability/reliability.md, "Ctrl-C
 is never swallowed").
 """
 

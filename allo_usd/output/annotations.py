@@ -4,7 +4,7 @@ mask when it ran (no pxr, no bpy). Without the pass, the anomaly's full silhouet
 the render worker: embreex loads once per process (~0.35 s) and the cast costs ~0.05 s at 640x360,
 ~0.3 s for a 30,000-pixel silhouette at 1920x1080, small beside the render.
 
-Conventions (README "Dataset" repeats them; tests/output/test_annotations_camera.py and tests/output/test_annotations_pose.py
+Conventions (docs/formats/coco_bop.md repeats them; tests/output/test_annotations_camera.py and tests/output/test_annotations_pose.py
 check each):
 - Pixels: OpenCV's. u to the right, v down; the centre of the pixel in column c, row r is at
   (u, v) = (c, r), so the image spans [-0.5, W - 0.5] x [-0.5, H - 0.5].

@@ -2,7 +2,7 @@
 entry per dataset image, one annotation per visible anomaly, as detection and segmentation code
 (pycocotools, detectron2, mmdetection, torchvision's CocoDetection) reads them.
 
-Conventions (README "Dataset" repeats them):
+Conventions (docs/formats/coco_bop.md repeats them):
 - `segmentation`: the visible anomaly (class mask == labels.ANOMALY) as COCO's compressed RLE,
   `pycocotools.mask.encode` of the mask in Fortran order, `counts` decoded to str for JSON, so
   `COCO.annToMask` gives the mask back exactly.

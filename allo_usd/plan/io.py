@@ -9,7 +9,7 @@ aliases (the "billion laughs" expansion) and nesting deeper than MAX_DEPTH are r
 MAX_ERRORS problems, each value cut short; the plan's size in scenes is bounded when it is
 validated (allo_usd.plan.model.MAX_PLAN_SCENES). A parser's refusal is one line naming the line and
 column (YAML's own messages span several). A written TOML plan lists its anomalies as an array of
-tables, one `[[anomalies.assets]]` block each, so a block of one's own (README, Your own hazards)
+tables, one `[[anomalies.assets]]` block each, so a block of one's own (docs/guide/bring_your_own.md, Your own hazards)
 can be appended to it; appending one to an inline `assets = [...]` is named as such."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Render presets, chosen from the measured accuracy/time Pareto front: figures and targets in
-docs/bench_accuracy.md (scripts/bench_accuracy.py).
+docs/benchmarks/bench_accuracy.md (scripts/bench_accuracy.py).
 
 `denoise_prefilter` / `denoise_quality` are Cycles' OIDN `denoising_prefilter` ('NONE', 'FAST',
 'ACCURATE') and `denoising_quality` ('FAST', 'BALANCED', 'HIGH'), recorded in each layer as

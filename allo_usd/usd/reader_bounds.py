@@ -1,6 +1,6 @@
 """What the scene-layer reader lets through, and the checks that hold a layer to it.
 
-The bounds table (the constants below: docs/reliability.md, section 2) keeps every value the
+The bounds table (the constants below: docs/reliability/reliability.md, section 2) keeps every value the
 reader hands to Blender inside the hard limits of the bpy property it ends in, and bounds the size
 of what the reader takes in at all. The checks turn a value outside it into a LayerError that
 names the attribute, the value, the allowed range and the fix: numbers and vectors (`_number`,
@@ -32,7 +32,7 @@ MAX_CAMERA_DISTANCE_M = 1e4    # the camera, from the station (ALLO cameras sit 
 # width and height a plan may give with their aspect 1e-6 off the image's), lands within it.
 OFFSET_TOLERANCE = 4e-6
 
-# What the reader lets through to Blender (docs/reliability.md, section 2). Each range lies
+# What the reader lets through to Blender (docs/reliability/reliability.md, section 2). Each range lies
 # inside the hard limits of the bpy RNA property the value ends in, so Blender never clamps a value the
 # layer records: tests/usd/test_reader_bounds.py reads those limits from bpy and checks every one.
 # LENS_MM, SENSOR_MM, CLIP_M, MAX_SHIFT: core.camera_model (a plan's [camera] is held to the same bounds).

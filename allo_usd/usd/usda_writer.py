@@ -2,7 +2,7 @@
 
 `write_layer` writes the text Sdf's ExportToString gives for the layer: written directly
 (`fast_layer_text`) when every value is of a kind whose text is known to be Sdf's, else authored
-with the Sdf API (`sdf_layer_text`; far cheaper than through Usd.Stage: docs/bench_author.md).
+with the Sdf API (`sdf_layer_text`; far cheaper than through Usd.Stage: docs/benchmarks/bench_author.md).
 The two give the same bytes (tests/usd/test_usda_writer.py); the direct writer costs about a
 third. What the opinions are is decided elsewhere: a scene's in allo_usd.usd.scene_layer, the
 shared sky and camera-sample layers' in allo_usd.usd.compose.
