@@ -534,6 +534,17 @@ def report(out: Path, info: dict, rows: list[dict], cache_note: str, n: int, siz
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_scale.md").write_text("\n".join(lines))
 
+    fig, ax = plt.subplots(figsize=(9, 0.5 + 0.5 * len(rows)))
+    labels = [r["what"] for r in rows]
+    ax.barh(labels, [r["seconds"] for r in rows], color="#4477aa")
+    for i, r in enumerate(rows):
+        ax.text(r["seconds"], i, f" {r['seconds']:.1f} s (load {r['load'][0]})", va="center", fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("seconds (wall)")
+    ax.set_title(f"{n:,} scenes, {info['cpu']['cores']} cores, {info['date']}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out / "bench_scale.png", dpi=100)
+
 
 def _hand_findings(report: Path) -> list[str]:
     """The paragraphs of an existing report's Method section after its first (generated) one: what
@@ -545,16 +556,6 @@ def _hand_findings(report: Path) -> list[str]:
         return []
     paragraphs = method[1].split("\n## ", 1)[0].strip().split("\n\n")[1:]
     return [x for p in paragraphs for x in ("", p)]
-    fig, ax = plt.subplots(figsize=(9, 0.5 + 0.5 * len(rows)))
-    labels = [r["what"] for r in rows]
-    ax.barh(labels, [r["seconds"] for r in rows], color="#4477aa")
-    for i, r in enumerate(rows):
-        ax.text(r["seconds"], i, f" {r['seconds']:.1f} s (load {r['load'][0]})", va="center", fontsize=8)
-    ax.invert_yaxis()
-    ax.set_xlabel("seconds (wall)")
-    ax.set_title(f"{n:,} scenes, {info['cpu']['cores']} cores, {info['date']}", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(out / "bench_scale.png", dpi=100)
 
 
 def main() -> None:
