@@ -6,6 +6,7 @@ import errno
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import allo_usd
 from allo_usd.core.interrupts import Held
@@ -19,8 +20,11 @@ import typer  # noqa: E402 - after the hold above
 from allo_usd.core.errors import AlloError  # noqa: E402
 from allo_usd.core.files import ensure_output_dir, ensure_output_file  # noqa: E402
 from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX, resolution_problem  # noqa: E402
-from allo_usd.plan.settings import PASSES, canonical_passes  # noqa: E402
+from allo_usd.plan.settings import PASSES  # noqa: E402
 from allo_usd.usd.tree import COUNTS_CSV, POSE_DIR, SCENE_DIR, SKIPPED_CSV, SKY_DIR, STAGE_DIR  # noqa: E402
+
+if TYPE_CHECKING:
+    from allo_usd.run.options import JobOptions, RunOptions
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
                   help="Author, record and render the ALLO lunar-orbit anomaly dataset as USD layers.")
@@ -175,69 +179,59 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
     A packed scene (.usdz, `allo-usd pack`) renders as its layer would and reads only its own files.
     --device picks the Cycles device (auto, cpu, gpu); the JSON of each render records it.
     """
+    from allo_usd.run.options import RunOptions
     from allo_usd.usd.safety import trees_granted
 
     with trees_granted(trees or ()):
-        _render(source, out, force, workers, scheduler, threads, retries, timeout, save_blend, device,
-                None if passes is None else canonical_passes([p.strip() for p in passes.split(",") if p.strip()]),
-                verify)
+        # the one value the rest reads; built and checked here (passes, device, numbers, --scheduler)
+        _render(source, out, RunOptions.from_cli(force=force, workers=workers, scheduler=scheduler, threads=threads,
+                                                 retries=retries, timeout=timeout, verify=verify,
+                                                 save_blend=save_blend, device=device, passes=passes))
 
 
-def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str | None, threads: int, retries: int,
-            timeout: float, save_blend: Path | None, device: str | None = None,
-            passes: tuple[str, ...] | None = None, verify: bool = False) -> None:
+def _render(source: Path, out: Path, options: RunOptions) -> None:
+    """`allo-usd render` with its options as one RunOptions (allo_usd.run.options; RunOptions.from_cli
+    checked them): one layer in this process (_render_one), else a directory, a layer on workers or
+    a plan through the dispatcher. Checks what depends on the source first."""
+    import dataclasses
     import warnings
 
-    from allo_usd.blender.device import check_device
     from allo_usd.usd.sniff import LAYER_SUFFIXES
 
-    device = None if device is None else check_device(device)
-
-    for name, value in (("--workers", workers), ("--threads", threads), ("--retries", retries),
-                        ("--timeout", timeout or 0)):   # the command line's parsers refuse these first
-        if value < 0:
-            raise AlloError(f"{name} {value:g} is negative; pass 0 for the default or a positive number")
-    if scheduler is not None:   # a malformed address is one line before anything starts (unreachable: dispatch)
-        from allo_usd.run.dispatch import scheduler_problem
-
-        why = scheduler_problem(scheduler)
-        if why:
-            raise AlloError(f"--scheduler {why}; fix: give the address `dask scheduler` prints, e.g. "
-                            "--scheduler tcp://HOST:8786, or leave it out for a local pool")
+    job = options.job
     suffix = source.suffix.lower()
     is_layer = suffix in (*LAYER_SUFFIXES, ".usdz") and source.exists() and not source.is_dir()  # .usdz: a pack
-    single = is_layer and scheduler is None and not workers
-    if save_blend is not None and not single:
+    single = is_layer and options.scheduler is None and not options.workers
+    if job.save_blend is not None and not single:
         raise AlloError("--save-blend saves the Blender scene of one layer: pass a single .usda layer (or .usdc, "
                         ".usd; without --workers or --scheduler)")
-    if save_blend is not None:   # before anything is written or rendered (allo_usd.blender.debug)
+    if job.save_blend is not None:   # before anything is written or rendered (allo_usd.blender.debug)
         from allo_usd.blender.debug import check_blend_target
 
-        save_blend = check_blend_target(save_blend, replace=force)
+        job = dataclasses.replace(job, save_blend=check_blend_target(job.save_blend, replace=job.force))
     if not (source.is_dir() or is_layer or (source.is_file() and suffix in (".toml", ".yaml", ".yml"))):
         raise AlloError(f"{source} does not exist or is not a layer (.usda, .usdc, .usd, or a .usdz package), a "
                         "directory of layers or a plan (.toml/.yaml); check the path")
-    if passes is not None and (source.is_dir() or (is_layer and not single)):
+    if job.passes is not None and (source.is_dir() or (is_layer and not single)):
         raise AlloError("--passes overrides the passes of a single layer (rendered in this process) or of a plan's "
                         "layers; a directory's layers record their own: render a plan with --passes, or set "
                         "quality.passes in the plan and author the layers again")
     ensure_output_dir(out)
     if single:
-        _render_one(source, out, force, threads, save_blend, device or "auto", passes)
+        _render_one(source, out, job)
         return
     from allo_usd.run.dispatch import author_and_dispatch, connect_scheduler, dispatch
 
     # connected before the scan: an unreachable scheduler is one line within SCHEDULER_CONNECT_S
-    client = None if scheduler is None else connect_scheduler(scheduler)
-    kwargs = dict(workers=workers or None, scheduler=client, threads=threads or None, retries=retries,
-                  timeout=timeout or None, verify=verify)
+    client = None if options.scheduler is None else connect_scheduler(options.scheduler)
+    options = dataclasses.replace(options, scheduler=client, job=job)
     try:
         with warnings.catch_warnings(record=True) as notes:
             warnings.simplefilter("always")
             if source.is_dir() or is_layer:
-                summary = dispatch(source, out, device=device or "auto", **kwargs)
+                summary = dispatch(source, out, options=options)   # job.device None: auto
             else:
-                summary = author_and_dispatch(source, out, device=device, passes=passes, **kwargs)
+                summary = author_and_dispatch(source, out, options)   # job.device None: the plan's
     finally:
         if client is not None:
             client.close()
@@ -253,10 +247,10 @@ def _render(source: Path, out: Path, force: bool, workers: int, scheduler: str |
         raise SystemExit(1)
 
 
-def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: Path | None, device: str,
-                passes: tuple[str, ...] | None = None) -> None:
-    """One layer in this process, under the same output lock as a directory render; a full disk
-    (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is a DiskFullError."""
+def _render_one(layer: Path, out: Path, job: JobOptions) -> None:
+    """One layer in this process as `job` (a JobOptions; device None: auto) says, under the same output
+    lock as a directory render; a full disk (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is
+    a DiskFullError."""
     from allo_usd.core.files import RunLock
     from allo_usd.run.dispatch import LOCK
     from allo_usd.run.job import render_record
@@ -269,8 +263,7 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
     with RunLock(out, LOCK, "render"):
         try:
             with output_to(out / "logs" / "render.log"):  # Blender's own prints
-                meta = render_record(layer, out, force=force, threads=threads or None, save_blend=save_blend,
-                                     device=device, passes=passes)
+                meta = render_record(layer, out, job)
         except (OSError, RuntimeError) as exc:
             full = disk_full_error(exc, out)
             if full is None:
@@ -278,8 +271,8 @@ def _render_one(layer: Path, out: Path, force: bool, threads: int, save_blend: P
             raise full from None
     _show_device_notes()
     typer.echo(f"{layer} -> {out}: {meta.render_seconds:.2f} s, classes {meta.class_pixels}")
-    if save_blend is not None:
-        typer.echo(f"Blender scene saved as {save_blend}")
+    if job.save_blend is not None:
+        typer.echo(f"Blender scene saved as {job.save_blend}")
 
 
 @app.command()

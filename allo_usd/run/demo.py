@@ -144,6 +144,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     from allo_usd.core.provenance import record_tree_versions
     from allo_usd.output.dataset import read_pixels
     from allo_usd.run.job import render_record
+    from allo_usd.run.options import JobOptions
     from allo_usd.run.worker import output_to
     from allo_usd.sky.ephemeris import default_epochs
     from allo_usd.sky.model import compute_sky
@@ -167,7 +168,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
             with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
                 # skipped when done for these very layer bytes (allo_usd.run.render_index.is_done); a
                 # changed layer, e.g. another resolution, renders again
-                meta = render_record(layer, out_dir / "renders", device=device)
+                meta = render_record(layer, out_dir / "renders", JobOptions(device=device))
             bar.write(f"{spec.scene_id}: {meta.render_seconds:.1f} s, anomaly {meta.anomaly_fraction:.3%}, "
                       f"sun {spec.sun.eclipse_state}")
             rgb = read_pixels(out_dir / "renders" / meta.files["rgb"])

@@ -8,8 +8,7 @@ one alone. How the two backends stay crash-safe is described in docs/dispatch.md
 
 from __future__ import annotations
 
-import math
-import numbers
+import dataclasses
 import os
 import signal
 import sys
@@ -24,6 +23,7 @@ from allo_usd.core.files import RunLock, ensure_output_dir, read_whole_small
 from allo_usd.core.threads import in_threads
 from allo_usd.output.checksums import remember_sha256
 from allo_usd.output.render_outputs import check_output_names
+from allo_usd.run.options import JobOptions, RunOptions, check_timeout, run_options
 from allo_usd.run.render_index import (MANIFEST, append_jsonl, append_rows, clean_stale, compact_manifest, prefetch,
                                        resume_check)
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
@@ -188,19 +188,6 @@ class _Worker:
         self.proc.kill()
         self.proc.join(5)
         self.proc.close()  # its connection and pidfd
-
-
-def check_timeout(timeout, name: str = "timeout=") -> float | None:
-    """`timeout` as seconds (finite and > 0), or None for time_limit's formula (None, or 0 from the
-    API); anything else (NaN, which compares false with every limit and so turned the limit off, an
-    infinity, a negative number, a bool or a string) is an AlloError that prints what was given."""
-    number = isinstance(timeout, numbers.Real) and not isinstance(timeout, bool)
-    if timeout is None or (number and timeout == 0):
-        return None
-    if not number or not (math.isfinite(timeout) and timeout > 0):
-        raise AlloError(f"{name}{timeout!r} is not a number of seconds > 0; fix: give the seconds one attempt at a "
-                        "scene may take, or None for the limit from each layer's size")
-    return float(timeout)
 
 
 def time_limit(layer: Path, timeout: float | None = None) -> float:
@@ -372,14 +359,16 @@ class _Run:
             print(self.line(final=True), file=sys.stderr, flush=True)
 
 
-def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, run: _Run, env: dict,
-               before_render: Hook | None = None, timeout: float | None = None, device: str = "auto") -> None:
+def _run_local(tasks: list[_Task], out_dir: Path, workers: int, job: JobOptions, run: _Run, env: dict,
+               before_render: Hook | None = None, timeout: float | None = None) -> None:
+    """The tasks on `workers` local worker processes, each rendering with `job` (its threads: the
+    cores given to each worker)."""
     from multiprocessing.connection import wait
 
     check_hook(before_render)  # one line now, not a worker death per attempt
     pending = deque(tasks)
     n = min(workers, len(tasks))
-    pool = [_Worker(env, cores, i, out_dir, before_render) for i, cores in enumerate(core_sets(n, threads))]
+    pool = [_Worker(env, cores, i, out_dir, before_render) for i, cores in enumerate(core_sets(n, job.threads))]
 
     def replace(i: int, w: _Worker) -> None:
         w.kill()
@@ -396,8 +385,8 @@ def _run_local(tasks: list[_Task], out_dir: Path, workers: int, threads: int, ru
                     if w.task.limit is None:
                         w.task.limit = time_limit(w.task.layer, timeout)
                     w.sent, w.started = time.monotonic(), None
-                    w.conn.send({"layer": str(w.task.layer), "out_dir": str(out_dir), "threads": threads,
-                                 "roots": env.get(ENV_ROOTS, ""), "device": device})
+                    w.conn.send({"layer": str(w.task.layer), "out_dir": str(out_dir), "options": job,
+                                 "roots": env.get(ENV_ROOTS, "")})
             busy = [w for w in pool if w.task]
             wait([w.conn for w in busy] + [w.proc.sentinel for w in busy if w.proc.sentinel is not None], timeout=1.0)
             run.poll()
@@ -473,11 +462,12 @@ def _hold_one_death_per_attempt(client, hold: bool) -> bool:
         return False
 
 
-def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None, run: _Run, env: dict,
-              before_render: Hook | None = None, timeout: float | None = None, device: str = "auto") -> None:
-    """The tasks on a Dask cluster. Each attempt's clock starts when the scheduler first lists it
-    as processing on a worker; past its limit the future is cancelled, the worker restarted (the
-    stuck thread holds that process's bpy lock) and the attempt counted as a timeout."""
+def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, job: JobOptions, run: _Run, env: dict,
+              before_render: Hook | None = None, timeout: float | None = None) -> None:
+    """The tasks on a Dask cluster, each rendering with `job`. Each attempt's clock starts when the
+    scheduler first lists it as processing on a worker; past its limit the future is cancelled, the
+    worker restarted (the stuck thread holds that process's bpy lock) and the attempt counted as a
+    timeout."""
     _distributed()
     from distributed import Client, as_completed
 
@@ -493,7 +483,7 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, threads: int | None,
             task.attempts += 1
             if task.limit is None:
                 task.limit = time_limit(task.layer, timeout)
-            fut = client.submit(render_task, str(task.layer), str(out_dir), threads, roots, before_render, device,
+            fut = client.submit(render_task, str(task.layer), str(out_dir), job, roots, before_render,
                                 pure=False, retries=0,
                                 key=f"allo-render-{task.scene}-{task.attempts}-{os.getpid()}-{time.time_ns()}")
             futures[fut] = task
@@ -624,8 +614,15 @@ def _restart_worker(client, address: str) -> None:
 def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=None, threads: int | None = None,
              retries: int = 2, progress: bool | None = None, extra_roots: tuple = (),
              before_render: Hook | None = None, timeout: float | None = None, trees: tuple = (),
-             device: str = "auto", progress_interval: float = PROGRESS_INTERVAL_S, verify: bool = False) -> Summary:
+             device: str = "auto", progress_interval: float = PROGRESS_INTERVAL_S, verify: bool = False, *,
+             options: RunOptions | None = None) -> Summary:
     """Render every scene layer of `source` (directory, layer or list) into `out_dir`.
+
+    The options of the run are `options` (a RunOptions, as the command line builds it) or, without
+    it, the keywords workers, scheduler, threads, retries, timeout, device, verify and progress,
+    which build one (allo_usd.run.options.run_options; an option given both ways is an AlloError).
+    A run renders each layer's own passes: a RunOptions whose job sets passes or save_blend is
+    refused; its job's force is not read (what is done is the resume rule's to say).
 
     `workers` local processes (default: the cores this process may use) with `threads` Cycles
     threads each (default: cores // workers), or the Dask cluster at `scheduler` (an address or
@@ -649,14 +646,16 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     every output instead, re-renders what fails and records the stat of what passes (after a disk
     error, or a tree copied without its mtimes).
     """
-    from allo_usd.blender.device import check_device
-
     t0 = time.perf_counter()
-    device = check_device(device)
+    # checked as it is built: the device, workers >= 0, the timeout (NaN would turn the limit off)
+    options = run_options(options, workers=workers, scheduler=scheduler, threads=threads, retries=retries,
+                          progress=progress, timeout=timeout, device=device, verify=verify)
+    for name in ("passes", "save_blend"):
+        if getattr(options.job, name) is not None:
+            raise AlloError(f"options.job.{name}: a run renders each layer's own passes and saves no Blender scene; "
+                            f"fix: render one layer with allo_usd.render_layer({name}=...), or leave it None")
+    job = options.job if options.job.device is not None else dataclasses.replace(options.job, device="auto")
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
-    if workers is not None and workers < 0:
-        raise AlloError(f"workers={workers}: pass a number of worker processes >= 1 (or 0 for one per core)")
-    timeout = check_timeout(timeout)   # NaN would turn the limit off (it compares false with every time)
     extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
     roots_seen: dict = {}   # allowed_roots, real paths and refusals of this decision (a worker checks afresh)
     with roots_cached(roots_seen):
@@ -680,7 +679,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
                     unusable.append((_Task(layer), why))
                     continue
                 # is_done's rule: the manifest row's quick check (every byte with `verify`), else the render's JSON
-                finished, row = resume_check(layer, out_dir, done.get(layer.stem), verify)
+                finished, row = resume_check(layer, out_dir, done.get(layer.stem), options.verify)
                 if finished:
                     summary.skipped.append(layer.stem)
                     if row is not None:  # the index catches up: a scene another entry point rendered, or new stat
@@ -689,18 +688,18 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
                 else:
                     tasks.append(_Task(layer))
         append_rows(out_dir / MANIFEST, caught_up)  # one write and one fsync, before anything renders
-        run = _Run(out_dir, len(tasks) + len(unusable), retries, progress, summary, progress_interval)
+        run = _Run(out_dir, len(tasks) + len(unusable), options.retries, options.progress, summary, progress_interval)
         ended = False  # the run's last progress line only for a run that ended (not for an error's one line)
         for task, why in unusable:
             run.fail(task, "layer", why)
         try:
-            if tasks and scheduler is not None:
-                _run_dask(tasks, out_dir, scheduler, threads, run, env, before_render, timeout, device)
+            if tasks and options.scheduler is not None:
+                _run_dask(tasks, out_dir, options.scheduler, job, run, env, before_render, options.timeout)
             elif tasks:
                 cores = usable_cores()
-                n = max(1, workers or cores)
-                _run_local(tasks, out_dir, n, threads if threads else max(1, cores // n), run, env, before_render,
-                           timeout, device)
+                n = max(1, options.workers or cores)
+                job = dataclasses.replace(job, threads=job.threads or max(1, cores // n))
+                _run_local(tasks, out_dir, n, job, run, env, before_render, options.timeout)
             ended = True
         except KeyboardInterrupt:
             summary.interrupted = True
@@ -717,21 +716,25 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     return summary
 
 
-def author_and_dispatch(plan_path: Path, out_dir: Path, device: str | None = None,
-                        passes: tuple[str, ...] | None = None, **kwargs) -> Summary:
-    """A plan file: author its layers into OUT/layers (with `passes` instead of the plan's quality.passes,
-    when given), then render them into OUT/renders on `device` (None: the plan's render.device)."""
+def author_and_dispatch(plan_path: Path, out_dir: Path, options: RunOptions | None = None, **kwargs) -> Summary:
+    """A plan file: author its layers into OUT/layers (with the job's passes instead of the plan's
+    quality.passes, when set), then render them into OUT/renders on the job's device (None, as when
+    `options` is left out: the plan's render.device). `kwargs` are dispatch's other keywords
+    (before_render, extra_roots, progress_interval)."""
     from allo_usd.plan.io import load_plan
     from allo_usd.run.author import author_plan
 
+    options = RunOptions(job=JobOptions(device=None)) if options is None else options
     layers_dir = Path(out_dir) / "layers"
     plan = load_plan(Path(plan_path))
+    passes = options.job.passes
     if passes is not None:
         plan = plan.model_copy(update={"quality": plan.quality.model_copy(update={"passes": list(passes)})})
-    kwargs["device"] = device or plan.render.device
+    job = dataclasses.replace(options.job, device=options.job.device or plan.render.device, passes=None)
     layers = author_plan(plan, layers_dir)
     # the tree's authored folders, not all of OUT (OUT/renders and whatever else lies there)
-    return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", trees=(layers_dir,), **kwargs)
+    return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", trees=(layers_dir,),
+                    options=dataclasses.replace(options, job=job), **kwargs)
 
 
 __all__ = ["Summary", "dispatch", "author_and_dispatch", "find_layers", "core_sets", "usable_cores"]

@@ -26,8 +26,8 @@ from allo_usd.output.identity import done_record, input_hashes, outputs_sha256, 
 from allo_usd.output.record import RenderRecord
 from allo_usd.output.render_outputs import check_output_names, output_paths
 from allo_usd.output.writers import write_exr, write_instance_png, write_mask_png, write_rgb_exr, write_rgb_png
-from allo_usd.plan.settings import canonical_passes
 from allo_usd.core.files import relpath
+from allo_usd.run.options import JobOptions
 from allo_usd.run.render_index import MANIFEST, append_jsonl, index_row
 from allo_usd.usd.sniff import layer_outputs
 
@@ -63,51 +63,56 @@ def object_pixels(ids: np.ndarray, objects: tuple[str, ...]) -> dict:
             "bodies": {b.lower(): {"pixels": under(body_path(b))} for b in ("Sun", "Earth", "Moon")}}
 
 
-def render_layer(layer: Path, out_dir: Path, *args, **kwargs) -> dict:
+def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
+                 workdir: Path | None = None, session=None, save_blend: Path | None = None,
+                 device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON): render_record's
-    record as the JSON's object, for callers outside the package (allo_usd.render_layer)."""
-    return render_record(layer, out_dir, *args, **kwargs).as_dict()
+    record as the JSON's object, for callers outside the package (allo_usd.render_layer). `force`,
+    `threads`, `device`, `passes` and `save_blend` build the JobOptions (allo_usd.run.options) that
+    render_record reads; `workdir`, `session` and `index` are render_record's."""
+    job = JobOptions(device=device, threads=threads, passes=passes, force=force, save_blend=save_blend)
+    return render_record(layer, out_dir, job, workdir=workdir, session=session, index=index).as_dict()
 
 
-def render_record(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
-                  workdir: Path | None = None, session=None, save_blend: Path | None = None,
-                  device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True) -> RenderRecord:
-    """Render one layer into out_dir; returns its record (a RenderRecord, also written as NAME.json).
+def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None, *, workdir: Path | None = None,
+                  session=None, index: bool = True) -> RenderRecord:
+    """Render one layer into out_dir as `options` says (a JobOptions; None: its defaults); returns its
+    record (a RenderRecord, also written as NAME.json).
 
-    `threads` overrides the layer's allo:render:threads for this process only (the layer is not
-    edited): a pool of N workers on C cores runs each with C // N threads. Cycles gives the same
+    `options.threads` overrides the layer's allo:render:threads for this process only (the layer is
+    not edited): a pool of N workers on C cores runs each with C // N threads. Cycles gives the same
     image for any thread count. `workdir` holds Blender's temporary render file. `session` (an
     allo_usd.blender.session.Session) keeps the Blender scene warm and applies only what differs
-    from its previous scene; the files are byte-identical to a from-scratch build. `save_blend`
+    from its previous scene; the files are byte-identical to a from-scratch build. `options.save_blend`
     also saves the built Blender scene there as a .blend (before rendering), to open what Blender got:
     checked before anything else (allo_usd.blender.debug.check_blend_target: an existing file is
-    replaced only with `force`; a link, a directory, a device or another extension never) and written
-    atomically.
-    `device` is 'auto', 'cpu' or 'gpu' (allo_usd.blender.device.select: probed once per process; 'gpu'
-    without a GPU is a DeviceError before the layer is read).
-    `passes` (allo_usd.plan.settings.PASSES) replaces the passes the layer orders for this run: the JSON
-    records both ("passes" written, "layer_passes"), and a render with other passes than its layer's
-    is never skipped as done.
+    replaced only with `options.force`; a link, a directory, a device or another extension never) and
+    written atomically.
+    `options.device` is 'auto' (also for None), 'cpu' or 'gpu' (allo_usd.blender.device.select:
+    probed once per process; 'gpu' without a GPU is a DeviceError before the layer is read).
+    `options.passes` (allo_usd.plan.settings.PASSES) replaces the passes the layer orders for this run:
+    the JSON records both ("passes" written, "layer_passes"), and a render with other passes than its
+    layer's is never skipped as done.
     A scene is skipped (its JSON returned) when done by the rule every entry point shares
     (allo_usd.output.identity.done_record: the JSON beside the outputs is the record), whoever rendered
-    it. A render into a folder that holds a dispatcher's manifest.jsonl appends the scene's row there
-    (`index`; the dispatcher's workers pass False: their parent writes the row), so the index never
-    names outputs that a later render replaced.
+    it, unless `options.force`. A render into a folder that holds a dispatcher's manifest.jsonl appends
+    the scene's row there (`index`; the dispatcher's workers pass False: their parent writes the row),
+    so the index never names outputs that a later render replaced.
     """
     import dataclasses
 
     from allo_usd.usd.dependencies import walk
     from allo_usd.usd.read import read_scene
 
-    from allo_usd.blender.device import check_device, cycles_cpu, record, select
+    from allo_usd.blender.device import cycles_cpu, record, select
 
+    options = JobOptions() if options is None else options   # checked as it was built (device, passes)
+    force, threads, save_blend, passes = options.force, options.threads, options.save_blend, options.passes
     check_output_names([layer])
-    device = check_device(device)
     if save_blend is not None:
         from allo_usd.blender.debug import check_blend_target
 
         save_blend = check_blend_target(save_blend, replace=force)
-    passes = None if passes is None else canonical_passes(passes)
     if passes is not None and passes == layer_outputs(layer):
         passes = None  # what the layer orders anyway
     if not force and save_blend is None and passes is None:
@@ -115,7 +120,7 @@ def render_record(layer: Path, out_dir: Path, force: bool = False, threads: int 
         if meta is not None:
             return meta
     import_held("bpy")   # Blender's start-up swallows a Ctrl-C (and leaves numpy half-loaded): held until it is in
-    used = select(device)
+    used = select(options.device or "auto")
     read = walk(layer)  # checked before USD opens a file; kept open so read_scene parses no layer twice
     inputs = input_hashes(layer, read.files)  # before the read: an edit meanwhile re-renders next time
     desc = read_scene(layer)

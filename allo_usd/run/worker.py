@@ -3,6 +3,7 @@ module outside `blender/` that imports bpy, once per process, to keep it warm.""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import signal
@@ -15,6 +16,7 @@ from typing import Callable
 
 from allo_usd.core.errors import AlloError, DiskFullError, RenderFailedError
 from allo_usd.core.files import DISK_FULL_ERRNOS
+from allo_usd.run.options import JobOptions
 from allo_usd.run.render_index import WORKDIR, manifest_row
 from allo_usd.usd.safety import ENV_ROOTS
 
@@ -25,10 +27,12 @@ _BPY_LOCK = threading.Lock()  # bpy is one global state and not thread-safe: one
 _SESSION = None  # this process's warm Blender session (allo_usd.blender.session), made by its first task
 
 
-def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str = "",
-                before_render: Callable[[str], None] | None = None, device: str = "auto") -> dict:
-    """Render one layer (forced: the parent decided it is not done) on `device` ('auto', 'cpu',
-    'gpu': probed once per process, allo_usd.blender.device) and checksum its outputs.
+def render_task(layer: str, out_dir: str, options: JobOptions | None = None, roots: str = "",
+                before_render: Callable[[str], None] | None = None) -> dict:
+    """Render one layer as `options` says (a JobOptions, pickled with the task: its device, 'auto',
+    'cpu' or 'gpu', is probed once per process, allo_usd.blender.device; its threads are this worker's
+    share of the cores), forced (the parent decided it is not done), and checksum its outputs.
+    `roots` is the run's ALLO_ASSET_ROOTS.
 
     Never raises for a bad layer, a full disk or a missing GPU: returns {"status": "error", "kind":
     ...} ("layer", "disk_full", "device", "error") so the parent can tell them apart from a crash,
@@ -38,11 +42,11 @@ def render_task(layer: str, out_dir: str, threads: int | None = None, roots: str
     with it; it must be picklable: a module-level function or a partial of one).
     """
     with _BPY_LOCK:
-        return _render_task(layer, out_dir, threads, roots, before_render, device)
+        return _render_task(layer, out_dir, JobOptions() if options is None else options, roots, before_render)
 
 
-def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
-                 before_render: Callable[[str], None] | None, device: str = "auto") -> dict:
+def _render_task(layer: str, out_dir: str, options: JobOptions, roots: str,
+                 before_render: Callable[[str], None] | None) -> dict:
     global _SESSION
     _fix_bpy_path()
     from allo_usd.run.job import render_record
@@ -63,8 +67,8 @@ def _render_task(layer: str, out_dir: str, threads: int | None, roots: str,
             from allo_usd.blender.session import Session
 
             _SESSION = Session()  # one Blender scene per process, patched from scene to scene
-        meta = render_record(layer_p, out_p, force=True, threads=threads, workdir=render_workdir(out_p),
-                             session=_SESSION, device=device, index=False)  # the parent writes the manifest row
+        meta = render_record(layer_p, out_p, dataclasses.replace(options, force=True), workdir=render_workdir(out_p),
+                             session=_SESSION, index=False)  # the parent writes the manifest row
     except DiskFullError as exc:
         return error("disk_full", exc, prefix=False)
     except RenderFailedError as exc:  # not the layer's fault: retried

@@ -93,7 +93,8 @@ def test_bad_pass_names_are_refused_naming_the_valid_ones(tmp_path):
     assert "zdepth" in str(result.exception) and "rgb, exr, mask, depth, normal, instance" in str(result.exception)
     with pytest.raises(AlloError, match="directory"):
         from allo_usd.cli import _render
-        _render(tmp_path, tmp_path / "o", False, 0, None, 0, 0, 0, None, passes=("mask",))
+        from allo_usd.run.options import RunOptions
+        _render(tmp_path, tmp_path / "o", RunOptions.from_cli(passes="mask"))
 
 
 def test_rendering_writes_exactly_the_layers_passes(geometry):
