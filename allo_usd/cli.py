@@ -166,7 +166,7 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                            "list of " + ", ".join(PASSES) + ". A single layer records them in its "
                                            "JSON; a plan's layers are authored with them.")):
     """Render scene layers: per scene the passes its layer orders (default RGB PNG, linear EXR, 3-class
-    mask PNG; README, Passes) and a metadata JSON.
+    mask PNG; docs/formats/render_outputs.md, Passes) and a metadata JSON.
 
     One layer renders in this process. A directory renders all its scene layers (searched
     recursively; an authored plan's scenes/) on a local pool (--workers) or a Dask cluster

@@ -102,7 +102,8 @@ class Poses(_Model):
     train: list[int] = Field(default_factory=lambda: list(range(1, 41)), description="Training poses.")
     test: list[int] = Field(default_factory=lambda: list(range(41, 51)), description="Test poses.")
     file: str | None = Field(None, description="A pose file (.csv or .json) of the user's own poses, relative to "
-                                               "the working directory; see README, Your own poses.")
+                                               "the working directory; see docs/guide/bring_your_own.md, "
+                                               "Your own poses.")
     position_sigma_m: float = Field(1.0, ge=0.0, le=10.0, description="Camera position perturbation sigma per "
                                                                       "axis, metres (the paper: 1).")
     angle_sigma_rad: float = Field(0.2, ge=0.0, le=1.0, description="Camera angle perturbation sigma per "
@@ -363,8 +364,8 @@ class Quality(_Model):
     adaptive_threshold: float = Field(QualitySettings.adaptive_threshold, ge=0.0, le=1.0)
     passes: list[str] = Field(list(DEFAULT_PASSES), json_schema_extra={"items": {"enum": list(PASSES)}},
                               description="The files each scene writes, recorded in its layer as UsdRender vars: "
-                                          + ", ".join(PASSES) + " (README, Passes); `render --passes` overrides "
-                                          "them for a run. Without rgb and exr a scene renders 1 sample.")
+                                          + ", ".join(PASSES) + " (docs/formats/render_outputs.md, Passes); "
+                                          "`render --passes` overrides them for a run. Without rgb and exr a scene renders 1 sample.")
 
     @field_validator("passes")
     @classmethod

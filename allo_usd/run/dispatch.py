@@ -3,7 +3,7 @@ can be killed, crash a worker or fill the disk at any moment and a re-run finish
 
 The local pool is our own rather than concurrent.futures: a dead worker breaks a whole
 ProcessPoolExecutor, while here the parent knows which task each worker held and retries that
-one alone. How the two backends stay crash-safe is described in docs/dispatch.md.
+one alone. How the two backends stay crash-safe is described in docs/guide/dispatch.md.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ FAILED = "failed.jsonl"
 # The default time limit of one scene (per attempt; dispatch(timeout=None), `render --timeout 0`):
 # TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * pixels * samples of the layer's own render settings.
 # The base covers a worker's first Blender scene build, the denoiser and the writes; the per
-# pixel-sample cost is ~3.5x what one Cycles thread took on this (loaded) machine (docs/reliability.md, section 5).
+# pixel-sample cost is ~3.5x what one Cycles thread took on this (loaded) machine (docs/reliability/reliability.md, section 5).
 TIMEOUT_BASE_S = 120.0
 TIMEOUT_S_PER_PIXEL_SAMPLE = 5e-5
 TIMEOUT_FALLBACK_COST = 1920 * 1080 * 256  # a layer that names no resolution or samples: the paper's full render

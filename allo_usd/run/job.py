@@ -8,7 +8,7 @@ RenderRecord (allo_usd.output.record; its fields: docs/render_record.md).
 
 The JSON also records what rendered (`device`: the device asked for and used, the GPU backend and
 names or the CPU model, and Blender's version and build, allo_usd.blender.device.record). The
-device is not part of the identity: it changes noise, not meaning (README "GPU rendering").
+device is not part of the identity: it changes noise, not meaning (docs/guide/dispatch.md, "GPU rendering").
 """
 
 from __future__ import annotations
