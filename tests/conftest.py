@@ -153,19 +153,17 @@ def _unit_tier_guard():
             sys.meta_path.remove(finder)
 
 
+def _guarded(item):
+    return _unit_tier_guard() if item.config.getoption("--unit") else contextlib.nullcontext()
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_setup(item):
-    if not item.config.getoption("--unit"):
-        yield
-        return
-    with _unit_tier_guard():
+    with _guarded(item):
         yield
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_call(item):
-    if not item.config.getoption("--unit"):
-        yield
-        return
-    with _unit_tier_guard():
+    with _guarded(item):
         yield
