@@ -220,7 +220,8 @@ def _render(source: Path, out: Path, options: RunOptions) -> None:
     if single:
         _render_one(source, out, job)
         return
-    from allo_usd.run.dispatch import author_and_dispatch, connect_scheduler, dispatch
+    from allo_usd.run.dispatch import author_and_dispatch, dispatch
+    from allo_usd.run.scheduler import connect_scheduler
 
     # connected before the scan: an unreachable scheduler is one line within SCHEDULER_CONNECT_S
     client = None if options.scheduler is None else connect_scheduler(options.scheduler)

@@ -1,4 +1,5 @@
-"""Recorded times: the one formatter and the one parser of every UTC instant allo-usd writes or reads.
+"""Recorded times: the one formatter and the one parser of every UTC instant allo-usd writes or reads,
+and how a duration the user gave (a time limit) is shown back (``seconds_text``).
 
 Format (``format_utc``): ISO 8601 in UTC with a ``Z``, ``YYYY-MM-DDTHH:MM:SSZ`` when the instant
 falls on a whole second (so layers of whole-second epochs keep their bytes), otherwise the
@@ -50,3 +51,12 @@ def parse_utc(text: str, what: str = "time") -> datetime:
     except OverflowError:   # 9999-12-31T23:00-05:00 is past the calendar's end in UTC
         raise EpochError(f"{what} {text[:80]!r} is outside the calendar in UTC; fix: write a UTC instant, "
                          f"e.g. {EXAMPLE}") from None
+
+
+def seconds_text(seconds: float) -> str:
+    """A time limit as the user gave it, not rounded away: 0.5 -> "0.5 s", 600 -> "600 s", the default
+    formula's 120.2304 -> "120.2 s" (to 0.1 s from 1 s up, 3 significant digits below)."""
+    text = f"{seconds:.3g}" if seconds < 1 else f"{seconds:.1f}"
+    if "." in text and "e" not in text:
+        text = text.rstrip("0").rstrip(".")
+    return f"{text} s"

@@ -21,9 +21,11 @@ from typing import Callable
 from allo_usd.core.errors import AlloError, DiskFullError
 from allo_usd.core.files import RunLock, ensure_output_dir, read_whole_small
 from allo_usd.core.threads import in_threads
+from allo_usd.core.timefmt import seconds_text
 from allo_usd.output.checksums import remember_sha256
 from allo_usd.output.render_outputs import check_output_names
 from allo_usd.run.options import JobOptions, RunOptions, check_timeout, run_options
+from allo_usd.run.scheduler import connect_scheduler, load_distributed
 from allo_usd.run.render_index import (MANIFEST, append_jsonl, append_rows, clean_stale, compact_manifest, prefetch,
                                        resume_check)
 from allo_usd.run.worker import WorkerProcess, check_hook, render_task
@@ -200,15 +202,6 @@ def time_limit(layer: Path, timeout: float | None = None) -> float:
 
     cost = render_cost(layer)
     return TIMEOUT_BASE_S + TIMEOUT_S_PER_PIXEL_SAMPLE * (cost[0] * cost[1] if cost else TIMEOUT_FALLBACK_COST)
-
-
-def seconds_text(seconds: float) -> str:
-    """A time limit as the user gave it, not rounded away: 0.5 -> "0.5 s", 600 -> "600 s", the default
-    formula's 120.2304 -> "120.2 s" (to 0.1 s from 1 s up, 3 significant digits below)."""
-    text = f"{seconds:.3g}" if seconds < 1 else f"{seconds:.1f}"
-    if "." in text and "e" not in text:
-        text = text.rstrip("0").rstrip(".")
-    return f"{text} s"
 
 
 def _timeout_reason(limit: float) -> str:
@@ -468,7 +461,7 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, job: JobOptions, run
     scheduler first lists it as processing on a worker; past its limit the future is cancelled, the
     worker restarted (the stuck thread holds that process's bpy lock) and the attempt counted as a
     timeout."""
-    _distributed()
+    load_distributed()
     from distributed import Client, as_completed
 
     client = scheduler if isinstance(scheduler, Client) else connect_scheduler(scheduler)
@@ -526,62 +519,6 @@ def _run_dask(tasks: list[_Task], out_dir: Path, scheduler, job: JobOptions, run
             _hold_one_death_per_attempt(client, False)
         if client is not scheduler:
             client.close()
-
-
-SCHEDULER_CONNECT_S = 5.0   # how long connecting to a --scheduler may take (distributed's default: 30 s)
-SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss")
-
-
-def _distributed() -> None:
-    """Import Dask's distributed (and its comm registry) with Ctrl-C held (core.interrupts): a large
-    import whose dependencies try optional modules under broad excepts, where a Ctrl-C could be
-    swallowed or come out as another error."""
-    from allo_usd.core.interrupts import import_held
-
-    import_held("distributed")
-    import_held("distributed.comm.registry")
-
-
-def scheduler_problem(address) -> str | None:
-    """Why `address` is not a Dask scheduler address one can connect to from another process, or
-    None: SCHEME://HOST:PORT (tcp, tls, ws or wss; a bare HOST:PORT is tcp) with a port 1-65535, as
-    distributed parses it. Checked before anything renders, without connecting."""
-    _distributed()
-    from distributed.comm import get_address_host_port, parse_address
-    from distributed.comm.registry import get_backend
-
-    shown = str(address)[:200]
-    try:
-        scheme, _ = parse_address(str(address))
-        if scheme not in SCHEDULER_SCHEMES:
-            return f"{shown!r} is not a {', '.join(SCHEDULER_SCHEMES)} address"
-        get_backend(scheme)
-        host, port = get_address_host_port(str(address))
-    except (ValueError, TypeError) as exc:
-        return f"{shown!r} is not a scheduler address ({exc})"
-    if not host or not 1 <= int(port) <= 65535:
-        return f"{shown!r} has no host or a port outside 1-65535"
-    return None
-
-
-def connect_scheduler(address):
-    """A distributed Client of the scheduler at `address` (an address, or a cluster object such as a
-    LocalCluster), or an AlloError in one line: a malformed address at once (scheduler_problem), one
-    that does not answer as a Dask scheduler within SCHEDULER_CONNECT_S (refused, unroutable, or
-    something else listening there: distributed then reads garbage and may raise MemoryError)."""
-    _distributed()
-    from distributed import Client
-
-    fix = "fix: give the address `dask scheduler` prints, e.g. --scheduler tcp://HOST:8786, or leave it out for a local pool"
-    why = scheduler_problem(address) if isinstance(address, str) else None   # else a cluster object
-    if why:
-        raise AlloError(f"--scheduler {why}; {fix}")
-    try:
-        return Client(address, timeout=SCHEDULER_CONNECT_S)
-    except Exception as exc:  # noqa: BLE001 - OSError (refused, timed out), or garbage read from a non-Dask server
-        raise AlloError(f"--scheduler {str(address)[:200]}: no Dask scheduler answered within "
-                        f"{seconds_text(SCHEDULER_CONNECT_S)} ({type(exc).__name__}: {str(exc)[:200]}); fix: start "
-                        "one there (`dask scheduler`) and its workers, or check the address") from None
 
 
 def _overdue(client, futures: dict, started: dict) -> list:

@@ -113,7 +113,7 @@ class RunOptions:
             if value < 0:
                 raise AlloError(f"{name} {value:g} is negative; pass 0 for the default or a positive number")
         if scheduler is not None:
-            from allo_usd.run.dispatch import scheduler_problem
+            from allo_usd.run.scheduler import scheduler_problem
 
             why = scheduler_problem(scheduler)
             if why:

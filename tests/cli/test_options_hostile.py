@@ -68,8 +68,8 @@ def test_the_one_line_reaches_the_terminal_and_the_default_limit_keeps_its_meani
 
 
 def test_a_time_limit_is_reported_as_given_and_nan_never_turns_it_off(tmp_path):
-    from allo_usd.run.dispatch import (TIMEOUT_BASE_S, _timeout_reason, check_timeout, dispatch, seconds_text,
-                                       time_limit)
+    from allo_usd.core.timefmt import seconds_text
+    from allo_usd.run.dispatch import TIMEOUT_BASE_S, _timeout_reason, check_timeout, dispatch, time_limit
 
     assert "time limit of 0.5 s;" in _timeout_reason(0.5)
     assert [seconds_text(s) for s in (0.5, 0.25, 25, 600.0, 120.2304, 0.001)] == \

@@ -49,7 +49,7 @@ CASES = {
                       "    mask = np.zeros((8, 8), bool)\n    mask[3:5, 3:5] = True\n"
                       "    outlined(np.zeros((8, 8, 3), np.uint8), mask, (8, 8))"),
     "distributed": ("distributed", ["distributed", "distributed.comm.registry"],
-                    "    from allo_usd.run.dispatch import scheduler_problem\n    scheduler_problem('tcp://h:8786')"),
+                    "    from allo_usd.run.scheduler import scheduler_problem\n    scheduler_problem('tcp://h:8786')"),
 }
 
 
