@@ -104,7 +104,7 @@ def real_folder(path) -> str:
 
 
 def real_path(path) -> str:
-    """os.path.realpath(path), from one lstat where it can (issue 26: the dataset asks ~10 times a
+    """os.path.realpath(path), from one lstat where it can (the dataset asks ~10 times a
     scene, and realpath lstats every component of the path): a path whose last component exists and
     is no link has its folder's real path plus that name, the folder's from real_folder (a memo within
     an assembly run). Anything else (a link, a missing file, '.' or '..') goes to realpath."""

@@ -169,7 +169,7 @@ box, and its triangle test is watertight to about an ulp: together under 1e-3 pi
 the placement accepts (it stays CAMERA_CLEARANCE_M in front of the camera, where a pixel spans over
 1e-4 m, against float32 errors near 1e-7 m). The margin is 50 times that, and
 tests/scene/test_rig_placement.py checks the cull against every pixel the 16 hazard objects cover, at 64
-to 1920 pixels wide, from the clearance out to 40 m. It was a whole pixel until issue 26: 17% more
+to 1920 pixels wide, from the clearance out to 40 m. A whole pixel of margin would cast 17% more
 rays for the same counts."""
 
 

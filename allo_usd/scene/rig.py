@@ -33,7 +33,7 @@ PERTURBATION = "euler-zyx-local"  # R = R_base @ Rz(yaw) @ Ry(pitch) @ Rx(roll),
 CLEARANCE_M = 0.3
 RIG_SEED = 50
 
-VIEW_RANGE_M = (5.0, 40.0)     # structure a base pose looks at (issue 4)
+VIEW_RANGE_M = (5.0, 40.0)     # structure a base pose looks at
 COVERAGE_RANGE = (0.2, 0.9)    # fraction of the frame showing structure: not empty, not a wall
 MIN_IN_RANGE = 0.75            # of the rays that hit structure, this many are 5-40 m away
 MAX_NEAR = 0.1                 # at most this fraction of the frame is structure under 5 m
