@@ -591,7 +591,7 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
         if getattr(options.job, name) is not None:
             raise AlloError(f"options.job.{name}: a run renders each layer's own passes and saves no Blender scene; "
                             f"fix: render one layer with allo_usd.render_layer({name}=...), or leave it None")
-    job = options.job if options.job.device is not None else dataclasses.replace(options.job, device="auto")
+    job = options.job   # device None renders as auto (run.job.render_record)
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
     extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
     roots_seen: dict = {}   # allowed_roots, real paths and refusals of this decision (a worker checks afresh)

@@ -113,12 +113,11 @@ class RunOptions:
             if value < 0:
                 raise AlloError(f"{name} {value:g} is negative; pass 0 for the default or a positive number")
         if scheduler is not None:
-            from allo_usd.run.scheduler import scheduler_problem
+            from allo_usd.run.scheduler import SCHEDULER_FIX, scheduler_problem
 
             why = scheduler_problem(scheduler)
             if why:
-                raise AlloError(f"--scheduler {why}; fix: give the address `dask scheduler` prints, e.g. "
-                                "--scheduler tcp://HOST:8786, or leave it out for a local pool")
+                raise AlloError(f"--scheduler {why}; {SCHEDULER_FIX}")
         return cls(job=job, workers=workers or None, scheduler=scheduler, retries=retries, timeout=timeout or None,
                    verify=verify)
 

@@ -9,6 +9,9 @@ from allo_usd.core.timefmt import seconds_text
 
 SCHEDULER_CONNECT_S = 5.0   # how long connecting to a --scheduler may take (distributed's default: 30 s)
 SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss")
+# the fix a malformed --scheduler address is told (the render options check it first, connect_scheduler again)
+SCHEDULER_FIX = ("fix: give the address `dask scheduler` prints, e.g. --scheduler tcp://HOST:8786, or leave it out "
+                 "for a local pool")
 
 
 def load_distributed() -> None:
@@ -51,10 +54,9 @@ def connect_scheduler(address):
     load_distributed()
     from distributed import Client
 
-    fix = "fix: give the address `dask scheduler` prints, e.g. --scheduler tcp://HOST:8786, or leave it out for a local pool"
     why = scheduler_problem(address) if isinstance(address, str) else None   # else a cluster object
     if why:
-        raise AlloError(f"--scheduler {why}; {fix}")
+        raise AlloError(f"--scheduler {why}; {SCHEDULER_FIX}")
     try:
         return Client(address, timeout=SCHEDULER_CONNECT_S)
     except Exception as exc:  # noqa: BLE001 - OSError (refused, timed out), or garbage read from a non-Dask server
