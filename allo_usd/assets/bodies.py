@@ -47,7 +47,7 @@ from allo_usd.assets.primitives import sphere_outline_scale, uv_sphere
 from allo_usd.core import fixedmath as fm
 
 # Radiance of the solar disc: irradiance / solid angle = E / (pi sin^2 theta) at 1 AU (what the
-# DistantLight's disc has: UsdLux's size factor of a normalised DistantLight, read.distant_size_factor).
+# DistantLight's disc has: UsdLux's size factor of a normalised DistantLight, read_lights.distant_size_factor).
 SUN_RADIANCE = SOLAR_CONSTANT / (np.pi * (SUN_RADIUS_M / AU_M) * (SUN_RADIUS_M / AU_M))
 
 MOON_ALBEDO = 0.11    # Bond albedo (geometric: 0.12)

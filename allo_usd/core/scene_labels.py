@@ -1,7 +1,7 @@
 """What a scene says about itself: its split, its variant (normal or anomalous) and its anomaly's
 asset and variant. One check, shared by the two places that meet these values from outside:
 
-- the layer reader (allo_usd.usd.read.read_meta): a layer's `allo:split`, `allo:variant` and the
+- the layer reader (allo_usd.usd.read_labels.read_meta): a layer's `allo:split`, `allo:variant` and the
   anomaly prim's attributes, before a render records them in NAME.json's "scene";
 - the dataset (allo_usd.output.dataset.check_render): the same fields read back from a render record.
 

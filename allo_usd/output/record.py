@@ -50,7 +50,7 @@ class RenderRecord:
     passes: list | None = None             # the passes written (a record without it: its layer's)
     layer_passes: list | None = None       # the passes its layer orders
     instances: dict | None = None          # only with the instance pass: {"id": prim path}
-    scene: dict | None = None              # allo_usd.usd.read.read_meta of the layer
+    scene: dict | None = None              # allo_usd.usd.read_labels.read_meta of the layer
     effects: dict | None = None            # post-render effects applied (sensor noise)
     files: dict | None = None              # {pass or "meta": file name in the render folder}
     outputs_sha256: dict | None = None     # {file name: sha256} of every output but the JSON

@@ -32,7 +32,8 @@ from allo_usd.core.errors import LayerError
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
-from allo_usd.usd.read import camera_exposure, open_stage, sun_irradiance
+from allo_usd.usd.read import camera_exposure, open_stage
+from allo_usd.usd.read_lights import sun_irradiance
 from allo_usd.usd.reader_bounds import world_matrix
 
 ROOTS = (layout.WORLD, layout.RENDER)

@@ -170,7 +170,7 @@ def test_bodies_are_lambertian_in_the_layer_and_the_description():
     from pxr import Usd, UsdShade
 
     from allo_usd.usd import schema
-    from allo_usd.usd.read import read_material
+    from allo_usd.usd.read_material import read_material
 
     schema.register()
     for body, look in (("Moon", "Regolith"), ("Earth", "EarthSurface")):
