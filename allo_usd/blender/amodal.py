@@ -1,4 +1,4 @@
-"""The `amodal` pass: the anomaly's full silhouette, as if nothing stood in front of it.
+"""The `amodal` pass: the planned anomaly's (/World/Anomaly's) full silhouette, as if nothing stood in front of it.
 
 A second render of the scene Blender already holds, right after the main one (blender.render.render_current,
 within `anomaly_alone`): every object but the anomaly's meshes (station, bodies, sun lamps, the spot) is
@@ -29,15 +29,20 @@ _CYCLES = (("samples", 1), ("use_adaptive_sampling", False), ("use_denoising", F
 _LAYER = (("use_pass_z", False), ("use_pass_normal", False))
 
 
-def _is_anomaly(name: str) -> bool:
-    return name == layout.ANOMALY or name.startswith(layout.ANOMALY + "/")
+def _planned(desc: SceneDescription) -> set[str]:
+    """The Blender object names (mesh paths) of the planned anomaly: the meshes of the anomaly object
+    /World/Anomaly (MeshDesc.object). Another anomaly object (a user's second hazard) is not in the
+    pass: its full silhouette is ray-cast over its own meshes (output.annotations.anomaly_record)."""
+    return {m.path for m in desc.meshes if m.class_id == ANOMALY and m.object_path == layout.ANOMALY}
 
 
 @contextmanager
-def anomaly_alone():
-    """Within: the Blender scene shows the anomaly alone to camera rays, mask-only (module docstring);
-    after: every value changed is back as it was read."""
+def anomaly_alone(desc: SceneDescription):
+    """Within: the Blender scene shows the planned anomaly (/World/Anomaly) alone to camera rays, mask-only
+    (module docstring); after: every value changed is back as it was read."""
     import bpy
+
+    keep = _planned(desc)
 
     scene = bpy.context.scene
     layer = scene.view_layers[0]
@@ -49,7 +54,7 @@ def anomaly_alone():
 
     try:
         for obj in scene.collection.objects:
-            if obj.type != "CAMERA" and not _is_anomaly(obj.name) and obj.visible_camera:
+            if obj.type != "CAMERA" and obj.name not in keep and obj.visible_camera:
                 set_(obj, "visible_camera", False)
         for prop, value in _CYCLES:
             set_(scene.cycles, prop, value)
@@ -63,9 +68,10 @@ def anomaly_alone():
 
 
 def amodal_mask(desc: SceneDescription, ids: np.ndarray) -> np.ndarray:
-    """(H, W) uint8: ANOMALY (2) where the object ids of the render `anomaly_alone` made show the anomaly,
-    else 0 (STEM_mask.png's convention)."""
+    """(H, W) uint8: ANOMALY (2) where the object ids of the render `anomaly_alone` made show the planned
+    anomaly (/World/Anomaly), else 0 (STEM_mask.png's convention)."""
     from allo_usd.blender.build import object_ids
 
-    anomaly_ids = [i for i, (_, cls) in enumerate(object_ids(desc), start=1) if cls == ANOMALY]
+    anomaly_ids = [i for i, (path, cls) in enumerate(object_ids(desc), start=1)
+                   if cls == ANOMALY and path == layout.ANOMALY]
     return np.where(np.isin(ids, anomaly_ids), np.uint8(ANOMALY), np.uint8(0))

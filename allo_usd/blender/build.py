@@ -26,7 +26,6 @@ import numpy as np
 
 from allo_usd.core.errors import LayerError
 from allo_usd.plan.settings import COLOR_PASSES
-from allo_usd.usd import layout
 from allo_usd.usd.description import (CameraDesc, MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc,
                                       SunDesc)
 
@@ -305,25 +304,27 @@ def configure_render(render: RenderDesc, device=None) -> None:
     layer.use_pass_normal = "normal" in render.outputs
 
 
-# Object ids: an object is a station or body mesh prim, or the whole anomaly (all meshes under
-# /World/Anomaly share its root's id: one hazard, one id). Object id = 1 + the index of the object's
-# path among the scene's sorted object paths (0 is the background); each mesh object's pass_index is
-# its object's id, so one object index pass gives the instance mask, the class mask (through each
-# id's class) and per-object pixel counts. Stable: a function of the scene's mesh paths only.
-# Blender's pass_index is at most MAX_OBJECT_ID.
+# Object ids: an object is a station or body mesh prim, or a whole anomaly object (all the meshes of
+# one anomaly object share its id: MeshDesc.object, the prim its anomaly label is applied on, e.g.
+# /World/Anomaly for the scene's planned anomaly, /World/Wrench for a user's referenced wrench).
+# Object id = 1 + the index of the object's path among the scene's sorted object paths (0 is the
+# background); each mesh object's pass_index is its object's id, so one object index pass gives the
+# instance mask, the class mask (through each id's class) and per-object pixel counts. Stable: a
+# function of the scene's mesh paths and labels only. Blender's pass_index is at most MAX_OBJECT_ID.
 MAX_OBJECT_ID = 32767
 
 
 def _object_path(mesh) -> str:
-    return layout.ANOMALY if mesh.path.startswith(layout.ANOMALY + "/") else mesh.path
+    return mesh.object_path
 
 
 def object_ids(desc: SceneDescription) -> tuple[tuple[str, int], ...]:
     """(object path, class id) of object id 1, 2, ...: the scene's objects in sorted path order."""
     table = tuple(sorted({(_object_path(m), m.class_id) for m in desc.meshes}))
     if len({path for path, _ in table}) != len(table):
-        raise LayerError(f"{desc.layer}: the anomaly's meshes under {layout.ANOMALY} have more than one class "
-                         "label; fix the layer (label the hazard's prims `anomaly`)")
+        path = next(p for (p, _), (q, _) in zip(table, table[1:]) if p == q)
+        raise LayerError(f"{desc.layer}: the meshes of object {path} have more than one class label; fix the layer "
+                         "(label the object's prims with one class)")
     if len(table) > MAX_OBJECT_ID:
         raise LayerError(f"{desc.layer} has {len(table)} objects; the object index pass numbers at most "
                          f"{MAX_OBJECT_ID}: merge meshes (fix the layer)")

@@ -176,7 +176,7 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
     if "amodal" in desc.render.outputs:   # a second render: the anomaly alone (the scene is restored after it)
         from allo_usd.blender.amodal import amodal_mask, anomaly_alone
 
-        with anomaly_alone():
+        with anomaly_alone(desc):
             ch, amodal_seconds = render_channels(desc, workdir, no_object_index)
         amodal = amodal_mask(desc, object_index(desc, ch))
     return RenderResult(rgb, classes[ids], depth, seconds, ids=ids, objects=tuple(p for p, _ in table), normal=normal,

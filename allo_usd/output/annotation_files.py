@@ -47,7 +47,7 @@ from allo_usd.output.record import RenderRecord
 
 RECORDS = "annotations/records.json"
 INSTANCES = "instances.json"
-RECORDS_VERSION = 1
+RECORDS_VERSION = 2   # 2: a record lists every anomaly object (coco and bop.gt are lists)
 
 BOP_FILE = re.compile(r"^(?:\d{6}(?:_\d{6})?\.png|scene_(?:camera|gt|gt_info)\.json)$")
 PASS_FILE = re.compile(r"^\d{6}_.+\.(?:exr|png)$")
@@ -118,6 +118,30 @@ def _model_path(path: str | None, row: dict, out: Path) -> str | None:
     return Path(os.path.relpath(full, os.path.normpath(out))).as_posix()
 
 
+def _anomaly_objects(annotations: dict) -> list[dict]:
+    """The render JSON's anomaly objects: `anomalies` (the planned anomaly first), or, from a render
+    recorded before objects were listed, its one `anomaly` ([{}] when it records none: the class
+    mask is then the one object's pixels, and the scene's asset names it)."""
+    listed = annotations.get("anomalies")
+    if isinstance(listed, list) and listed and all(isinstance(o, dict) for o in listed):
+        return listed
+    one = annotations.get("anomaly")
+    return [one if isinstance(one, dict) else {}]
+
+
+def _object_pixels(obj: dict, shape) -> np.ndarray:
+    """An anomaly object's visible pixels from its recorded COCO RLE (`segmentation`; none: no pixel)."""
+    from pycocotools import mask as mask_utils
+
+    seg = obj.get("segmentation")
+    try:
+        if isinstance(seg, dict) and list(seg.get("size", ())) == list(shape) and isinstance(seg.get("counts"), str):
+            return mask_utils.decode({"size": list(shape), "counts": seg["counts"].encode("ascii")}).astype(bool)
+    except (ValueError, TypeError):
+        pass
+    return np.zeros(shape, dtype=bool)
+
+
 def _link(src: Path, dst: Path) -> None:
 
     place(src, dst, link=True)
@@ -149,7 +173,6 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: R
     else:
         meta, meta_path = RenderRecord.given(meta), out / row["source"] if row.get("source") else None
     annotations = meta.annotations if isinstance(meta.annotations, dict) else {}
-    anomaly = annotations.get("anomaly") if isinstance(annotations.get("anomaly"), dict) else {}
     folder = f"bop/{row['category']}/{row['split']}/{bop.chunk_of(index)}"
     rgb = f"{folder}/rgb/{index:06d}.png"
     _link(out / row["image"], out / rgb)
@@ -163,27 +186,36 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: R
             write_png(out / files[-1], depth_units)
     rec = {"key": row_key(row), "category": row["category"], "name": row["name"], "index": index,
            "split": row["split"], "kind": row["kind"], "image": row["image"], "width": width, "height": height,
-           "coco": None, "asset": row.get("anomaly_asset", ""), "variant": row.get("anomaly_variant", ""),
-           "bop": {"folder": folder, "camera": bop.camera_entry(annotations.get("camera")), "pose": None,
-                   "model": None, "info": None},
+           "coco": [], "bop": {"folder": folder, "camera": bop.camera_entry(annotations.get("camera")), "gt": []},
            "instances": None}
     if anomalous:
-        visible = visible.full() if visible is not None and mask is None else mask == ANOMALY
-        rec["coco"] = coco.instance(visible)
+        scene_anomaly = (meta.scene or {}).get("anomaly") if isinstance(meta.scene, dict) else None
+        whole = visible.full() if visible is not None and mask is None else mask == ANOMALY
         amodal = _amodal_mask(meta, meta_path, shape)
-        model = bop.model(anomaly, (meta.scene or {}).get("anomaly") if isinstance(meta.scene, dict) else None)
-        model["path"] = _model_path(model["path"], row, out)
-        rec["bop"] |= {"pose": bop.pose(anomaly), "model": model,
-                       "info": bop.gt_info(visible, amodal, anomaly, depth_units)}
-        files.append(f"{folder}/mask_visib/{index:06d}_000000.png")
-        truth = out / row["mask"] if row.get("mask") else None
-        if truth is not None and truth.is_file():   # the dataset's ground truth: the same 0/255 pixels
-            _link(truth, out / files[-1])
-        else:
-            write_png(out / files[-1], visible.astype(np.uint8) * np.uint8(255))
-        if amodal is not None:
-            files.append(f"{folder}/mask/{index:06d}_000000.png")
-            write_png(out / files[-1], amodal.astype(np.uint8) * np.uint8(255))
+        objects = _anomaly_objects(annotations)
+        for gt_id, obj in enumerate(objects):
+            planned = gt_id == 0   # the scene's planned anomaly (/World/Anomaly) comes first
+            mine = whole if len(objects) == 1 else _object_pixels(obj, shape) & whole
+            model = bop.model(obj, scene_anomaly if planned else None)
+            model["path"] = _model_path(model["path"], row, out)
+            instance = coco.instance(mine)
+            if instance is not None:   # the category: the object's asset (the planned one's: the row's)
+                asset, variant = ((row.get("anomaly_asset", ""), row.get("anomaly_variant", "")) if planned
+                                  else (model["asset"], model["variant"]))
+                rec["coco"].append({"asset": asset, "variant": variant, **instance}
+                                   | ({"path": obj["path"]} if len(objects) > 1 else {}))
+            full = amodal if planned else None
+            rec["bop"]["gt"].append({"pose": bop.pose(obj), "model": model,
+                                     "info": bop.gt_info(mine, full, obj, depth_units)})
+            files.append(f"{folder}/mask_visib/{index:06d}_{gt_id:06d}.png")
+            truth = out / row["mask"] if row.get("mask") else None
+            if len(objects) == 1 and truth is not None and truth.is_file():   # the same 0/255 pixels
+                _link(truth, out / files[-1])
+            else:
+                write_png(out / files[-1], mine.astype(np.uint8) * np.uint8(255))
+            if full is not None:
+                files.append(f"{folder}/mask/{index:06d}_{gt_id:06d}.png")
+                write_png(out / files[-1], full.astype(np.uint8) * np.uint8(255))
     table = meta.instances
     if row.get("instance") and isinstance(table, dict):
         rec["instances"] = {"instance": row["instance"], "objects": {str(k): str(v) for k, v in table.items()}}
@@ -237,9 +269,9 @@ def _coco_files(out: Path, records: dict, categories: dict[str, int]) -> None:
             image_id = len(images) + 1
             images.append({"id": image_id, "file_name": rec["image"], "width": rec["width"], "height": rec["height"],
                            "scene": rec["name"], "allo_category": rec["category"], "index": rec["index"]})
-            if rec["coco"]:
-                anns.append({"id": len(anns) + 1, "image_id": image_id, "category_id": categories[rec["asset"]],
-                             "variant": rec["variant"], **rec["coco"]})
+            for inst in rec["coco"]:
+                anns.append({"id": len(anns) + 1, "image_id": image_id, "category_id": categories[inst["asset"]],
+                             **{k: v for k, v in inst.items() if k != "asset"}})
         text = json.dumps(coco.document(split, images, anns, categories), sort_keys=True, separators=(",", ":")) + "\n"
         write_if_changed(out / "annotations" / f"instances_{split}.json", text)
 
@@ -256,19 +288,17 @@ def _bop_files(out: Path, records: dict, models: dict[str, dict[str, int]]) -> s
         if b["camera"] is not None:
             chunk["scene_camera"][im] = b["camera"]
             tables.setdefault(rec["category"], {}).setdefault("camera", (b["camera"], rec["width"], rec["height"]))
-        gt, info = [], []
-        if b["pose"] is not None and b["model"] is not None:
-            gt = [{"obj_id": models[rec["category"]][b["model"]["model_id"]], **b["pose"]}]
-            info = [b["info"]]
-        chunk["scene_gt"][im], chunk["scene_gt_info"][im] = gt, info
+        posed = [g for g in b["gt"] if g["pose"] is not None and g["model"] is not None]
+        chunk["scene_gt"][im] = [{"obj_id": models[rec["category"]][g["model"]["model_id"]], **g["pose"]} for g in posed]
+        chunk["scene_gt_info"][im] = [g["info"] for g in posed]
         expected.update(rec["files"])
     for folder, files in chunks.items():
         for name, content in files.items():
             expected.add(f"{folder}/{name}.json")
             write_if_changed(out / folder / f"{name}.json", bop.dumps(content))
     for category, ids in models.items():
-        seen = {rec["bop"]["model"]["model_id"]: rec["bop"]["model"] for rec in records.values()
-                if rec["category"] == category and rec["bop"]["model"]}
+        seen = {g["model"]["model_id"]: g["model"] for rec in records.values() if rec["category"] == category
+                for g in rec["bop"]["gt"] if g["model"]}
         table = {str(i): seen[m] for m, i in sorted(ids.items(), key=lambda kv: kv[1])}
         write_if_changed(out / "bop" / category / "models.json", json.dumps(table, indent=1, sort_keys=True) + "\n")
     for category, t in tables.items():
@@ -303,11 +333,11 @@ def write_annotation_files(out: Path, rows, cache: dict | None = None, state: di
     rows = list(rows)
     cache = _load(out) if cache is None else cache
     records, recomputed = _records(out, rows, cache, early)
-    categories = coco.category_ids({r["asset"] for r in records.values() if r["coco"]}, cache.get("categories"))
+    categories = coco.category_ids({i["asset"] for r in records.values() for i in r["coco"]}, cache.get("categories"))
     models = {}
     for category in sorted({r["category"] for r in records.values()}):
-        used = {r["bop"]["model"]["model_id"] for r in records.values()
-                if r["category"] == category and r["bop"]["model"]}
+        used = {g["model"]["model_id"] for r in records.values() if r["category"] == category
+                for g in r["bop"]["gt"] if g["model"]}
         models[category] = coco.category_ids(used, (cache.get("models") or {}).get(category))
     _coco_files(out, records, categories)
     expected = _bop_files(out, records, models)
@@ -325,11 +355,20 @@ def write_annotation_files(out: Path, rows, cache: dict | None = None, state: di
                                                sort_keys=True, separators=(",", ":")) + "\n")
     anomalous = [r for r in records.values() if r["kind"] == "anomaly"]
     counts = {"images": len(records), "anomalous": len(anomalous), "recomputed": recomputed,
-              "posed": sum(r["bop"]["pose"] is not None for r in anomalous),
-              "amodal": sum(bool(r["bop"]["info"]) and r["bop"]["info"].get("visib_source") == "amodal_pass"
-                            for r in anomalous),
+              "posed": sum(_planned(r)["pose"] is not None for r in anomalous),
+              "amodal": sum(_amodal_passed(r) for r in anomalous),
               "depth": sum(any("/depth/" in f for f in r["files"]) for r in records.values())}
     return counts
+
+
+def _planned(rec: dict) -> dict:
+    """The BOP entry of a record's planned anomaly (its first object), {"pose": None, ...} without one."""
+    return rec["bop"]["gt"][0] if rec["bop"]["gt"] else {"pose": None, "model": None, "info": None}
+
+
+def _amodal_passed(rec: dict) -> bool:
+    info = _planned(rec)["info"]
+    return bool(info) and info.get("visib_source") == "amodal_pass"
 
 
 def summary_line(out: Path) -> str:
@@ -338,12 +377,12 @@ def summary_line(out: Path) -> str:
     the ray cast), depth PNGs (render the depth pass for them)."""
     records = list((_load(Path(out)).get("records") or {}).values())
     anomalous = [r for r in records if r.get("kind") == "anomaly"]
-    posed = [r for r in anomalous if r["bop"]["pose"] is not None]
-    amodal = sum(bool(r["bop"]["info"]) and r["bop"]["info"].get("visib_source") == "amodal_pass" for r in anomalous)
+    posed = [r for r in anomalous if _planned(r)["pose"] is not None]
+    amodal = sum(_amodal_passed(r) for r in anomalous)
     depth = sum(any("/depth/" in f for f in r["files"]) for r in records)
     line = (f"annotations: COCO {len(records)} images, {len(anomalous)} anomalies; BOP poses {len(posed)} of "
             f"{len(anomalous)}, amodal masks {amodal} of {len(anomalous)}, depth {depth} of {len(records)} images")
-    missing = [r["name"] for r in anomalous if r["bop"]["pose"] is None]
+    missing = [r["name"] for r in anomalous if _planned(r)["pose"] is None]
     if missing:
         line += (f" ({len(missing)} render(s) record no pose, rendered before poses were: their scene_gt entries are "
                  f"empty; re-render them: {', '.join(missing[:5])})")

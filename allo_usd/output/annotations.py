@@ -61,7 +61,7 @@ import numpy as np
 from allo_usd.core.labels import ANOMALY
 from allo_usd.output.record import RenderRecord
 from allo_usd.sky.model import BODIES
-from allo_usd.usd.layout import body_path
+from allo_usd.usd.layout import ANOMALY as ANOMALY_PRIM, body_path
 
 USD_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])   # camera axes: USD (x right, y up, -z forward) -> OpenCV
 
@@ -172,11 +172,10 @@ def mask_centroid(mask: np.ndarray, class_id: int = ANOMALY) -> list[float] | No
     return [float(cols.mean()), float(rows.mean())] if rows.size else None
 
 
-def _model_frame(desc, meshes) -> tuple[np.ndarray, np.ndarray]:
-    """(model-to-world 4x4, (N, 3) every anomaly vertex in the model frame). The model frame is the
-    anomaly prim's own (the reader's anomaly_model.local_to_world: the frame of the file it references);
-    a description without it (made another way) takes its first mesh's."""
-    recorded = (desc.meta.get("anomaly_model") or {}).get("local_to_world")
+def _model_frame(desc, meshes, recorded=None) -> tuple[np.ndarray, np.ndarray]:
+    """(model-to-world 4x4, (N, 3) every vertex of `meshes` in the model frame). The model frame is the
+    anomaly object's own (`recorded`: the reader's local_to_world of the object's prim, the frame of
+    the file it references); without it (a description made another way) its first mesh's."""
     m = np.asarray(recorded if recorded is not None else meshes[0].matrix, dtype=np.float64)
     inv = np.linalg.inv(m)
     pts = []
@@ -186,13 +185,13 @@ def _model_frame(desc, meshes) -> tuple[np.ndarray, np.ndarray]:
     return m, np.concatenate(pts)
 
 
-def amodal_raycast(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(H, W) bool: pixels whose centre ray meets the anomaly's triangles, nothing else in the scene
-    (scene.raycast, embree), only where its vertices' image box says it can be."""
+def amodal_raycast(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int, meshes=None) -> np.ndarray:
+    """(H, W) bool: pixels whose centre ray meets `meshes`' triangles (default: every anomaly-class mesh),
+    nothing else in the scene (scene.raycast, embree), only where their vertices' image box says it can be."""
     from allo_usd.assets.mesh import fan_triangulate
     from allo_usd.scene.raycast import RayScene
 
-    meshes = [m for m in desc.meshes if m.class_id == ANOMALY]
+    meshes = [m for m in desc.meshes if m.class_id == ANOMALY] if meshes is None else meshes
     parts = [(_world_points(m), fan_triangulate(m.face_counts, m.face_indices), ANOMALY) for m in meshes]
     out = np.zeros((height, width), dtype=bool)
     uv, z = project(k, w2c, np.concatenate([p for p, _, _ in parts]))
@@ -212,15 +211,38 @@ def amodal_raycast(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int
     return out
 
 
+def object_paths(desc) -> list[str]:
+    """The scene's object paths in object-id order (id = index + 1; blender.build.object_ids's table)."""
+    return sorted({m.object_path for m in desc.meshes})
+
+
+def anomaly_objects(desc) -> list[str]:
+    """The paths of the scene's anomaly objects: /World/Anomaly (the planned anomaly) first, then the
+    others in path order."""
+    paths = sorted({m.object_path for m in desc.meshes if m.class_id == ANOMALY})
+    return sorted(paths, key=lambda p: (p != ANOMALY_PRIM, p))
+
+
 def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray,
-                   amodal: np.ndarray | None = None) -> dict | None:
-    """The anomaly's annotations (module docstring), None for a normal scene. `amodal`: the `amodal`
-    pass's mask (STEM_amodal.png), else the full silhouette is ray-cast."""
-    meshes = [m for m in desc.meshes if m.class_id == ANOMALY]
+                   amodal: np.ndarray | None = None, path: str | None = None, ids: np.ndarray | None = None) -> dict | None:
+    """One anomaly object's annotations (module docstring), None when the scene has no such object.
+    `path`: the object (default: the first of anomaly_objects, /World/Anomaly when it is there); its
+    visible pixels are those of its id in `ids` (the object index pass), or the class mask's anomaly
+    pixels when the scene has one anomaly object. `amodal`: the `amodal` pass's mask (STEM_amodal.png,
+    /World/Anomaly alone), the full silhouette of /World/Anomaly; any other object's is ray-cast over
+    its own meshes."""
+    objects = anomaly_objects(desc)
+    path = path or (objects[0] if objects else None)
+    meshes = [m for m in desc.meshes if m.class_id == ANOMALY and m.object_path == path]
     if not meshes:
         return None
     height, width = mask.shape
-    m2w, model_pts = _model_frame(desc, meshes)
+    labels = next((o for o in desc.meta.get("anomalies") or () if isinstance(o, dict) and o.get("path") == path), {})
+    planned = path == ANOMALY_PRIM or not labels and len(objects) == 1
+    recorded = labels.get("local_to_world")
+    if recorded is None and planned:
+        recorded = (desc.meta.get("anomaly_model") or {}).get("local_to_world")
+    m2w, model_pts = _model_frame(desc, meshes, recorded)
     m2c = w2c @ m2w
     rot, scale = split_rotation_scale(m2c[:3, :3])
     lo, hi = model_pts.min(axis=0), model_pts.max(axis=0)
@@ -228,27 +250,47 @@ def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray,
                         for i in (0, 1) for j in (0, 1) for n in (0, 1)])
     box_cam = corners @ m2c[:3, :3].T + m2c[:3, 3]
     centre = m2c[:3, :3] @ ((lo + hi) / 2.0) + m2c[:3, 3]
-    visible = mask == ANOMALY
-    if amodal is not None:
+    instance = object_paths(desc).index(path) + 1
+    if ids is not None:
+        visible = ids == instance
+    elif len(objects) == 1:
+        visible = mask == ANOMALY
+    else:
+        raise ValueError(f"{len(objects)} anomaly objects: their pixels need the object index pass (ids)")
+    if amodal is not None and path == ANOMALY_PRIM:
         full, source = amodal == ANOMALY, "amodal_pass"
     else:
-        full, source = amodal_raycast(desc, k, w2c, width, height) | visible, "raycast"
+        full, source = amodal_raycast(desc, k, w2c, width, height, meshes) | visible, "raycast"
     pixels, amodal_pixels = int(np.count_nonzero(visible)), int(np.count_nonzero(full))
-    info = desc.meta.get("anomaly") or {}
-    asset, variant = info.get("asset"), info.get("assetVariant")
+    info = (desc.meta.get("anomaly") or {}) if planned else {}
+    asset, variant = (info.get("asset"), info.get("assetVariant")) if planned else (None, None)
+    asset, variant = asset or labels.get("asset"), variant or labels.get("variant")
     offset = info.get("depthOffset")
-    return {"bbox_xyxy_px": mask_bbox(mask), "pixels": pixels,
+    model_path = labels.get("reference") if labels else (desc.meta.get("anomaly_model") or {}).get("reference")
+    vmask = visible.astype(np.uint8)
+    return {"path": path, "instance_id": instance, "bbox_xyxy_px": mask_bbox(vmask, 1), "pixels": pixels,
             "center_cam_opencv_m": centre.tolist(), "distance_m": float(np.linalg.norm(centre)),
-            "center_px": _pixels(k, centre)[0], "mask_centroid_px": mask_centroid(mask),
+            "center_px": _pixels(k, centre)[0], "mask_centroid_px": mask_centroid(vmask, 1),
             "depth_offset_m": None if offset is None else float(offset),
-            "model": {"asset": asset, "variant": variant,
-                      "model_id": None if asset is None else f"{asset}/{variant}",
-                      "path": (desc.meta.get("anomaly_model") or {}).get("reference")},
+            "model": {"asset": asset, "variant": variant, "model_id": model_id(asset, variant), "path": model_path},
             "pose": {"cam_R_m2c": rot.ravel().tolist(), "cam_t_m2c": (m2c[:3, 3] * 1000.0).tolist(),
                      "model_units": "m", "model_scale": scale.tolist()},
             "bbox3d_cam_m": box_cam.tolist(), "bbox3d_px": _pixels(k, box_cam),
             "bbox_amodal_xyxy_px": mask_bbox(full.astype(np.uint8), 1), "amodal_pixels": amodal_pixels,
-            "visib_fract": pixels / amodal_pixels if amodal_pixels else 0.0, "visib_source": source}
+            "visib_fract": pixels / amodal_pixels if amodal_pixels else 0.0, "visib_source": source,
+            "segmentation": visible_rle(visible) if pixels else None}
+
+
+def model_id(asset, variant) -> str | None:
+    """"ASSET/VARIANT", "ASSET" for an asset without variants, None without an asset."""
+    return None if asset is None else asset if variant is None else f"{asset}/{variant}"
+
+
+def visible_rle(visible: np.ndarray) -> dict:
+    """COCO compressed RLE of an object's visible pixels (allo_usd.output.coco.rle)."""
+    from allo_usd.output.coco import rle
+
+    return rle(visible)
 
 
 def bodies_in_view(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int) -> dict:
@@ -271,14 +313,19 @@ def bodies_in_view(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int
     return out
 
 
-def image_annotations(desc, mask: np.ndarray, amodal: np.ndarray | None = None) -> dict:
-    """The render JSON's `annotations` block: camera, anomaly (None for a normal scene), in_view.
-    `amodal`: the `amodal` pass's mask when it was rendered (else the full silhouette is ray-cast)."""
+def image_annotations(desc, mask: np.ndarray, amodal: np.ndarray | None = None, ids: np.ndarray | None = None) -> dict:
+    """The render JSON's `annotations` block: camera, anomalies (one entry per anomaly object,
+    anomaly_objects' order; absent without one), anomaly (the planned anomaly's entry, /World/Anomaly's,
+    else the first object's; None for a normal scene), in_view. `amodal`: the `amodal` pass's mask when
+    it was rendered (else every silhouette is ray-cast); `ids`: the object index pass (needed with more
+    than one anomaly object)."""
     height, width = mask.shape
     camera = camera_record(desc, width, height)
     k, w2c = np.array(camera["K_px"]), np.array(camera["world_to_cam_opencv"])
-    return {"camera": camera, "anomaly": anomaly_record(desc, mask, k, w2c, amodal),
-            "in_view": bodies_in_view(desc, k, w2c, width, height)}
+    anomalies = [anomaly_record(desc, mask, k, w2c, amodal, path, ids) for path in anomaly_objects(desc)]
+    out = {"camera": camera, "anomaly": anomalies[0] if anomalies else None,
+           "in_view": bodies_in_view(desc, k, w2c, width, height)}
+    return out | ({"anomalies": anomalies} if anomalies else {})
 
 
 # ---------------------------------------------------------------- manifest columns (from an untrusted JSON)

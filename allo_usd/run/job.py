@@ -174,7 +174,7 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
         files={k: p.name for k, p in paths.items()},
         outputs_sha256=outputs_sha256(paths),  # what is_done checks: the JSON alone vouches for its outputs
         # K, pose, clipping, the anomaly's box and place, the bodies in view (conventions: output/annotations.py)
-        annotations=image_annotations(desc, result.mask, result.amodal),
+        annotations=image_annotations(desc, result.mask, result.amodal, result.ids),
     )
     meta.write(paths["meta"])
     if index and (Path(out_dir) / MANIFEST).is_file():  # a dispatcher's folder: its index follows the record

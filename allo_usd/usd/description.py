@@ -28,6 +28,12 @@ class MeshDesc:
     matrix: np.ndarray          # local-to-world
     class_id: int
     ray_visibility: str = "all"  # all | cameraOnly (the Sun's disc) | noShadow (Moon, Earth)
+    object: str = ""            # the object it is part of (its instance id): an anomaly-class mesh's anomaly
+                                # object (the prim its class label is applied on); "" = the mesh itself
+
+    @property
+    def object_path(self) -> str:
+        return self.object or self.path
 
 
 @dataclass(frozen=True)

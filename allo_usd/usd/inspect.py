@@ -33,6 +33,7 @@ from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.layout import STATION_SUN
 from allo_usd.usd.read import camera_exposure, open_stage
+from allo_usd.usd.read_labels import anomaly_prims, composed_asset, composed_labels, composed_variant
 from allo_usd.usd.read_lights import sun_irradiance
 from allo_usd.usd.reader_bounds import world_matrix
 
@@ -188,13 +189,16 @@ def describe(layer: str | Path) -> dict:
     aprim = stage.GetPrimAtPath(layout.ANOMALY)
     if aprim and aprim.IsActive():
         m = world_matrix(cache, aprim)
-        anomaly = {"asset": _attr(aprim, A.ANOMALY_ASSET.name), "variant": _attr(aprim, A.ANOMALY_ASSET_VARIANT.name),
+        composed = composed_labels(aprim, check=True)   # what is referenced and selected (read_labels)
+        anomaly = {"asset": composed["asset"], "variant": composed["assetVariant"],
                    "variant_selection": aprim.GetVariantSets().GetAllVariantSelections().get("variant"),
                    "depth_index": _attr(aprim, A.ANOMALY_DEPTH_INDEX.name),
                    "depth_offset": _attr(aprim, A.ANOMALY_DEPTH_OFFSET.name),
                    "predicted_area_fraction": _attr(aprim, A.ANOMALY_PREDICTED_AREA_FRACTION.name),
                    "attempts": _attr(aprim, A.ANOMALY_ATTEMPTS.name), "position": tuple(map(float, m[:3, 3])),
                    "source": _asset_source(aprim, start)}
+    objects = [{"path": str(p.GetPath()), "asset": composed_asset(p), "variant": composed_variant(p)}
+               for p in anomaly_prims(stage)]
 
     settings_path = stage.GetMetadata("renderSettingsPrimPath") or layout.RENDER_SETTINGS
     sp = stage.GetPrimAtPath(settings_path)
@@ -267,7 +271,7 @@ def describe(layer: str | Path) -> dict:
                                                         and world.GetAttribute(A.POSITION_SIGMA.name).HasAuthoredValue())},
         "pose_file": ({"name": a(A.POSE_NAME), "source": a(A.POSE_SOURCE), "sha256": a(A.POSE_SOURCE_SHA256)}
                       if a(A.POSE_NAME) else None),
-        "anomaly": anomaly, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
+        "anomaly": anomaly, "anomaly_objects": objects, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
         "camera": camera, "joints": joints,
         "layer_stack": {"sublayers": list(root.subLayerPaths),
                         "layers": [_rel(l.realPath, start) or l.identifier for l in _stack(stage)]},
@@ -337,6 +341,9 @@ def format_description(d: dict) -> str:
                  f"anomaly  {an['asset']}/{an['variant']}  depth {an['depth_index']} ({_fmt(an['depth_offset'])} m)  "
                  f"predicted area {_fmt(an['predicted_area_fraction'])}  at {_fmt(an['position'])}  "
                  + _source_text(an["source"]))
+    objects = d.get("anomaly_objects") or []
+    if [o["path"] for o in objects] not in ([], [layout.ANOMALY]):   # more than the anomaly line says
+        lines.append("objects  " + "  ".join(f"{o['path']} {o['asset']}/{o['variant']}" for o in objects))
     r = d["render"]
     res = r["resolution"] or ("?", "?")
     lines.append(f"render   {res[0]}x{res[1]}  {r['samples']} spp  preset {r['preset']}  seed {r['seed']}  "

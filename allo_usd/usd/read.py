@@ -273,7 +273,7 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
         meshes = [dataclasses.replace(m, ray_visibility="cameraOnly") if m.ray_visibility == "noShadow" else m
                   for m in meshes]
     return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, suns, spot,
-                            render, effects, read_meta(stage))
+                            render, effects, read_meta(stage, meshes))
 
 
 VAR_PASSES = {name: p for name, (p, _, _, _) in RENDER_VARS.items()}   # var prim name -> pass

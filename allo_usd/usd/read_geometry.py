@@ -6,25 +6,38 @@ from __future__ import annotations
 import numpy as np
 
 from allo_usd.core.errors import LayerError
-from allo_usd.core.labels import BACKGROUND, CLASS_IDS
+from allo_usd.core.labels import ANOMALY, CLASS_IDS, STATION
 from allo_usd.usd import attributes as A
 from allo_usd.usd.description import MaterialDesc, MeshDesc
 from allo_usd.usd.read_material import read_material
 from allo_usd.usd.reader_bounds import mesh_topology, world_matrix
 
 
-def _class_id(prim) -> int:
+def class_and_object(prim) -> tuple[int, str]:
+    """(class id, object path) of a mesh prim: the class of the nearest ancestor-or-self whose
+    UsdSemantics.LabelsAPI "class" instance (semantics:labels:class) holds a label of CLASS_IDS (its
+    first such label); labels outside CLASS_IDS are passed over. Unlabelled geometry (a user's own)
+    is STATION, "station and bodies": it occludes and is part of the scene, so the mask must not call
+    it empty space (every mesh an authored layer holds is labelled). An anomaly-class mesh is part of
+    the anomaly object that prim is (one instance id for all its meshes); any other mesh is its own
+    object ("")."""
     from pxr import UsdSemantics
 
     p = prim
     while p and not p.IsPseudoRoot():
         if p.HasAPI(UsdSemantics.LabelsAPI, "class"):
             labels = UsdSemantics.LabelsAPI(p, "class").GetLabelsAttr().Get() or []
-            for label in labels:
-                if label in CLASS_IDS:
-                    return CLASS_IDS[label]
+            for name in labels:
+                if name in CLASS_IDS:
+                    cls = CLASS_IDS[name]
+                    return cls, (str(p.GetPath()) if cls == ANOMALY else "")
         p = p.GetParent()
-    return BACKGROUND
+    return STATION, ""
+
+
+def _class_id(prim) -> int:
+    """The mesh prim's class (label)."""
+    return class_and_object(prim)[0]
 
 
 def _ray_visibility(prim) -> str:
@@ -97,5 +110,6 @@ def read_mesh(prim, cache, materials: dict, checked: set | None = None) -> MeshD
     else:
         key = "__default__"
         materials.setdefault(key, MaterialDesc(key, (0.5, 0.5, 0.5), 0.0, 0.5))
+    class_id, obj = class_and_object(prim)   # every MeshDesc's class and object come from here
     return MeshDesc(path, points, counts, indices, uv, smooth, key, world_matrix(cache, prim, checked=checked),
-                    _class_id(prim), _ray_visibility(prim))
+                    class_id, _ray_visibility(prim), obj)
