@@ -21,7 +21,9 @@ check each):
 - `world_to_cam_opencv`: world -> camera frame in OpenCV's axes (x right, y down, z forward,
   metres), column vectors: p_cam = M @ [X, Y, Z, 1]; then (u, v) = (fx x / z + cx, fy y / z + cy).
   It is diag(1, -1, -1, 1) @ inverse(cam_to_world_usd).
-- Anomaly bounding box `bbox_xyxy_px`: [x_min, y_min, x_max, y_max] of the anomaly class in the
+- Anomaly objects: one record per anomaly object (MeshDesc.object: the prim its anomaly label is
+  applied on), its pixels its own id's in the object index pass (the class mask's anomaly pixels when
+  the scene has one). Bounding box `bbox_xyxy_px`: [x_min, y_min, x_max, y_max] of the object's pixels in the
   mask, inclusive pixel indices (COCO's [x, y, w, h] is [x_min, y_min, x_max - x_min + 1,
   y_max - y_min + 1]); null when no anomaly pixel is visible. `pixels`: its visible pixel count.
 - The anomaly's model frame is its prim's own (/World/Anomaly: the frame of the file it references,
