@@ -179,6 +179,10 @@ REFUSED = {
                                  '    }\n}\n'), "productName"),
     "product_resolution": (render_prims('over "Products"\n{\n    over "Image"\n    {\n'
                                         '        uniform int2 resolution = (10, 10)\n    }\n}\n'), "for itself"),
+    "unknown_var": (render_prims('over "Vars"\n{\n    def RenderVar "Albedo"\n    {\n    }\n}\n'
+                                 'over "Products"\n{\n    over "Image"\n    {\n'
+                                 '        rel orderedVars = [</Render/Vars/Color>, </Render/Vars/Albedo>]\n    }\n}\n'),
+                    "does not write"),
     "var_sourceName": (render_prims('over "Vars"\n{\n    over "Color"\n    {\n        uniform string sourceName = "normal"\n'
                                     '    }\n}\n'), "sourceName"),
 }
@@ -221,3 +225,58 @@ def test_a_users_own_camera_renders_from_it(tree, tmp_path):
     zoomed = render(layer(tree, "c_zoom", camera("float focalLength = 0.5")), tmp_path / "zoom")
     assert same_view(own, zoomed)
     assert (own.mask != render(layer(tree, "c_plain"), tmp_path / "plain").mask).mean() > 0.05
+
+
+# A fresh Blender: USD-import a layer into an empty factory scene; report each camera's lens and depth of field.
+CAMERA_PROBE = r"""
+import bpy, json, sys
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.wm.usd_import(filepath=sys.argv[1])
+print("PROBE " + json.dumps({o.name: {"lens": o.data.lens, "dof": o.data.dof.use_dof,
+                                      "fstop": o.data.dof.aperture_fstop, "focus": o.data.dof.focus_distance}
+                             for o in bpy.context.scene.objects if o.type == "CAMERA"}))
+"""
+
+
+@pytest.mark.process
+@pytest.mark.bpy
+@pytest.mark.parametrize("row", ["own_camera", "depth_of_field"])
+def test_blenders_importer_shows_it_too(tree, row):
+    """Blender's own USD importer, the outside client, shows the rendered camera rows: a camera of
+    one's own is a camera object with its lens; fStop and focusDistance are its depth of field."""
+    import json
+    import subprocess
+    import sys
+
+    from allo_usd.usd.read import read_scene
+
+    base = read_scene(layer(tree, "i_plain")).camera
+    body = (_own_camera(base, 0.5) if row == "own_camera" else camera("float fStop = 1.4\nfloat focusDistance = 0.3"))
+    path = layer(tree, f"i_{row}", body)
+    r = subprocess.run([sys.executable, "-c", CAMERA_PROBE, str(path)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    cams = json.loads(r.stdout.split("PROBE ", 1)[1].splitlines()[0])
+    if row == "own_camera":
+        assert cams["MyCamera"]["lens"] == pytest.approx(50.0, rel=1e-4), cams
+    else:
+        assert cams["Camera"]["dof"] and cams["Camera"]["fstop"] == pytest.approx(1.4, rel=1e-4), cams
+        assert cams["Camera"]["focus"] == pytest.approx(0.3, rel=1e-4), cams
+
+
+def test_a_full_purpose_binding_is_the_one_rendered(tree):
+    """materialBindingPurposes ["full", ""] (the fallback): a mesh's full-purpose binding wins over
+    its all-purpose one (UsdShade ComputeBoundMaterial("full"))."""
+    plain = read(tree, "plain")
+    mesh = next(m for m in plain.meshes if m.material)
+    parts = mesh.path.strip("/").split("/")
+    opening = "".join(f'{"    " * i}over "{p}"\n{"    " * i}{{\n' for i, p in enumerate(parts[:-1]))
+    inner = "    " * (len(parts) - 1)
+    closing = "".join(f'{"    " * i}}}\n' for i in reversed(range(len(parts) - 1)))
+    body = (opening + f'{inner}over "{parts[-1]}" (\n{inner}    prepend apiSchemas = ["MaterialBindingAPI"]\n{inner})\n'
+            f'{inner}{{\n{inner}    rel material:binding:full = </MyRed>\n{inner}}}\n' + closing +
+            'def Material "MyRed"\n{\n    token outputs:surface.connect = </MyRed/Surface.outputs:surface>\n'
+            '    def Shader "Surface"\n    {\n        uniform token info:id = "UsdPreviewSurface"\n'
+            '        color3f inputs:diffuseColor = (0.8, 0.05, 0.05)\n        token outputs:surface\n    }\n}\n')
+    red = read(tree, "full_binding", body)
+    assert {m.path: m.material for m in red.meshes}[mesh.path] == "/MyRed"
+    assert mesh.material != "/MyRed"
