@@ -33,7 +33,8 @@ app.add_typer(asset_app, name="asset")
 
 TREE_HELP = (f"An authored tree (the OUT of `allo-usd author`) whose {SCENE_DIR}/, {SKY_DIR}/, {POSE_DIR}/ and "
              f"{STAGE_DIR}/ your layer may read, for a layer of your own outside the tree that sublayers one of its "
-             "scene layers (repeatable; nothing else of OUT is granted). ALLO_ASSET_ROOTS lists further allowed "
+             "scene layers (repeatable; nothing else of OUT is granted). The demo's OUT/layers is granted its "
+             f"scene layers, {SKY_DIR}/, {POSE_DIR}/, {STAGE_DIR}/ and schema/. ALLO_ASSET_ROOTS lists further allowed "
              "directories.")
 
 

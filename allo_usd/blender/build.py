@@ -174,6 +174,12 @@ def set_lens(cam, desc: CameraDesc) -> None:
            f"{desc.path} horizontalApertureOffset / horizontalAperture")
     assign(cam, "shift_y", desc.vertical_offset_mm / desc.sensor_width_mm,
            f"{desc.path} verticalApertureOffset / horizontalAperture")
+    # Depth of field as UsdGeom.Camera has it: fStop 0 none; else the lens at that f-number focused at
+    # focusDistance (m). Blender's aperture is focal length / f-number, as USD's.
+    cam.dof.use_dof = desc.f_stop > 0
+    if desc.f_stop > 0:
+        assign(cam.dof, "aperture_fstop", desc.f_stop, f"{desc.path} fStop")
+        assign(cam.dof, "focus_distance", desc.focus_distance_m, f"{desc.path} focusDistance (m)")
 
 
 def build_camera(desc: CameraDesc):

@@ -280,8 +280,7 @@ class Session:
                     stats: ApplyStats) -> None:
         """Step 4: camera and lights, touched only where they differ (suns linked to rebuilt meshes too)."""
         pc, nc = prev.camera, desc.camera
-        if not _eq(pc.matrix, nc.matrix) or (pc.focal_length_mm, pc.sensor_width_mm, pc.sensor_height_mm, pc.clip) \
-                != (nc.focal_length_mm, nc.sensor_width_mm, nc.sensor_height_mm, nc.clip):
+        if not _eq(pc.matrix, nc.matrix) or _lens(pc) != _lens(nc):
             self._patch_camera(desc)
             stats.changed.append("camera")
         if self._patch_suns(prev, desc, {m.path for m in added}):
@@ -361,6 +360,8 @@ class Session:
 
     def _patch_camera(self, desc: SceneDescription) -> None:
         obj = self._find(self.desc.camera.path)  # the camera the scene shows now
+        if obj.name != desc.camera.path:   # the render settings name another camera prim: named as built
+            obj.name = obj.data.name = desc.camera.path
         build.set_lens(obj.data, desc.camera)
         build.place(obj, desc.camera.matrix)
 
@@ -437,3 +438,8 @@ class Session:
             coll.objects.link(o)
         return True
 
+
+def _lens(cam) -> tuple:
+    """Everything of a CameraDesc but its matrix: what set_lens and the object's name take."""
+    return (cam.path, cam.focal_length_mm, cam.sensor_width_mm, cam.sensor_height_mm, cam.clip,
+            cam.horizontal_offset_mm, cam.vertical_offset_mm, cam.f_stop, cam.focus_distance_m)

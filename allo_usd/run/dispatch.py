@@ -83,7 +83,7 @@ def _read_candidate(path: Path) -> tuple[bool, bytes | None]:
 
 def _is_scene_layer(path: Path, read: tuple[bool, bytes | None] | None = None) -> bool | None:
     """The one rule for what `render DIR` renders (allo_usd.usd.sniff.is_scene_layer: a layer whose
-    own layer metadata holds customLayerData.allo.sceneId); `read`: _read_candidate's answer."""
+    own layer metadata holds customLayerData.allo.sceneId, or a layer over one); `read`: _read_candidate's answer."""
     from allo_usd.usd.sniff import is_scene_layer
 
     refused, data = _read_candidate(path) if read is None else read
@@ -134,7 +134,7 @@ def find_layers(source: str | Path | list) -> list[Path]:
                 layers = _scene_layers_under(source)
             if not layers:
                 raise AlloError(f"no scene layers under {source} (a scene layer is a .usda whose customLayerData "
-                                f"holds allo.sceneId; {SKY_DIR}/, {POSE_DIR}/ and {STAGE_DIR}/ layers are shared "
+                                f"holds allo.sceneId, or a layer whose subLayers reach one; {SKY_DIR}/, {POSE_DIR}/ and {STAGE_DIR}/ layers are shared "
                                 f"sublayers, not scenes); author a plan there with `allo-usd author PLAN --out "
                                 f"{source}`, or pass the directory that holds the scene layers")
         elif os.path.exists(source):

@@ -103,10 +103,45 @@ class Walk:
 class _Rules:
     """Who is walked and how a refusal reads: `root` names the root file in messages, `refuse`
     raises for a path outside the roots (what, path, layer_path, roots), `reopen` is the fix of
-    a file USD cannot parse."""
+    a file USD cannot parse (None: decided by the file, unreadable())."""
     root: str = "scene layer"
     refuse: object = reject
-    reopen: str = "re-author it with `allo-usd author` or restore it from the plan"
+    reopen: str | None = None
+
+
+REAUTHOR = "re-author it with `allo-usd author` or restore it from the plan"
+_POSITION = re.compile(r"(?P<file>\S+):(?P<line>\d+):(?P<col>\d+): (?P<what>.*)", re.S)
+
+
+def project_layer(path: str) -> bool:
+    """Is `path` a layer the project authored: a scene layer (its layer metadata holds
+    customLayerData.allo.sceneId, read from its first bytes as text, so a layer that does not
+    parse is judged too) or a layer in an authored tree's own folders (scenes/, sky/, poses/,
+    stages/, ...)? Those are restored by authoring again; a hand-written layer is fixed by hand."""
+    from allo_usd.core.files import read_head
+    from allo_usd.usd.safety import in_tree_folder
+    from allo_usd.usd.sniff import HEAD_BYTES, _layer_metadata
+
+    head = read_head(Path(path), HEAD_BYTES) or b""
+    text = head.decode("utf-8", errors="replace")
+    block = _layer_metadata(text) if text.startswith("#usda") else None
+    return re.search(r"\bsceneId\s*=", text if block is None else block) is not None or in_tree_folder(path)
+
+
+def unreadable(identifier: str, layer_path, exc, fix: str | None = None) -> str:
+    """The one line for a layer USD cannot read (`exc`, a Tf error): where (file, line and column
+    for a syntax error), what USD says, and the fix: `fix` if given, else re-authoring for a layer
+    the project wrote (project_layer) and "fix the layer's syntax" for one of one's own."""
+    what = tf_message(exc)
+    where = _used_by(identifier, layer_path)
+    own = fix is None and not project_layer(identifier)
+    fix = fix or (REAUTHOR if not own else "fix the layer's syntax")
+    found = _POSITION.fullmatch(what)
+    if own and found:
+        return f"{where}: USD cannot parse line {found['line']} ({what}); {fix}"
+    if own:
+        return f"{where} is not a readable USD layer ({what}); {fix} (a .usda text or .usdc layer USD can open)"
+    return f"{where} is not a readable USD layer ({what}); {fix}"
 
 
 _SCENE = _Rules()
@@ -239,15 +274,15 @@ def _used_by(identifier: str, layer_path) -> str:
     return identifier if same else f"{identifier} (used by {layer_path})"
 
 
-def _open(identifier: str, layer_path, fix: str = _SCENE.reopen):
+def _open(identifier: str, layer_path, fix: str | None = _SCENE.reopen):
     from pxr import Sdf, Tf
 
     try:
         layer = Sdf.Layer.FindOrOpen(identifier)
     except Tf.ErrorException as exc:
-        raise LayerError(f"{_used_by(identifier, layer_path)} is not a readable USD layer ({tf_message(exc)}); "
-                         f"{fix}") from None
+        raise LayerError(unreadable(identifier, layer_path, exc, fix)) from None
     if layer is None:
+        fix = fix or (REAUTHOR if project_layer(identifier) else "fix the layer (USD cannot open it as a layer)")
         raise LayerError(f"{_used_by(identifier, layer_path)} could not be opened as a USD layer; {fix}")
     return layer
 
@@ -297,7 +332,7 @@ def _named(layer, layer_path, packaged: bool = False) -> tuple[_Named, ...]:
 
 
 def _cached_named(key: tuple, identifier: str, layer_path, opened: list, packaged: bool = False,
-                  fix: str = _SCENE.reopen) -> tuple[_Named, ...]:
+                  fix: str | None = _SCENE.reopen) -> tuple[_Named, ...]:
     hit = _NAMED.get(key)
     if hit is not None:
         _NAMED.move_to_end(key)
@@ -459,5 +494,5 @@ def unpacked_file(resolved: str, where: str = "") -> str:
     return str(dest)
 
 
-__all__ = ["walk", "walk_hazard", "hazard_roots", "check_root", "Walk", "stat_key", "tf_message", "is_package",
+__all__ = ["walk", "walk_hazard", "unreadable", "project_layer", "hazard_roots", "check_root", "Walk", "stat_key", "tf_message", "is_package",
            "unpacked_file", "MAX_LAYER_BYTES", "MAX_ASSET_BYTES", "MAX_PACKAGE_BYTES", "LAYER_EXTENSIONS", "PACKAGE_EXTENSION"]

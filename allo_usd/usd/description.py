@@ -58,6 +58,8 @@ class CameraDesc:
     path: str = CAMERA                     # the UsdGeom.Camera prim (the Blender object's name)
     horizontal_offset_mm: float = 0.0      # horizontalApertureOffset, verticalApertureOffset in mm (the
     vertical_offset_mm: float = 0.0        # principal point: core.camera_model; Blender's lens shift)
+    f_stop: float = 0.0                    # UsdGeom.Camera fStop: 0 no depth of field (Blender dof.use_dof off)
+    focus_distance_m: float = 0.0          # UsdGeom.Camera focusDistance (m), read when f_stop > 0
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ from allo_usd.usd.reader_bounds import (CAMERA_EV, CAMERA_EXPOSURE_FACTOR, CLIP_
                                         MAX_SCENE_POINTS, MAX_SHIFT, OFFSET_TOLERANCE, RENDER_ADAPTIVE, RENDER_BOUNCES,
                                         RENDER_EXPOSURE, RENDER_SAMPLES, RENDER_SEED, RENDER_THREADS, SENSOR_MM,
                                         as_stored, _check_resolution, _check_size, _millimetres, _number, _range, snap,
-                                        _tf_message, _vector, world_matrix)
+                                        _vector, world_matrix)
 
 
 def open_stage(layer_path: str | Path):
@@ -40,7 +40,7 @@ def open_stage(layer_path: str | Path):
     """
     from pxr import Tf, Usd, UsdGeom
 
-    from allo_usd.usd.dependencies import walk
+    from allo_usd.usd.dependencies import REAUTHOR, project_layer, unreadable, walk
     from allo_usd.usd.safety import check_stage
 
     schema.register()
@@ -51,11 +51,11 @@ def open_stage(layer_path: str | Path):
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        raise LayerError(f"{path} is not a readable USD layer ({_tf_message(exc)}); "
-                         "re-author it with `allo-usd author` or restore it from the plan") from None
+        raise LayerError(unreadable(str(path), path, exc)) from None
     del opened
     if stage is None:
-        raise LayerError(f"{path} could not be opened as a USD stage; re-author it")
+        raise LayerError(f"{path} could not be opened as a USD stage; "
+                         f"{REAUTHOR if project_layer(str(path)) else 'fix the layer'}")
     errors = stage.GetCompositionErrors()
     if errors:
         raise LayerError(f"{path} does not compose: {_tf_message_list(errors)}; restore the missing "
@@ -74,7 +74,12 @@ def _tf_message_list(errors) -> str:
         except UnicodeDecodeError:
             out.append("an error whose text is not UTF-8")
     return "; ".join(out) + (f" (and {len(errors) - 3} more)" if len(errors) > 3 else "")
-def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
+def read_camera(prim, cache, checked: set | None = None, settings_prim=None) -> CameraDesc:
+    """The UsdGeom.Camera the render settings name, as Blender's camera: projection (perspective
+    only), lens, apertures conformed to the image as the settings' aspectRatioConformPolicy says,
+    offsets, clipping range, depth of field (fStop, focusDistance; the settings'
+    disableDepthOfField) and its transform. `settings_prim`: the UsdRender.Settings prim (None: the
+    apertures as authored, no depth of field switch)."""
     from pxr import UsdGeom
 
     cam = UsdGeom.Camera(prim)
@@ -94,6 +99,13 @@ def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
         raise LayerError(f"{where}.clippingRange = ({near:g}, {far:g}) must be near < far within "
                          f"{_range(*CLIP_M, 'm')} (Blender's Camera.clip_start/clip_end); fix the layer")
     near, far = snap(near, CLIP_M), snap(far, CLIP_M)
+    planes = cam.GetClippingPlanesAttr().Get()
+    if planes is not None and len(planes):
+        raise LayerError(f"{where}.clippingPlanes holds {len(planes)} plane(s): Cycles has no clipping planes beyond "
+                         "the clipping range; fix the layer: remove clippingPlanes (or cut the geometry itself)")
+    role = cam.GetStereoRoleAttr().Get()
+    if role not in (UsdGeom.Tokens.mono, UsdGeom.Tokens.left, UsdGeom.Tokens.right):
+        raise LayerError(f"{where}.stereoRole = {role!r} is not mono, left or right; fix the layer")
     offsets = []
     for attr, aperture in ((cam.GetHorizontalApertureOffsetAttr(), width), (cam.GetVerticalApertureOffsetAttr(), height)):
         mm = _number(attr.Get(), f"{where}.{attr.GetName()}") * 100.0
@@ -102,8 +114,71 @@ def read_camera(prim, cache, checked: set | None = None) -> CameraDesc:
             raise LayerError(f"{where}.{attr.GetName()} = {attr.Get()!r} ({mm:.3g} mm) puts the principal point outside "
                              f"the image (|offset| <= {MAX_SHIFT:g} x the {aperture:.3g} mm aperture); fix the layer")
         offsets.append(snap(mm, (-edge, edge)) + 0.0)
+    f_stop, focus = _depth_of_field(cam, where, settings_prim)
+    if settings_prim is not None:
+        width, height = conform_aperture(width, height, settings_prim, where)
     m = world_matrix(cache, prim, MAX_CAMERA_DISTANCE_M, checked)
-    return CameraDesc(m, focal, width, height, (near, far), str(where), *offsets)
+    return CameraDesc(m, focal, width, height, (near, far), str(where), *offsets, f_stop=f_stop, focus_distance_m=focus)
+
+
+def _depth_of_field(cam, where, settings_prim) -> tuple[float, float]:
+    """(fStop, focusDistance in m) as UsdGeom.Camera defines them: fStop 0 (the fallback) is no depth
+    of field, and so is the settings' disableDepthOfField = true; else focusDistance must be > 0."""
+    f_stop = _number(cam.GetFStopAttr().Get(), f"{where}.fStop", lo=0.0, hi=F_STOP[1])
+    focus = _number(cam.GetFocusDistanceAttr().Get(), f"{where}.focusDistance", lo=0.0)
+    disabled = settings_prim is not None and _get(settings_prim, "disableDepthOfField", False) is True
+    if f_stop == 0.0 or disabled:
+        return 0.0, 0.0
+    if not F_STOP[0] <= f_stop:
+        raise LayerError(f"{where}.fStop = {f_stop:g}: a lens opens to f/{F_STOP[0]:g} at most; fix the layer: 0 for no "
+                         f"depth of field, else an f-number in {_range(*F_STOP)}")
+    if not FOCUS_M[0] <= focus <= FOCUS_M[1]:
+        raise LayerError(f"{where}.focusDistance = {focus:g} with fStop = {f_stop:g}: depth of field needs a focus "
+                         f"distance in {_range(*FOCUS_M, 'm')}; fix the layer: set focusDistance (scene units, m), or "
+                         "fStop = 0 for none")
+    return f_stop, focus
+
+
+F_STOP = (0.5, 1e4)      # a non-zero UsdGeom.Camera fStop (f-number): Blender's dof.aperture_fstop
+FOCUS_M = (1e-3, 1e9)    # UsdGeom.Camera focusDistance (m) when fStop > 0: Blender's dof.focus_distance
+
+
+# UsdRender.SettingsBase aspectRatioConformPolicy: how the camera's aperture is fitted to the image
+# when their aspect ratios differ (square pixels: pixelAspectRatio is 1).
+CONFORM_POLICIES = ("expandAperture", "cropAperture", "adjustApertureWidth", "adjustApertureHeight",
+                    "adjustPixelAspectRatio")
+ASPECT_TOLERANCE = 1e-5   # a float32 aperture pair (0.36 x 0.2025) matches its 16:9 image within this
+
+
+def conform_aperture(width: float, height: float, settings_prim, where) -> tuple[float, float]:
+    """The apertures (mm) the image uses, by UsdRender's aspectRatioConformPolicy: where the
+    aperture's aspect (width/height) differs from the image's, expandAperture grows the dimension
+    that falls short, cropAperture shrinks the one that overhangs, adjustApertureWidth/Height
+    changes that one; adjustPixelAspectRatio would need non-square pixels and is refused. Equal
+    aspects (within ASPECT_TOLERANCE) keep the authored values exactly. Blender fits the sensor
+    horizontally (the vertical field of view follows from the width and the image's aspect), so the
+    width is what the render uses; the height is returned as authored."""
+    res = _get(settings_prim, "resolution")
+    image = res[0] / res[1]
+    if abs(width / height - image) <= ASPECT_TOLERANCE * image:
+        return width, height
+    policy = str(_get(settings_prim, "aspectRatioConformPolicy", "expandAperture"))
+    wider = image > width / height   # the image is wider than the aperture
+    if policy == "adjustApertureWidth" or (policy == "expandAperture" and wider) or \
+            (policy == "cropAperture" and not wider):
+        conformed = height * image
+    elif policy in ("adjustApertureHeight", "expandAperture", "cropAperture"):
+        conformed = width
+    else:
+        raise LayerError(f"{settings_prim.GetPath()}.aspectRatioConformPolicy = {policy!r} with {where}'s aperture "
+                         f"{width:.4g} x {height:.4g} mm (aspect {width / height:.4g}) and a {res[0]}x{res[1]} image "
+                         f"(aspect {image:.4g}): allo-usd renders square pixels only; fix the layer: another policy "
+                         "(the fallback is expandAperture), or apertures of the image's aspect")
+    if not as_stored(SENSOR_MM)[0] <= conformed <= as_stored(SENSOR_MM)[1]:
+        raise LayerError(f"{where}: its aperture conformed to the {res[0]}x{res[1]} image by {policy} is {conformed:.4g} "
+                         f"mm wide, outside {_range(*SENSOR_MM, 'mm')} (Blender's Camera.sensor_width); fix the layer: "
+                         "apertures nearer the image's aspect")
+    return snap(conformed, SENSOR_MM), height
 
 
 # UsdGeom.Camera exposure attributes: (attribute getter name, fallback, bounds). The fallbacks are the
@@ -146,6 +221,7 @@ def read_render(settings_prim, exposure: float = 1.0) -> tuple[RenderDesc, Effec
     from pxr import Gf, UsdRender
 
     settings = UsdRender.Settings(settings_prim)
+    check_settings(settings_prim)
     res = settings.GetResolutionAttr().Get()
     if not isinstance(res, Gf.Vec2i):
         raise LayerError(f"{settings_prim.GetPath()}.resolution must be an int2, got {res!r}; fix the layer")
@@ -188,6 +264,125 @@ def read_render(settings_prim, exposure: float = 1.0) -> tuple[RenderDesc, Effec
                           body_shine=flag(A.EFFECTS_BODY_SHINE.name, True),
                           sensor=read_sensor(settings_prim) if noise else None)
     return render, effects
+
+
+PRODUCT_NAME = "image"    # the base stage's one RenderProduct's productName (base_stage.define_render_settings)
+SETTINGS_FALLBACKS = {    # UsdRender.SettingsBase attributes a product could override for itself
+    "resolution", "pixelAspectRatio", "aspectRatioConformPolicy", "dataWindowNDC", "instantaneousShutter",
+    "disableMotionBlur", "disableDepthOfField"}
+COLOR_SPACES = ("", "lin_rec709_scene")   # renderingColorSpace: Cycles renders linear Rec.709 (scene-referred)
+
+
+def check_settings_prim(settings_prim) -> None:
+    """The prim renderSettingsPrimPath names is a UsdRender.Settings prim."""
+    from pxr import UsdRender
+
+    if not settings_prim.IsA(UsdRender.Settings):
+        raise LayerError(f"renderSettingsPrimPath names {settings_prim.GetPath()}, a "
+                         f"{settings_prim.GetTypeName() or 'typeless'} prim, not a RenderSettings prim; fix the layer: "
+                         f"point it at a RenderSettings prim (the scene's is {layout.RENDER_SETTINGS})")
+
+
+def check_settings(settings_prim) -> None:
+    """What of UsdRender.Settings, its product and vars allo-usd renders, each else refused in one
+    line (docs/usd/what_renders.md, camera and render settings): square pixels, the whole image
+    (dataWindowNDC), a known aspectRatioConformPolicy, materialBindingPurposes ["full", ""],
+    linear Rec.709 rendering, one camera, one raster product named as the base stage names it with
+    no settings of its own, vars as the base stage defines them, and one instant: no time samples
+    anywhere on the stage (the default time code is what is rendered)."""
+    from pxr import UsdRender
+
+    where = settings_prim.GetPath()
+    check_settings_prim(settings_prim)
+    pixel = _number(_get(settings_prim, "pixelAspectRatio", 1.0), f"{where}.pixelAspectRatio")
+    if pixel != 1.0:
+        raise LayerError(f"{where}.pixelAspectRatio = {pixel:g}: allo-usd renders square pixels only (its masks, boxes "
+                         "and intrinsics assume them); fix the layer: pixelAspectRatio = 1, and set the shape with "
+                         "resolution")
+    window = tuple(float(v) for v in _get(settings_prim, "dataWindowNDC", (0.0, 0.0, 1.0, 1.0)))
+    if window != (0.0, 0.0, 1.0, 1.0):
+        raise LayerError(f"{where}.dataWindowNDC = {window}: allo-usd renders the whole image (0, 0, 1, 1) only; fix "
+                         "the layer: remove dataWindowNDC, and crop the images afterwards if you need part of them")
+    policy = str(_get(settings_prim, "aspectRatioConformPolicy", "expandAperture"))
+    if policy not in CONFORM_POLICIES:
+        raise LayerError(f"{where}.aspectRatioConformPolicy = {policy!r} is not one of {', '.join(CONFORM_POLICIES)}; "
+                         "fix the layer")
+    for name in ("instantaneousShutter", "disableMotionBlur", "disableDepthOfField"):
+        if not isinstance(_get(settings_prim, name, False), bool):
+            raise LayerError(f"{where}.{name} must be a bool, got {_get(settings_prim, name)!r}; fix the layer")
+    purposes = [str(p) for p in _get(settings_prim, "materialBindingPurposes", ["full", ""])]
+    if purposes != ["full", ""]:
+        raise LayerError(f"{where}.materialBindingPurposes = {purposes}: allo-usd binds materials as the fallback "
+                         "[\"full\", \"\"] says (a full-purpose binding, else the all-purpose one); fix the layer: "
+                         "remove the opinion, and bind the material you want to render with that purpose")
+    space = str(_get(settings_prim, "renderingColorSpace", ""))
+    if space not in COLOR_SPACES:
+        raise LayerError(f"{where}.renderingColorSpace = {space!r}: Cycles renders in linear Rec.709 "
+                         f"({COLOR_SPACES[1]!r}); fix the layer: remove the opinion or set {COLOR_SPACES[1]!r}")
+    settings = UsdRender.Settings(settings_prim)
+    cameras = settings.GetCameraRel().GetForwardedTargets()
+    if len(cameras) > 1:
+        raise LayerError(f"{where}.camera names {len(cameras)} cameras ({', '.join(map(str, cameras))}); a render has "
+                         "one: fix the layer: name one camera")
+    products = settings.GetProductsRel().GetForwardedTargets()
+    if len(products) > 1:
+        raise LayerError(f"{where}.products names {len(products)} products ({', '.join(map(str, products))}); allo-usd "
+                         f"writes one, {layout.IMAGE_PRODUCT}, whose orderedVars choose the passes: fix the layer: "
+                         "order the vars you want on that product")
+    stage = settings_prim.GetStage()
+    for path in products:
+        _check_product(stage.GetPrimAtPath(path), path)
+    _check_one_instant(stage)
+
+
+def _check_product(prim, path) -> None:
+    from pxr import UsdRender
+
+    if not prim or not prim.IsA(UsdRender.Product):
+        raise LayerError(f"the render settings' product {path} is not a RenderProduct prim; fix the layer")
+    product = UsdRender.Product(prim)
+    kind, name = str(product.GetProductTypeAttr().Get()), str(product.GetProductNameAttr().Get())
+    if kind != "raster" or name != PRODUCT_NAME:
+        raise LayerError(f"{path}: productType {kind!r}, productName {name!r}: allo-usd writes one raster product and "
+                         f"names its files after the layer (STEM.png, STEM.exr, ...; docs/formats/render_outputs.md); "
+                         f"fix the layer: productType \"raster\", productName \"{PRODUCT_NAME}\"")
+    own = sorted(a.GetName() for a in prim.GetAttributes() if a.GetName() in SETTINGS_FALLBACKS and a.HasAuthoredValue())
+    own += [r.GetName() for r in prim.GetRelationships() if r.GetName() == "camera" and r.HasAuthoredTargets()]
+    if own:
+        raise LayerError(f"{path} authors {', '.join(own)} for itself; allo-usd reads them from the render settings "
+                         f"only: fix the layer: set them on {layout.RENDER_SETTINGS} and remove them from the product")
+    for var_path in product.GetOrderedVarsRel().GetForwardedTargets():
+        var = prim.GetStage().GetPrimAtPath(var_path)
+        _, source, dtype, _ = RENDER_VARS.get(var_path.name, (None, None, None, None))
+        if source is None:
+            continue   # var_pass refuses it by name
+        got = tuple(str(_get(var, n, "")) for n in ("sourceName", "dataType", "sourceType"))
+        if not var.IsA(UsdRender.Var) or got != (source, dtype, "raw"):
+            raise LayerError(f"{var_path}: sourceName {got[0]!r}, dataType {got[1]!r}, sourceType {got[2]!r}: a var "
+                             f"named {var_path.name} is written as sourceName {source!r}, dataType {dtype!r}, "
+                             "sourceType 'raw' (the base stage's); fix the layer: order the var that writes what you "
+                             f"want (one of {', '.join(VAR_PASSES)}) instead of changing this one")
+
+
+def _check_one_instant(stage) -> None:
+    """allo-usd renders one instant, Usd.TimeCode.Default(): a time-sampled value anywhere on the
+    stage (an animated transform, light, camera, shutter) is refused, naming the first one, so that
+    nothing is read at a time the user did not mean. Sdf lists a layer's sample times cheaply."""
+    from pxr import Sdf
+
+    for layer in stage.GetUsedLayers():
+        if not layer.ListAllTimeSamples():
+            continue
+        found: list = []
+
+        def visit(path, layer=layer, found=found):
+            if not found and path.IsPropertyPath() and layer.GetNumTimeSamplesForPath(path):
+                found.append(path)
+        layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+        what = found[0] if found else "a property"
+        raise LayerError(f"{layer.identifier}: {what} has time samples; allo-usd renders one instant, the default "
+                         "time code (no animation, no motion blur): fix the layer: author the value itself "
+                         "(`= value`) instead of timeSamples")
 
 
 def read_sensor(settings_prim):
@@ -234,13 +429,14 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
     if not settings_prim:
         raise LayerError(f"{layer_path}: no render settings at {settings_path}; the base stage sublayer is "
                          "missing or broken (check subLayers)")
+    check_settings_prim(settings_prim)
     cam_targets = UsdRender.Settings(settings_prim).GetCameraRel().GetForwardedTargets()
     if not cam_targets or not stage.GetPrimAtPath(cam_targets[0]).IsA(UsdGeom.Camera):
         raise LayerError(f"{layer_path}: render settings name no camera; set {settings_path}.camera")
     render, effects = read_render(settings_prim, camera_exposure(stage.GetPrimAtPath(cam_targets[0]))[0])
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     checked: set = set()  # prims whose xformOps are checked (world_matrix)
-    camera = read_camera(stage.GetPrimAtPath(cam_targets[0]), cache, checked)
+    camera = read_camera(stage.GetPrimAtPath(cam_targets[0]), cache, checked, settings_prim)
 
     meshes, materials, light_prims = [], {}, []
     count = points = 0

@@ -102,7 +102,8 @@ def read_mesh(prim, cache, materials: dict, checked: set | None = None) -> MeshD
     points, counts, indices = mesh_topology(prim)
     uv = _read_uv(prim, len(indices))
     smooth = _smooth(UsdGeom.Mesh(prim), path, len(points), len(counts), len(indices))
-    bound = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+    # the render settings' materialBindingPurposes ["full", ""] (read.read_render): full, else allPurpose
+    bound = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial(UsdShade.Tokens.full)[0]
     if bound:
         key = str(bound.GetPath())
         if key not in materials:

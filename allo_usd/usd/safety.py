@@ -46,8 +46,10 @@ from pathlib import Path
 from allo_usd.core.errors import LayerError
 from allo_usd.core.files import folder_realpath, memo_realpath
 from allo_usd.core.paths import STAGES
-from allo_usd.usd.tree import (BASE_STAGE_FILE, GRANTED_DIRS, POSE_DIR, SCENE_DIR, SCHEMA_DIR, SKY_DIR, STAGE_DIR,
-                               TREE_PLAN, tree_base_stage)
+from allo_usd.usd.tree import (BASE_STAGE_FILE, GRANTED_DIRS, LAYER_FOLDER_DIRS, POSE_DIR, SCENE_DIR, SCHEMA_DIR,
+                               SKY_DIR, STAGE_DIR, TREE_PLAN, tree_base_stage)
+
+LAYER_FILE_SUFFIXES = (".usda", ".usdc", ".usd")   # a layer's names (allo_usd.usd.dependencies.LAYER_EXTENSIONS)
 
 ENV_ROOTS = "ALLO_ASSET_ROOTS"
 
@@ -77,6 +79,39 @@ def is_authored_tree(path: str | Path) -> bool:
     return (path / TREE_PLAN).is_file() or tree_base_stage(path).is_file()
 
 
+def is_layer_folder(path: str | Path) -> bool:
+    """A tree of the demo's shape (`allo-usd demo`'s OUT/layers, allo_usd.run.demo): its scene layers
+    lie at its top, beside sky/, poses/, stages/base.usda and schema/, with no plan.toml and no
+    scenes/ folder."""
+    path = Path(path)
+    return tree_base_stage(path).is_file() and not (path / TREE_PLAN).is_file() and not (path / SCENE_DIR).is_dir()
+
+
+def _top_layers(tree: Path) -> tuple[Path, ...]:
+    """The layer files at the top of a demo-shaped tree (regular files, not symbolic links): its scene
+    layers, each granted by itself, so that nothing else at its top (a private/ folder) is."""
+    found = []
+    for entry in sorted(os.scandir(tree), key=lambda e: e.name):
+        if entry.name.lower().endswith(LAYER_FILE_SUFFIXES) and entry.is_file(follow_symlinks=False):
+            found.append(tree / entry.name)
+    return tuple(found)
+
+
+def tree_grants(tree: Path) -> tuple[Path, ...]:
+    """What a tree grants its own scene layers: an authored tree its authored folders
+    (_tree_folders); a demo-shaped tree (is_layer_folder) its top-level scene layers and its
+    sky/, poses/, stages/ and schema/."""
+    if is_layer_folder(tree):
+        return (*_top_layers(tree), *(tree / d for d in LAYER_FOLDER_DIRS))
+    return _tree_folders(tree)
+
+
+def _grant_text(tree: Path) -> str:
+    if is_layer_folder(tree):
+        return (f"its scene layers (the layer files at its top), {', '.join(d + '/' for d in LAYER_FOLDER_DIRS)}")
+    return ", ".join(d + "/" for d in GRANTED_DIRS)
+
+
 def tree_roots(tree: str | Path, option: str = "--tree") -> tuple[Path, ...]:
     """The roots that naming `tree` grants (its authored folders, real paths), or a LayerError
     when `tree` is not an authored tree or one of its folders links outside it."""
@@ -87,11 +122,12 @@ def tree_roots(tree: str | Path, option: str = "--tree") -> tuple[Path, ...]:
     if not is_authored_tree(real):
         raise LayerError(f"{option} {tree} is not an authored tree (it holds neither {TREE_PLAN} nor "
                          f"{STAGE_DIR}/{BASE_STAGE_FILE}); pass the folder `allo-usd author` wrote (OUT, not a "
-                         f"folder inside it), or add the directory your layer needs to {ENV_ROOTS}")
+                         f"folder inside it) or the demo's OUT/layers, or add the directory your layer needs to "
+                         f"{ENV_ROOTS}")
     for folder, target in linked_folders(real):
         raise LayerError(f"{option} {tree}: {folder} is a symbolic link to {target}; a tree grants only its own "
                          f"folders: replace the link with the folder's files, or add {target} to {ENV_ROOTS}")
-    return _tree_folders(real)
+    return tree_grants(real)
 
 
 @contextmanager
@@ -118,9 +154,24 @@ def _tree_of(path: str | Path) -> Path | None:
     """The authored tree whose authored folders hold `path` (after realpath), if any."""
     real = Path(os.path.realpath(path))
     for d in real.parents:
-        if is_authored_tree(d) and any(f in real.parents for f in _tree_folders(d)):
+        if is_authored_tree(d) and any(f == real or f in real.parents for f in tree_grants(d)):
             return d
     return None
+
+
+def in_tree_folder(path: str | Path) -> bool:
+    """Does `path` lie in one of an authored tree's own folders (scenes/, sky/, poses/, stages/,
+    hazards/, schema/): a file the project wrote there?"""
+    real = Path(os.path.realpath(path))
+    return any(is_authored_tree(d.parent) for d in real.parents
+               if d.name in (*GRANTED_DIRS, SCHEMA_DIR) and d.parent != d)
+
+
+def _named_trees(roots) -> list[Path]:
+    """The trees among `roots` a layer was granted (by `--tree`, or as its own tree): every tree
+    grants its stages/, so a granted stages/ other than the package's names its tree."""
+    package = Path(os.path.realpath(STAGES))
+    return [r.parent for r in roots if r.name == STAGE_DIR and r != package and is_authored_tree(r.parent)]
 
 
 def _plan_root(layer_path: Path) -> Path | None:
@@ -226,10 +277,22 @@ def inside_real(real: str, roots: tuple[Path, ...]) -> bool:
 
 def reject(what: str, path: str, layer_path, roots) -> None:
     tree = _tree_of(path)
-    fix = (f"it belongs to the authored tree {tree}: name that tree with `--tree {tree}` (allo-usd render, inspect, "
-           f"diff), or add the folder that holds the file to {ENV_ROOTS}" if tree is not None else
-           f"move the file under one of them, name its authored tree with `--tree OUT`, or add its directory to "
-           f"{ENV_ROOTS}")
+    real = Path(os.path.realpath(path))
+    holder = next((t for t in _named_trees(roots) if t in real.parents), None)
+    if tree is not None:
+        fix = (f"it belongs to the authored tree {tree}: name that tree with `--tree {tree}` (allo-usd render, "
+               f"inspect, diff), or add the folder that holds the file to {ENV_ROOTS}")
+    elif holder is not None:   # inside a tree that was granted, but not in what a tree grants
+        fix = (f"it lies in the tree {holder}, which grants only {_grant_text(holder)}, not "
+               f"{real.relative_to(holder).parts[0]}: move the file into one of those, or add its directory to "
+               f"{ENV_ROOTS}")
+    elif _named_trees(roots):
+        fix = (f"no tree granted ({', '.join(map(str, _named_trees(roots)))}) holds it, and no folder above it is "
+               f"an authored tree (none holds {TREE_PLAN} or {STAGE_DIR}/{BASE_STAGE_FILE}): move the file into "
+               f"a granted tree, or add its directory to {ENV_ROOTS}")
+    else:
+        fix = (f"move the file under one of them, name its authored tree with `--tree OUT`, or add its directory to "
+               f"{ENV_ROOTS}")
     raise LayerError(f"{layer_path}: {what} {path} resolves outside the allowed roots "
                      f"({', '.join(map(str, roots))}); {fix}")
 

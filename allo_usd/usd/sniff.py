@@ -51,10 +51,18 @@ _AUTHORED_HEAD = re.compile(rb'#usda 1\.0\n\(\n    customLayerData = \{\n       
                             rb'(?:' + _ALLO_ENTRY + rb')*        \}\n    \}\n')
 
 
-def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
+MAX_OVER_DEPTH = 8   # how many layers of one's own may stand over a scene layer, each sublayering the next
+
+
+def is_scene_layer(path: Path, head: bytes | None = None, _top: Path | None = None, _depth: int = 0) -> bool | None:
     """The one rule for what `render DIR` renders: a scene layer is a layer whose own layer metadata
     holds customLayerData.allo.sceneId, as every layer `allo-usd author` and the demo write for a
-    scene does, and no sky, pose, stage, asset or schema layer does. For a text layer only the
+    scene does, and no sky, pose, stage, asset or schema layer does; or a layer of one's own over
+    one: a layer whose subLayers reach a scene layer (directly, or through at most MAX_OVER_DEPTH
+    layers of one's own), whatever its customLayerData holds. Its scene is named by its file stem,
+    as every render output is (two layers of one name in one run are refused). A sublayer the
+    layer may not read (outside its allowed roots, not a regular file) keeps the layer, so that the
+    render says what is wrong with it. For a text layer only the
     layer-metadata block (the parenthesised block after `#usda 1.0`, before any prim) counts: a
     `string allo:sceneId` property further down (the schema's generatedSchema.usda, a sky layer's
     record) does not make a scene. A binary crate's customLayerData is read by Sdf. A file that is
@@ -71,7 +79,7 @@ def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
         block = _layer_metadata(head.decode("utf-8", errors="replace"))
         if block is None:  # the metadata does not end within the head: its look decides
             return re.search(rb"\bsceneId\s*=", head) is not None
-        if "sceneId" not in block:
+        if "sceneId" not in block and "subLayers" not in block:
             return False
         load_pxr()
         from pxr import Sdf, Tf
@@ -83,7 +91,9 @@ def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
         except Tf.ErrorException:
             return True
         allo = layer.customLayerData.get("allo")
-        return isinstance(allo, dict) and "sceneId" in allo
+        if isinstance(allo, dict) and "sceneId" in allo:
+            return True
+        return _over_scene(path, list(layer.subLayerPaths), _top or path, _depth)
     if head.startswith(CRATE_MAGIC):
         load_pxr()
         from pxr import Sdf, Tf
@@ -92,8 +102,34 @@ def is_scene_layer(path: Path, head: bytes | None = None) -> bool | None:
             layer = Sdf.Layer.FindOrOpen(str(path))
         except Tf.ErrorException:
             return True  # a broken crate: let the reader say what is wrong
-        return bool(layer) and "sceneId" in dict(layer.customLayerData.get("allo", {}))
+        if not layer:
+            return False
+        return "sceneId" in dict(layer.customLayerData.get("allo", {})) or \
+            _over_scene(path, list(layer.subLayerPaths), _top or path, _depth)
     return True
+
+
+def _over_scene(path: Path, subs: list[str], top: Path, depth: int) -> bool:
+    """Does one of `subs` (the subLayers of `path`, as written) reach a scene layer (is_scene_layer)?
+    Read with the allowed roots of `top`, the layer the scan found: a sublayer it may not read keeps
+    it (True: its render names the rule); a path USD resolves otherwise (a variable expression, a
+    search path, a package) is not followed."""
+    import os
+
+    from allo_usd.usd.safety import allowed_roots, inside
+
+    if depth >= MAX_OVER_DEPTH:
+        return False
+    for raw in subs:
+        if raw.startswith("`") or "[" in raw or not raw.strip():
+            continue
+        sub = Path(os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(path)), raw)))
+        if not inside(str(sub), allowed_roots(top)) or refusal(sub):
+            return True
+        found = is_scene_layer(sub, None, top, depth + 1)
+        if found is None or found:
+            return True
+    return False
 
 
 def _layer_metadata(text: str) -> str | None:

@@ -50,6 +50,9 @@ LAYER_SUFFIX = ".usda"             # every layer authoring writes
 LAYER_DIRS = (SCENE_DIR, SKY_DIR, POSE_DIR)   # the authored layers: a tree holding them must record its plan
 # The folders a tree grants its own scene layers (usd.safety): what their composition may read.
 GRANTED_DIRS = (SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR, HAZARD_DIR)
+# The folders a tree of the demo's shape (`allo-usd demo`'s OUT/layers: scene layers at its top, no
+# scenes/ and no plan.toml) grants beside its scene layers (usd.safety.tree_grants).
+LAYER_FOLDER_DIRS = (SKY_DIR, POSE_DIR, STAGE_DIR, SCHEMA_DIR)
 # The shared folders beside the scenes (sublayers, the base stage's assets, the schema plugin): the
 # dispatcher does not search them for scene layers.
 SUPPORT_DIRS = (SKY_DIR, POSE_DIR, STAGE_DIR, SCHEMA_DIR, HAZARD_DIR)
