@@ -21,7 +21,8 @@ from allo_usd.core.errors import AlloError  # noqa: E402
 from allo_usd.core.files import ensure_output_dir, ensure_output_file  # noqa: E402
 from allo_usd.core.limits import MAX_SIDE_PX, MIN_SIDE_PX, resolution_problem  # noqa: E402
 from allo_usd.plan.settings import PASSES  # noqa: E402
-from allo_usd.usd.tree import COUNTS_CSV, POSE_DIR, SCENE_DIR, SKIPPED_CSV, SKY_DIR, STAGE_DIR  # noqa: E402
+from allo_usd.usd.tree import (COUNTS_CSV, LAYER_FOLDER_DIRS, POSE_DIR, SCENE_DIR, SKIPPED_CSV, SKY_DIR,  # noqa: E402
+                               STAGE_DIR)
 
 if TYPE_CHECKING:
     from allo_usd.run.options import JobOptions, RunOptions
@@ -34,7 +35,8 @@ app.add_typer(asset_app, name="asset")
 TREE_HELP = (f"An authored tree (the OUT of `allo-usd author`) whose {SCENE_DIR}/, {SKY_DIR}/, {POSE_DIR}/ and "
              f"{STAGE_DIR}/ your layer may read, for a layer of your own outside the tree that sublayers one of its "
              "scene layers (repeatable; nothing else of OUT is granted). The demo's OUT/layers is granted its "
-             f"scene layers, {SKY_DIR}/, {POSE_DIR}/, {STAGE_DIR}/ and schema/. ALLO_ASSET_ROOTS lists further allowed "
+             f"scene layers, {', '.join(d + '/' for d in LAYER_FOLDER_DIRS[:-1])} and {LAYER_FOLDER_DIRS[-1]}/. "
+             "ALLO_ASSET_ROOTS lists further allowed "
              "directories.")
 
 

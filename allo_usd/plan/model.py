@@ -18,7 +18,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_validator, model_validator
 
 from allo_usd.assets.importer import SUPPORTED_EXTENSIONS, UNIT_SCALES, UP_AXIS_ROTATIONS
-from allo_usd.core.camera_model import CLIP_M, DEFAULT_CAMERA, LENS_MM, SENSOR_MM, CameraModel
+from allo_usd.core.camera_model import CLIP_M, DEFAULT_CAMERA, LENS_MM, SENSOR_MM, CameraModel, sensor_height_for
 from allo_usd.core.errors import EpochError, PlanError
 from allo_usd.core.limits import resolution_problem
 from allo_usd.core.timefmt import format_utc, parse_utc
@@ -532,8 +532,8 @@ class Camera(_Model):
         """The lens for a `size` = (width, height) image; raises ValueError naming the field and the fix."""
         w, h = size
         sw, sh = self.sensor_width_mm, self.sensor_height_mm
-        if sw is None and sh is None:
-            sw, sh = DEFAULT_CAMERA.sensor_width_mm, DEFAULT_CAMERA.sensor_height_mm   # Table I, as the base stage
+        if sw is None and sh is None:   # Table I's 36 mm width, as the base stage; the height the image's aspect gives
+            sw, sh = DEFAULT_CAMERA.sensor_width_mm, sensor_height_for(DEFAULT_CAMERA.sensor_width_mm, w, h)
         elif sh is None:
             sh = sw * h / w
         elif sw is None:

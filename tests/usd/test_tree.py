@@ -13,7 +13,7 @@ import pytest
 
 import allo_usd
 from allo_usd.usd import tree
-from allo_usd.usd.tree import (COUNTS_CSV, GRANTED_DIRS, LAYER_DIRS, POSE_DIR, SCENE_DIR, SKIPPED_CSV, SKY_DIR,
+from allo_usd.usd.tree import (COUNTS_CSV, GRANTED_DIRS, LAYER_DIRS, LAYER_FOLDER_DIRS, POSE_DIR, SCENE_DIR, SKIPPED_CSV, SKY_DIR,
                                STAGE_DIR, SUPPORT_DIRS, TREE_ENTRIES, TREE_LOCK, TREE_PLAN, existing_scene_ids,
                                pose_layer_path, scene_layer_path, sky_layer_path)
 
@@ -197,8 +197,10 @@ def test_the_replace_and_tree_options_name_the_trees_folders():
     shown = re.findall(r"([\w.-]+)/", replace.help)
     assert shown and set(shown) <= set(TREE_ENTRIES), replace.help
     assert set(shown) == {SCENE_DIR, SKY_DIR, POSE_DIR, STAGE_DIR}
-    granted = re.findall(r"([\w.-]+)/", cli.TREE_HELP)
+    authored, demo = cli.TREE_HELP.split("OUT/layers")
+    granted = re.findall(r"([\w.-]+)/", authored)
     assert granted and set(granted) <= set(GRANTED_DIRS), cli.TREE_HELP
+    assert set(re.findall(r"([\w.-]+)/", demo)) == set(LAYER_FOLDER_DIRS), cli.TREE_HELP
 
 
 @pytest.mark.slow
