@@ -173,9 +173,10 @@ def read_gprim(prim, cache, materials: dict, checked: set | None = None) -> Mesh
 
 def _size(prim, name: str, zero_ok: bool = False) -> float:
     attr = prim.GetAttribute(name)
-    lo = 0.0 if zero_ok else np.nextafter(0.0, 1.0)
-    return _number(attr.Get(), str(attr.GetPath()), lo=lo, hi=MAX_POSITION_M,
-                   why="" if zero_ok else " (it must be > 0)")
+    value = _number(attr.Get(), str(attr.GetPath()), lo=0.0, hi=MAX_POSITION_M)
+    if value == 0.0 and not zero_ok:
+        raise LayerError(f"{attr.GetPath()} = 0: a {prim.GetTypeName()} needs it > 0; fix the layer")
+    return value
 
 
 def read_implicit(prim) -> S.Shape:
@@ -397,9 +398,9 @@ def _expand_instancer(prim, cache, materials: dict, checked: set, purposes: froz
     out = []
     for i in chosen:
         k = int(indices[i])
-        m_i = np.array(xforms[i], dtype=np.float64).T
+        m_i = np.array(xforms[int(i)], dtype=np.float64).T
         for desc, rel, below in templates[k]:
-            where = f"{path}/{protos[k].GetName()}_{i}{rel}"
+            where = f"{path}/{protos[k].GetName()}_{int(i)}{rel}"
             m = base @ m_i @ below
             _check_instance_matrix(m, where)
             out.append(dataclasses.replace(desc, path=where, matrix=m))
