@@ -147,7 +147,7 @@ def read_geometry(prim, cache, materials: dict, checked: set, purposes: frozense
 
 
 def _refuse_unrendered(prim) -> None:
-    from pxr import UsdLux
+    from pxr import UsdGeom, UsdLux
 
     path = prim.GetPath()
     if prim.HasAPI(UsdLux.LightAPI):
@@ -155,15 +155,17 @@ def _refuse_unrendered(prim) -> None:
         raise LayerError(f"{path} ({prim.GetTypeName()}) applies {apis}: geometry that emits light is not rendered by "
                          "allo-usd; fix the layer: remove the API and give it a UsdPreviewSurface with emissiveColor, "
                          "or add a UsdLux light")
-    if prim.GetTypeName() != "Mesh" and prim.GetTypeName() not in IMPLICIT:
+    if not prim.IsA(UsdGeom.Mesh) and prim.GetTypeName() not in IMPLICIT:
         raise LayerError(f"{path} is a {prim.GetTypeName() or 'typeless prim'}: {RENDERED}; fix the layer: convert it to "
                          "a Mesh or remove it")
 
 
 def read_gprim(prim, cache, materials: dict, checked: set | None = None) -> MeshDesc:
     """A Mesh or implicit shape -> MeshDesc; any other Gprim, or one that emits light, is refused."""
+    from pxr import UsdGeom
+
     _refuse_unrendered(prim)
-    if prim.GetTypeName() == "Mesh":
+    if prim.IsA(UsdGeom.Mesh):
         return read_mesh(prim, cache, materials, checked)
     shape = read_implicit(prim)
     key = _material(prim, materials, None)[0]

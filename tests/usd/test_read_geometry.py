@@ -57,7 +57,7 @@ def refused(read, *prims, **kw) -> str:
     return text
 
 
-@pytest.mark.parametrize("kind,props,n_points", [
+SHAPES = [
     ("Cube", ["double size = 0.5"], 8),
     ("Sphere", ["double radius = 0.4"], 100 * 49 + 2),
     ("Cylinder", ["double radius = 0.3", "double height = 1", 'uniform token axis = "X"'], 4 * 72),
@@ -66,10 +66,22 @@ def refused(read, *prims, **kw) -> str:
     ("Capsule", ["double radius = 0.2", "double height = 0.5"], 100 * 50 + 2),
     ("Capsule_1", ["double radiusBottom = 0.2", "double radiusTop = 0.2", "double height = 0.5"], 100 * 50 + 2),
     ("Plane", ["double width = 1", "double length = 2", 'uniform token axis = "X"'], 4),
-])
-def test_implicit_shape(read, camera, kind, props, n_points):
-    meshes, materials = read(prim(kind, "shape", (0.5, 0, -5), *props))
-    m = meshes[f"{USER}/shape"]
+]
+
+
+@pytest.fixture(scope="module")
+def shapes(scene, camera, tmp_path_factory):
+    """Every implicit shape at (0.5, 0, -5) in the camera's frame, read once."""
+    layer = override(scene, tmp_path_factory.mktemp("shapes") / "shapes.usda",
+                     in_view(camera, *(prim(kind, kind, (0.5, 0, -5), *props) for kind, props, _ in SHAPES)))
+    desc = read_scene(layer)
+    return {m.path: m for m in desc.meshes}, desc.materials
+
+
+@pytest.mark.parametrize("kind,props,n_points", SHAPES)
+def test_implicit_shape(shapes, camera, kind, props, n_points):
+    meshes, materials = shapes
+    m = meshes[f"{USER}/{kind}"]
     assert len(m.points) == n_points and m.smooth == (kind not in ("Cube", "Plane"))
     np.testing.assert_allclose(m.matrix[:3, 3], (camera @ [0.5, 0, -5, 1])[:3], atol=1e-9)
     assert m.material == DEFAULT_MATERIAL.path and materials[m.material] == DEFAULT_MATERIAL
