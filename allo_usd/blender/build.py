@@ -26,8 +26,8 @@ import numpy as np
 
 from allo_usd.core.errors import LayerError
 from allo_usd.plan.settings import COLOR_PASSES
-from allo_usd.usd.description import (CameraDesc, MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc,
-                                      SunDesc)
+from allo_usd.usd.description import (DISPLAY_COLOR_ATTRIBUTE, CameraDesc, MaterialDesc, MeshDesc, RenderDesc,
+                                      SceneDescription, SpotDesc, SunDesc)
 
 
 def _bpy():
@@ -110,6 +110,12 @@ def build_material(desc: MaterialDesc):
     tree = mat.node_tree
     bsdf = next(n for n in tree.nodes if n.type == "BSDF_PRINCIPLED")
     set_principled(bsdf, desc)
+    if desc.color_attribute:   # USD's display colour and opacity per face vertex (MeshDesc.colors), linear
+        attr = tree.nodes.new("ShaderNodeAttribute")
+        attr.attribute_type = "GEOMETRY"
+        attr.attribute_name = desc.color_attribute
+        tree.links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
+        tree.links.new(attr.outputs["Alpha"], bsdf.inputs["Alpha"])
     if desc.base_color_texture:
         tex = tree.nodes.new("ShaderNodeTexImage")
         tex.image = load_texture(desc.base_color_texture, desc.path)
@@ -146,6 +152,9 @@ def build_mesh(desc: MeshDesc, material):
     if desc.uv is not None:
         layer = me.uv_layers.new(name="st")
         layer.data.foreach_set("uv", desc.uv.ravel())
+    if desc.colors is not None:   # linear RGBA per face vertex: a float colour attribute (no sRGB encoding)
+        colors = me.color_attributes.new(DISPLAY_COLOR_ATTRIBUTE, "FLOAT_COLOR", "CORNER")
+        colors.data.foreach_set("color", np.ascontiguousarray(desc.colors, dtype=np.float32).ravel())
     me.update(calc_edges=True)
     me.validate(clean_customdata=False)
     me.materials.append(material)

@@ -75,6 +75,10 @@ def geometry_digest(mesh: MeshDesc) -> bytes:
         h.update(str((a.dtype.str, a.shape)).encode())
         h.update(a.data)
     h.update(b"smooth" if mesh.smooth else b"flat")
+    if mesh.colors is not None:   # a mesh without display colours digests as before
+        a = np.ascontiguousarray(mesh.colors)
+        h.update(b"colors" + str((a.dtype.str, a.shape)).encode())
+        h.update(a.data)
     return h.digest()
 
 

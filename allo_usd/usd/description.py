@@ -15,6 +15,8 @@ from allo_usd.core.sensor import SensorParams
 from allo_usd.plan.settings import EffectFlags, QualitySettings
 from allo_usd.usd.layout import CAMERA, INSPECTION_LIGHT, STATION_SUN
 
+DISPLAY_COLOR_ATTRIBUTE = "displayColor"   # the per-corner colour attribute MeshDesc.colors is built into
+
 
 @dataclass(frozen=True, eq=False)
 class MeshDesc:
@@ -30,6 +32,8 @@ class MeshDesc:
     ray_visibility: str = "all"  # all | cameraOnly (the Sun's disc) | noShadow (Moon, Earth)
     object: str = ""            # the object it is part of (its instance id): an anomaly-class mesh's anomaly
                                 # object (the prim its class label is applied on); "" = the mesh itself
+    colors: np.ndarray | None = None  # (len(face_indices), 4) float32 linear RGBA per face vertex: the display
+                                      # colour and opacity (read by a material with color_attribute), or None
 
     @property
     def object_path(self) -> str:
@@ -46,6 +50,8 @@ class MaterialDesc:
     emissive_color: tuple[float, float, float] = (0.0, 0.0, 0.0)
     ior: float = 1.5                           # UsdPreviewSurface ior; 1.0 = no specular layer
     opacity: float = 1.0                       # UsdPreviewSurface opacity; 0 = fully transparent (the Sun's sphere)
+    color_attribute: str | None = None         # base colour and alpha from this per-corner colour attribute
+                                               # (MeshDesc.colors), not base_color and opacity
 
 
 @dataclass(frozen=True, eq=False)

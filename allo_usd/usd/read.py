@@ -20,7 +20,7 @@ from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
 from allo_usd.usd.description import CameraDesc, EffectsDesc, RenderDesc, SceneDescription
 from allo_usd.core.errors import LayerError
 from allo_usd.usd.base_stage import RENDER_VARS
-from allo_usd.usd.read_geometry import read_mesh
+from allo_usd.usd.read_geometry import included_purposes, is_geometry, read_geometry
 from allo_usd.usd.read_labels import check_variants, read_meta
 from allo_usd.usd.read_lights import read_lights
 from allo_usd.usd.reader_bounds import (CAMERA_EV, CAMERA_EXPOSURE_FACTOR, CLIP_M, LENS_MM, MAX_CAMERA_DISTANCE_M,
@@ -440,7 +440,10 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
 
     meshes, materials, light_prims = [], {}, []
     count = points = 0
-    it = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.PrimIsActive & Usd.PrimIsDefined & ~Usd.PrimIsAbstract))
+    purposes = included_purposes(settings_prim)
+    # instance proxies too: an instanceable prim's meshes render at their proxies' (unique) paths
+    it = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies(
+        Usd.PrimIsActive & Usd.PrimIsDefined & ~Usd.PrimIsAbstract)))
     for prim in it:
         count += 1
         _check_size(prim, count, layer_path)
@@ -451,9 +454,12 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
             it.PruneChildren()
             continue
         check_variants(prim)
-        if prim.IsA(UsdGeom.Mesh):
-            meshes.append(read_mesh(prim, cache, materials, checked))
-            points += len(meshes[-1].points)
+        if is_geometry(prim):
+            if prim.IsA(UsdGeom.PointInstancer):
+                it.PruneChildren()   # its prototypes are drawn through it only
+            found = read_geometry(prim, cache, materials, checked, purposes, MAX_SCENE_POINTS - points)
+            meshes.extend(found)
+            points += sum(len(m.points) for m in found)
             if points > MAX_SCENE_POINTS:
                 raise LayerError(f"{layer_path}: the scene's meshes hold more than {MAX_SCENE_POINTS:,} points in "
                                  f"all (at {prim.GetPath()}); fix the layer: use lighter assets")
