@@ -9,6 +9,9 @@ applied:
   place; a lamp that goes off is removed with its receiver collection, and one whose light
   linking or linked meshes changed is rebuilt);
 - the inspection spot light (on/off, transform, power, cone);
+- the other lamps (SceneDescription.lights: sphere, rect, disk, cylinder lights): all removed and
+  built again, in description order, when any of them differs (or is linked to a rebuilt mesh);
+- the dome (the world background's colour, strength and ray visibility), set again when it differs;
 - render settings (resolution, samples, seed, exposure, threads, denoise, ...) and the render
   device (allo_usd.blender.device: not in the description, passed to `render`/`apply`);
 - the compositor (glare on/off);
@@ -49,7 +52,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +100,13 @@ def _eq(a, b) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         return np.array_equal(np.asarray(a), np.asarray(b))
     return a == b
+
+
+def _same(a, b) -> bool:
+    """Two descriptions (dataclasses holding arrays) equal field by field; None only equals None."""
+    if a is None or b is None:
+        return a is b
+    return type(a) is type(b) and all(_eq(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
 
 
 class Session:
@@ -289,11 +299,24 @@ class Session:
         if not self._spot_equal(prev.spot, desc.spot):
             self._patch_spot(desc)
             stats.changed.append("spot")
+        rebuilt = {m.path for m in added}
+        if len(prev.lights) != len(desc.lights) or not all(_same(a, b) for a, b in zip(prev.lights, desc.lights)) \
+                or any(x.link is not None and not rebuilt.isdisjoint(x.link.paths) for x in desc.lights):
+            for lamp in prev.lights:
+                self._remove_light(build.lamp_name(lamp))
+            for lamp in desc.lights:
+                build.build_lamp(lamp)
+            stats.changed.append("lights")
+        if not _same(prev.dome, desc.dome):
+            build.set_dome(desc.dome)
+            stats.changed.append("dome")
 
     def _patch_output(self, prev: SceneDescription, desc: SceneDescription, device, stats: ApplyStats) -> None:
         """Step 5: render settings, device and compositor, reconfigured only when they differ."""
         if prev.render != desc.render or prev.effects.body_shine != desc.effects.body_shine:
             build.configure_render(desc.render, device)
+            if desc.dome is not None:
+                build.set_dome(desc.dome)  # configure_render turns the world black
             stats.changed.append("render")
         elif device != self.device:
             from allo_usd.blender.device import activate
@@ -365,7 +388,7 @@ class Session:
         build.place(obj, desc.camera.matrix)
 
     def _remove_light(self, name: str) -> None:
-        """Remove a light object, its data and its light-linking collections."""
+        """Remove a light object (or a cylinder light's emitter), its data and its light-linking collections."""
         import bpy
 
         obj = self._find(name)
@@ -374,7 +397,14 @@ class Session:
             colls = [c for c in (obj.light_linking.receiver_collection, obj.light_linking.blocker_collection) if c]
             bpy.data.objects.remove(obj, do_unlink=True)
             if data is not None and data.users == 0:
-                bpy.data.lights.remove(data)
+                if isinstance(data, bpy.types.Mesh):
+                    mats = [m for m in data.materials if m is not None]
+                    bpy.data.meshes.remove(data)
+                    for mat in mats:
+                        if mat.users == 0:
+                            bpy.data.materials.remove(mat)
+                else:
+                    bpy.data.lights.remove(data)
             for coll in colls:
                 if coll.users == 0:
                     bpy.data.collections.remove(coll)
@@ -418,12 +448,13 @@ class Session:
             build.build_spot(desc.spot)
 
     def _reorder(self, desc: SceneDescription) -> bool:
-        """Step 6: link objects in the order a fresh build does (meshes, camera, suns, spot)."""
+        """Step 6: link objects in the order a fresh build does (meshes, camera, suns, spot, other lamps)."""
         import bpy
 
         coll = bpy.context.scene.collection
         want = [self._objects[m.path] for m in desc.meshes] + [self._find(desc.camera.path)]
-        for name in tuple(s.path for s in desc.suns) + ((desc.spot.path,) if desc.spot is not None else ()):
+        for name in tuple(s.path for s in desc.suns) + ((desc.spot.path,) if desc.spot is not None else ()) \
+                + tuple(build.lamp_name(x) for x in desc.lights):
             want.append(self._find(name))
         have = list(coll.objects)
         if have == want:
