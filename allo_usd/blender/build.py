@@ -13,9 +13,15 @@ a LayerError instead. The reader (`allo_usd.usd.reader_bounds`) already bounds e
 limits; this catches a description made some other way. A texture Blender cannot decode is a
 LayerError too (Blender only logs it and renders magenta or black).
 
-Sun lamps follow the light linking the reader resolved (`SunDesc.link`): Cycles light linking
+Every lamp follows the light linking the reader resolved (its `link`): Cycles light linking
 through a receiver collection per lamp, whose members are all EXCLUDE (the lamp lights every
 object but them: the station's sun and the bodies) or all INCLUDE (only them: a body's own sun).
+
+Lamps: a DistantLight is a SUN lamp, the inspection SphereLight and every other SphereLight a SPOT
+(ShapingAPI) or POINT lamp, a RectLight / DiskLight an AREA lamp (RECTANGLE / DISK), a CylinderLight
+an emission-only cylinder mesh (no camera rays, no pass index: never in the mask), the DomeLight the
+world's background. UsdLux inputs:diffuse / inputs:specular 0 turn the lamp's diffuse / glossy ray
+visibility off, ShadowAPI's shadows off is Cycles' use_shadow off.
 """
 
 from __future__ import annotations
@@ -26,8 +32,8 @@ import numpy as np
 
 from allo_usd.core.errors import LayerError
 from allo_usd.plan.settings import COLOR_PASSES
-from allo_usd.usd.description import (DISPLAY_COLOR_ATTRIBUTE, CameraDesc, MaterialDesc, MeshDesc, RenderDesc,
-                                      SceneDescription, SpotDesc, SunDesc)
+from allo_usd.usd.description import (DISPLAY_COLOR_ATTRIBUTE, AreaDesc, CameraDesc, CylinderDesc, DomeDesc, LampRays,
+                                      MaterialDesc, MeshDesc, RenderDesc, SceneDescription, SpotDesc, SunDesc)
 
 
 def _bpy():
@@ -222,22 +228,42 @@ def receivers_name(desc: SunDesc) -> str:
     return f"{desc.path} receivers"
 
 
+def set_rays(obj, rays: LampRays | None) -> None:
+    """A lamp's (or emitting mesh's) diffuse / glossy ray visibility and, for a lamp, its shadows; None:
+    Blender's defaults, left untouched."""
+    if rays is None:
+        return
+    obj.visible_diffuse = rays.diffuse
+    obj.visible_glossy = rays.specular
+    if obj.type == "LIGHT":
+        obj.data.use_shadow = rays.shadow
+
+
+def link_receivers(obj, desc) -> None:
+    """With a link (`desc.link`), a receiver collection of the linked mesh objects, all EXCLUDE or all
+    INCLUDE."""
+    if desc.link is None:
+        return
+    bpy = _bpy()
+    scene_objects = bpy.context.scene.collection.objects
+    coll = bpy.data.collections.new(receivers_name(desc))
+    for path in desc.link.paths:
+        coll.objects.link(scene_objects[path])
+    state = "EXCLUDE" if desc.link.exclude else "INCLUDE"
+    for member in coll.collection_objects:
+        member.light_linking.link_state = state
+    obj.light_linking.receiver_collection = coll
+
+
 def build_sun(desc: SunDesc):
     """A SUN lamp named after its prim; with a link, a receiver collection of the linked mesh objects."""
     bpy = _bpy()
     light = bpy.data.lights.new(desc.path, type="SUN")
     obj = bpy.data.objects.new(desc.path, light)
     set_sun(obj, desc)
-    scene_objects = bpy.context.scene.collection.objects
-    scene_objects.link(obj)
-    if desc.link is not None:
-        coll = bpy.data.collections.new(receivers_name(desc))
-        for path in desc.link.paths:
-            coll.objects.link(scene_objects[path])
-        state = "EXCLUDE" if desc.link.exclude else "INCLUDE"
-        for member in coll.collection_objects:
-            member.light_linking.link_state = state
-        obj.light_linking.receiver_collection = coll
+    set_rays(obj, desc.rays)
+    bpy.context.scene.collection.objects.link(obj)
+    link_receivers(obj, desc)
     return obj
 
 
@@ -249,17 +275,123 @@ def spot_power_w(desc: SpotDesc) -> float:
 
 
 def build_spot(desc: SpotDesc):
+    """A SphereLight: a SPOT lamp with its cone when shaped, else a POINT lamp (every direction)."""
     bpy = _bpy()
-    light = bpy.data.lights.new(desc.path, type="SPOT")
+    light = bpy.data.lights.new(desc.path, type="SPOT" if desc.shaped else "POINT")
     assign(light, "energy", spot_power_w(desc), f"{desc.path} power (W)")
     assign(light, "shadow_soft_size", desc.radius, f"{desc.path} radius")
-    assign(light, "spot_size", math.radians(2.0 * desc.cone_angle_deg), f"{desc.path} cone (2 x half angle, radians)")
-    assign(light, "spot_blend", desc.softness, f"{desc.path} cone softness")
+    if desc.shaped:
+        assign(light, "spot_size", math.radians(2.0 * desc.cone_angle_deg),
+               f"{desc.path} cone (2 x half angle, radians)")
+        assign(light, "spot_blend", desc.softness, f"{desc.path} cone softness")
     assign(light, "color", desc.color, f"{desc.path} color")
     obj = bpy.data.objects.new(desc.path, light)
     place(obj, desc.matrix)
+    set_rays(obj, desc.rays)
     bpy.context.scene.collection.objects.link(obj)
+    link_receivers(obj, desc)
     return obj
+
+
+def build_area(desc: AreaDesc):
+    """A RectLight / DiskLight: an AREA lamp (RECTANGLE / DISK; Blender's area lamp, like UsdLux's, emits
+    along local -Z from one side, Lambertian at the default spread of 180 degrees) whose energy is its
+    power in W, radiance x world-space area x pi (Cycles scales the size by the object's scale)."""
+    bpy = _bpy()
+    light = bpy.data.lights.new(desc.path, type="AREA")
+    light.shape = desc.shape
+    assign(light, "size", desc.size[0], f"{desc.path} width / diameter (m)")
+    if desc.shape == "RECTANGLE":
+        assign(light, "size_y", desc.size[1], f"{desc.path} height (m)")
+    assign(light, "energy", desc.power, f"{desc.path} power (W)")
+    assign(light, "color", desc.color, f"{desc.path} color")
+    obj = bpy.data.objects.new(desc.path, light)
+    place(obj, desc.matrix)
+    set_rays(obj, desc.rays)
+    bpy.context.scene.collection.objects.link(obj)
+    link_receivers(obj, desc)
+    return obj
+
+
+CYLINDER_SIDES = 64
+
+
+def cylinder_name(desc: CylinderDesc) -> str:
+    return f"{desc.path} emitter"
+
+
+def build_cylinder(desc: CylinderDesc):
+    """A CylinderLight: a cylinder mesh along local X (CYLINDER_SIDES sides whose perimeter is the
+    circle's, so its side area and power are the cylinder's), no caps, its outside emitting the
+    radiance (Emission strength = W/m^2/sr; back faces emit nothing). Not seen by camera rays and not
+    casting shadows (a UsdLux light is no occluder); pass index 0, so never in the mask."""
+    bpy = _bpy()
+    name = cylinder_name(desc)
+    n = CYLINDER_SIDES
+    r = desc.radius * math.pi / (n * math.sin(math.pi / n))  # the polygon's perimeter = 2 pi radius
+    a = np.arange(n) * 2.0 * math.pi / n
+    ring = np.stack([np.zeros(n), r * np.cos(a), r * np.sin(a)], -1)
+    half = desc.length / 2.0
+    points = np.concatenate([ring + [-half, 0, 0], ring + [half, 0, 0]])
+    faces = [(i, (i + 1) % n, n + (i + 1) % n, n + i) for i in range(n)]  # outward normals
+    me = bpy.data.meshes.new(name)
+    me.from_pydata([tuple(p) for p in points], [], faces)
+    me.polygons.foreach_set("use_smooth", np.ones(n, dtype=bool))
+    me.update()
+    mat = bpy.data.materials.new(name)
+    tree = mat.node_tree
+    for node in list(tree.nodes):
+        if node.type != "OUTPUT_MATERIAL":
+            tree.nodes.remove(node)
+    emission = tree.nodes.new("ShaderNodeEmission")
+    assign(emission.inputs["Color"], "default_value", (*desc.color, 1.0), f"{desc.path} color")
+    assign(emission.inputs["Strength"], "default_value", desc.radiance, f"{desc.path} radiance")
+    facing = tree.nodes.new("ShaderNodeNewGeometry")
+    mix = tree.nodes.new("ShaderNodeMixShader")  # back faces: the empty second shader, no emission
+    tree.links.new(facing.outputs["Backfacing"], mix.inputs["Fac"])
+    tree.links.new(emission.outputs["Emission"], mix.inputs[1])
+    tree.links.new(mix.outputs["Shader"], next(x for x in tree.nodes if x.type == "OUTPUT_MATERIAL").inputs["Surface"])
+    mat.cycles.emission_sampling = "FRONT"
+    me.materials.append(mat)
+    obj = bpy.data.objects.new(name, me)
+    place(obj, desc.matrix)
+    obj.visible_camera = False
+    obj.visible_shadow = False
+    set_rays(obj, desc.rays)
+    bpy.context.scene.collection.objects.link(obj)
+    link_receivers(obj, desc)
+    return obj
+
+
+def build_lamp(desc):
+    """One of SceneDescription.lights."""
+    if isinstance(desc, SpotDesc):
+        return build_spot(desc)
+    if isinstance(desc, AreaDesc):
+        return build_area(desc)
+    return build_cylinder(desc)
+
+
+def lamp_name(desc) -> str:
+    """The Blender object of one of SceneDescription.lights."""
+    return cylinder_name(desc) if isinstance(desc, CylinderDesc) else desc.path
+
+
+def set_dome(desc: DomeDesc | None) -> None:
+    """The world's background: the dome's radiance (Background colour x strength) and ray visibility;
+    None: the black space configure_render makes (strength 0, Blender's default colour)."""
+    world = _bpy().context.scene.world
+    bg = next(n for n in world.node_tree.nodes if n.type == "BACKGROUND")
+    vis = world.cycles_visibility
+    if desc is None:
+        bg.inputs["Color"].default_value = (0.05, 0.05, 0.05, 1.0)  # a new world's (bpy.data.worlds.new)
+        bg.inputs["Strength"].default_value = 0.0
+        vis.diffuse = vis.glossy = True
+        return
+    assign(bg.inputs["Color"], "default_value", (*desc.color, 1.0), f"{desc.path} color")
+    assign(bg.inputs["Strength"], "default_value", desc.strength, f"{desc.path} intensity x 2^exposure")
+    rays = desc.rays or LampRays()
+    vis.diffuse, vis.glossy = rays.diffuse, rays.specular
 
 
 def configure_render(render: RenderDesc, device=None) -> None:
@@ -365,7 +497,11 @@ def build_scene(desc: SceneDescription, device=None) -> None:
         build_sun(sun)
     if desc.spot is not None:
         build_spot(desc.spot)
+    for lamp in desc.lights:
+        build_lamp(lamp)
     configure_render(desc.render, device)
+    if desc.dome is not None:
+        set_dome(desc.dome)
     set_object_ids(desc)
     from allo_usd.blender.compositor import build_glare, no_compositor
 

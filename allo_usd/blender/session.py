@@ -9,6 +9,9 @@ applied:
   place; a lamp that goes off is removed with its receiver collection, and one whose light
   linking or linked meshes changed is rebuilt);
 - the inspection spot light (on/off, transform, power, cone);
+- the other lamps (SceneDescription.lights: sphere, rect, disk, cylinder lights) and the dome are
+  kept while they are the same (the dome set again after configure_render); when any of them
+  differs the scene is built from scratch (`_lamps_differ`);
 - render settings (resolution, samples, seed, exposure, threads, denoise, ...) and the render
   device (allo_usd.blender.device: not in the description, passed to `render`/`apply`);
 - the compositor (glare on/off);
@@ -49,7 +52,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +106,13 @@ def _eq(a, b) -> bool:
     return a == b
 
 
+def _same(a, b) -> bool:
+    """Two descriptions (dataclasses holding arrays) equal field by field; None only equals None."""
+    if a is None or b is None:
+        return a is b
+    return type(a) is type(b) and all(_eq(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
+
+
 class Session:
     """One Blender scene kept warm across renders in this process (bpy has one global state:
     use one Session per process)."""
@@ -134,7 +144,7 @@ class Session:
         None: the CPU); returns what was done (also in `self.last`)."""
         t0 = time.perf_counter()
         try:
-            if self.desc is None or not self._alive() or not self._patchable(desc):
+            if self.desc is None or not self._alive() or not self._patchable(desc) or self._lamps_differ(desc):
                 stats = self._full_build(desc, device)
             else:
                 stats = self._patch(desc, device)
@@ -149,6 +159,16 @@ class Session:
         self.last = stats
         self.applies += 1
         return stats
+
+    def _lamps_differ(self, desc: SceneDescription) -> bool:
+        """The other lamps or the dome differ: patched in place (or a lamp rebuilt while the world changes),
+        Cycles' light list can come out in another order than a fresh build's, and the noise with it
+        (measured: 4 % of the pixels), so the scene is built from scratch. A sequence of scenes under
+        one user layer keeps its lamps, and pays nothing."""
+        prev = self.desc
+        return len(prev.lights) != len(desc.lights) or not all(_same(a, b) for a, b in zip(prev.lights, desc.lights)) \
+            or not _same(prev.dome, desc.dome) \
+            or any(x.link is not None for x in desc.lights)  # linked to meshes that may be rebuilt
 
     def _alive(self) -> bool:
         """The Blender scene is still the one this session built (a fresh build or a file load elsewhere
@@ -297,6 +317,8 @@ class Session:
         """Step 5: render settings, device and compositor, reconfigured only when they differ."""
         if prev.render != desc.render or prev.effects.body_shine != desc.effects.body_shine:
             build.configure_render(desc.render, device)
+            if desc.dome is not None:
+                build.set_dome(desc.dome)  # configure_render turns the world black
             stats.changed.append("render")
         elif device != self.device:
             from allo_usd.blender.device import activate
@@ -423,12 +445,13 @@ class Session:
             build.build_spot(desc.spot)
 
     def _reorder(self, desc: SceneDescription) -> bool:
-        """Step 6: link objects in the order a fresh build does (meshes, camera, suns, spot)."""
+        """Step 6: link objects in the order a fresh build does (meshes, camera, suns, spot, other lamps)."""
         import bpy
 
         coll = bpy.context.scene.collection
         want = [self._objects[m.path] for m in desc.meshes] + [self._find(desc.camera.path)]
-        for name in tuple(s.path for s in desc.suns) + ((desc.spot.path,) if desc.spot is not None else ()):
+        for name in tuple(s.path for s in desc.suns) + ((desc.spot.path,) if desc.spot is not None else ()) \
+                + tuple(build.lamp_name(x) for x in desc.lights):
             want.append(self._find(name))
         have = list(coll.objects)
         if have == want:

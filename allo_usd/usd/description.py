@@ -77,6 +77,15 @@ class LightLink:
 
 
 @dataclass(frozen=True)
+class LampRays:
+    """What a lamp lights and whether it casts shadows: UsdLux inputs:diffuse / inputs:specular (1 or 0:
+    Cycles' per-lamp diffuse / glossy ray visibility) and ShadowAPI inputs:shadow:enable (Cycles' use_shadow)."""
+    diffuse: bool = True
+    specular: bool = True
+    shadow: bool = True
+
+
+@dataclass(frozen=True)
 class SunDesc:
     direction: tuple[float, float, float]  # unit, towards the Sun
     irradiance: float                      # W/m^2 at normal incidence, as UsdLux defines it (inputs:normalize
@@ -87,6 +96,7 @@ class SunDesc:
     link: LightLink | None = None          # None: lights every mesh
     camera_visible: bool = False           # its disc is drawn in camera rays (a lamp not restricted to named
                                            # objects: the Sun itself, not a body's own lamp)
+    rays: LampRays | None = None           # None: every ray type and shadows (LampRays())
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,6 +108,50 @@ class SpotDesc:
     cone_angle_deg: float                  # half angle
     softness: float
     path: str = INSPECTION_LIGHT           # the UsdLux.SphereLight prim (the Blender object's name)
+    shaped: bool = True                    # ShapingAPI applied: a spot lamp; else a point lamp (all directions)
+    link: LightLink | None = None          # None: lights every mesh
+    rays: LampRays | None = None           # None: LampRays()
+
+
+@dataclass(frozen=True, eq=False)
+class AreaDesc:
+    """A UsdLux RectLight (shape RECTANGLE, size = width, height) or DiskLight (shape DISK, size = the
+    diameter twice): one-sided, emitting along its local -Z, as a Blender area lamp."""
+    path: str
+    matrix: np.ndarray
+    shape: str                             # RECTANGLE | DISK
+    size: tuple[float, float]              # local, m (Blender's size, size_y)
+    radiance: float                        # W/m^2/sr (UsdLux intensity x 2^exposure, normalize honoured)
+    power: float                           # W: radiance x world-space area x pi (a Lambertian one-sided emitter)
+    color: tuple[float, float, float]
+    texture: str | None = None             # RectLight inputs:texture:file, absolute
+    link: LightLink | None = None
+    rays: LampRays | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class CylinderDesc:
+    """A UsdLux CylinderLight (its axis the local X, no end caps) as an emission-only cylinder mesh."""
+    path: str
+    matrix: np.ndarray
+    radius: float
+    length: float
+    radiance: float                        # W/m^2/sr: the Emission shader's strength
+    color: tuple[float, float, float]
+    link: LightLink | None = None
+    rays: LampRays | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class DomeDesc:
+    """A UsdLux DomeLight as the world background: radiance color x intensity x 2^exposure (W/m^2/sr),
+    optionally times a lat-long texture turned by `rotation` (3x3, dome local -> world)."""
+    path: str
+    color: tuple[float, float, float]
+    strength: float
+    texture: str | None = None
+    rotation: np.ndarray | None = None
+    rays: LampRays | None = None
 
 
 @dataclass(frozen=True)
@@ -125,10 +179,13 @@ class SceneDescription:
     materials: dict[str, MaterialDesc]
     camera: CameraDesc
     suns: tuple[SunDesc, ...]              # sun lamps that are on, in stage order (station's, bodies')
-    spot: SpotDesc | None
+    spot: SpotDesc | None                  # the inspection light (layout.INSPECTION_LIGHT)
     render: RenderDesc
     effects: EffectsDesc
     meta: dict = field(default_factory=dict)  # scene identity and provenance (epoch, pose, seed, ...)
+    lights: tuple = ()                     # every other local lamp, in stage order: SpotDesc (sphere lights
+                                           # other than the inspection light), AreaDesc, CylinderDesc
+    dome: DomeDesc | None = None           # the one DomeLight (the world background), if any
 
     @property
     def sun(self) -> SunDesc | None:

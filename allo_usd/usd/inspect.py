@@ -234,6 +234,10 @@ def describe(layer: str | Path) -> dict:
     lamps = [lamp(p) for p in sky.GetChildren() if p.IsA(UsdLux.DistantLight)] if sky else []
     sun = next((s for s in lamps if s["path"] == STATION_SUN), lamps[0] if lamps else None)
     body_suns = [s for s in lamps if s is not sun]
+    others = [{"path": str(p.GetPath()), "type": p.GetTypeName(), "intensity": _attr(p, "inputs:intensity"),
+               "exposure": _attr(p, "inputs:exposure", 0.0)}
+              for p in stage.Traverse() if (p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase))
+              and not p.GetPath().HasPrefix(layout.SKY)]  # the inspection light and a user's own lights
 
     camera = None
     targets = UsdRender.Settings(sp).GetCameraRel().GetForwardedTargets() if sp else []
@@ -271,7 +275,8 @@ def describe(layer: str | Path) -> dict:
                                                         and world.GetAttribute(A.POSITION_SIGMA.name).HasAuthoredValue())},
         "pose_file": ({"name": a(A.POSE_NAME), "source": a(A.POSE_SOURCE), "sha256": a(A.POSE_SOURCE_SHA256)}
                       if a(A.POSE_NAME) else None),
-        "anomaly": anomaly, "anomaly_objects": objects, "effects": effects, "sensor": sensor, "render": render, "sun": sun, "body_suns": body_suns,
+        "anomaly": anomaly, "anomaly_objects": objects, "effects": effects, "sensor": sensor, "render": render,
+        "sun": sun, "body_suns": body_suns, "lights": others,
         "camera": camera, "joints": joints,
         "layer_stack": {"sublayers": list(root.subLayerPaths),
                         "layers": [_rel(l.realPath, start) or l.identifier for l in _stack(stage)]},
@@ -336,6 +341,8 @@ def format_description(d: dict) -> str:
                      f"{s['normalize']}; unoccluded {_fmt(s['irradiance_unoccluded'])}, lit "
                      f"{_fmt(s['lit_fraction'])})  eclipse {s['eclipse_state']}/{s['eclipse_body']}  "
                      f"direction {_fmt(s['direction'])}  lights {_lights(s['light_link'])}")
+    for x in d.get("lights", []):
+        lines.append(f"light    {x['path']}  {x['type']}  intensity {_fmt(x['intensity'])}  exposure {_fmt(x['exposure'])}")
     an = d["anomaly"]
     lines.append("anomaly  none" if an is None else
                  f"anomaly  {an['asset']}/{an['variant']}  depth {an['depth_index']} ({_fmt(an['depth_offset'])} m)  "

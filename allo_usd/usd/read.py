@@ -468,14 +468,14 @@ def read_scene(layer_path: str | Path) -> SceneDescription:
     if not meshes:
         raise LayerError(f"{layer_path}: the composed stage has no meshes; the base stage or its station "
                          "payload did not load (check subLayers and stages/)")
-    suns, spot = read_lights(light_prims, cache, [m.path for m in meshes], checked, effects)
+    lights = read_lights(light_prims, cache, [m.path for m in meshes], checked, effects)
     if not effects.body_shine:  # no earthshine/moonshine: the bodies are seen but light nothing
         import dataclasses
 
         meshes = [dataclasses.replace(m, ray_visibility="cameraOnly") if m.ray_visibility == "noShadow" else m
                   for m in meshes]
-    return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, suns, spot,
-                            render, effects, read_meta(stage, meshes))
+    return SceneDescription(str(Path(layer_path).resolve()), tuple(meshes), materials, camera, lights.suns,
+                            lights.spot, render, effects, read_meta(stage, meshes), lights.others, lights.dome)
 
 
 VAR_PASSES = {name: p for name, (p, _, _, _) in RENDER_VARS.items()}   # var prim name -> pass

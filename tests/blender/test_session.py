@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -168,3 +169,47 @@ def test_other_geometry_builds_from_scratch(descs):
     assert not s.full_build and s.meshes_added == [one.meshes[0].path] == s.meshes_removed
     other = replace(one, meshes=tuple(replace(m, points=m.points * 0.5) for m in one.meshes))
     assert session.apply(other).full_build and session.full_builds == 2  # nothing to keep: another stage
+
+
+def _with_lights(d):
+    """`d` with the other lamps and the dome: each kind, then changed, then fewer."""
+    from allo_usd.usd.description import AreaDesc, CylinderDesc, DomeDesc, LampRays, SpotDesc
+
+    m = np.eye(4)
+    m[:3, 3] = d.camera.matrix[:3, 3]
+    m[:3, :3] = d.camera.matrix[:3, :3]  # at the camera, facing where it looks
+    point = SpotDesc(m, 0.05, 2e6, (1.0, 1.0, 1.0), 90.0, 0.0, "/World/Lamp", shaped=False)
+    rect = AreaDesc("/World/Panel", m, "RECTANGLE", (0.5, 0.4), 4e4, 4e4 * 0.2 * math.pi, (1.0, 0.5, 0.5),
+                    rays=LampRays(specular=False))
+    tube = CylinderDesc("/World/Tube", m, 0.05, 1.0, 2e5, (0.5, 1.0, 0.5))
+    dome = DomeDesc("/World/Dome", (0.2, 0.4, 1.0), 100.0)
+    many = replace(d, lights=(point, rect, tube), dome=dome)
+    changed = replace(d, lights=(point, replace(rect, power=rect.power * 2), tube),
+                      dome=replace(dome, color=(1.0, 0.5, 0.2)))
+    fewer = replace(d, lights=(rect,))
+    return [("lights", many), ("lights_changed", changed), ("lights_fewer", fewer), ("lights_none", d)]
+
+
+def test_added_changed_and_removed_lights_render_as_fresh_builds(descs):
+    import bpy
+
+    from allo_usd.blender.render import render_scene
+    from allo_usd.blender.session import Session
+
+    d = dict(descs)
+    seq = [("normal", d["normal"])] + _with_lights(d["normal"])
+    fresh = {name: render_scene(x) for name, x in seq}
+    session = Session()
+    counts = {}
+    for name, x in seq:
+        got = session.render(x)
+        np.testing.assert_array_equal(got.rgb, fresh[name].rgb, err_msg=name)
+        np.testing.assert_array_equal(got.mask, fresh[name].mask, err_msg=name)
+        counts[name] = (len(bpy.data.meshes), len(bpy.data.materials), len(bpy.data.objects), len(bpy.data.lights))
+    assert session.full_builds == 5  # other lamps or a dome that differ: built from scratch (Session._lamps_differ)
+    same = session.apply(seq[1][1])
+    assert same.full_build and not session.apply(seq[1][1]).full_build  # the same lamps again: patched
+    assert counts["lights_none"] == counts["normal"]  # the cylinder's mesh and material went with it
+    assert fresh["lights"].rgb.mean() > fresh["normal"].rgb.mean()
+    assert not np.array_equal(fresh["lights"].rgb, fresh["lights_changed"].rgb)
+    np.testing.assert_array_equal(fresh["lights"].mask, fresh["normal"].mask)  # lamps are never labelled
