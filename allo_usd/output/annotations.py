@@ -289,8 +289,8 @@ def model_id(asset, variant) -> str | None:
 
 
 def visible_rle(visible: np.ndarray) -> dict:
-    """COCO compressed RLE of an object's visible pixels (allo_usd.output.coco.rle)."""
-    from allo_usd.output.coco import rle
+    """COCO compressed RLE of an object's visible pixels (allo_usd.output.rle)."""
+    from allo_usd.output.rle import rle
 
     return rle(visible)
 

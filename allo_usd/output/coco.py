@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from allo_usd.output.annotations import mask_bbox
+from allo_usd.output.rle import rle
 
 SUPERCATEGORY = "anomaly"
 
@@ -32,14 +33,6 @@ def coco_bbox(xyxy) -> list[int] | None:
         return None
     x0, y0, x1, y1 = (int(v) for v in xyxy)
     return [x0, y0, x1 - x0 + 1, y1 - y0 + 1]
-
-
-def rle(mask: np.ndarray) -> dict:
-    """COCO compressed RLE of a boolean mask, JSON-ready ({"size": [h, w], "counts": str})."""
-    from pycocotools import mask as mask_utils
-
-    encoded = mask_utils.encode(np.asfortranarray(np.asarray(mask, dtype=np.uint8)))
-    return {"size": [int(v) for v in encoded["size"]], "counts": encoded["counts"].decode("ascii")}
 
 
 def instance(mask: np.ndarray) -> dict | None:

@@ -120,11 +120,11 @@ def project_layer(path: str) -> bool:
     stages/, ...)? Those are restored by authoring again; a hand-written layer is fixed by hand."""
     from allo_usd.core.files import read_head
     from allo_usd.usd.safety import in_tree_folder
-    from allo_usd.usd.sniff import HEAD_BYTES, _layer_metadata
+    from allo_usd.usd.layer_head import HEAD_BYTES, layer_metadata
 
     head = read_head(Path(path), HEAD_BYTES) or b""
     text = head.decode("utf-8", errors="replace")
-    block = _layer_metadata(text) if text.startswith("#usda") else None
+    block = layer_metadata(text) if text.startswith("#usda") else None
     return re.search(r"\bsceneId\s*=", text if block is None else block) is not None or in_tree_folder(path)
 
 

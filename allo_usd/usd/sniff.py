@@ -12,11 +12,11 @@ from pathlib import Path
 
 from allo_usd.core.files import read_head
 from allo_usd.core.interrupts import interrupt_held
+from allo_usd.usd.layer_head import HEAD_BYTES, layer_metadata
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.plan.settings import DEFAULT_PASSES
 
-HEAD_BYTES = 16384           # how much of a file the scan reads: a scene layer names its sceneId in its header
 LAYER_SUFFIXES = (".usda", ".usdc", ".usd")
 CRATE_MAGIC = b"PXR-USDC"    # the first bytes of a binary (crate) layer
 TEXT_MAGIC = b"#usda"
@@ -76,7 +76,7 @@ def is_scene_layer(path: Path, head: bytes | None = None, _top: Path | None = No
     if head.startswith(TEXT_MAGIC):
         if _AUTHORED_HEAD.match(head) and head.count(b"customLayerData") == 1:
             return True
-        block = _layer_metadata(head.decode("utf-8", errors="replace"))
+        block = layer_metadata(head.decode("utf-8", errors="replace"))
         if block is None:  # the metadata does not end within the head: its look decides
             return re.search(rb"\bsceneId\s*=", head) is not None
         if "sceneId" not in block and "subLayers" not in block:
@@ -130,65 +130,6 @@ def _over_scene(path: Path, subs: list[str], top: Path, depth: int) -> bool:
         if found is None or found:
             return True
     return False
-
-
-def _layer_metadata(text: str) -> str | None:
-    """The layer-metadata block of a text layer's head (from `(` to its `)`, strings, asset paths and
-    comments skipped), "" when the layer has none, None when it does not end within `text`."""
-    i, n = text.find("\n") + 1, len(text)
-    if i == 0:
-        return None
-    while i < n:  # whitespace and comments before the block
-        if text[i].isspace():
-            i += 1
-        elif text[i] == "#" or text.startswith("//", i):
-            end = text.find("\n", i)
-            if end < 0:
-                return None
-            i = end + 1
-        elif text.startswith("/*", i):
-            end = text.find("*/", i + 2)
-            if end < 0:
-                return None
-            i = end + 2
-        else:
-            break
-    if i >= n:
-        return None
-    if text[i] != "(":
-        return ""
-    depth, j = 0, i
-    while j < n:
-        c = text[j]
-        if c in "\"'@":
-            quote = c * 3 if text.startswith(c * 3, j) else c
-            k = j + len(quote)
-            while k < n and not text.startswith(quote, k):
-                k += 2 if text[k] == "\\" and c != "@" else 1
-            if k >= n:
-                return None
-            j = k + len(quote)
-            continue
-        if c == "#" or text.startswith("//", j):
-            end = text.find("\n", j)
-            if end < 0:
-                return None
-            j = end + 1
-            continue
-        if text.startswith("/*", j):
-            end = text.find("*/", j + 2)
-            if end < 0:
-                return None
-            j = end + 2
-            continue
-        if c == "(":
-            depth += 1
-        elif c == ")":
-            depth -= 1
-            if depth == 0:
-                return text[i:j + 1]
-        j += 1
-    return None
 
 
 def render_cost(path: Path) -> tuple[int, int] | None:
