@@ -110,9 +110,26 @@ def read_mesh(prim, cache, materials: dict, checked: set | None = None) -> MeshD
     smooth = _smooth(UsdGeom.Mesh(prim), path, len(points), len(counts), len(indices))
     key, colors = _material(prim, materials, (points, counts, indices))
     _check_subsets(prim, key)
+    if UsdGeom.Mesh(prim).GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        corners = right_handed_corners(counts)   # Blender winds faces right-handed (counter-clockwise)
+        indices = indices[corners]
+        uv = None if uv is None else uv[corners]
+        colors = None if colors is None else colors[corners]
     class_id, obj = class_and_object(prim)   # every MeshDesc's class and object come from here
     return MeshDesc(path, points, counts, indices, uv, smooth, key, world_matrix(cache, prim, checked=checked),
                     class_id, _ray_visibility(prim), object=obj, colors=colors)
+
+
+def right_handed_corners(counts: np.ndarray) -> np.ndarray:
+    """The face-vertex order that turns a leftHanded mesh (UsdGeom.Mesh orientation: its faces wind
+    clockwise seen from the front) right-handed: each face's corners reversed, so the front (and the
+    normals Blender computes) are the ones USD means. Per-corner data (uv, colours) follows the order."""
+    counts = np.asarray(counts, dtype=np.int64)
+    ends = np.cumsum(counts)
+    starts = ends - counts
+    face = np.repeat(np.arange(len(counts)), counts)
+    k = np.arange(int(ends[-1]) if len(ends) else 0) - starts[face]
+    return (ends[face] - 1 - k).astype(np.int64)
 
 
 RENDERED = ("allo-usd renders Mesh and the implicit shapes (Cube, Sphere, Cylinder, Cone, Capsule, Plane), "
@@ -401,6 +418,10 @@ def _expand_instancer(prim, cache, materials: dict, checked: set, purposes: froz
             if UsdGeom.Imageable(g).ComputePurpose() not in purposes:
                 continue
             desc = read_gprim(g, cache, materials, checked)
+            if desc.class_id == ANOMALY:   # an anomaly object is a prim: its pose, model and record are the prim's
+                raise LayerError(f"point instancer {path}: prototype {proto.GetPath()} is labelled anomaly; an anomaly "
+                                 "is one prim of its own (its instance id, pose and record), not a point instance; fix "
+                                 "the layer: reference the asset once per anomaly instead")
             below = np.array(cache.ComputeRelativeTransform(g, proto)[0], dtype=np.float64).T
             rel = str(g.GetPath().MakeRelativePath(proto.GetPath()))
             rows.append((desc, "" if rel == "." else "/" + rel, below))

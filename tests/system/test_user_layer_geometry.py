@@ -197,3 +197,14 @@ def test_blenders_importer_shows_the_rendered_rows(imported, row):
         assert any("displayColor" in v["colors"] for v in got.values()), got
     if row == "purpose render":
         assert "guided" not in imported    # the importer leaves guides out, as the render does
+
+
+@pytest.mark.render
+def test_invisible_is_absent(base):
+    """visibility = invisible (UsdGeom.Imageable): the prim and everything under it is not drawn."""
+    (ua, a), (ub, b) = base["spots"]
+    after = show(base, "invisible", prim("Cube", "hidden", a, "double size = 0.5", 'token visibility = "invisible"'),
+                 prim("Xform", "hidden_parent", b, 'token visibility = "invisible"',
+                      children=prim("Sphere", "child", (0.0, 0.0, 0.0), "double radius = 0.3")))
+    assert np.array_equal(after.mask, base["before"].mask)
+    assert np.array_equal(after.rgb, base["before"].rgb)

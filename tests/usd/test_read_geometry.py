@@ -236,3 +236,50 @@ def test_subset_with_its_own_material_refused(read):
                 meta='prepend apiSchemas = ["MaterialBindingAPI"]', children=subset)
     text = refused(read, mesh, mats)
     assert text.startswith(f"GeomSubset {USER}/m/half binds material {USER}/B, but allo-usd binds one material per mesh")
+
+
+def _face_normal(points: np.ndarray, face: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)[face]
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    return n / np.linalg.norm(n)
+
+
+def test_left_handed_mesh_faces_the_same_way(read):
+    """A leftHanded face wound the other way is the same surface facing the same way (UsdGeom.Mesh
+    orientation): the reader reverses its corners, with their st, so Blender's front is USD's."""
+    quad = ["int[] faceVertexCounts = [4]", "point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]"]
+    st = 'texCoord2f[] primvars:st = [(0, 0), (1, 0), (1, 1), (0, 1)] (\n interpolation = "faceVarying"\n)'
+    st_left = 'texCoord2f[] primvars:st = [(0, 0), (0, 1), (1, 1), (1, 0)] (\n interpolation = "faceVarying"\n)'
+    meshes, _ = read(prim("Mesh", "right", None, *quad, "int[] faceVertexIndices = [0, 1, 2, 3]", st),
+                     prim("Mesh", "left", None, *quad, "int[] faceVertexIndices = [0, 3, 2, 1]", st_left,
+                          'uniform token orientation = "leftHanded"'))
+    right, left = meshes[f"{USER}/right"], meshes[f"{USER}/left"]
+    assert np.allclose(_face_normal(left.points, left.face_indices), [0, 0, 1])
+    assert np.allclose(_face_normal(right.points, right.face_indices), [0, 0, 1])
+    by_vertex = lambda m: {int(i): tuple(map(float, uv)) for i, uv in zip(m.face_indices, m.uv)}  # noqa: E731
+    assert by_vertex(left) == by_vertex(right)   # each corner keeps its own st
+
+
+def test_mesh_normals_make_it_smooth_and_are_not_read(read):
+    """Authored vertex normals make a mesh smooth-shaded; their values are not read (Blender computes
+    the normals from the faces): two meshes whose normals differ read the same but for their path."""
+    quad = ["int[] faceVertexCounts = [4]", "int[] faceVertexIndices = [0, 1, 2, 3]",
+            "point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]"]
+    normals = 'normal3f[] normals = [{n}, {n}, {n}, {n}] (\n interpolation = "vertex"\n)'
+    meshes, _ = read(prim("Mesh", "flat", None, *quad),
+                     prim("Mesh", "up", None, *quad, normals.format(n="(0, 0, 1)")),
+                     prim("Mesh", "tilted", None, *quad, normals.format(n="(0, 0.6, 0.8)")))
+    flat, up, tilted = (meshes[f"{USER}/{n}"] for n in ("flat", "up", "tilted"))
+    assert not flat.smooth and up.smooth and tilted.smooth
+    assert np.array_equal(up.face_indices, tilted.face_indices) and np.array_equal(up.points, tilted.points)
+
+
+def test_an_anomaly_labelled_prototype_is_refused(read):
+    """An anomaly is a prim with its own pose and record: a point instancer cannot multiply one."""
+    proto = prim("Cube", "c", None, "double size = 0.2",
+                 meta='prepend apiSchemas = ["SemanticsLabelsAPI:class"]', children="")
+    proto = proto.replace("double size = 0.2", 'double size = 0.2\ntoken[] semantics:labels:class = ["anomaly"]')
+    text = refused(read, prim("PointInstancer", "pi", None, f"rel prototypes = <{USER}/pi/protos/c>",
+                              "int[] protoIndices = [0, 0]", "point3f[] positions = [(0, 0, -5), (1, 0, -5)]",
+                              children=prim("Xform", "protos", None, children=proto)))
+    assert text.startswith(f"point instancer {USER}/pi: prototype {USER}/pi/protos/c is labelled anomaly")
