@@ -383,6 +383,8 @@ def set_dome(desc: DomeDesc | None) -> None:
     world = _bpy().context.scene.world
     bg = next(n for n in world.node_tree.nodes if n.type == "BACKGROUND")
     vis = world.cycles_visibility
+    for n in [n for n in world.node_tree.nodes if n.name.startswith(DOME_NODE)]:   # a textured dome's, if any
+        world.node_tree.nodes.remove(n)
     if desc is None:
         bg.inputs["Color"].default_value = (0.05, 0.05, 0.05, 1.0)  # a new world's (bpy.data.worlds.new)
         bg.inputs["Strength"].default_value = 0.0
@@ -392,6 +394,64 @@ def set_dome(desc: DomeDesc | None) -> None:
     assign(bg.inputs["Strength"], "default_value", desc.strength, f"{desc.path} intensity x 2^exposure")
     rays = desc.rays or LampRays()
     vis.diffuse, vis.glossy = rays.diffuse, rays.specular
+    if desc.texture:
+        dome_texture(world.node_tree, bg, desc)
+
+
+DOME_NODE = "USD dome: "   # the name prefix of the world nodes that map a DomeLight's texture
+
+
+def dome_texture(tree, bg, desc: DomeDesc) -> None:
+    """The dome's lat-long image times its colour into the Background: for a world ray D, the dome's
+    own direction d = R^T D (R = desc.rotation), longitude atan2(d.x, d.z) and latitude asin(d.y) (UsdLux
+    DomeLight: the OpenEXR lat-long map, pole +Y, longitude 0 towards +Z, pi/2 towards +X; the image's
+    left edge is longitude +pi, its top row latitude +pi/2), so u = 1/2 - longitude / 2 pi and
+    v = 1/2 + latitude / pi (Blender's v counts from the bottom row). The image keeps the colour space
+    Blender gives its file (sRGB for 8-bit images, linear for float ones, as USD's `auto`)."""
+    nodes, links = tree.nodes, tree.links
+
+    def node(kind: str, name: str, **values):
+        n = nodes.new(kind)
+        n.name = n.label = DOME_NODE + name
+        for key, value in values.items():
+            setattr(n, key, value)
+        return n
+
+    def calc(operation: str, name: str, a, b=None):
+        n = node("ShaderNodeMath", name, operation=operation)
+        for i, x in enumerate((a, b)):
+            if x is None:
+                continue
+            if isinstance(x, float):
+                n.inputs[i].default_value = x
+            else:
+                links.new(x, n.inputs[i])
+        return n.outputs[0]
+
+    direction = node("ShaderNodeTexCoord", "ray").outputs["Generated"]   # the world ray's direction
+    local = []
+    for axis in range(3):   # d = R^T D, one row of R^T (a column of R) at a time
+        dot = node("ShaderNodeVectorMath", f"d{'xyz'[axis]}", operation="DOT_PRODUCT")
+        links.new(direction, dot.inputs[0])
+        dot.inputs[1].default_value = tuple(float(v) for v in desc.rotation[:, axis])
+        local.append(dot.outputs["Value"])
+    longitude = calc("ARCTAN2", "longitude", local[0], local[2])
+    latitude = calc("ARCSINE", "latitude", calc("MINIMUM", "y<=1", calc("MAXIMUM", "y>=-1", local[1], -1.0), 1.0))
+    u = calc("SUBTRACT", "u", 0.5, calc("DIVIDE", "lon/2pi", longitude, 2.0 * math.pi))
+    v = calc("ADD", "v", 0.5, calc("DIVIDE", "lat/pi", latitude, math.pi))
+    uv = node("ShaderNodeCombineXYZ", "uv")
+    links.new(u, uv.inputs["X"])
+    links.new(v, uv.inputs["Y"])
+    image = node("ShaderNodeTexImage", "image", interpolation="Linear", extension="REPEAT")
+    image.image = load_texture(desc.texture, desc.path)
+    links.new(uv.outputs["Vector"], image.inputs["Vector"])
+    tint = node("ShaderNodeMix", "colour", data_type="RGBA", blend_type="MULTIPLY")
+    tint.inputs["Factor"].default_value = 1.0
+    links.new(image.outputs["Color"], tint.inputs["A"])
+    tint.inputs["B"].default_value = (*desc.color, 1.0)
+    links.new(tint.outputs["Result"], bg.inputs["Color"])
+
+
 
 
 def configure_render(render: RenderDesc, device=None) -> None:

@@ -307,18 +307,36 @@ def read_cylinder(prim, cache, checked: set | None, mesh_paths) -> CylinderDesc 
     return CylinderDesc(str(where), matrix, radius, length, radiance, _colour_of(prim, light, where), link, rays)
 
 
+LATLONG_FORMATS = ("automatic", "latlong")   # DomeLight inputs:texture:format this reader maps (automatic: lat-long)
+
+
 def read_dome(prim, cache, checked: set | None, mesh_paths) -> DomeDesc | None:
     """A UsdLux DomeLight as the world background: radiance inputs:color x intensity x 2^exposure
-    (inputs:normalize has no area to divide by: a dome is left as it is). No texture, no light linking."""
+    (inputs:normalize has no area to divide by: a dome is left as it is), times its lat-long
+    inputs:texture:file where it has one, oriented as UsdLux's DomeLight says (the OpenEXR lat-long
+    convention in the dome's own frame: pole +Y, longitude 0 towards +Z, pi/2 towards +X), turned by
+    the dome's world rotation (`DomeDesc.rotation`). No light linking."""
     from pxr import UsdLux
+
+    from allo_usd.usd.read_material import texture_file
 
     where = prim.GetPath()
     light = UsdLux.DomeLight(prim)
     _check_shaping(prim, where, allowed=False)
-    tex = light.GetTextureFileAttr().Get()
-    if tex is not None and tex.path:
-        _refuse(where, "inputs:texture:file on a DomeLight is not rendered (only a uniform dome colour is)",
-                "remove it and give inputs:color (fix the layer)")
+    asset = light.GetTextureFileAttr().Get()
+    texture = rotation = None
+    if asset is not None and asset.path:
+        fmt = str(light.GetTextureFormatAttr().Get() or "automatic")
+        if fmt not in LATLONG_FORMATS:
+            _refuse(where, f"inputs:texture:format = {fmt!r} is not rendered (a lat-long map is)",
+                    "convert the image to lat-long and set inputs:texture:format = \"latlong\" (fix the layer)")
+        texture = texture_file(asset, f"{where}.inputs:texture:file", f"DomeLight {where}")
+        m = world_matrix(cache, prim, checked=checked)[:3, :3]
+        u, _, vt = np.linalg.svd(m)
+        rotation = u @ vt                       # the dome's orientation, its scale aside (a dome is at infinity)
+        if np.linalg.det(rotation) < 0:
+            _refuse(where, "a mirrored transform turns the dome's image inside out", "remove the negative scale "
+                    "(fix the layer)")
     if light.GetPortalsRel().GetTargets():
         _refuse(where, "portals are not rendered", "remove the portals relationship (fix the layer)")
     strength = _intensity(light, where)
@@ -331,7 +349,7 @@ def read_dome(prim, cache, checked: set | None, mesh_paths) -> DomeDesc | None:
     rays = _rays(prim, light, where, mesh_paths)
     if rays is not None and not rays.shadow:
         _refuse(where, "inputs:shadow:enable = false on a DomeLight is not rendered", "remove it (fix the layer)")
-    return DomeDesc(str(where), _colour_of(prim, light, where), strength, rays=rays)
+    return DomeDesc(str(where), _colour_of(prim, light, where), strength, texture, rotation, rays=rays)
 
 
 def read_lights(prims, cache, mesh_paths, checked: set, effects) -> Lights:

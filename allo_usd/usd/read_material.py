@@ -20,10 +20,29 @@ def _input(shader, name, default):
     return (default if value is None else value), None
 
 
+def texture_file(asset, where: str, owner: str) -> str:
+    """The image file an asset-valued texture input names (`where`: the attribute, `owner`: who reads
+    it), resolved and checked (reader_bounds.check_texture_file); an entry of a package (a .usdz scene)
+    is read through a copy of it (allo_usd.usd.dependencies.unpacked_file): Blender reads files only."""
+    from pxr import Ar, Sdf
+
+    if not isinstance(asset, Sdf.AssetPath):
+        raise LayerError(f"{where} must be an asset path, got {asset!r}; fix the layer")
+    texture = asset.resolvedPath
+    if not texture:
+        raise LayerError(f"{owner}: texture {asset} does not resolve to a file; restore the asset's textures/ folder")
+    if texture.endswith("]") and Ar.IsPackageRelativePath(texture):  # PKG.usdz[entry]
+        from allo_usd.usd.dependencies import unpacked_file
+
+        texture = unpacked_file(texture, where)
+    check_texture_file(texture, where)
+    return texture
+
+
 def _read_texture(material_path: str, prim) -> tuple[str, tuple[float, float, float]]:
     """(file, colour scale) of the UsdUVTexture a diffuseColor is connected to; an entry of a package
     (a .usdz scene) is read through a copy of it (allo_usd.usd.dependencies.unpacked_file)."""
-    from pxr import Ar, Sdf, UsdShade
+    from pxr import UsdShade
 
     tex = UsdShade.Shader(prim)
     where = prim.GetPath()
@@ -31,18 +50,7 @@ def _read_texture(material_path: str, prim) -> tuple[str, tuple[float, float, fl
         raise LayerError(f"material {material_path}: diffuseColor is connected to {where}, which is not a "
                          "UsdUVTexture (the only texture allo-usd renders); fix the layer")
     inp = tex.GetInput("file")
-    asset = inp.Get() if inp else None
-    if not isinstance(asset, Sdf.AssetPath):
-        raise LayerError(f"{where}.inputs:file must be an asset path, got {asset!r}; fix the layer")
-    texture = asset.resolvedPath
-    if not texture:
-        raise LayerError(f"material {material_path}: texture {asset} does not resolve to a file; restore the "
-                         "asset's textures/ folder")
-    if texture.endswith("]") and Ar.IsPackageRelativePath(texture):  # PKG.usdz[entry]: Blender reads files only
-        from allo_usd.usd.dependencies import unpacked_file
-
-        texture = unpacked_file(texture, f"{where}.inputs:file")
-    check_texture_file(texture, f"{where}.inputs:file")
+    texture = texture_file(inp.Get() if inp else None, f"{where}.inputs:file", f"material {material_path}")
     scale = tex.GetInput("scale").Get() if tex.GetInput("scale") else None
     colour = (1.0, 1.0, 1.0) if scale is None else _vector(scale, f"{where}.inputs:scale", 4, 0.0, MAX_COLOUR)[:3]
     return texture, colour

@@ -199,3 +199,56 @@ def test_blenders_importer_shows_each_light_type(tmp_path):
     got = {o.name: (o.data.type, getattr(o.data, "shape", None) if o.data.type == "AREA" else None)
            for o in bpy.context.scene.objects if o.type == "LIGHT"}
     assert got == {name: want for name, (_, _, want) in lights.items() if want is not None}
+
+
+# A lat-long dome image of 4 x 2 blocks of saturated colours (longitude quarters x hemispheres).
+BLOCKS = np.array([[[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]],
+                   [[1, 0, 1], [0, 1, 1], [1, 0.5, 0], [0.5, 0, 1]]], dtype=np.float64)
+
+
+def _spec_block(d_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """UsdLux DomeLight's lat-long map (the OpenEXR convention), written out from the spec: pole +Y,
+    longitude 0 towards +Z and pi/2 towards +X; the image's left column is longitude +pi, its top row
+    latitude +pi/2. (block row, block column) of each dome-frame direction, and its distance in radians
+    to the nearest block edge."""
+    d = d_local / np.linalg.norm(d_local, axis=-1, keepdims=True)
+    lon, lat = np.arctan2(d[..., 0], d[..., 2]), np.arcsin(np.clip(d[..., 1], -1, 1))
+    x = (np.pi - lon) / (2 * np.pi) * 4          # block columns of 90 degrees
+    y = (np.pi / 2 - lat) / np.pi * 2            # block rows of 90 degrees, top first
+    col, row = np.clip(np.floor(x), 0, 3).astype(int), np.clip(np.floor(y), 0, 1).astype(int)
+    edge = np.minimum(np.abs(x - np.round(x)) * np.pi / 2 * np.cos(lat), np.abs(y - np.round(y)) * np.pi / 2)
+    return np.stack([row, col], -1), edge
+
+
+def test_a_textured_dome_is_the_lat_long_map_the_spec_describes(layers, tmp_path):
+    """Every background pixel shows the block of the dome's image that UsdLux's lat-long convention puts
+    in that pixel's direction, with the dome turned by its own rotation (here its pole tipped onto the
+    stage's +Z and turned 30 degrees about it)."""
+    from PIL import Image
+
+    image = np.kron(BLOCKS, np.ones((16, 16, 1)))          # 64 x 128 pixels, 2:1
+    Image.fromarray((image * 255).astype(np.uint8)).save(layers / "dome_blocks.png")
+    dome = ('def DomeLight "Dome"\n{\nfloat inputs:intensity = 300\nasset inputs:texture:file = @dome_blocks.png@\n'
+            'token inputs:texture:format = "latlong"\ndouble3 xformOp:rotateXYZ = (90, 0, 30)\n'
+            'uniform token[] xformOpOrder = ["xformOp:rotateXYZ"]\n}\n')
+    lit = _render(layers, "dome_texture", dome, settings=NO_INSPECTION, samples=4)
+    rgb = _exr(lit)
+    cam = lit.record["annotations"]["camera"]
+    k, c2w = np.array(cam["K_px"]), np.linalg.inv(np.array(cam["world_to_cam_opencv"]))
+    h, w = lit.mask.shape
+    v, u = np.mgrid[0:h, 0:w]
+    rays = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones((h, w))], -1) @ c2w[:3, :3].T
+    rx, rz = np.radians(90.0), np.radians(30.0)   # rotateXYZ: X first, then Z (column vectors: Rz @ Rx)
+    r_x = np.array([[1, 0, 0], [0, np.cos(rx), -np.sin(rx)], [0, np.sin(rx), np.cos(rx)]])
+    r_z = np.array([[np.cos(rz), -np.sin(rz), 0], [np.sin(rz), np.cos(rz), 0], [0, 0, 1]])
+    block, edge = _spec_block(rays @ (r_z @ r_x))        # world -> dome frame: R^T d, as rows: d @ R
+    space = lit.mask == 0
+    for _ in range(3):   # 3 pixels clear of the station: its edge pixels blend in through the pixel filter
+        space = space & np.roll(space, 1, 0) & np.roll(space, -1, 0) & np.roll(space, 1, 1) & np.roll(space, -1, 1)
+    sky = space & (edge > np.radians(3))
+    assert sky.sum() > 200 and len({tuple(b) for b in block[sky]}) >= 2   # at least two blocks in view
+    want = BLOCKS[block[sky][:, 0], block[sky][:, 1]]
+    got = rgb[sky] / rgb[sky].max(axis=-1, keepdims=True)
+    srgb_want = np.where(want > 0, want, 0)             # 0, 0.5 and 1 in sRGB: 0.5 is 0.214 linear
+    srgb_want = np.where(np.isclose(srgb_want, 0.5), 0.2140, srgb_want)
+    np.testing.assert_allclose(got, srgb_want, atol=0.05)
