@@ -144,7 +144,9 @@ def build_material(desc: MaterialDesc):
     return mat
 
 
-def build_mesh(desc: MeshDesc, material):
+def build_mesh(desc: MeshDesc, material, subset_materials=()):
+    """A mesh object in `material`; `subset_materials`: the Blender materials of desc.subsets, in order
+    (material slots 1, 2, ...: each subset's faces take its slot)."""
     bpy = _bpy()
     me = bpy.data.meshes.new(desc.path)
     me.vertices.add(len(desc.points))
@@ -164,6 +166,12 @@ def build_mesh(desc: MeshDesc, material):
     me.update(calc_edges=True)
     me.validate(clean_customdata=False)
     me.materials.append(material)
+    if desc.subsets:   # GeomSubsets bound to other materials: one slot each, their faces' material_index
+        slot = np.zeros(len(desc.face_counts), dtype=np.int32)
+        for i, ((_, faces), mat) in enumerate(zip(desc.subsets, subset_materials, strict=True), start=1):
+            me.materials.append(mat)
+            slot[faces] = i
+        me.polygons.foreach_set("material_index", slot)
     obj = bpy.data.objects.new(desc.path, me)
     place(obj, desc.matrix)
     if desc.ray_visibility == "cameraOnly":  # the Sun's disc: seen, but neither shadowing nor lighting
@@ -551,7 +559,7 @@ def build_scene(desc: SceneDescription, device=None) -> None:
     reset()
     mats = {key: build_material(m) for key, m in desc.materials.items()}
     for mesh in desc.meshes:
-        build_mesh(mesh, mats[mesh.material])
+        build_mesh(mesh, mats[mesh.material], [mats[key] for key, _ in mesh.subsets])
     build_camera(desc.camera)
     for sun in desc.suns:
         build_sun(sun)

@@ -78,6 +78,8 @@ def geometry_digest(mesh: MeshDesc) -> bytes:
         h.update(str((a.dtype.str, a.shape)).encode())
         h.update(a.data)
     h.update(b"smooth" if mesh.smooth else b"flat")
+    for _, faces in mesh.subsets:   # the faces of each material slot (a mesh without subsets digests as before)
+        h.update(b"subset" + np.ascontiguousarray(faces, dtype=np.int32).tobytes())
     if mesh.colors is not None:   # a mesh without display colours digests as before
         a = np.ascontiguousarray(mesh.colors)
         h.update(b"colors" + str((a.dtype.str, a.shape)).encode())
@@ -296,7 +298,8 @@ class Session:
             if m.path in self._kept:
                 self._patch_mesh(self._objects[m.path], prev_by_path[m.path], m)
             else:
-                self._objects[m.path] = build.build_mesh(m, self._materials[m.material])
+                self._objects[m.path] = build.build_mesh(m, self._materials[m.material],
+                                                         [self._materials[k] for k, _ in m.subsets])
         stats.meshes_added = [m.path for m in added]
         stats.meshes_kept = len(self._kept)
 
@@ -371,9 +374,10 @@ class Session:
                 obj.visible_transmission = obj.visible_volume_scatter = False
             elif new.ray_visibility == "noShadow":
                 obj.visible_shadow = False
-        mat = self._materials[new.material]
-        if obj.data.materials[0] != mat:
-            obj.data.materials[0] = mat
+        for slot, key in enumerate((new.material, *(k for k, _ in new.subsets))):   # as many slots: same digest
+            mat = self._materials[key]
+            if obj.data.materials[slot] != mat:
+                obj.data.materials[slot] = mat
 
     @staticmethod
     def _find(name: str):

@@ -34,6 +34,8 @@ class MeshDesc:
                                 # object (the prim its class label is applied on); "" = the mesh itself
     colors: np.ndarray | None = None  # (len(face_indices), 4) float32 linear RGBA per face vertex: the display
                                       # colour and opacity (read by a material with color_attribute), or None
+    subsets: tuple = ()               # ((material key, (K,) int32 face indices), ...): faces bound to other
+                                      # materials than `material` (GeomSubsets of the materialBind family)
 
     @property
     def object_path(self) -> str:

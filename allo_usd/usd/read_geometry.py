@@ -109,7 +109,7 @@ def read_mesh(prim, cache, materials: dict, checked: set | None = None) -> MeshD
     uv = _read_uv(prim, len(indices))
     smooth = _smooth(UsdGeom.Mesh(prim), path, len(points), len(counts), len(indices))
     key, colors = _material(prim, materials, (points, counts, indices))
-    _check_subsets(prim, key)
+    subsets = material_subsets(prim, key, materials, len(counts))
     if UsdGeom.Mesh(prim).GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
         corners = right_handed_corners(counts)   # Blender winds faces right-handed (counter-clockwise)
         indices = indices[corners]
@@ -117,7 +117,7 @@ def read_mesh(prim, cache, materials: dict, checked: set | None = None) -> MeshD
         colors = None if colors is None else colors[corners]
     class_id, obj = class_and_object(prim)   # every MeshDesc's class and object come from here
     return MeshDesc(path, points, counts, indices, uv, smooth, key, world_matrix(cache, prim, checked=checked),
-                    class_id, _ray_visibility(prim), object=obj, colors=colors)
+                    class_id, _ray_visibility(prim), object=obj, colors=colors, subsets=subsets)
 
 
 def right_handed_corners(counts: np.ndarray) -> np.ndarray:
@@ -332,16 +332,35 @@ def _material(prim, materials: dict, topology) -> tuple[str, np.ndarray | None]:
     return key, np.ascontiguousarray(np.concatenate(per, axis=1), dtype=np.float32)
 
 
-def _check_subsets(prim, key: str) -> None:
-    """A GeomSubset bound to a material other than the mesh's would render in the mesh's: refused."""
+def material_subsets(prim, key: str, materials: dict, n_faces: int) -> tuple:
+    """The mesh's faces bound to other materials than `key`, the whole mesh's: its GeomSubsets of the
+    materialBind family (UsdShade MaterialBindingAPI GetMaterialBindSubsets) with a material bound,
+    as ((material key, face indices), ...). Faces of no such subset keep the mesh's material. A subset
+    whose indices are not faces of the mesh, or that shares faces with another, is refused."""
     from pxr import UsdGeom, UsdShade
 
-    for subset in UsdGeom.Subset.GetAllGeomSubsets(UsdGeom.Imageable(prim)):
-        bound = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()[0]
-        if bound and str(bound.GetPath()) != key:
-            raise LayerError(f"GeomSubset {subset.GetPath()} binds material {bound.GetPath()}, but allo-usd binds one "
-                             f"material per mesh ({prim.GetPath()} renders in {key}); fix the layer: split the mesh at "
-                             "the subset into a mesh of its own, or bind one material to the whole mesh")
+    out, taken = [], np.zeros(n_faces, dtype=bool)
+    for subset in UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets():
+        bound = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial(UsdShade.Tokens.full)[0]
+        if not bound or str(bound.GetPath()) == key:
+            continue
+        where = subset.GetPath()
+        if subset.GetElementTypeAttr().Get() != UsdGeom.Tokens.face:
+            raise LayerError(f"GeomSubset {where} binds material {bound.GetPath()} to {subset.GetElementTypeAttr().Get()}"
+                             "s; a material binds to faces (UsdGeom.Subset elementType face); fix the layer")
+        faces = np.asarray(subset.GetIndicesAttr().Get() or [], dtype=np.int64)
+        if faces.size and (faces.min() < 0 or faces.max() >= n_faces):
+            raise LayerError(f"GeomSubset {where}.indices names face {int(faces.max() if faces.min() >= 0 else faces.min())}"
+                             f", but {prim.GetPath()} has {n_faces:,} faces; fix the layer")
+        if taken[faces].any() or len(np.unique(faces)) != len(faces):
+            raise LayerError(f"GeomSubset {where} shares faces with another materialBind subset of {prim.GetPath()}; "
+                             "a face takes one material: fix the layer (make the subsets non-overlapping)")
+        taken[faces] = True
+        sub_key = str(bound.GetPath())
+        if sub_key not in materials:
+            materials[sub_key] = read_material(bound)
+        out.append((sub_key, faces.astype(np.int32)))
+    return tuple(out)
 
 
 def _proto_gprims(proto, instancer_path) -> list:

@@ -208,3 +208,30 @@ def test_invisible_is_absent(base):
                       children=prim("Sphere", "child", (0.0, 0.0, 0.0), "double radius = 0.3")))
     assert np.array_equal(after.mask, base["before"].mask)
     assert np.array_equal(after.rgb, base["before"].rgb)
+
+
+def _preview(name: str, colour: str) -> str:
+    return (f'def Material "{name}" {{\ntoken outputs:surface.connect = <{USER}/{name}/S.outputs:surface>\n'
+            f'def Shader "S" {{\nuniform token info:id = "UsdPreviewSurface"\ncolor3f inputs:diffuseColor = {colour}\n'
+            'token outputs:surface\n}\n}\n')
+
+
+@pytest.mark.render
+def test_a_subset_material_colours_its_faces(base):
+    """Two faces side by side, the mesh bound red and a materialBind GeomSubset of the right face blue:
+    the left face renders red and the right one blue."""
+    (_, at), _ = base["spots"]
+    x, y, z = at
+    quad = ["int[] faceVertexCounts = [4, 4]", "int[] faceVertexIndices = [0, 1, 4, 3, 1, 2, 5, 4]",
+            f"point3f[] points = [({x - 0.5}, {y - 0.25}, {z}), ({x}, {y - 0.25}, {z}), ({x + 0.5}, {y - 0.25}, {z}), "
+            f"({x - 0.5}, {y + 0.25}, {z}), ({x}, {y + 0.25}, {z}), ({x + 0.5}, {y + 0.25}, {z})]",
+            f"rel material:binding = <{USER}/Red>"]
+    subset = ('def GeomSubset "right" (prepend apiSchemas = ["MaterialBindingAPI"]) {\nuniform token elementType = '
+              f'"face"\nuniform token familyName = "materialBind"\nint[] indices = [1]\nrel material:binding = <{USER}/Blue>\n}}\n')
+    after = show(base, "subset", _preview("Red", "(0.8, 0.02, 0.02)"), _preview("Blue", "(0.02, 0.02, 0.8)"),
+                 prim("Mesh", "m", None, *quad, meta='prepend apiSchemas = ["MaterialBindingAPI"]', children=subset))
+    for dx, channel in ((-0.25, 0), (0.25, 2)):
+        uv, _ = project(base["k"], base["w2c"], [world(base, (x + dx, y, z))])
+        u, v = np.round(uv[0]).astype(int)
+        patch = after.rgb[v - 1:v + 2, u - 1:u + 2].reshape(-1, 3).astype(float).mean(axis=0)
+        assert patch[channel] > 2 * max(np.delete(patch, channel)) and patch[channel] > 15, (dx, patch)

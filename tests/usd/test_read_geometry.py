@@ -228,14 +228,37 @@ def test_light_emitting_mesh_refused(read):
     assert text.startswith(f"{USER}/m (Mesh) applies MeshLightAPI, LightAPI: geometry that emits light is not rendered")
 
 
-def test_subset_with_its_own_material_refused(read):
-    mats = "".join(material(n, c) for n, c in (("A", "(1, 0, 0)"), ("B", "(0, 0, 1)")))
-    subset = ('def GeomSubset "half" (prepend apiSchemas = ["MaterialBindingAPI"]) {\nuniform token elementType = "face"\n'
-              'uniform token familyName = "materialBind"\nint[] indices = [1]\nrel material:binding = </World/UserGeom/B>\n}\n')
-    mesh = prim("Mesh", "m", None, *QUAD, "rel material:binding = </World/UserGeom/A>",
-                meta='prepend apiSchemas = ["MaterialBindingAPI"]', children=subset)
-    text = refused(read, mesh, mats)
-    assert text.startswith(f"GeomSubset {USER}/m/half binds material {USER}/B, but allo-usd binds one material per mesh")
+def _subset(name: str, faces: str, material_name: str, element: str = "face") -> str:
+    return (f'def GeomSubset "{name}" (prepend apiSchemas = ["MaterialBindingAPI"]) {{\nuniform token elementType = '
+            f'"{element}"\nuniform token familyName = "materialBind"\nint[] indices = [{faces}]\n'
+            f'rel material:binding = </World/UserGeom/{material_name}>\n}}\n')
+
+
+def _bound_mesh(*subsets: str) -> str:
+    return prim("Mesh", "m", None, *QUAD, "rel material:binding = </World/UserGeom/A>",
+                meta='prepend apiSchemas = ["MaterialBindingAPI"]', children="".join(subsets))
+
+
+MATERIALS = "".join(material(n, c) for n, c in (("A", "(1, 0, 0)"), ("B", "(0, 0, 1)")))
+
+
+def test_a_subset_bound_to_its_own_material_is_its_faces_material(read):
+    """UsdShade: a GeomSubset of the materialBind family binds its faces to its material; the rest of
+    the mesh keeps the mesh's."""
+    meshes, materials = read(_bound_mesh(_subset("half", "1", "B")), MATERIALS)
+    m = meshes[f"{USER}/m"]
+    assert m.material == f"{USER}/A" and [(k, f.tolist()) for k, f in m.subsets] == [(f"{USER}/B", [1])]
+    assert materials[f"{USER}/B"].base_color == (0.0, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("subsets, words", [
+    ((_subset("h", "2", "B"),), "GeomSubset /World/UserGeom/m/h.indices names face 2, but /World/UserGeom/m has 2 faces"),
+    ((_subset("h", "0, 1", "B"), _subset("k", "1", "A2")), "shares faces with another materialBind subset"),
+    ((_subset("h", "0", "B", element="point"),), "binds material /World/UserGeom/B to points"),
+])
+def test_subset_refusals(read, subsets, words):
+    text = refused(read, _bound_mesh(*subsets), MATERIALS + material("A2", "(0, 1, 0)"))
+    assert words in text
 
 
 def _face_normal(points: np.ndarray, face: np.ndarray) -> np.ndarray:
