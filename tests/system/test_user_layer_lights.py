@@ -252,3 +252,17 @@ def test_a_textured_dome_is_the_lat_long_map_the_spec_describes(layers, tmp_path
     srgb_want = np.where(want > 0, want, 0)             # 0, 0.5 and 1 in sRGB: 0.5 is 0.214 linear
     srgb_want = np.where(np.isclose(srgb_want, 0.5), 0.2140, srgb_want)
     np.testing.assert_allclose(got, srgb_want, atol=0.05)
+
+
+def test_a_lamp_without_diffuse_and_specular_adds_no_light(layers, sums):
+    """inputs:diffuse = 0 and inputs:specular = 0 (UsdLux multipliers) turn off the lamp's diffuse and
+    glossy contributions: what it adds to the station is gone, within Monte-Carlo noise."""
+    off = lamp("RectLight", "Panel", "float inputs:width = 0.5", "float inputs:height = 0.5",
+               "float inputs:intensity = 4e5", "color3f inputs:color = (1, 0.3, 0.3)", "float inputs:diffuse = 0",
+               "float inputs:specular = 0")
+    dark = _exr(_render(layers, "rect_off", off, samples=SAMPLES))
+    base, lit = _exr(sums["base"]), _exr(sums["rect"])
+    station = sums["base"].mask == 1
+    added = lit[station].sum() - base[station].sum()
+    assert added > 0.05 * base[station].sum()
+    assert abs(dark[station].sum() - base[station].sum()) < 0.02 * added + 0.01 * base[station].sum()
