@@ -52,6 +52,15 @@ def test_plan_camera_resolves_the_other_sensor_side_and_the_resolution():
     assert (lens.sensor_width_mm, lens.sensor_height_mm, size) == (24.0, 18.0, (640, 480))
 
 
+@pytest.mark.parametrize("size, height", [((1920, 1080), 20.25), ((160, 90), 20.25), ((2000, 1000), 18.0),
+                                          ((1024, 1024), 36.0), ((854, 480), 36.0 * 480 / 854)])
+def test_without_a_sensor_size_the_height_follows_the_images_aspect(size, height):
+    """Table I's 36 mm width, and the height square pixels give: the layer's apertures then match its
+    image, so UsdRender's aperture conforming leaves them as they are (a 16:9 image keeps 20.25 mm)."""
+    lens, got = make_plan({"name": "x", "quality": {"resolution": list(size)}}).camera_model()
+    assert got == size and lens.sensor_width_mm == 36.0 and lens.sensor_height_mm == height
+
+
 @pytest.mark.parametrize("camera, quality, words", [
     ({"focal_length_mm": 0.5}, {}, ["camera.focal_length_mm", "fix:"]),
     ({"sensor_width_mm": 20000.0}, {}, ["camera.sensor_width_mm", "fix:"]),
