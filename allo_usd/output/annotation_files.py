@@ -8,12 +8,25 @@
                                                                 and the dataset's own (render checks, contact sheets)
 
 Why a cache: an image's record (its COCO RLE, BOP entries, the per-image BOP files it wrote) is
-computed once from the tree's mask and depth and its render JSON, and kept in records.json under
-a key of the image's whole manifest row; a re-run recomputes only the records whose row changed
-(a re-rendered or moved scene, a new one) or whose files went missing, and rebuilds the JSON
-files from the records. A file whose bytes would not change is not rewritten, so a re-run that
-adds scenes leaves the other images' files, and unchanged BOP chunks, untouched. Deleting
-records.json only costs the next run a full recompute. Every write is atomic.
+computed once from the tree's mask and depth and its render JSON; a re-run recomputes only the
+records whose row changed (a re-rendered or moved scene, a new one) or whose files went missing,
+and rebuilds the JSON files from the records. A file whose bytes would not change is not
+rewritten, so a re-run that adds scenes leaves the other images' files, and unchanged BOP chunks,
+untouched. Deleting records.json only costs the next run a full recompute. Every write is atomic.
+
+The cache is a derivation, never a source (docs/reliability/reliability.md, "The dataset's cache"):
+- an entry keeps only what is computed from the files (image size, COCO instances, the BOP camera
+  and objects, the instance table, whether depth and amodal PNGs were written); everything that
+  names a place (category, index, split, image, the BOP folder and file names) is derived from the
+  manifest row each run, inside OUT, and never read from the cache;
+- an entry is bound (`bind`) to the code's RECORDS_VERSION, its whole manifest row and the stat of
+  the files it was computed from (3-class mask, ground truth, depth, render JSON: make's quick
+  check); an entry whose binding differs is recomputed;
+- its values are checked as any input is (types, ranges, finite numbers, boxes inside the image,
+  each COCO bbox and area those of its RLE); an entry that fails is recomputed, with one warning;
+- records.json is read through the read gate (a regular file inside OUT, at most cache_limit(rows)
+  bytes, nested at most MAX_JSON_DEPTH); refused, or of the wrong shape, it is recomputed whole,
+  with one warning.
 
 records.json also keeps what allo_usd.output.dataset hands it to keep between runs (`state`: the
 stat at which each render record passed check_render, the rows each contact sheet was drawn
@@ -29,25 +42,31 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
+import stat
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from allo_usd.core.files import MAX_RECORD_BYTES, read_user_json, write_text_atomic
+from allo_usd.core.files import MAX_RECORD_BYTES, InputRefused, read_user_bytes, read_user_json, write_text_atomic
+from allo_usd.core.errors import AlloError
 from allo_usd.core.labels import ANOMALY
 from allo_usd.core.scene_labels import SPLITS
 from allo_usd.output import bop, coco
 from allo_usd.output.contact import read_pixels
-from allo_usd.output.dataset_files import COLUMNS, Refused, place, source_file
+from allo_usd.output.dataset_files import COLUMNS, Refused, inside, place, source_file
 from allo_usd.output.writers import write_png
 from allo_usd.output.pass_files import PASS_COLUMNS
 from allo_usd.output.record import RenderRecord
 
 RECORDS = "annotations/records.json"
 INSTANCES = "instances.json"
-RECORDS_VERSION = 2   # 2: a record lists every anomaly object (coco and bop.gt are lists)
+RECORDS_VERSION = 3   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files
+CACHE_BYTES = 16 << 20        # records.json's bound: this much, plus CACHE_ROW_BYTES per manifest row
+CACHE_ROW_BYTES = 256 << 10   # an entry is ~1 KB; an anomaly's RLE a few KB
 
 BOP_FILE = re.compile(r"^(?:\d{6}(?:_\d{6})?\.png|scene_(?:camera|gt|gt_info)\.json)$")
 PASS_FILE = re.compile(r"^\d{6}_.+\.(?:exr|png)$")
@@ -61,12 +80,24 @@ def row_key(row: dict) -> str:
 
 
 def write_if_changed(path: Path, text: str) -> bool:
-    """Write `text` atomically unless the file already holds exactly it; returns whether it wrote."""
+    """Write `text` atomically unless the file already holds exactly it; returns whether it wrote.
+    Only a regular file (no link) of exactly the new size is read to compare (through the read
+    gate: a link to /dev/zero or a huge file in its place is replaced, never read). A directory
+    in its place is refused in one line (AlloError) naming it."""
+    data = text.encode("utf-8")
     try:
-        if path.is_file() and path.read_text(encoding="utf-8") == text:
-            return False
-    except (OSError, UnicodeDecodeError):
-        pass
+        st = os.lstat(path)
+    except OSError:
+        st = None
+    if st is not None and stat.S_ISDIR(st.st_mode):
+        raise AlloError(f"{path} is a directory where the dataset writes a file; fix: remove it (the dataset "
+                        "writes it again)")
+    if st is not None and stat.S_ISREG(st.st_mode) and st.st_size == len(data):
+        try:
+            if read_user_bytes(path, len(data), "dataset file") == data:
+                return False
+        except InputRefused:
+            pass
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, text, encoding="utf-8", newline="\n")
     return True
@@ -175,7 +206,7 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: R
     annotations = meta.annotations if isinstance(meta.annotations, dict) else {}
     folder = f"bop/{row['category']}/{row['split']}/{bop.chunk_of(index)}"
     rgb = f"{folder}/rgb/{index:06d}.png"
-    _link(out / row["image"], out / rgb)
+    _link(inside(out, row["image"]), inside(out, rgb))
     files = [rgb]
     depth_units = None
     if row.get("depth"):
@@ -183,7 +214,7 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: R
         if depth.shape == shape:
             depth_units = bop.depth_png(depth)
             files.append(f"{folder}/depth/{index:06d}.png")
-            write_png(out / files[-1], depth_units)
+            write_png(inside(out, files[-1]), depth_units)
     rec = {"key": row_key(row), "category": row["category"], "name": row["name"], "index": index,
            "split": row["split"], "kind": row["kind"], "image": row["image"], "width": width, "height": height,
            "coco": [], "bop": {"folder": folder, "camera": bop.camera_entry(annotations.get("camera")), "gt": []},
@@ -210,12 +241,12 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: R
             files.append(f"{folder}/mask_visib/{index:06d}_{gt_id:06d}.png")
             truth = out / row["mask"] if row.get("mask") else None
             if len(objects) == 1 and truth is not None and truth.is_file():   # the same 0/255 pixels
-                _link(truth, out / files[-1])
+                _link(truth, inside(out, files[-1]))
             else:
-                write_png(out / files[-1], mine.astype(np.uint8) * np.uint8(255))
+                write_png(inside(out, files[-1]), mine.astype(np.uint8) * np.uint8(255))
             if full is not None:
                 files.append(f"{folder}/mask/{index:06d}_{gt_id:06d}.png")
-                write_png(out / files[-1], full.astype(np.uint8) * np.uint8(255))
+                write_png(inside(out, files[-1]), full.astype(np.uint8) * np.uint8(255))
     table = meta.instances
     if row.get("instance") and isinstance(table, dict):
         rec["instances"] = {"instance": row["instance"], "objects": {str(k): str(v) for k, v in table.items()}}
@@ -223,40 +254,240 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: R
     return rec
 
 
-def load_cache(out: Path) -> dict:
-    """records.json's content ({} when missing, unreadable or of another version): pass it back to
-    write_annotation_files, and read the dataset's `state` from it."""
-    return _load(Path(out))
+def cache_limit(rows: int) -> int:
+    """records.json's size bound for a manifest of `rows` rows (the read gate's limit)."""
+    return CACHE_BYTES + CACHE_ROW_BYTES * max(0, int(rows))
 
 
-def _load(out: Path) -> dict:
+def load_cache(out: Path, rows: int = 0) -> dict:
+    """records.json's content, checked ({} when missing or of another version; {} and one warning
+    when the read gate refuses it or its shape is wrong): pass it back to write_annotation_files,
+    and read the dataset's `state` from it. `rows`: the manifest's rows (cache_limit)."""
+    return _load(Path(out), rows, warn=True)
+
+
+def _load(out: Path, rows: int, warn: bool = False) -> dict:
+    path = out / RECORDS
     try:
-        cache = json.loads((out / RECORDS).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        cache = read_user_json(path, cache_limit(rows), "the dataset's cache", roots=(out,))
+    except InputRefused as exc:
+        if exc.kind != "missing" and warn:
+            _recomputed(f"{path} {exc.reason}")
         return {}
-    return cache if isinstance(cache, dict) and cache.get("version") == RECORDS_VERSION else {}
+    except OSError as exc:   # the gate says why for what it knows; anything else reads as unreadable
+        if warn:
+            _recomputed(f"{path} cannot be read ({exc.strerror})")
+        return {}
+    if not isinstance(cache, dict) or cache.get("version") != RECORDS_VERSION:
+        return {}   # another version's cache (an upgrade): recomputed, nothing to say
+    problem = _cache_problem(cache)
+    if problem:
+        if warn:
+            _recomputed(f"{path} {problem}")
+        return {}
+    return cache
 
 
-def _records(out: Path, rows, cache: dict, early: dict | None = None) -> tuple[dict, int]:
-    """{category/name: record} of every row, from the cache where its key holds; (records, recomputed).
-    `early`: records computed this run (by the dataset, at placement), used where their key holds."""
+def _recomputed(why: str, which: str = "every annotation record is") -> None:
+    warnings.warn(f"the dataset's cache {why}: {which} recomputed from the renders, and the cache written again "
+                  "(nothing to fix)", stacklevel=4)
+
+
+def _cache_problem(cache: dict) -> str | None:
+    """Why records.json's top level cannot be used, or None (its entries are checked one by one)."""
+    if not isinstance(cache.get("records", {}), dict) or not isinstance(cache.get("state", {}), dict):
+        return "does not hold a records table and a state table"
+    if _ids_problem(cache.get("categories", {})):
+        return "holds category ids that are not distinct positive whole numbers"
+    models = cache.get("models", {})
+    if not isinstance(models, dict) or any(_ids_problem(v) for v in models.values()):
+        return "holds model ids that are not distinct positive whole numbers"
+    return None
+
+
+def _ids_problem(ids) -> bool:
+    return not isinstance(ids, dict) or not all(_whole_number(v, 1) for v in ids.values()) \
+        or len(set(ids.values())) != len(ids)
+
+
+def _whole_number(value, low: int = 0, high: int | None = None) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
+
+
+def _finite(value, n: int) -> bool:
+    return isinstance(value, list) and len(value) == n and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+
+
+def _file_stat(path: str) -> list[int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev]
+
+
+def binding(out: Path, row: dict, key: str | None = None) -> str:
+    """What a cache entry of `row` is bound to: the code's RECORDS_VERSION, the whole row, and the stat
+    (size, mtime_ns, inode, device) of the files its record is computed from: the 3-class mask, the
+    ground truth, the depth pass and the render JSON (which a re-render rewrites with every other
+    file of the render). Equal bindings: the entry stands for what compute_record would give.
+    `key`: the row's row_key when the caller has it."""
+    top = os.fspath(out)
+    files = map(row.get, ("allo_mask", "mask", "depth", "source"))
+    stats = [_file_stat(os.path.join(top, f)) if f else None for f in files]
+    text = json.dumps([RECORDS_VERSION, key or row_key(row), stats], separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+ENTRY_KEYS = {"bind", "width", "height", "coco", "camera", "gt", "objects", "depth", "amodal"}
+
+
+def entry_of(rec: dict, bind: str) -> dict:
+    """The cache entry of a record: what compute_record computed from the files, without a path."""
+    files = rec["files"]
+    return {"bind": bind, "width": rec["width"], "height": rec["height"], "coco": rec["coco"],
+            "camera": rec["bop"]["camera"], "gt": rec["bop"]["gt"],
+            "objects": None if rec["instances"] is None else rec["instances"]["objects"],
+            "depth": any("/depth/" in f for f in files), "amodal": any("/mask/" in f for f in files)}
+
+
+def record_of(row: dict, entry: dict, key: str | None = None) -> dict:
+    """The record of `row` from its cache entry: every place (image, BOP folder and files) derived
+    from the row, as compute_record names them."""
+    index = int(row["index"])
+    folder = f"bop/{row['category']}/{row['split']}/{bop.chunk_of(index)}"
+    files = [f"{folder}/rgb/{index:06d}.png"] + ([f"{folder}/depth/{index:06d}.png"] if entry["depth"] else [])
+    for gt_id in range(len(entry["gt"])):
+        files.append(f"{folder}/mask_visib/{index:06d}_{gt_id:06d}.png")
+        if gt_id == 0 and entry["amodal"]:
+            files.append(f"{folder}/mask/{index:06d}_{gt_id:06d}.png")
+    instances = None if entry["objects"] is None else {"instance": row["instance"], "objects": entry["objects"]}
+    return {"key": key or row_key(row), "category": row["category"], "name": row["name"], "index": index,
+            "split": row["split"], "kind": row["kind"], "image": row["image"], "width": entry["width"],
+            "height": entry["height"], "coco": entry["coco"],
+            "bop": {"folder": folder, "camera": entry["camera"], "gt": entry["gt"]}, "instances": instances,
+            "files": files}
+
+
+_RLE = re.compile(r"^[0-o]*$")   # pycocotools' compressed RLE alphabet: characters 48 + 0..63
+
+
+def entry_problem(entry, row: dict) -> str | None:
+    """Why a cache entry cannot stand for `row`'s record (its values checked as any input is), or None."""
+    if not isinstance(entry, dict) or set(entry) != ENTRY_KEYS:
+        return "not an entry of this version"
+    width, height = entry["width"], entry["height"]
+    if not (_whole_number(width, 1, 65535) and _whole_number(height, 1, 65535)):
+        return "its image size is not two whole numbers of pixels"
+    if not (isinstance(entry["depth"], bool) and isinstance(entry["amodal"], bool)) \
+            or (entry["depth"] and not row.get("depth")):
+        return "its depth and amodal flags are not flags of its row"
+    gt, items = entry["gt"], entry["coco"]
+    if not isinstance(gt, list) or not isinstance(items, list) \
+            or (row["kind"] == "anomaly") != bool(gt) or len(items) > len(gt) or (entry["amodal"] and not gt):
+        return "its objects do not agree with its row's kind"
+    if entry["camera"] is not None and _camera_problem(entry["camera"]):
+        return "its camera is not a BOP camera entry"
+    if any(_coco_problem(i, width, height) for i in items):
+        return "a COCO instance is not its RLE's (size, bbox inside the image, area)"
+    if any(_gt_problem(g, width, height) for g in gt):
+        return "a BOP object is not a pose, model and visibility entry"
+    objects = entry["objects"]
+    if objects is not None and not (row.get("instance") and isinstance(objects, dict)
+                                    and all(isinstance(v, str) for v in objects.values())):
+        return "its instance table is not one of its row"
+    return None
+
+
+def _camera_problem(camera) -> bool:
+    return not (isinstance(camera, dict) and set(camera) == {"cam_K", "depth_scale", "cam_R_w2c", "cam_t_w2c"}
+                and _finite(camera["cam_K"], 9) and _finite(camera["cam_R_w2c"], 9)
+                and _finite(camera["cam_t_w2c"], 3) and camera["depth_scale"] == bop.DEPTH_SCALE)
+
+
+def _coco_problem(item, width: int, height: int) -> bool:
+    from pycocotools import mask as mask_utils
+
+    if not (isinstance(item, dict) and {"asset", "variant", "segmentation", "area", "bbox", "iscrowd"} <= set(item)
+            <= {"asset", "variant", "segmentation", "area", "bbox", "iscrowd", "path"}
+            and all(isinstance(item.get(k, ""), str) for k in ("asset", "variant", "path")) and item["iscrowd"] == 0):
+        return True
+    seg, box = item["segmentation"], item["bbox"]
+    if not (isinstance(seg, dict) and set(seg) == {"size", "counts"} and seg["size"] == [height, width]
+            and isinstance(seg["counts"], str) and _RLE.match(seg["counts"])
+            and isinstance(box, list) and len(box) == 4 and all(_whole_number(v) for v in box)):
+        return True
+    x, y, w, h = box
+    if w < 1 or h < 1 or x + w > width or y + h > height or not _whole_number(item["area"], 1, w * h):
+        return True
+    rle = {"size": [height, width], "counts": seg["counts"].encode("ascii")}
+    try:
+        area, found = int(mask_utils.area(rle)), [int(v) for v in mask_utils.toBbox(rle)]
+    except (ValueError, TypeError, OverflowError):
+        return True
+    return area != item["area"] or found != box
+
+
+def _gt_problem(g, width: int, height: int) -> bool:
+    if not (isinstance(g, dict) and set(g) == {"pose", "model", "info"}):
+        return True
+    pose, model, info = g["pose"], g["model"], g["info"]
+    if pose is not None and not (isinstance(pose, dict) and set(pose) == {"cam_R_m2c", "cam_t_m2c", "model_scale"}
+                                 and _finite(pose["cam_R_m2c"], 9) and _finite(pose["cam_t_m2c"], 3)
+                                 and _finite(pose["model_scale"], 3)):
+        return True
+    if model is not None and not (isinstance(model, dict) and set(model) == {"model_id", "asset", "variant", "path"}
+                                  and all(isinstance(model[k], str) for k in ("model_id", "asset", "variant"))
+                                  and (model["path"] is None or isinstance(model["path"], str))):
+        return True
+    known = {"bbox_visib", "px_count_visib", "bbox_obj", "px_count_all", "visib_source", "px_count_valid",
+             "visib_fract"}
+    if not (isinstance(info, dict) and {"bbox_visib", "px_count_visib"} <= set(info) <= known):
+        return True
+    boxes = [info[k] for k in ("bbox_visib", "bbox_obj") if k in info]
+    counts = [info[k] for k in ("px_count_visib", "px_count_all", "px_count_valid") if k in info]
+    return not (all(isinstance(b, list) and len(b) == 4 and all(_whole_number(v, -1) for v in b)
+                    and b[0] < width and b[1] < height for b in boxes)
+                and all(_whole_number(c) for c in counts) and info["px_count_visib"] <= width * height
+                and isinstance(info.get("visib_source", ""), str)
+                and ("visib_fract" not in info or _finite([info["visib_fract"]], 1) and info["visib_fract"] >= 0))
+
+
+def _records(out: Path, rows, cache: dict, early: dict | None = None) -> tuple[dict, dict, int]:
+    """({category/name: record}, {category/name: cache entry}) of every row, from the cache where its
+    entry's binding holds and its values pass entry_problem (paths from the row: record_of), else
+    computed; and how many were computed. `early`: records computed this run (by the dataset, at
+    placement), used where their key holds. Entries whose binding holds but whose values fail are
+    recomputed with one warning."""
     old = cache.get("records") if isinstance(cache.get("records"), dict) else {}
     early = early or {}
-    records, recomputed = {}, 0
+    records, entries, recomputed, failed = {}, {}, 0, []
     for row in sorted(rows, key=lambda r: (r["category"], int(r["index"]))):
         name = f"{row['category']}/{row['name']}"
         key = row_key(row)
+        bind = binding(out, row, key)
         rec = early.get(name)
         if isinstance(rec, dict) and rec.get("key") == key and all((out / f).is_file() for f in rec["files"]):
             recomputed += 1
         else:
-            rec = old.get(name)
-            if not (isinstance(rec, dict) and rec.get("key") == key
-                    and all((out / f).is_file() for f in rec.get("files", ()))):
+            rec, entry = None, old.get(name)
+            if isinstance(entry, dict) and entry.get("bind") == bind:
+                problem = entry_problem(entry, row)
+                if problem is None:
+                    rec = record_of(row, entry, key)
+                    rec = rec if all((out / f).is_file() for f in rec["files"]) else None
+                else:
+                    failed.append(f"{name} ({problem})")
+            if rec is None:
                 rec = compute_record(out, row)
                 recomputed += 1
         records[name] = rec
-    return records, recomputed
+        entries[name] = entry_of(rec, bind)
+    if failed:
+        _recomputed(f"{out / RECORDS} has {len(failed)} entries that fail its checks ({'; '.join(failed[:3])})",
+                    "those are")
+    return records, entries, recomputed
 
 
 def _coco_files(out: Path, records: dict, categories: dict[str, int]) -> None:
@@ -295,14 +526,14 @@ def _bop_files(out: Path, records: dict, models: dict[str, dict[str, int]]) -> s
     for folder, files in chunks.items():
         for name, content in files.items():
             expected.add(f"{folder}/{name}.json")
-            write_if_changed(out / folder / f"{name}.json", bop.dumps(content))
+            write_if_changed(inside(out, f"{folder}/{name}.json"), bop.dumps(content))
     for category, ids in models.items():
         seen = {g["model"]["model_id"]: g["model"] for rec in records.values() if rec["category"] == category
                 for g in rec["bop"]["gt"] if g["model"]}
         table = {str(i): seen[m] for m, i in sorted(ids.items(), key=lambda kv: kv[1])}
-        write_if_changed(out / "bop" / category / "models.json", json.dumps(table, indent=1, sort_keys=True) + "\n")
+        write_if_changed(inside(out, f"bop/{category}/models.json"), json.dumps(table, indent=1, sort_keys=True) + "\n")
     for category, t in tables.items():
-        write_if_changed(out / "bop" / category / "camera.json",
+        write_if_changed(inside(out, f"bop/{category}/camera.json"),
                          json.dumps(bop.sensor(*t["camera"]), indent=1, sort_keys=True) + "\n")
     return expected
 
@@ -331,8 +562,8 @@ def write_annotation_files(out: Path, rows, cache: dict | None = None, state: di
     records the dataset computed at placement ({category/name: compute_record's})."""
     out = Path(out)
     rows = list(rows)
-    cache = _load(out) if cache is None else cache
-    records, recomputed = _records(out, rows, cache, early)
+    cache = load_cache(out, len(rows)) if cache is None else cache
+    records, entries, recomputed = _records(out, rows, cache, early)
     categories = coco.category_ids({i["asset"] for r in records.values() for i in r["coco"]}, cache.get("categories"))
     models = {}
     for category in sorted({r["category"] for r in records.values()}):
@@ -350,9 +581,12 @@ def write_annotation_files(out: Path, rows, cache: dict | None = None, state: di
         {"about": "per image (key: its path): its instance-id PNG and the prim path of each id (0 is background); "
                   "ids number the scene's objects in sorted prim path order, so they differ between images",
          "images": tables}, indent=1, sort_keys=True) + "\n")
-    write_if_changed(out / RECORDS, json.dumps({"version": RECORDS_VERSION, "categories": categories,
-                                                "models": models, "records": records, "state": state or {}},
-                                               sort_keys=True, separators=(",", ":")) + "\n")
+    try:
+        write_if_changed(out / RECORDS, json.dumps({"version": RECORDS_VERSION, "categories": categories,
+                                                    "models": models, "records": entries, "state": state or {}},
+                                                   sort_keys=True, separators=(",", ":")) + "\n")
+    except AlloError as exc:   # the dataset is complete: only its next run's shortcut is lost
+        warnings.warn(f"the dataset's cache is not kept: {exc}; the next run recomputes every record", stacklevel=2)
     anomalous = [r for r in records.values() if r["kind"] == "anomaly"]
     counts = {"images": len(records), "anomalous": len(anomalous), "recomputed": recomputed,
               "posed": sum(_planned(r)["pose"] is not None for r in anomalous),
@@ -374,15 +608,21 @@ def _amodal_passed(rec: dict) -> bool:
 def summary_line(out: Path) -> str:
     """One line on what the annotation files hold, from records.json: images, anomalies with a BOP
     pose (an older render records none: re-render it), amodal masks (else visib_fract comes from
-    the ray cast), depth PNGs (render the depth pass for them)."""
-    records = list((_load(Path(out)).get("records") or {}).values())
-    anomalous = [r for r in records if r.get("kind") == "anomaly"]
-    posed = [r for r in anomalous if _planned(r)["pose"] is not None]
-    amodal = sum(_amodal_passed(r) for r in anomalous)
-    depth = sum(any("/depth/" in f for f in r["files"]) for r in records)
-    line = (f"annotations: COCO {len(records)} images, {len(anomalous)} anomalies; BOP poses {len(posed)} of "
-            f"{len(anomalous)}, amodal masks {amodal} of {len(anomalous)}, depth {depth} of {len(records)} images")
-    missing = [r["name"] for r in anomalous if _planned(r)["pose"] is None]
+    the ray cast), depth PNGs (render the depth pass for them). Entries are read as entry_of wrote
+    them (an anomaly: an entry with objects); one that is not such an entry is not counted."""
+    from allo_usd.output.dataset import MANIFEST, read_manifest
+
+    entries = {name: e for name, e in (_load(Path(out), len(read_manifest(Path(out) / MANIFEST))).get("records")
+                                        or {}).items() if isinstance(e, dict) and set(e) == ENTRY_KEYS
+               and isinstance(e["gt"], list) and all(isinstance(g, dict) and isinstance(g.get("info"), dict)
+                                                     for g in e["gt"])}
+    anomalous = {name: e for name, e in entries.items() if e["gt"]}
+    posed = [name for name, e in anomalous.items() if e["gt"][0].get("pose") is not None]
+    amodal = sum(e["gt"][0]["info"].get("visib_source") == "amodal_pass" for e in anomalous.values())
+    depth = sum(e["depth"] is True for e in entries.values())
+    line = (f"annotations: COCO {len(entries)} images, {len(anomalous)} anomalies; BOP poses {len(posed)} of "
+            f"{len(anomalous)}, amodal masks {amodal} of {len(anomalous)}, depth {depth} of {len(entries)} images")
+    missing = [name.split("/", 1)[-1] for name in anomalous if name not in posed]
     if missing:
         line += (f" ({len(missing)} render(s) record no pose, rendered before poses were: their scene_gt entries are "
                  f"empty; re-render them: {', '.join(missing[:5])})")

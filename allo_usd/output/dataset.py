@@ -201,10 +201,33 @@ def read_manifest(path: Path) -> list[dict]:
         return []
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
+    _check_indices(path, rows)
     for r in rows:  # manifests written before the plan_seed column
         if not r.get("plan_seed"):
             r["plan_seed"] = plan_seed(r.get("seed_path", ""))
     return rows
+
+
+MAX_INDEX = 10 ** 6 - 1   # file names start with the index in six digits (sorted order is index order)
+INDEX = re.compile(r"^[0-9]{1,6}$")
+
+
+def _check_indices(path: Path, rows: list[dict]) -> None:
+    """Refuse (AlloError, one line) a manifest whose index column is not what the dataset writes: a
+    whole number from 0 to MAX_INDEX (plain digits), once per category. Every BOP folder and file
+    name is derived from it: a `-5` or `1e30` is never trusted."""
+    seen = set()
+    for line, r in enumerate(rows, start=2):
+        index = r.get("index")
+        problem = None
+        if not isinstance(index, str) or not INDEX.match(index):
+            problem = f"its index is not a whole number from 0 to {MAX_INDEX:,}"
+        elif (r.get("category"), int(index)) in seen:
+            problem = f"its index {int(index)} is another row's of its category"
+        if problem:
+            raise AlloError(f"{path} line {line}: {problem} (the manifest was edited); fix: restore manifest.csv, "
+                            "or assemble into a fresh --out")
+        seen.add((r.get("category"), int(index)))
 
 
 _WRITTEN: set[Path] = set()   # manifests written within an assembly run (write_manifest's parquet follows)
@@ -570,7 +593,7 @@ def _assemble(render_dirs, out_dir, layout, link, category, sheet_limit, progres
     out.mkdir(parents=True, exist_ok=True)
     manifest = out / MANIFEST
     rows = _clean_tree(out, manifest, category)
-    cache = load_cache(out)   # annotations/records.json: the annotation records and the dataset's state
+    cache = load_cache(out, len(rows))   # annotations/records.json: the annotation records and the dataset's state
     state = cache.get("state") if isinstance(cache.get("state"), dict) else {}
     todo, checks = _plan_rows(render_dirs, progress, rows, category, link, out, defects, state.get("checks"))
     early: dict[str, dict] = {}   # annotation records computed at placement from the mask in hand
@@ -639,7 +662,26 @@ def _holds(evidence: dict | None, prior) -> bool:
         return False
     kind, size = prior.get("kind"), prior.get("size")
     return kind in VARIANTS.values() and isinstance(size, list) and len(size) == 2 \
-        and all(isinstance(v, int) and not isinstance(v, bool) for v in size)
+        and all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 65535 for v in size) \
+        and _brief_agrees(prior.get("brief"), kind, size)
+
+
+def _brief_agrees(brief, kind: str, size: list[int]) -> bool:
+    """Is a kept Brief (records.json's state: a cache, checked as any input) one check_render could
+    have passed with this kind and size: its scene's labels valid (label_problem), its variant this
+    kind, its files a table, its pixel counts whole numbers within the image? A state from before
+    Briefs has none (None: the record in hand stands)."""
+    if brief is None:
+        return True
+    if not isinstance(brief, dict) or not isinstance(brief.get("scene"), dict) \
+            or not isinstance(brief.get("files"), dict) or not isinstance(brief.get("class_pixels"), dict) \
+            or not all(isinstance(brief["files"].get(k), str) for k in ("rgb", "mask")):
+        return False
+    scene, pixels = brief["scene"], brief["class_pixels"]
+    counts = [pixels.get(k, 0) for k in ("station_and_bodies", "anomaly")]
+    return label_problem(scene) is None and VARIANTS[scene["variant"]] == kind \
+        and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v for v in counts) \
+        and sum(counts) <= size[0] * size[1] and (kind == "anomaly" or counts[1] == 0)
 
 
 def _whole(meta_path: Path, refused: list, stats: dict) -> RenderRecord | None:
@@ -657,7 +699,8 @@ def _known(checked: dict, out: Path, render_dirs) -> dict:
         for key, proof in checked.items():
             name = key[len(prefix):]
             if key.startswith(prefix) and "/" not in name and isinstance(proof, dict) \
-                    and isinstance(proof.get("brief"), dict) and isinstance(proof.get("json"), list):
+                    and isinstance(proof.get("brief"), dict) and isinstance(proof.get("json"), list) \
+                    and _holds({"json": proof["json"]}, proof):   # its kind, size and Brief agree
                 known[str(d / name)] = (proof["json"], Brief.of(proof["brief"]))
     return known
 
@@ -729,6 +772,9 @@ def _plan_rows(render_dirs, progress, rows: dict[tuple, dict], category: str, li
             black.append(name)
         index = int(old["index"]) if old else next_index
         next_index += old is None
+        if index > MAX_INDEX:
+            raise AlloError(f"{out / category} would hold more than {MAX_INDEX + 1:,} images (file names start with "
+                            "a six-digit index); fix: assemble the rest into another --category")
         todo.append((name, meta_path, meta, kind, index, where, visible))
     _one_resolution(sizes, rows, category, out)
     if refused:
