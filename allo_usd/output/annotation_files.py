@@ -478,15 +478,16 @@ def _records(out: Path, rows, cache: dict, early: dict | None = None) -> tuple[d
                     rec = record_of(row, entry, key)
                     rec = rec if all((out / f).is_file() for f in rec["files"]) else None
                 else:
-                    failed.append(f"{name} ({problem})")
+                    failed.append(f"{name}: {problem}")
             if rec is None:
                 rec = compute_record(out, row)
                 recomputed += 1
         records[name] = rec
         entries[name] = entry_of(rec, bind)
     if failed:
-        _recomputed(f"{out / RECORDS} has {len(failed)} entries that fail its checks ({'; '.join(failed[:3])})",
-                    "those are")
+        some = "1 entry that fails" if len(failed) == 1 else f"{len(failed)} entries that fail"
+        _recomputed(f"{out / RECORDS} has {some} its checks ({'; '.join(failed[:3])})",
+                    "those are" if len(failed) > 1 else "it is")
     return records, entries, recomputed
 
 

@@ -26,7 +26,9 @@ Layout under OUT (the test renders each folder as one run):
                   plans/poses/ their hostile pose files (a FIFO, a link to /dev/zero, deep JSON)
     linktree/     plan.toml, hazards -> ../outside, and scenes/x/hazard_link.usda reading through it
     dataset/      render records: a split "../../escaped", files naming /etc/hostname, an empty folder,
-                  r0.json as a FIFO, a link to /dev/zero, nested 100,000 deep, 2 GB sparse
+                  r0.json as a FIFO, a link to /dev/zero, nested 100,000 deep, 2 GB sparse; and the
+                  renders of datasets (dataset_out/cache_*, manifest_index_*) assembled here whose
+                  annotations/records.json or manifest.csv is then edited, replaced or made hostile
     cli/          a file given as --out, a .usdc layer
 """
 
@@ -473,6 +475,14 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
               ("dataset", str(d), "--out", str(out / "dataset_out" / name)), note,
               forbidden=(d / "r0.json",) if name in ("fifo_record", "zero_record") else ())
 
+    # ---- the dataset's cache (annotations/records.json) and manifest.csv edited between two runs
+    for name, tamper, expect, note in _CACHE_CASES:
+        d, made = ds / name, out / "dataset_out" / name
+        _cached_dataset(d, made)
+        target = tamper(made)
+        w.add(f"dataset_{name}", "dataset", expect, "dataset", (target,),
+              ("dataset", str(d), "--out", str(made)), note)   # not forbidden: the run writes the cache anew
+
     # ---- command lines
     cli = out / "cli"
     cli.mkdir()
@@ -508,6 +518,103 @@ def _render_record(d: Path, name: str, scene: dict, files: dict | None) -> None:
                       "seedPath": "1/0/1/1", "provenance": {}, **scene},
             "effects": {}, "files": files or {"rgb": f"{name}.png", "exr": f"{name}.exr", "mask": f"{name}_mask.png"}}
     (d / f"{name}.json").write_text(json.dumps(meta))
+
+
+def _cached_dataset(d: Path, out: Path) -> None:
+    """A dataset assembled in-process from two honest render records (a normal train scene, an
+    anomalous test scene with 12 anomaly pixels), so that OUT holds records.json and manifest.csv."""
+    import json
+    import warnings
+
+    import numpy as np
+    from PIL import Image
+
+    from allo_usd.output.dataset import assemble
+
+    d.mkdir(parents=True)
+    for name, split, variant in (("r0", "train", "normal"), ("a1", "test", "anomaly")):
+        mask = np.ones((36, 64), np.uint8)
+        mask[:8] = 0
+        if variant == "anomaly":
+            mask[10:13, 20:24] = 2
+        Image.fromarray(np.full((36, 64, 3), 90, np.uint8)).save(d / f"{name}.png")
+        Image.fromarray(mask).save(d / f"{name}_mask.png")
+        counts = {"background": int((mask == 0).sum()), "station_and_bodies": int((mask == 1).sum()),
+                  "anomaly": int((mask == 2).sum())}
+        meta = {"layer": str(d / f"{name}.usda"), "layer_sha256": f"{len(name):064d}", "package_version": "0.1.0",
+                "render_seconds": 0.1, "resolution": [64, 36], "class_pixels": counts,
+                "anomaly_fraction": counts["anomaly"] / 2304, "effects": {},
+                "scene": {"sceneId": name, "split": split, "variant": variant, "pose": 1, "day": 0, "seed": 1,
+                          "seedPath": "1/0/1/1", "provenance": {},
+                          **({"anomaly": {"asset": "crate", "assetVariant": "blue"}} if variant == "anomaly" else {})},
+                "files": {"rgb": f"{name}.png", "exr": f"{name}.exr", "mask": f"{name}_mask.png"}}
+        (d / f"{name}.json").write_text(json.dumps(meta))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assemble([d], out)
+
+
+def _edit_cache(change):
+    """A tamper: records.json parsed, `change(cache, entry of a1)` applied, written back."""
+    import json
+
+    def tamper(out: Path) -> Path:
+        path = out / "annotations" / "records.json"
+        cache = json.loads(path.read_text())
+        change(cache, cache["records"]["allo/a1"])
+        path.write_text(json.dumps(cache))
+        return path
+    return tamper
+
+
+def _replace_cache(make):
+    def tamper(out: Path) -> Path:
+        path = out / "annotations" / "records.json"
+        path.unlink()
+        make(path)
+        return path
+    return tamper
+
+
+def _manifest_index(value: str):
+    def tamper(out: Path) -> Path:
+        import csv
+        import io
+
+        path = out / "manifest.csv"
+        rows = list(csv.DictReader(io.StringIO(path.read_text())))
+        rows[0]["index"] = value
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        path.write_text(buffer.getvalue())
+        return path
+    return tamper
+
+
+CACHE_RECOMPUTED = "cli exit 0, notes, one naming records.json"   # the cache recomputed, the dataset assembled
+_CACHE_CASES = (
+    ("cache_folder", _edit_cache(lambda c, e: e.update(bop={"folder": "../escaped"}, camera={"INJECTED": "x"})),
+     CACHE_RECOMPUTED, "a cached record whose BOP folder is ../escaped (and an injected camera)"),
+    ("cache_bbox", _edit_cache(lambda c, e: e["coco"][0].update(bbox=[0, 0, 1, 1])),
+     CACHE_RECOMPUTED, "a cached COCO bbox edited to [0, 0, 1, 1]"),
+    ("cache_image", _edit_cache(lambda c, e: e.update(image="/etc/passwd")),
+     CACHE_RECOMPUTED, "a cached record whose image is /etc/passwd"),
+    ("cache_shape", _edit_cache(lambda c, e: e.pop("width")),
+     CACHE_RECOMPUTED, "a cached record without a field (its width)"),
+    ("cache_fifo", _replace_cache(lambda p: os.mkfifo(p)), CACHE_RECOMPUTED, "records.json as a FIFO"),
+    ("cache_zero", _replace_cache(lambda p: os.symlink("/dev/zero", p)), CACHE_RECOMPUTED,
+     "records.json linked to /dev/zero"),
+    ("cache_sparse", _replace_cache(lambda p: (p.write_bytes(b"{}"), os.truncate(p, SPARSE_BYTES))),
+     CACHE_RECOMPUTED, "records.json a 2 GB sparse file"),
+    ("cache_deep", _replace_cache(lambda p: p.write_text("[" * 200_000 + "]" * 200_000)), CACHE_RECOMPUTED,
+     "records.json nested 200,000 deep"),
+    ("cache_directory", _replace_cache(lambda p: p.mkdir()), CACHE_RECOMPUTED, "a directory in records.json's place"),
+    ("manifest_index_abc", _manifest_index("abc"), CLI_ERROR, "manifest.csv's index abc"),
+    ("manifest_index_negative", _manifest_index("-5"), CLI_ERROR, "manifest.csv's index -5"),
+    ("manifest_index_huge", _manifest_index("1e30"), CLI_ERROR, "manifest.csv's index 1e30"),
+)
 
 
 def main(argv: list[str] | None = None) -> int:

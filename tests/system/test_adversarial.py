@@ -130,6 +130,19 @@ def refused_with_a_note(ran: Ran, case) -> str | None:
     return f"exit {ran.rc}, {len(lines)} stderr line(s): {tail}"
 
 
+def recomputed_with_a_note(ran: Ran) -> str | None:
+    """None if the command ended with exit 0, its stderr only 'note: ...' lines, one naming records.json
+    (the dataset's cache refused and recomputed: the dataset assembled all the same)."""
+    if ran.hung:
+        return f"hung (killed after {ran.seconds:.0f} s)"
+    lines = [line for line in ran.stderr.splitlines() if line.strip()]
+    if ran.rc == 0 and all(line.startswith("note: ") for line in lines) and any("records.json" in line
+                                                                               for line in lines):
+        return None
+    tail = " | ".join(lines[-3:])[:300]
+    return f"exit {ran.rc}, {len(lines)} stderr line(s): {tail}"
+
+
 # ---------------------------------------------------------------- the corpus and the runs
 
 @dataclass
@@ -258,7 +271,8 @@ def test_command_line_cases_end_as_one_line_exit_2(runs):
         if case.run not in ("single", "plan", "dataset", "cli"):
             continue
         ran = runs.ran[case.name]
-        what = refused_with_a_note(ran, case) if case.expect == C.CLI_REFUSED else one_line_error(ran)
+        what = (refused_with_a_note(ran, case) if case.expect == C.CLI_REFUSED
+                else recomputed_with_a_note(ran) if case.expect == C.CACHE_RECOMPUTED else one_line_error(ran))
         if case.expect == C.CLI_OK_OR_ERROR and what and ran.rc == 0:
             what = None
         if what:
@@ -268,6 +282,14 @@ def test_command_line_cases_end_as_one_line_exit_2(runs):
     escaped = [str(p) for p in runs.root.parent.rglob("escaped") if out not in p.parents]
     if escaped:
         problems["dataset_escaped_split"] = f"wrote outside the dataset: {escaped}"
+    # an edited cache never reaches the annotation files (the bbox, /etc/passwd, the injected camera)
+    for case in runs.cases.values():
+        if case.expect == C.CACHE_RECOMPUTED:
+            made = Path(case.argv[3])
+            coco, cams = made / "annotations" / "instances_test.json", list(made.rglob("scene_camera.json"))
+            text = "".join(p.read_text() for p in [coco, *cams] if p.is_file())
+            if not coco.is_file() or "/etc/passwd" in text or "INJECTED" in text or '"bbox":[0,0,1,1]' in text:
+                problems[case.name] = "the edited cache reached the annotation files (or they are missing)"
     hostname = Path("/etc/hostname")
     if hostname.is_file():
         data = hostname.read_bytes()
