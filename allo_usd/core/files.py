@@ -646,6 +646,27 @@ def read_user_json(path: str | Path, limit: int, what: str, fix: str | dict = ""
     return value
 
 
+def read_own_record(path: str | Path, limit: int = 1 << 20):
+    """A JSON record this project wrote into its own tree (a marker such as stages/station_source.json,
+    versions.json), read through the gate: its parsed value, or None when it is missing, refused (a
+    FIFO, a pseudo-file, too big, too deep) or not JSON. The caller decides what None means (usually:
+    a record that does not match)."""
+    try:
+        return read_user_json(path, limit, "record")
+    except InputRefused:
+        return None
+
+
+def record_shown(recorded, keys, limit: int = 300) -> str | None:
+    """What a message may show of a record read back from a tree: only its values under `keys` (the
+    fields the project writes there), cut to `limit` characters; None when it is no JSON object. A
+    record replaced by some other JSON file shows nothing of that file's own fields."""
+    if not isinstance(recorded, dict):
+        return None
+    text = repr({k: recorded[k] for k in keys if k in recorded})
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def read_head(path: Path, limit: int = 16384) -> bytes | None:
     """At most `limit` bytes from the start of a regular file (symlinks followed); None for
     anything else (a FIFO, a device, a socket, a directory), which is never opened for reading
