@@ -88,7 +88,6 @@ break glTF's rule, so only the caller can.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from dataclasses import dataclass
@@ -121,6 +120,7 @@ UNIT_SCALES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254
 # Heuristic bounds for units='auto' (largest extent in file units); see the module docstring.
 AUTO_METRES_MAX = 1000.0
 AUTO_INCHES_MAX = 20000.0
+MAX_MODEL_BYTES = 1 << 31   # a model file the importer reads (2 GiB: a bound, not a size any station model needs)
 
 # Exact rotations (integer entries, det +1) taking the named file axis onto +Z; each is the
 # smallest rotation doing so, about X for y/-y/-z and about Y for x/-x.
@@ -278,8 +278,11 @@ def _check_path(path: Path) -> str:
                          f"{', '.join(SUPPORTED_EXTENSIONS)}")
     if not path.exists():
         raise AssetError(f"mesh file not found: {path}")
-    if not path.is_file():
-        raise AssetError(f"{path}: not a regular file")
+    from allo_usd.core.files import file_problem
+
+    problem = file_problem(path, MAX_MODEL_BYTES)   # the read gate: a FIFO, a device or a pseudo-file is refused
+    if problem:
+        raise AssetError(f"{path} {problem}; fix: give the path of a glTF/OBJ/STL model file")
     return fmt
 
 
@@ -350,10 +353,12 @@ def _load_scene(path: Path, fmt: str):
     import trimesh
 
     if path.suffix.lower() == ".gltf":  # trimesh's own error for bad JSON is misleading
+        from allo_usd.core.files import InputRefused, read_user_json
+
         try:
-            json.loads(path.read_text(encoding="utf-8"))
-        except (ValueError, UnicodeDecodeError) as e:
-            raise AssetError(f"{path}: not a glTF file, its JSON does not parse: {e}") from e
+            read_user_json(path, MAX_MODEL_BYTES, "glTF file")   # the read gate; its message names line and column
+        except InputRefused as e:
+            raise AssetError(f"{path}: not a glTF file, {e.reason}; fix: give a glTF model") from None
     try:
         scene = trimesh.load(str(path), force="scene", process=False)
         if not isinstance(scene, trimesh.Scene):

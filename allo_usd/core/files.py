@@ -310,13 +310,28 @@ def atomic_directory(dest: Path):
 
 
 def sha256_file(path: Path) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB chunks (checksums in manifests)."""
+    """Hex SHA-256 of a file, read in 1 MiB chunks (checksums in manifests). Opened as the read gate
+    opens (non-blocking, then checked as a regular file that is no pseudo-file): a FIFO or a device
+    put in a checked file's place is an InputRefused naming the rule, not a hang or endless bytes."""
     import hashlib
 
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _refuse(path, "not_regular", _NOT_REGULAR, "file", "", None)
+        real = _opened_real(fd)
+        if real is not None and _pseudo_root(real):
+            raise _refuse(path, "pseudo", _pseudo_reason(real), "file", "", None)
+        h = hashlib.sha256()
+        first = True
+        while chunk := os.read(fd, 1 << 20):
+            if first and st.st_size == 0:   # reported empty, yet it yields bytes
+                raise _refuse(path, "pseudo", _ZERO_YIELDS, "file", "", None)
+            first = False
             h.update(chunk)
+    finally:
+        os.close(fd)
     return h.hexdigest()
 
 
@@ -355,6 +370,13 @@ class RunLock:
 # nested deeper than MAX_JSON_DEPTH is refused: json.loads's RecursionError on a few thousand levels,
 # or the parsed value's depth (read_user_json). A refusal names the file and the rule, never the
 # file's content.
+#
+# Pseudo-files are refused too: a regular file whose real path lies under /proc, /sys or /dev (the
+# kernel makes their bytes up: /proc/self/environ is the process's environment, and reports a size of
+# 0), and any file whose stat says 0 bytes but which yields a byte when read (the one case where the
+# gate opens a file before deciding: a regular file, opened non-blocking, one byte read). Each read
+# checks the descriptor again (its real path, and its reported size against the bytes it yields), so
+# a file swapped for a pseudo-file after the check is refused as well.
 
 MAX_JSON_DEPTH = 64   # a render record nests 5 levels, a pose file 3
 MAX_RECORD_BYTES = 4 << 20   # a render record NAME.json (allo_usd.run.job writes a few KB)
@@ -362,7 +384,7 @@ MAX_RECORD_BYTES = 4 << 20   # a render record NAME.json (allo_usd.run.job write
 
 class InputRefused(AlloError, ValueError):
     """A user's file the read gate refused. `kind` names the rule (missing, unreadable, outside,
-    not_regular, too_big, grew, not_utf8, too_deep, not_json), `reason` is the text that follows the
+    not_regular, pseudo, too_big, grew, not_utf8, too_deep, not_json), `reason` is the text that follows the
     file's name ("is too big (N bytes > LIMIT)"); the message is one line with the fix."""
 
     def __init__(self, message: str, kind: str, reason: str):
@@ -391,6 +413,7 @@ def input_problem(path: str | Path, limit: int, roots=None) -> tuple[str, str] |
     """(kind, reason) of why `path` may not be read as a bounded regular file, or None if it may
     (the gate's rule, module comment above). os.stat only (symlinks followed): nothing is opened.
     `roots`: directories the file's real path must lie in (None: no such rule)."""
+    real = None
     if roots is not None:
         real = os.path.realpath(path)
         if not _inside_roots(real, roots):
@@ -403,10 +426,65 @@ def input_problem(path: str | Path, limit: int, roots=None) -> tuple[str, str] |
     except OSError as exc:
         return "unreadable", f"cannot be read ({exc.strerror})"
     if not stat.S_ISREG(st.st_mode):
-        return "not_regular", "is not a regular file (a directory, FIFO, device or socket)"
+        return "not_regular", _NOT_REGULAR
+    real = real or os.path.realpath(path)
+    if _pseudo_root(real):
+        return "pseudo", _pseudo_reason(real)
     if st.st_size > limit:
         return "too_big", f"is too big ({st.st_size:,} bytes > {_bound(limit)} allowed)"
+    if st.st_size == 0 and _yields_bytes(path):
+        return "pseudo", _ZERO_YIELDS
     return None
+
+
+PSEUDO_ROOTS = ("/proc", "/sys", "/dev")   # file systems whose files the kernel makes up (or devices)
+_NOT_REGULAR = "is not a regular file (a directory, FIFO, device or socket)"
+_ZERO_YIELDS = ("is a pseudo-file: its size is 0 but it yields bytes when read (the kernel makes its content up, "
+                "e.g. under /proc), and is never read")
+
+
+def _pseudo_root(real: str) -> str | None:
+    """The pseudo-filesystem root (PSEUDO_ROOTS) the real path `real` lies under, or None."""
+    return next((r for r in PSEUDO_ROOTS if real == r or real.startswith(r + "/")), None)
+
+
+def _pseudo_reason(real: str) -> str:
+    return (f"is a pseudo-file: it resolves to {real}, under {_pseudo_root(real)}, whose files the kernel makes up "
+            "(never read)")
+
+
+def _yields_bytes(path) -> bool:
+    """Does the file at `path` (a regular file by os.stat, of size 0) yield a byte when read? Opened
+    non-blocking and checked as a regular file first, so nothing can block. False if it cannot be
+    opened (the read that follows says why)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return False
+    try:
+        return stat.S_ISREG(os.fstat(fd).st_mode) and os.read(fd, 1) != b""
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def _opened_real(fd: int) -> str | None:
+    """The real path of what the descriptor `fd` has open (/proc/self/fd; one readlink), or None
+    where that cannot be asked (no /proc, an unnamed file)."""
+    try:
+        real = os.readlink(f"/proc/self/fd/{fd}")
+    except OSError:
+        return None
+    return real if real.startswith("/") else None
+
+
+class _Pseudo(Exception):
+    """_read_regular met a pseudo-file (its real path, or "" for a size-0 file that yields bytes)."""
+
+    def __init__(self, real: str):
+        super().__init__(real)
+        self.real = real
 
 
 def file_problem(path: str | Path, limit: int) -> str | None:
@@ -420,8 +498,14 @@ def file_problem(path: str | Path, limit: int) -> str | None:
     return "cannot be read (No such file or directory)" if kind == "missing" else reason
 
 
+_RULE_FIX = {"pseudo": "point it at a file on disk (copy what you mean to use into one)"}   # when the caller has none
+
+
 def _refuse(path, kind: str, reason: str, what: str, fix, error):
-    hint = fix.get(kind, fix.get("", "")) if isinstance(fix, dict) else fix
+    if isinstance(fix, dict):
+        hint = fix[kind] if kind in fix else _RULE_FIX.get(kind, fix.get("", ""))
+    else:
+        hint = fix or _RULE_FIX.get(kind, "")
     message = f"{what} {path} {reason}" + (f"; fix: {hint}" if hint else "")
     if error is None:
         return InputRefused(message, kind, reason)
@@ -436,15 +520,23 @@ def _bounded_read(path: str | Path, limit: int) -> bytes | None:
 
 def _read_regular(fd: int, count: int) -> bytes | None:
     """At most `count` bytes from the open descriptor `fd` (closed after), or None if it is not a
-    regular file: the one bounded read of _bounded_read and read_head."""
+    regular file: the one bounded read of _bounded_read and read_head. A pseudo-file (what is open
+    lies under PSEUDO_ROOTS, or it reports 0 bytes and yields some) raises _Pseudo, its content
+    unread past the first byte: checked on the descriptor, so a swap after the gate's check is caught."""
     try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):   # replaced between the stat and the open
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):   # replaced between the stat and the open
             return None
+        real = _opened_real(fd)
+        if real is not None and _pseudo_root(real):
+            raise _Pseudo(real)
         chunks, size = [], 0
         while size < count:
-            chunk = os.read(fd, min(count - size, 1 << 20))
+            chunk = os.read(fd, min(count - size, 1 << 20) if size or st.st_size else 1)
             if not chunk:
                 break
+            if not size and st.st_size == 0:   # reported empty, yet it yields bytes
+                raise _Pseudo("")
             chunks.append(chunk)
             size += len(chunk)
         return b"".join(chunks)
@@ -462,13 +554,15 @@ def read_user_bytes(path: str | Path, limit: int, what: str, fix: str | dict = "
         raise _refuse(path, *found, what, fix, error)
     try:
         data = _bounded_read(path, limit)
+    except _Pseudo as exc:
+        raise _refuse(path, "pseudo", _pseudo_reason(exc.real) if exc.real else _ZERO_YIELDS, what, fix,
+                      error) from None
     except FileNotFoundError:
         raise _refuse(path, "missing", "does not exist", what, fix, error) from None
     except OSError as exc:
         raise _refuse(path, "unreadable", f"cannot be read ({exc.strerror})", what, fix, error) from None
     if data is None:
-        raise _refuse(path, "not_regular", "is not a regular file (a directory, FIFO, device or socket)", what, fix,
-                      error)
+        raise _refuse(path, "not_regular", _NOT_REGULAR, what, fix, error)
     if len(data) > limit:
         raise _refuse(path, "grew", f"is too big (it grew past {_bound(limit)} while it was read)", what, fix, error)
     return data
@@ -552,25 +646,52 @@ def read_user_json(path: str | Path, limit: int, what: str, fix: str | dict = ""
     return value
 
 
+def read_own_record(path: str | Path, limit: int = 1 << 20):
+    """A JSON record this project wrote into its own tree (a marker such as stages/station_source.json,
+    versions.json), read through the gate: its parsed value, or None when it is missing, refused (a
+    FIFO, a pseudo-file, too big, too deep) or not JSON. The caller decides what None means (usually:
+    a record that does not match)."""
+    try:
+        return read_user_json(path, limit, "record")
+    except InputRefused:
+        return None
+
+
+def record_shown(recorded, keys, limit: int = 300) -> str | None:
+    """What a message may show of a record read back from a tree: only its values under `keys` (the
+    fields the project writes there), cut to `limit` characters; None when it is no JSON object. A
+    record replaced by some other JSON file shows nothing of that file's own fields."""
+    if not isinstance(recorded, dict):
+        return None
+    text = repr({k: recorded[k] for k in keys if k in recorded})
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def read_head(path: Path, limit: int = 16384) -> bytes | None:
     """At most `limit` bytes from the start of a regular file (symlinks followed); None for
     anything else (a FIFO, a device, a socket, a directory), which is never opened for reading
     past a non-blocking open: a FIFO named like a layer cannot block the caller, and a symlink
-    to /dev/zero or a huge sparse file costs `limit` bytes, not the whole file."""
+    to /dev/zero or a huge sparse file costs `limit` bytes, not the whole file. A pseudo-file
+    (the gate's rule: under /proc, /sys or /dev, or of size 0 yet yielding bytes) is None too."""
     try:
         if not stat.S_ISREG(os.stat(path).st_mode):
             return None
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError:
         return None
-    return _read_regular(fd, limit)
+    try:
+        return _read_regular(fd, limit)
+    except _Pseudo:
+        return None
 
 
 def read_whole_small(path: str | Path, limit: int) -> tuple[bytes, os.stat_result] | None:
     """The whole of a regular file of at most `limit` bytes and the stat those bytes were read at
     (the descriptor's, the same before and after the read), or None for anything else (bigger,
-    not a regular file, changed during the read, unreadable). read_head's rule for what is opened:
-    the dispatcher's scan reads a scene layer once, to sniff it and to checksum it."""
+    not a regular file, a pseudo-file, changed during the read, unreadable). read_head's rule for
+    what is opened: the dispatcher's scan reads a scene layer once, to sniff it and to checksum it.
+    A size-0 file that yields bytes is refused by the size check below (its bytes differ from its
+    size)."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError:
@@ -578,6 +699,9 @@ def read_whole_small(path: str | Path, limit: int) -> tuple[bytes, os.stat_resul
     try:
         before = os.fstat(fd)
         if not stat.S_ISREG(before.st_mode) or before.st_size > limit:
+            return None
+        real = _opened_real(fd)
+        if real is not None and _pseudo_root(real):
             return None
         data = os.read(fd, limit + 1)
         after = os.fstat(fd)

@@ -59,14 +59,9 @@ def library_versions() -> dict[str, str | None]:
 
 
 def _recorded_runs(path: Path) -> list[dict]:
-    from allo_usd.core.files import file_problem
+    from allo_usd.core.files import read_own_record
 
-    if file_problem(path, _MAX_RECORD) is not None:
-        return []
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return []
+    record = read_own_record(path, _MAX_RECORD)   # through the read gate; None when refused or not JSON
     runs = record.get("runs") if isinstance(record, dict) else None
     return [r for r in runs if isinstance(r, dict)] if isinstance(runs, list) else []
 

@@ -5,10 +5,12 @@ A written plan holds only the fields its author set (pydantic's `model_fields_se
 nested models), so it re-reads to the same Plan and every field left out keeps its meaning: the
 quality preset fills it, or the default does. Hostile files fail fast, as PlanError: a file above
 MAX_PLAN_BYTES is refused before it is parsed, text that is not UTF-8 is named as such, YAML
-aliases (the "billion laughs" expansion) and nesting deeper than MAX_DEPTH are refused, and validation messages show at most
+aliases (the "billion laughs" expansion) and nesting deeper than MAX_DEPTH are refused, a YAML key given twice in
+one mapping is refused as TOML refuses it (YAML's loader would keep the last), and validation messages show at most
 MAX_ERRORS problems, each value cut short; the plan's size in scenes is bounded when it is
 validated (allo_usd.plan.model.MAX_PLAN_SCENES). A parser's refusal is one line naming the line and
-column (YAML's own messages span several). A written TOML plan lists its anomalies as an array of
+column (YAML's own messages span several), never a line of the file: the plan's own keys and short
+values may be named (its author wrote them), the text around them is not shown. A written TOML plan lists its anomalies as an array of
 tables, one `[[anomalies.assets]]` block each, so a block of one's own (docs/guide/bring_your_own.md, Your own hazards)
 can be appended to it; appending one to an inline `assets = [...]` is named as such."""
 
@@ -86,6 +88,9 @@ def load_plan(path: Path) -> Plan:
     except _AliasFound as exc:
         raise PlanError(f"plan {path} uses a YAML alias ({exc}); a plan may not, since aliases can expand "
                         "without bound; fix: write the value out where it is used") from None
+    except _DuplicateKey as exc:
+        raise PlanError(f"{path} is not valid YAML: key {_cut(repr(exc.key), 80)} is given twice in one mapping "
+                        f"(at line {exc.line}, first at line {exc.first}); fix: keep one of the two") from None
     except Exception as exc:  # tomllib.TOMLDecodeError, yaml.YAMLError, a date out of range, deep nesting
         # Nesting is named in our words, whichever check refused it first: ours (_TooDeep), the parser's
         # own limit (libyaml's scanner looks ahead past MAX_DEPTH) or Python's (tomllib recurses).
@@ -142,6 +147,42 @@ def _parser_message(exc: Exception) -> str:
     return " ".join(str(exc).split())
 
 
+class _DuplicateKey(Exception):
+    def __init__(self, key, line: int, first: int):
+        super().__init__(key, line, first)
+        self.key, self.line, self.first = key, line, first
+
+
+_LOADERS: dict = {}
+
+
+def _plan_loader(base):
+    """`base` (CSafeLoader or SafeLoader) that refuses a key given twice in one mapping, at any depth, naming
+    the key and both lines; made once per base class."""
+    if base in _LOADERS:
+        return _LOADERS[base]
+    import yaml
+
+    class PlanLoader(base):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen: dict = {}
+                for key_node, _ in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue
+                    key, line = self.construct_object(key_node, deep=True), key_node.start_mark.line + 1
+                    try:
+                        if key in seen:
+                            raise _DuplicateKey(key, line, seen[key])
+                        seen[key] = line
+                    except TypeError:   # an unhashable key: the base class refuses it
+                        continue
+            return super().construct_mapping(node, deep)
+
+    _LOADERS[base] = PlanLoader
+    return PlanLoader
+
+
 class _TooDeep(Exception):
     def __init__(self, line: int):
         super().__init__(line)
@@ -196,7 +237,7 @@ def _parse(text: str, fmt: str):
                 raise _TooDeep(event.start_mark.line + 1)
         elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
             depth -= 1
-    return yaml.load(text, Loader=loader)
+    return yaml.load(text, Loader=_plan_loader(loader))
 
 
 def _cut(text: str, limit: int = MAX_LINE) -> str:

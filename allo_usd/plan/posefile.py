@@ -12,7 +12,13 @@ that is not one of these is refused (a misspelt `qw ` would otherwise be silentl
 Blank lines and lines starting with '#' are skipped. JSON: a list of objects
 {"name", "split", "position": [x, y, z], "orientation_wxyz": [w, x, y, z]} (no other keys). A UTF-8
 byte-order mark and CRLF line ends are accepted. Every problem is a PlanError naming FILE:LINE (for
-JSON, the line where the pose's object starts), the value and the fix.
+JSON, the line where the pose's object starts), the column or key, the rule and the fix.
+
+A message never quotes the file's text: a plan may name any file as its pose file (a shared plan, a
+link to a file the user never meant to show), and its bytes must not reach a terminal or a CI log.
+Columns and keys are named by position or by their known names; a refused value is described, never
+shown. Only values that passed their own check are shown: a pose name that is an identifier, and
+numbers as parsed (a position's distance, a quaternion's norm).
 
 A quaternion whose norm is within QUAT_TOLERANCE of 1 is normalised; one further off (or zero) is
 refused, since it most likely holds a typo or a different convention.
@@ -84,11 +90,6 @@ class PoseFile:
         return f"{self.name}:{pose.line}"
 
 
-def _short(v) -> str:
-    r = repr(v)
-    return r if len(r) <= 60 else r[:57] + "..."
-
-
 class _Reader:
     def __init__(self, label: str, text: bool):
         self.label, self.text = label, text   # text: numbers come as text (CSV)
@@ -101,14 +102,14 @@ class _Reader:
     def number(self, line: int, field: str, value) -> float:
         """A finite float from CSV text or a JSON number (not a JSON string or bool)."""
         if isinstance(value, bool) or not isinstance(value, (int, float, str) if self.text else (int, float)):
-            raise self.fail(line, f"{field} {_short(value)} is not a number", f"write {field} as a decimal number")
+            raise self.fail(line, f"{field} is not a number (a JSON {_json_type(value)})",
+                            f"write {field} as a decimal number")
         try:
             f = float(value.strip()) if isinstance(value, str) else float(value)
         except (ValueError, OverflowError):
-            raise self.fail(line, f"{field} {_short(value)} is not a number",
-                            f"write {field} as a decimal number, e.g. 1.5") from None
+            raise self.fail(line, f"{field} is not a number", f"write {field} as a decimal number, e.g. 1.5") from None
         if not math.isfinite(f):
-            raise self.fail(line, f"{field} is {_short(value)}, not a finite number", f"give a finite {field}")
+            raise self.fail(line, f"{field} is not a finite number (NaN or infinite)", f"give a finite {field}")
         return f
 
     def add(self, line: int, name, split, xyz, wxyz) -> None:
@@ -118,13 +119,13 @@ class _Reader:
             raise self.fail(line, "the pose has no name", "give every pose a unique name, e.g. port_truss_1")
         name = name.strip()
         if not NAME_PATTERN.match(name):
-            raise self.fail(line, f"pose name {_short(name)} is not an identifier",
+            raise self.fail(line, "the pose name is not an identifier",
                             "use letters, digits, _ and -, starting with a letter, at most 64 characters")
         if name in self.names:
             raise self.fail(line, f"pose name {name!r} is used twice (first on line {self.names[name]})",
                             "give every pose a unique name")
         if not isinstance(split, str) or split.strip().lower() not in SPLITS:
-            raise self.fail(line, f"split {_short(split)} of pose {name!r} is neither train nor test",
+            raise self.fail(line, f"the split of pose {name!r} is neither train nor test",
                             "write train or test")
         pos = tuple(self.number(line, f, v) for f, v in zip("xyz", xyz))
         dist = math.sqrt(sum(c * c for c in pos))
@@ -147,14 +148,14 @@ def _read_csv(r: _Reader, text: str) -> None:
                                                                    "and one row per pose")
     rows = list(csv.reader(io.StringIO("\n".join(ln for _, ln in lines))))
     head_line, header = lines[0][0], [c.strip().lower() for c in rows[0]]
-    extra = [c for c in header if c not in CSV_COLUMNS]
+    extra = [i + 1 for i, c in enumerate(header) if c not in CSV_COLUMNS]   # by position: never the text
     missing = [c for c in CSV_COLUMNS if c not in header]
-    dup = sorted({c for c in header if header.count(c) > 1})
+    dup = sorted({c for c in header if c in CSV_COLUMNS and header.count(c) > 1})
     if extra or missing or dup:
-        what = "; ".join(s for s in (f"unknown columns {extra}" if extra else "",
+        what = "; ".join(s for s in (_unknown_columns(extra),
                                      f"missing columns {missing}" if missing else "",
                                      f"columns named twice {dup}" if dup else "") if s)
-        raise r.fail(head_line, f"header {_short(','.join(rows[0]))}: {what}",
+        raise r.fail(head_line, f"header: {what}",
                      f"the header must name exactly the columns {','.join(CSV_COLUMNS)} (any order)")
     col = {c: header.index(c) for c in CSV_COLUMNS}
     for (line, _), row in zip(lines[1:], rows[1:]):
@@ -163,6 +164,24 @@ def _read_csv(r: _Reader, text: str) -> None:
                          f"give one value per column ({','.join(header)})")
         v = {c: row[i] for c, i in col.items()}
         r.add(line, v["name"], v["split"], (v["x"], v["y"], v["z"]), (v["qw"], v["qx"], v["qy"], v["qz"]))
+
+
+def _unknown_columns(positions: list[int]) -> str:
+    """Unknown header columns by position ("2 unknown columns (columns 3, 10)"), "" for none."""
+    if not positions:
+        return ""
+    shown = ", ".join(map(str, positions[:10])) + (", ..." if len(positions) > 10 else "")
+    n = len(positions)
+    return f"{n} unknown column{'s' if n > 1 else ''} (column{'s' if n > 1 else ''} {shown})"
+
+
+def _json_type(value) -> str:
+    """A JSON value's type in words (what a message says instead of the value)."""
+    for t, word in ((bool, "boolean"), (str, "string"), (int, "number"), (float, "number"), (list, "list"),
+                    (dict, "object")):
+        if isinstance(value, t):
+            return word
+    return "null" if value is None else type(value).__name__
 
 
 def _line_of(text: str, index: int) -> int:
@@ -198,17 +217,18 @@ def _read_json(r: _Reader, text: str) -> None:
         line = _line_of(text, i)
         obj, i = dec.raw_decode(text, i)
         if not isinstance(obj, dict):
-            raise r.fail(line, f"entry {_short(obj)} is not an object",
+            raise r.fail(line, f"entry {len(r.poses) + 1} is not an object (a JSON {_json_type(obj)})",
                          'write {"name", "split", "position", "orientation_wxyz"}')
-        extra = [k for k in obj if k not in JSON_KEYS]
+        extra = sum(k not in JSON_KEYS for k in obj)   # counted: a key's text is never shown
         missing = [k for k in JSON_KEYS if k not in obj]
         if extra or missing:
-            what = "; ".join(s for s in (f"unknown keys {extra}" if extra else "",
+            what = "; ".join(s for s in (f"{extra} unknown key{'s' if extra > 1 else ''}" if extra else "",
                                          f"missing keys {missing}" if missing else "") if s)
             raise r.fail(line, what, f"give exactly the keys {', '.join(JSON_KEYS)}")
         for key, n in (("position", 3), ("orientation_wxyz", 4)):
             if not isinstance(obj[key], list) or len(obj[key]) != n:
-                raise r.fail(line, f"{key} {_short(obj[key])} is not a list of {n} numbers", f"give {n} numbers")
+                held = f"{len(obj[key])} values" if isinstance(obj[key], list) else f"a JSON {_json_type(obj[key])}"
+                raise r.fail(line, f"{key} is not a list of {n} numbers (it holds {held})", f"give {n} numbers")
         r.add(line, obj["name"], obj["split"], obj["position"], obj["orientation_wxyz"])
 
 

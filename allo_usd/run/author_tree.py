@@ -64,9 +64,12 @@ def with_tree_stage(plan: Plan, out_dir: Path) -> Plan:
         made_from["camera"] = {**asdict(lens), "resolution": list(size)}
     marker = base.parent / STATION_MARKER
     if base.is_file():
-        recorded = json.loads(marker.read_text()) if marker.is_file() else None
+        from allo_usd.core.files import read_own_record, record_shown
+
+        recorded = read_own_record(marker)   # through the gate: a FIFO or a pseudo-file is no record
         if recorded != made_from:
-            raise PlanError(f"{base.parent} was built from {recorded or 'another station'}, not from {made_from}; "
+            shown = record_shown(recorded, made_from) or "another station"   # the record's own fields only
+            raise PlanError(f"{base.parent} was built from {shown}, not from {made_from}; "
                             f"fix: author this plan into a new output directory (or delete that {STAGE_DIR}/ folder)")
     else:
         from allo_usd.usd.build_stage import build_base_stage
@@ -89,11 +92,11 @@ def tree_lock(out_dir: Path):
     try:
         lock.__enter__()
     except AlloError:
-        holder = ""
-        try:
-            holder = lock.path.read_text().strip()
-        except OSError:
-            pass
+        from allo_usd.core.files import read_head
+
+        # the holder's own line ("pid N, since TIME"), shown only in that form: the lock file is never quoted
+        head = (read_head(lock.path, 200) or b"").decode("utf-8", "replace").strip()
+        holder = head if re.fullmatch(r"pid \d+, since [0-9T:.+\- Z]{1,40}", head) else ""
         raise AlloError(f"another author run{f' ({holder})' if holder else ''} is writing to {Path(out_dir)}; "
                         f"wait for it to finish, then re-run to resume (or stop it), or author into "
                         f"another --out") from None

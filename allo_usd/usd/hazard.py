@@ -115,14 +115,14 @@ def write_hazards(plan, out_dir: Path) -> dict[str, Path]:
         root = hazard_root(out_dir, choice.id)
         marker, path = root / HAZARD_MARKER, hazard_asset_path(out_dir, choice.id)
         if marker.is_file() and path.is_file():
-            try:
-                recorded = json.loads(marker.read_text())
-            except (OSError, ValueError):
-                recorded = None
+            from allo_usd.core.files import read_own_record, record_shown
+
+            recorded = read_own_record(marker)   # through the gate: a FIFO or a pseudo-file is no record
             if isinstance(recorded, dict):   # `converted` says what came out, not what it was made from
                 recorded = {k: v for k, v in recorded.items() if k != CONVERTED}
             if recorded != want:
-                raise PlanError(f"{root} was made from {recorded or 'an unreadable record'}, not from {want} "
+                shown = record_shown(recorded, want) or "an unreadable record"   # the record's own fields only
+                raise PlanError(f"{root} was made from {shown}, not from {want} "
                                 f"(the hazard's file or options changed since its scenes were authored); fix: author "
                                 "into a new output directory, or author with --replace")
         else:

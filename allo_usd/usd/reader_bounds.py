@@ -262,7 +262,7 @@ def check_texture_file(path: str, where) -> None:
         raise LayerError(f"texture {path} ({where}) cannot be read ({exc.strerror}); restore the file") from None
     kind = next((k for sig, k in IMAGE_SIGNATURES.items() if head.startswith(sig)), None)
     if kind is None:
-        raise LayerError(f"texture {path} ({where}) is not an image: it starts with {head[:8]!r}, not a "
+        raise LayerError(f"texture {path} ({where}) is not an image: it does not start with a "   # its bytes unshown
                          f"{', '.join(sorted(set(IMAGE_SIGNATURES.values())))} signature; restore the real image "
                          "(fix the asset)")
     if kind == "PNG" and not tail.endswith(PNG_END):

@@ -162,6 +162,8 @@ def layer_outputs(layer: Path) -> tuple[str, ...]:
 
     from allo_usd.usd.read import VAR_PASSES
 
+    if refusal(layer):
+        return DEFAULT_PASSES   # never opened (the walk's rule): read_scene will say what is wrong with it
     try:
         sdf = Sdf.Layer.FindOrOpen(str(layer))
     except Tf.ErrorException:

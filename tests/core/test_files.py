@@ -183,3 +183,75 @@ def test_write_bytes_atomic_without_an_inode_left_is_a_disk_full_error(tmp_path,
     monkeypatch.undo()
     assert os.listdir(tmp_path) == []
 
+
+
+# ---------------------------------------------------------------------------------------------
+# Pseudo-files and the read gate: a file the kernel makes up is refused unread, its content never shown
+
+def _environment_entries() -> list[str]:
+    """This process's environment as /proc/self/environ holds it (the text a leak would show)."""
+    with open("/proc/self/environ", "rb") as f:
+        return [e.decode(errors="replace") for e in f.read().split(b"\0") if len(e) >= 8]
+
+
+needs_proc = pytest.mark.skipif(not os.path.exists("/proc/self/environ"), reason="no /proc here")
+
+
+@needs_proc
+@pytest.mark.parametrize("target", ["/proc/self/environ", "/proc/self/mounts",
+                                    "/sys/kernel/mm/transparent_hugepage/enabled"])
+def test_the_gate_refuses_a_link_to_a_pseudo_file_by_its_real_path(tmp_path, target):
+    from allo_usd.core.files import InputRefused, file_problem, read_head, read_user_bytes, read_user_text, \
+        read_whole_small, sha256_file
+
+    if not os.path.isfile(target):
+        pytest.skip(f"no {target} here")
+    link = tmp_path / "poses.csv"
+    link.symlink_to(target)
+    for read in (lambda: read_user_bytes(link, 1 << 20, "pose file"), lambda: read_user_text(link, 1 << 20, "plan"),
+                 lambda: sha256_file(link)):
+        with pytest.raises(InputRefused) as err:
+            read()
+        msg = str(err.value)
+        assert err.value.kind == "pseudo" and "is a pseudo-file" in msg and "fix: point it at a file on disk" in msg
+        assert str(link) in msg and "\n" not in msg
+        assert not [e for e in _environment_entries() if e in msg], msg
+    assert "pseudo-file" in file_problem(link, 1 << 20)
+    assert read_head(link) is None and read_whole_small(link, 1 << 20) is None
+
+
+@needs_proc
+def test_a_file_of_size_zero_that_yields_bytes_is_a_pseudo_file(tmp_path, monkeypatch):
+    """The second rule, for pseudo-files outside /proc, /sys and /dev: a file stat reports empty that
+    yields a byte when read. Shown on /proc/self/environ with the real-path rule switched off."""
+    from allo_usd.core import files
+    from allo_usd.core.files import InputRefused, read_head, read_user_bytes, read_whole_small, sha256_file
+
+    assert os.stat("/proc/self/environ").st_size == 0
+    monkeypatch.setattr(files, "PSEUDO_ROOTS", ())
+    link = tmp_path / "plan.toml"
+    link.symlink_to("/proc/self/environ")
+    assert files.input_problem(link, 1 << 20)[0] == "pseudo"
+    with pytest.raises(InputRefused) as err:
+        read_user_bytes(link, 1 << 20, "plan")
+    assert err.value.kind == "pseudo" and "its size is 0 but it yields bytes" in str(err.value)
+    assert not [e for e in _environment_entries() if e in str(err.value)]
+    with pytest.raises(InputRefused, match="size is 0 but it yields bytes"):
+        sha256_file(link)
+    assert read_head(link) is None and read_whole_small(link, 1 << 20) is None
+    monkeypatch.setattr(files, "input_problem", lambda *a, **k: None)   # a swap after the check: the read refuses it
+    with pytest.raises(InputRefused, match="size is 0 but it yields bytes"):
+        read_user_bytes(link, 1 << 20, "plan")
+
+
+def test_an_empty_file_and_a_devices_kind_are_as_before(tmp_path):
+    """An honest empty file is read as empty; a device under /dev stays "not a regular file"."""
+    from allo_usd.core.files import InputRefused, read_head, read_user_bytes, read_whole_small, sha256_file
+
+    empty = tmp_path / "empty.csv"
+    empty.write_bytes(b"")
+    assert read_user_bytes(empty, 10, "pose file") == b"" and read_head(empty) == b""
+    assert read_whole_small(empty, 10)[0] == b"" and sha256_file(empty) == hashlib.sha256(b"").hexdigest()
+    with pytest.raises(InputRefused) as err:
+        read_user_bytes("/dev/null", 10, "pose file")
+    assert err.value.kind == "not_regular"

@@ -135,6 +135,51 @@ def test_deep_nesting_is_a_plan_error(tmp_path, suffix, text):
         load_plan(path)
 
 
+@pytest.mark.parametrize("yaml_text, toml_text, key, line, first", [
+    ("name: x\nquality:\n  samples: 3\n  samples: 2\n", 'name = "x"\n[quality]\nsamples = 3\nsamples = 2\n',
+     "samples", 4, 3),
+    ("name: x\nseeds: [1]\nname: y\n", 'name = "x"\nseeds = [1]\nname = "y"\n', "name", 3, 1),
+    ("name: x\nquality: {samples: 3, samples: 2}\n", 'name = "x"\nquality = {samples = 3, samples = 2}\n',
+     "samples", 2, 2),
+    ("name: x\nanomalies:\n  assets:\n    - id: power_drill\n      id: wrench\n",
+     'name = "x"\n[[anomalies.assets]]\nid = "power_drill"\nid = "wrench"\n', "id", 5, 4),
+])
+def test_a_key_given_twice_is_refused_in_yaml_as_in_toml(tmp_path, yaml_text, toml_text, key, line, first):
+    """YAML's loader kept the last of two equal keys (the plan said samples 2, no error); TOML refuses them.
+    Both refuse now, in one line; the YAML line names the key and both lines, at any depth."""
+    for suffix, text in ((".toml", toml_text), (".yaml", yaml_text)):
+        path = tmp_path / f"plan{suffix}"
+        path.write_text(text)
+        with pytest.raises(PlanError) as err:
+            load_plan(path)
+        assert "\n" not in str(err.value) and "fix" in str(err.value), err.value
+    assert str(err.value) == (f"{path} is not valid YAML: key {key!r} is given twice in one mapping (at line {line}, "
+                              f"first at line {first}); fix: keep one of the two")
+
+
+def test_a_plan_written_in_yaml_still_loads_with_its_repeated_keys_in_separate_mappings(tmp_path):
+    plan = make_plan({"name": "x", "quality": {"preset": "final", "samples": 100},
+                      "anomalies": {"assets": [{"id": "power_drill"}, {"id": "wrench"}]}})
+    path = save_plan(plan, tmp_path / "plan.yaml")
+    assert path.read_text().count("id: ") == 2 and load_plan(path) == plan
+
+
+@pytest.mark.parametrize("text", [
+    "name: x\nseeds: HUNTER2 HUNTER2: 1\n",          # mapping values are not allowed here
+    "name: x\nseeds: [HUNTER2, 1\nquality: 2\n",     # an unclosed flow sequence
+    "name: x\n\tHUNTER2: 1\n",                       # a tab
+    'name: "HUNTER2 \\q"\n',                         # an unknown escape
+])
+def test_a_yaml_syntax_error_names_line_and_column_never_the_line(tmp_path, text):
+    """The rule for plan messages: line and column, never the line's text (PyYAML's own message quotes it
+    under a caret)."""
+    path = tmp_path / "plan.yaml"
+    path.write_text(text)
+    with pytest.raises(PlanError, match=r"is not valid YAML: .*line \d+, column \d+") as err:
+        load_plan(path)
+    assert "HUNTER2" not in str(err.value) and "\n" not in str(err.value), err.value
+
+
 def test_validation_messages_never_print_the_whole_input():
     huge = list(range(100, 200_100))
     with pytest.raises(PlanError) as err:

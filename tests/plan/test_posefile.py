@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -65,17 +66,17 @@ def test_near_unit_quaternion_is_normalised():
 
 CSV_ERRORS = [
     (HEADER.replace(",qz", "") + "\n" + ROW[:-2] + "\n", 1, "missing columns \\['qz'\\]"),
-    (HEADER + ",note\n" + ROW + ",hi\n", 1, "unknown columns \\['note'\\]"),
+    (HEADER + ",note\n" + ROW + ",hi\n", 1, "1 unknown column \\(column 10\\)"),
     (HEADER + ",x\n" + ROW + ",1\n", 1, "columns named twice"),
-    (HEADER + "\n" + ROW + "\nb,test,1,two,3,1,0,0,0\n", 3, "y 'two' is not a number"),
+    (HEADER + "\n" + ROW + "\nb,test,1,two,3,1,0,0,0\n", 3, "y is not a number"),
     (HEADER + "\n" + ROW + "\nb,test,1,nan,3,1,0,0,0\n", 3, "not a finite number"),
     (HEADER + "\nb,test,1,2,inf,1,0,0,0\n", 2, "not a finite number"),
     (HEADER + "\nb,test,1,2,3,0,0,0,0\n", 2, "norm 0, not 1"),
     (HEADER + "\nb,test,1,2,3,1,0.1,0,0\n", 2, "norm 1.00499"),
-    (HEADER + "\nb,validation,1,2,3,1,0,0,0\n", 2, "split 'validation'"),
+    (HEADER + "\nb,validation,1,2,3,1,0,0,0\n", 2, "the split of pose 'b' is neither train nor test"),
     (HEADER + "\n" + ROW + "\n" + ROW + "\n", 3, "'a' is used twice \\(first on line 2\\)"),
     (HEADER + "\n,train,1,2,3,1,0,0,0\n", 2, "has no name"),
-    (HEADER + "\nmy pose,train,1,2,3,1,0,0,0\n", 2, "'my pose' is not an identifier"),
+    (HEADER + "\nmy pose,train,1,2,3,1,0,0,0\n", 2, "the pose name is not an identifier"),
     (HEADER + "\n../x,train,1,2,3,1,0,0,0\n", 2, "is not an identifier"),
     (HEADER + "\n" + ROW + "\nb,test,1,2\n", 3, "4 values for 9 columns"),
     (HEADER + "\nfar,test,10001,0,0,1,0,0,0\n", 2, "10,001 m from the station"),
@@ -96,14 +97,14 @@ JSON_ERRORS = [
     ('{"name": "a"}', 1, "not a JSON list"),
     ("[]", 1, "holds no poses"),
     ('[\n {"name": "a",\n  "split": "train" "position": []}]', 3, "not valid JSON"),
-    ([_obj(), 5], 3, "entry 5 is not an object"),
-    ([_obj(), _obj("b", note=1)], 3, "unknown keys \\['note'\\]"),
+    ([_obj(), 5], 3, "entry 2 is not an object \\(a JSON number\\)"),
+    ([_obj(), _obj("b", note=1)], 3, "1 unknown key"),
     ([_obj(), {"name": "b", "split": "test", "position": [1, 2, 3]}], 3, "missing keys \\['orientation_wxyz'\\]"),
-    ([_obj(), _obj("b", position=(1, 2))], 3, "position \\[1, 2\\] is not a list of 3"),
-    ([_obj(), _obj("b", position=(1, "2", 3))], 3, "y '2' is not a number"),
-    ([_obj(), _obj("b", position=(1, 2, True))], 3, "z True is not a number"),
+    ([_obj(), _obj("b", position=(1, 2))], 3, "position is not a list of 3 numbers \\(it holds 2 values\\)"),
+    ([_obj(), _obj("b", position=(1, "2", 3))], 3, "y is not a number \\(a JSON string\\)"),
+    ([_obj(), _obj("b", position=(1, 2, True))], 3, "z is not a number \\(a JSON boolean\\)"),
     ([_obj(), _obj("b", q=(2, 0, 0, 0))], 3, "has norm 2"),
-    ([_obj(), _obj("b", split="val")], 3, "split 'val'"),
+    ([_obj(), _obj("b", split="val")], 3, "the split of pose 'b'"),
     ([_obj(), _obj("a")], 3, "used twice"),
     ([_obj(), _obj(1)], 3, "has no name"),
     ([_obj(), _obj("b", position=(0, 0, -2e4))], 3, "20,000 m from the station"),
@@ -116,6 +117,34 @@ def test_json_errors_name_file_line_and_fix(content, line, match):
     with pytest.raises(PlanError, match=match) as e:
         parse_pose_file(text.encode(), "poses.json", ".json")
     assert str(e.value).startswith(f"pose file poses.json:{line}: ") and "; fix: " in str(e.value)
+
+
+SECRET = "HUNTER2"   # stands for text the file holds and its user never meant to show
+
+
+@pytest.mark.parametrize("text,suffix", [
+    (f"PATH=/bin,{SECRET}=x\n", ".csv"),                                   # a file that is no pose file at all
+    (f"{HEADER},{SECRET}\n{ROW},1\n", ".csv"),                               # an unknown column
+    (f"{HEADER}\n{SECRET} x,train,1,2,3,1,0,0,0\n", ".csv"),                 # a name that is no identifier
+    (f"{HEADER}\nb,{SECRET},1,2,3,1,0,0,0\n", ".csv"),                      # a split
+    (f"{HEADER}\nb,train,{SECRET},2,3,1,0,0,0\n", ".csv"),                  # a number
+    (f'[{{"{SECRET}": 1}}]', ".json"),                                         # an unknown key
+    (f'["{SECRET}"]', ".json"),                                                # an entry that is no object
+    (f'[{{"name": "a", "split": "train", "position": "{SECRET}", "orientation_wxyz": [1, 0, 0, 0]}}]', ".json"),
+    (f'[{{"name": "a", "split": "train", "position": [1, "{SECRET}", 3], "orientation_wxyz": [1, 0, 0, 0]}}]',
+     ".json"),
+    (f'[{{"name": "{SECRET} x", "split": "train", "position": [1, 2, 3], "orientation_wxyz": [1, 0, 0, 0]}}]',
+     ".json"),
+    (f'[{{"name": "a", "split": "{SECRET}", "position": [1, 2, 3], "orientation_wxyz": [1, 0, 0, 0]}}]', ".json"),
+])
+def test_a_refusal_never_quotes_the_files_text(text, suffix):
+    """A plan may name any file as its pose file: what the file holds never reaches the message, which
+    names the line, the column or key and the rule instead."""
+    with pytest.raises(PlanError) as e:
+        parse_pose_file(text.encode(), f"poses{suffix}", suffix)
+    msg = str(e.value)
+    assert SECRET.lower() not in msg.lower() and "; fix: " in msg and "\n" not in msg, msg
+    assert msg.startswith(f"pose file poses{suffix}:"), msg
 
 
 def test_too_many_poses_and_not_utf8():
@@ -357,3 +386,19 @@ def test_opencv_conversion_in_the_docs():
         r = UserPose("usd", "train", (0, 0, 0), (-x, w, z, -y), 1).rotation()
         np.testing.assert_allclose(r, r_cv @ np.diag([1.0, -1.0, -1.0]), atol=1e-12)
         np.testing.assert_allclose(r @ [0, 0, -1], r_cv @ [0, 0, 1], atol=1e-12)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/environ"), reason="no /proc here")
+@pytest.mark.parametrize("target", ["/proc/self/environ", "/proc/self/mounts"])
+def test_a_pose_file_linked_to_a_pseudo_file_is_refused_and_nothing_of_it_shown(tmp_path, target):
+    """/proc/self/environ passed the gate as a regular file of size 0 and its first line (the process's
+    environment) was quoted as the CSV header: refused by the gate now, the message names the rule."""
+    link = tmp_path / "poses.csv"
+    link.symlink_to(target)
+    with open(target, "rb") as f:
+        content = [e.decode(errors="replace") for e in f.read().replace(b"\0", b"\n").splitlines() if len(e) >= 8]
+    with pytest.raises(PlanError) as e:
+        read_pose_file(link)
+    msg = str(e.value)
+    assert "is a pseudo-file" in msg and "fix: point it at a file on disk" in msg and "\n" not in msg, msg
+    assert not [c for c in content if c in msg], msg

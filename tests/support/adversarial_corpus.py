@@ -22,8 +22,9 @@ Layout under OUT (the test renders each folder as one run):
     names_mask/   a.usda and a_mask.usda (a's mask and a_mask's image would both be a_mask.png)
     names_case/   Sc.usda and sc.usda
     resume/       a scene over a shared sky/d000.usda (the test edits the sun, then re-renders)
-    plans/        hostile plan files (alias bomb, binary, far dates, absurd sizes, a 1e9-scene plan);
-                  plans/poses/ their hostile pose files (a FIFO, a link to /dev/zero, deep JSON)
+    plans/        hostile plan files (alias bomb, binary, far dates, absurd sizes, a 1e9-scene plan, a YAML
+                  key given twice); plans/poses/ their hostile pose files (a FIFO, links to /dev/zero,
+                  /proc/self/environ and /proc/self/mounts, deep JSON)
     linktree/     plan.toml, hazards -> ../outside, and scenes/x/hazard_link.usda reading through it
     dataset/      render records: a split "../../escaped", files naming /etc/hostname, an empty folder,
                   r0.json as a FIFO, a link to /dev/zero, nested 100,000 deep, 2 GB sparse; and the
@@ -414,6 +415,8 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     plan("step_1e11", good.replace("\ndays = 1\n", "\ndays = 2\n").replace("step_days = 1", "step_days = 100000000000"),
          "step_days 1e11")
     plan("unknown_preset", good.replace('preset = "draft"', 'preset = "ultra-mega"'), "an unknown quality preset")
+    plan("yaml_duplicate_key", "name: hostile\nseeds: [1]\nquality:\n  preset: draft\n  samples: 3\n  samples: 2\n",
+         "a YAML plan giving quality.samples twice (refused as TOML refuses it)", suffix=".yaml")
     huge = (good.replace('start = "2030-01-01"', 'start = "1900-01-01"').replace("\ndays = 1\n", "\ndays = 50000\n")
             .replace("seeds = [1]", "seeds = [" + ", ".join(map(str, range(400))) + "]")
             .replace("train = [1]\ntest = []", "train = [" + ", ".join(map(str, range(1, 41))) + "]\n"
@@ -435,10 +438,15 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     poses.mkdir()
     os.mkfifo(poses / "fifo.csv")
     os.symlink("/dev/zero", poses / "zero.csv")
+    os.symlink("/proc/self/environ", poses / "environ.csv")   # the environment holds the canary (CANARY_ENV)
+    os.symlink("/proc/self/mounts", poses / "mounts.csv")
     (poses / "deep.json").write_text('[{"name": "a", "split": "train", "position": ' + "[" * 100_000 +
                                      "]" * 100_000 + "}]\n")
     for name, note, unopened in (("fifo.csv", "a FIFO as poses.file", True),
                                  ("zero.csv", "poses.file linked to /dev/zero", True),
+                                 ("environ.csv", "poses.file linked to /proc/self/environ (a pseudo-file: the "
+                                  "environment must not reach the message)", True),
+                                 ("mounts.csv", "poses.file linked to /proc/self/mounts (a pseudo-file)", True),
                                  ("deep.json", "a pose JSON nested 100,000 deep", False)):
         path = plans / f"poses_{Path(name).stem}.toml"
         path.write_text(good.replace("[poses]\n", f'[poses]\nfile = "{poses / name}"\n'))
