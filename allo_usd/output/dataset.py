@@ -196,11 +196,19 @@ def scan(render_dirs, progress: bool = False, refused: list | None = None, known
     return [found[k] for k in sorted(found)]
 
 
+MAX_MANIFEST_BYTES = 1 << 30   # the paper's 51,409 rows take about 60 MB
+
+
 def read_manifest(path: Path) -> list[dict]:
-    if not path.is_file():
+    """The rows of an existing manifest.csv ([] when there is none), read through the read gate (a
+    regular file on disk, bounded, UTF-8) and its index column checked (_check_indices)."""
+    from allo_usd.core.files import read_user_text
+
+    if not os.path.lexists(path):
         return []
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    text = read_user_text(path, MAX_MANIFEST_BYTES, "the dataset's manifest",
+                          "remove it (and the dataset folder it indexes) to assemble the dataset afresh", error=AlloError)
+    rows = list(csv.DictReader(io.StringIO(text, newline="")))
     _check_indices(path, rows)
     for r in rows:  # manifests written before the plan_seed column
         if not r.get("plan_seed"):

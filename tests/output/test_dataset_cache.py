@@ -193,3 +193,19 @@ def test_manifest_index_is_checked(made, value):
     message = str(caught.value)
     assert "manifest.csv line" in message and "index" in message and "fix:" in message and "\n" not in message
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == before
+
+
+@pytest.mark.parametrize("target", ["/proc/self/environ", "fifo"])
+def test_a_manifest_that_is_no_file_on_disk_is_refused_by_the_gate(made, target):
+    """manifest.csv is read through the read gate: a link to a pseudo-file or a FIFO is one line naming
+    the manifest and the fix, never its content, and it never blocks."""
+    renders, out, _ = made
+    (out / "manifest.csv").unlink()
+    if target == "fifo":
+        os.mkfifo(out / "manifest.csv")
+    else:
+        (out / "manifest.csv").symlink_to(target)
+    with pytest.raises(AlloError) as caught:
+        _run(renders, out)
+    message = str(caught.value)
+    assert "manifest" in message and "fix:" in message and "\n" not in message and "PATH=" not in message

@@ -31,9 +31,6 @@ WRITE_FLAGS = ("O_CREAT", "O_WRONLY", "O_TMPFILE")   # os.open for writing (a ne
 
 GATE = "the read gate itself (core.files)"
 OWN_OUTPUT = "a file this code has just written or owns in its output (never a user's input)"
-TODO_DATASET = ("TODO: the dataset's own reads (records.json, manifest.csv, its images), which the dataset cache "
-                "work routes through the gate; resolved when that work is merged")
-
 # module:function:callee -> (count, why it is safe)
 ALLOWED: dict[str, tuple[int, str]] = {
     # the gate: non-blocking opens, checked as regular files that are no pseudo-files, bounded reads
@@ -80,17 +77,16 @@ ALLOWED: dict[str, tuple[int, str]] = {
     "run/ledgers.py:read_reserves:open": (1, OWN_OUTPUT + ": the tree's reserves.csv"),
     "run/ledgers.py:read_counts:open": (1, OWN_OUTPUT + ": the tree's counts.csv"),
     "run/render_index.py:_manifest_rows:read_text": (1, OWN_OUTPUT + ": the render folder's manifest.jsonl"),
-    "output/annotation_files.py:write_if_changed:read_text": (1, OWN_OUTPUT + ": compared before a rewrite"),
     "output/contact.py:read_pixels:Image.open": (1, "images named by source_file (a plain name whose real path "
                                                     "lies in the render folder: no link out, no pseudo-file) or "
                                                     "written by the dataset itself"),
-    # the dataset's reads: the dataset cache work routes them through the gate
-    "output/annotation_files.py:compute_record:Image.open": (1, TODO_DATASET),
-    "output/annotation_files.py:_load:read_text": (1, TODO_DATASET),
-    "output/dataset.py:read_manifest:open": (1, TODO_DATASET),
-    "output/dataset.py:_write_csv:read_bytes": (1, TODO_DATASET),
-    "output/dataset.py:write_manifest:pd.read_csv": (1, TODO_DATASET),
-    "output/dataset.py:image_size:Image.open": (1, TODO_DATASET),
+    # the dataset's own reads: its renders' images (source_file: confined to the render folder) and its outputs
+    "output/annotation_files.py:compute_record:Image.open": (1, OWN_OUTPUT + ": the mask the dataset filed (allo_mask)"),
+    "output/dataset.py:_write_csv:read_bytes": (1, OWN_OUTPUT + ": compared (a regular file of the new size) before a "
+                                                "rewrite"),
+    "output/dataset.py:write_manifest:pd.read_csv": (1, OWN_OUTPUT + ": the manifest.csv it has just written"),
+    "output/dataset.py:image_size:Image.open": (1, "images named by source_file (a plain name whose real path lies in "
+                                                  "the render folder) or written by the dataset itself"),
 }
 
 
