@@ -293,7 +293,8 @@ def reject(what: str, path: str, layer_path, roots) -> None:
     named = _named_trees(roots)
     holder = next((t for t in named if t in real.parents), None)
     if tree is not None:
-        fix = f"it belongs to the authored tree {tree}: pass `--tree {tree}`, or add its folder to {ENV_ROOTS}"
+        fix = (f"it belongs to the authored tree {tree}: name that tree with `--tree {tree}`, or add its folder to "
+               f"{ENV_ROOTS}")
     elif holder is not None:   # inside a tree that was granted, but not in what a tree grants
         fix = (f"the tree {holder} grants only {_grant_text(holder)}, not {real.relative_to(holder).parts[0]}: move "
                f"the file into one of those, or add its folder to {ENV_ROOTS}")
@@ -301,7 +302,8 @@ def reject(what: str, path: str, layer_path, roots) -> None:
         fix = (f"no tree granted ({roots_text(named, 1)}) holds it: move the file into a granted tree, or add its "
                f"folder to {ENV_ROOTS}")
     else:
-        fix = f"move the file under one of them, name its authored tree with `--tree OUT`, or add its folder to {ENV_ROOTS}"
+        fix = (f"move the file under one of them, name its authored tree with `--tree OUT`, or add its folder to "
+               f"{ENV_ROOTS}")
     raise LayerError(f"{layer_path}: {what} {path} resolves outside the allowed roots ({roots_text(roots)}); {fix}")
 
 
