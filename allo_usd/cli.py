@@ -258,16 +258,17 @@ def _render_one(layer: Path, out: Path, job: JobOptions) -> None:
     from allo_usd.core.files import RunLock
     from allo_usd.run.dispatch import LOCK
     from allo_usd.run.job import render_record
-    from allo_usd.run.worker import disk_full_error, output_to
+    from allo_usd.run.worker import disk_full_error, output_to, own_run_tmpdir
     from allo_usd.usd.sniff import refusal
 
     why = refusal(layer)  # the rule find_layers applies to a layer named on the command line
     if why:
         raise AlloError(why)
     with RunLock(out, LOCK, "render"):
+        workdir = own_run_tmpdir(out)  # temporaries (Blender's too) under OUT/.allo-tmp: a kill leaves none elsewhere
         try:
             with output_to(out / "logs" / "render.log"):  # Blender's own prints
-                meta = render_record(layer, out, job)
+                meta = render_record(layer, out, job, workdir=workdir)
         except (OSError, RuntimeError) as exc:
             full = disk_full_error(exc, out)
             if full is None:

@@ -60,6 +60,30 @@ def interrupt_held():
         held.release()
 
 
+@contextmanager
+def children_start_deaf():
+    """Processes started inside the block (a pool's workers) begin with SIGINT blocked, until they
+    call `ignore_sigint`. A Ctrl-C at the terminal reaches every process of its group; a worker
+    whose interpreter was still starting (site, its module's imports) printed the KeyboardInterrupt's
+    traceback above the command's one line. A blocked signal is inherited through fork and exec and
+    only waits: the worker drops it as it starts ignoring SIGINT (the parent decides what Ctrl-C
+    means). In this thread SIGINT waits too until the block ends, then arrives as usual (as
+    multiprocessing starts its resource tracker)."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def ignore_sigint() -> None:
+    """In a worker started inside `children_start_deaf`: SIGINT ignored from now on, one that came
+    while it started dropped (a pending signal whose action is to ignore it is discarded), and
+    SIGINT unblocked (its own threads and children start as any others)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def import_held(name: str):
     """`importlib.import_module(name)` with SIGINT held (interrupt_held): a Ctrl-C during the import
     stops the command after it, instead of being swallowed and leaving the library half-loaded."""

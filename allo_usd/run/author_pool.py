@@ -6,11 +6,11 @@ workers each build their own `AuthorContext` once. Both take tasks alike (`submi
 from __future__ import annotations
 
 import os
-import signal
 from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
+from allo_usd.core.interrupts import children_start_deaf, ignore_sigint
 from allo_usd.plan.model import Plan
 from allo_usd.run.samples import AuthorContext
 
@@ -23,7 +23,7 @@ _ctx = None  # the per-process authoring context (set by _init)
 
 def _init(plan_json: str, out_dir: str, sky, stop) -> None:
     global _ctx
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and tells us through `stop`
+    ignore_sigint()  # started with SIGINT blocked (_Pool.submit); the parent handles Ctrl-C and tells us through `stop`
     _ctx = AuthorContext(Plan.model_validate_json(plan_json), Path(out_dir), sky, stop)
 
 
@@ -58,7 +58,8 @@ class _Pool:
         self.pool, self._stop, self.in_flight = pool, stop, 2 * workers
 
     def submit(self, fn, *args) -> Future:
-        return self.pool.submit(_in_worker, fn, *args)
+        with children_start_deaf():  # the pool starts its workers here: a Ctrl-C meanwhile is the parent's alone
+            return self.pool.submit(_in_worker, fn, *args)
 
     def stop(self) -> None:
         self._stop.set()

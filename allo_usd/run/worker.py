@@ -217,6 +217,39 @@ def own_tmpdir(out_dir: Path) -> Path:
     return tmp
 
 
+def own_run_tmpdir(out_dir: Path) -> Path:
+    """For a layer rendered in this process (`allo-usd render LAYER`), under the output lock: what a
+    killed run left in OUT/.allo-tmp removed (no other run can own it: clean_stale), then this
+    process's temporary directory pointed at OUT/.allo-tmp/PID/tmp (own_tmpdir), before bpy is
+    imported: Blender makes its session folder (blender_XXXXXX) when bpy loads, and a SIGKILL leaves
+    it behind; here the next run into OUT removes it, where in the system temp dir it stayed for
+    good. When the process ends, Blender removes its folder (its exit handler, registered when bpy
+    loads, runs before this one's) and OUT/.allo-tmp goes. Returns the render file's workdir.
+    With bpy already loaded (a caller's own process) its session folder is elsewhere: the render
+    file alone goes under OUT."""
+    import atexit
+
+    from allo_usd.run.render_index import clean_stale
+
+    clean_stale(out_dir)
+    if "bpy" not in sys.modules:
+        own_tmpdir(out_dir)
+    atexit.register(_remove_run_tmpdir, Path(out_dir), os.getpid())
+    return render_workdir(Path(out_dir))
+
+
+def _remove_run_tmpdir(out_dir: Path, pid: int) -> None:
+    import shutil
+
+    if os.getpid() != pid:   # a forked child inherits the handler: the folder is its parent's
+        return
+    shutil.rmtree(out_dir / WORKDIR / str(pid), ignore_errors=True)
+    try:
+        (out_dir / WORKDIR).rmdir()   # only if empty
+    except OSError:
+        pass
+
+
 def worker_main(conn, env: dict, parent_pid: int, cores: tuple[int, ...] | None = None,
                 log: str | None = None, index: int = 0, before_render: Callable[[str], None] | bytes | None = None,
                 out_dir: str | None = None) -> None:
@@ -284,12 +317,15 @@ class WorkerProcess:
         start = {"sys_path": list(sys.path), "env": env, "parent_pid": parent_pid, "cores": cores, "log": log,
                  "index": index, "out_dir": out_dir,  # a hook that does not pickle fails here, before a start
                  "before_render": None if before_render is None else pickle.dumps(before_render)}
+        from allo_usd.core.interrupts import children_start_deaf
+
         ours, theirs = socket.socketpair()
         try:
-            self.popen = subprocess.Popen(
-                [get_executable(), *subprocess._args_from_interpreter_flags(), "-m", "allo_usd.run.worker",
-                 str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+            with children_start_deaf():  # a Ctrl-C while it starts waits, then is dropped: no traceback from it
+                self.popen = subprocess.Popen(
+                    [get_executable(), *subprocess._args_from_interpreter_flags(), "-m", "allo_usd.run.worker",
+                     str(theirs.fileno())],
+                    pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
         finally:
             theirs.close()
         self.conn = Connection(ours.detach())
@@ -348,8 +384,10 @@ def _child_main(fd: int) -> None:
     worker_main(conn, **start)
 
 
-if __name__ == "__main__":  # `python -m allo_usd.run.worker FD` (WorkerProcess)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
+if __name__ == "__main__":  # `python -m allo_usd.run.worker FD` (WorkerProcess), started with SIGINT blocked
+    from allo_usd.core.interrupts import ignore_sigint
+
+    ignore_sigint()  # the parent decides what Ctrl-C means
     from allo_usd.run.worker import _child_main as _main  # the module under its own name: one copy of its state
 
     _main(int(sys.argv[1]))

@@ -166,13 +166,18 @@ class Package:
 def _package(real: str, layer_path) -> Package:
     """The package at `real` (already checked as a bounded regular file inside the roots), with
     the entries USD would read from it; a LayerError when USD could not read it in place."""
-    from pxr import Sdf
+    from pxr import Sdf, Tf
 
     key = stat_key(real)
     entries = _ENTRIES.get(key)
     if entries is None:
         fix = "pack the scene again with `allo-usd pack LAYER --out SCENE.usdz`"
-        zf = Sdf.ZipFile.Open(real)
+        if key[2] == 0:
+            raise LayerError(f"{layer_path} is an empty file (0 bytes), not a USD package; {fix}")
+        try:  # USD raises for a file it cannot map (an empty one), and returns nothing for one that is not a zip
+            zf = Sdf.ZipFile.Open(real)
+        except Tf.ErrorException:
+            zf = None
         names = list(zf.GetFileNames()) if zf else []
         if not names:
             raise LayerError(f"{layer_path} is not a readable USD package (no zip entries USD can list); {fix}")
@@ -396,10 +401,10 @@ def hazard_roots(hazard_path: str | Path) -> tuple[Path, ...]:
 
 
 def _refuse_for_hazard(what: str, path: str, hazard_path, roots) -> None:
-    from allo_usd.usd.safety import ENV_ROOTS
+    from allo_usd.usd.safety import ENV_ROOTS, roots_text
 
     raise LayerError(f"{hazard_path}: {what} {path} resolves outside the hazard's folder "
-                     f"({', '.join(map(str, roots))}); move the file beside the hazard (a hazard may use only the "
+                     f"({roots_text(roots)}); move the file beside the hazard (a hazard may use only the "
                      f"files in its own folder and below), or add its directory to {ENV_ROOTS}")
 
 
@@ -473,10 +478,13 @@ def unpacked_file(resolved: str, where: str = "") -> str:
     reads files only (Blender's image loader): a copy under this process's private temporary
     directory, named by its SHA-256 and keeping the entry's file name. The entry must be stored in
     place and at most MAX_ASSET_BYTES (the walk checked both; checked again here)."""
-    from pxr import Ar, Sdf
+    from pxr import Ar, Sdf, Tf
 
     outer, inner = Ar.SplitPackageRelativePathOuter(resolved)
-    zf = Sdf.ZipFile.Open(outer) if outer else None
+    try:
+        zf = Sdf.ZipFile.Open(outer) if outer else None
+    except Tf.ErrorException:  # emptied since the walk read it
+        zf = None
     info = zf.GetFileInfo(inner) if zf else None
     at = f" ({where})" if where else ""
     if info is None or Ar.IsPackageRelativePath(inner):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import stat
 import struct
 from pathlib import Path
@@ -37,11 +38,24 @@ from allo_usd.usd.dependencies import PACKAGE_EXTENSION, is_package
 DOS_EPOCH = (0, (0 << 9) | (1 << 5) | 1)  # zip (time, date) fields: 1980-01-01 00:00, the earliest a zip says
 
 
+CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")  # what USD refuses in an asset path (C0, DEL, C1)
+
+
+def shown(path) -> str:
+    """`path` on one line: each control character written as its escape (a newline as \\n)."""
+    return CONTROL.sub(lambda m: repr(m[0])[1:-1], str(path))
+
+
 def check_destination(out: str | Path, replace: bool = False, option: str = "--out") -> Path:
-    """`out` may take a new package: its name ends in .usdz; it is not a symbolic link (never
+    """`out` may take a new package: its path holds no control character (USD refuses them in asset
+    paths, so the packed temporary could not be opened); its name ends in .usdz; it is not a symbolic link (never
     followed, wherever it points); it does not exist, or (with `replace`) is a regular file; its
     directory can be written (created if missing). Else an AlloError naming the fix."""
     out = Path(out)
+    control = CONTROL.search(os.path.abspath(out))
+    if control:
+        raise AlloError(f"{option} {shown(out)}: a package's path may not hold control characters (here "
+                        f"{shown(control[0])}): USD refuses them in the paths it reads; choose a name without them")
     if out.suffix.lower() != PACKAGE_EXTENSION:
         raise AlloError(f"{option} {out}: a package's name must end in {PACKAGE_EXTENSION} (USD picks the file "
                         f"format by it); e.g. {option} {out.with_name(out.name + PACKAGE_EXTENSION)}")
@@ -159,21 +173,43 @@ def fix_timestamps(path: Path) -> None:
             offset += 46 + n + m + k
 
 
-def _write_package(layer: Path, tmp: Path) -> None:
+def _free_bytes(path: Path) -> int:
+    """Bytes this process may still write on the device holding `path` (root counts the reserve)."""
+    st = os.statvfs(path)
+    return (st.f_bfree if os.geteuid() == 0 else st.f_bavail) * st.f_frsize
+
+
+def _write_package(layer: Path, tmp: Path, out: Path, content: int) -> None:
+    """USD's packager writes `layer`'s package to `tmp`. It reports no failed write: a full device
+    leaves a package cut short (no zip directory at its end) that it calls a success. A package
+    that is not a whole zip, or smaller than the `content` bytes it stores, is a DiskFullError
+    naming `out` when the device is short of those bytes, else a LayerError."""
+    import zipfile
+
     from pxr import Sdf, UsdUtils
 
     delegate = UsdUtils.CoalescingDiagnosticDelegate()  # the packager warns about paths it has just rewritten
     ok = UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(tmp))
     said = [d.commentary for d in delegate.TakeUncoalescedDiagnostics()]
     del delegate
-    if not ok or not tmp.is_file() or tmp.stat().st_size == 0:
-        full = os.statvfs(tmp.parent).f_bavail == 0
-        if full:
-            raise DiskFullError(f"no space left on the device while writing the package beside {tmp}; free space and "
-                                "re-run")
-        raise LayerError(f"USD could not write the package of {layer} ({said[-1] if said else 'no reason given'}); "
-                         "check the layer with `allo-usd inspect` and the --out directory")
-    fix_timestamps(tmp)
+    size = tmp.stat().st_size if tmp.is_file() else 0
+
+    def full() -> DiskFullError | None:
+        free = _free_bytes(tmp.parent)
+        if free < max(content - size, 0) + (1 << 20):
+            return DiskFullError(f"--out {out}: no space left on its device ({size:,} of about {content:,} bytes "
+                                 f"written, {free:,} bytes free); free space or choose another directory, and re-run")
+        return None
+
+    if not ok or size == 0:
+        raise full() or LayerError(f"USD could not write the package of {layer} "
+                                   f"({said[-1] if said else 'no reason given'}); check the layer with `allo-usd "
+                                   "inspect` and the --out directory")
+    try:
+        fix_timestamps(tmp)
+    except (zipfile.BadZipFile, LayerError, EOFError, struct.error) as exc:
+        raise full() or LayerError(f"--out {out}: USD wrote a package that is not a whole zip file ({size:,} bytes); "
+                                   "check the --out directory's device and re-run") from exc
 
 
 def pack(layer: str | Path, out: str | Path, replace: bool = False) -> dict:
@@ -195,9 +231,10 @@ def pack(layer: str | Path, out: str | Path, replace: bool = False) -> dict:
     read = _walked_real(found.files)
     _check_metadata(layer, found.files, read)
     files = _check_dependencies(layer, read)
+    content = sum(os.stat(f).st_size for f in read)  # what the package stores, uncompressed
     tmp = temp_beside(out)
     try:
-        _write_package(layer, tmp)
+        _write_package(layer, tmp, out, content)
         open_stage(tmp)  # the package is a scene on its own: nothing outside it, nothing missing
         os.chmod(tmp, 0o644)
         if replace:

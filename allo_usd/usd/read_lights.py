@@ -330,7 +330,7 @@ def read_dome(prim, cache, checked: set | None, mesh_paths) -> DomeDesc | None:
         if fmt not in LATLONG_FORMATS:
             _refuse(where, f"inputs:texture:format = {fmt!r} is not rendered (a lat-long map is)",
                     "convert the image to lat-long and set inputs:texture:format = \"latlong\" (fix the layer)")
-        texture = texture_file(asset, f"{where}.inputs:texture:file", f"DomeLight {where}")
+        texture = texture_file(asset, f"{where}.inputs:texture:file", f"DomeLight {where}", prim)
         m = world_matrix(cache, prim, checked=checked)[:3, :3]
         u, _, vt = np.linalg.svd(m)
         rotation = u @ vt                       # the dome's orientation, its scale aside (a dome is at infinity)

@@ -20,16 +20,24 @@ def _input(shader, name, default):
     return (default if value is None else value), None
 
 
-def texture_file(asset, where: str, owner: str) -> str:
+def texture_file(asset, where: str, owner: str, prim=None) -> str:
     """The image file an asset-valued texture input names (`where`: the attribute, `owner`: who reads
-    it), resolved and checked (reader_bounds.check_texture_file); an entry of a package (a .usdz scene)
-    is read through a copy of it (allo_usd.usd.dependencies.unpacked_file): Blender reads files only."""
+    it, `prim`: the prim that holds it), resolved and checked (reader_bounds.check_texture_file); an
+    entry of a package (a .usdz scene) is read through a copy of it
+    (allo_usd.usd.dependencies.unpacked_file): Blender reads files only. A texture that does not
+    resolve is restored in a tree; in a package (the stage of `prim` is one), the package lacks it
+    and is packed again with the texture inside."""
     from pxr import Ar, Sdf
 
     if not isinstance(asset, Sdf.AssetPath):
         raise LayerError(f"{where} must be an asset path, got {asset!r}; fix the layer")
     texture = asset.resolvedPath
     if not texture:
+        package = _package_of(prim)
+        if package:
+            raise LayerError(f"{owner}: texture {asset} is not an entry of the package {package}; a package (.usdz) "
+                             "may use only the files it holds: put the texture inside the scene's folders and pack "
+                             "it again with `allo-usd pack LAYER --out SCENE.usdz`")
         raise LayerError(f"{owner}: texture {asset} does not resolve to a file; restore the asset's textures/ folder")
     if texture.endswith("]") and Ar.IsPackageRelativePath(texture):  # PKG.usdz[entry]
         from allo_usd.usd.dependencies import unpacked_file
@@ -37,6 +45,17 @@ def texture_file(asset, where: str, owner: str) -> str:
         texture = unpacked_file(texture, where)
     check_texture_file(texture, where)
     return texture
+
+
+def _package_of(prim) -> str | None:
+    """The package file (.usdz) whose stage holds `prim`, or None (not a package, or no prim)."""
+    from allo_usd.usd.dependencies import is_package
+
+    if prim is None:
+        return None
+    root = prim.GetStage().GetRootLayer()
+    path = root.realPath or root.identifier
+    return path if is_package(path) else None
 
 
 def _read_texture(material_path: str, prim) -> tuple[str, tuple[float, float, float]]:
@@ -50,7 +69,8 @@ def _read_texture(material_path: str, prim) -> tuple[str, tuple[float, float, fl
         raise LayerError(f"material {material_path}: diffuseColor is connected to {where}, which is not a "
                          "UsdUVTexture (the only texture allo-usd renders); fix the layer")
     inp = tex.GetInput("file")
-    texture = texture_file(inp.Get() if inp else None, f"{where}.inputs:file", f"material {material_path}")
+    texture = texture_file(inp.Get() if inp else None, f"{where}.inputs:file", f"material {material_path}",
+                           prim)
     scale = tex.GetInput("scale").Get() if tex.GetInput("scale") else None
     colour = (1.0, 1.0, 1.0) if scale is None else _vector(scale, f"{where}.inputs:scale", 4, 0.0, MAX_COLOUR)[:3]
     return texture, colour

@@ -275,26 +275,36 @@ def inside_real(real: str, roots: tuple[Path, ...]) -> bool:
     return False
 
 
+SHOWN_ROOTS = 2  # roots a refusal names; the rest are counted (a tree grants five folders, and each is a long path)
+
+
+def roots_text(roots, shown: int = SHOWN_ROOTS) -> str:
+    """The first `shown` of `roots`, then how many more: a refusal stays one readable line."""
+    roots = [str(r) for r in roots]
+    more = len(roots) - shown
+    return ", ".join(roots[:shown]) + (f" and {more} more" if more > 0 else "")
+
+
 def reject(what: str, path: str, layer_path, roots) -> None:
+    """The one line for a file outside the roots: the file, the rule (its first roots) and the fix
+    that fits where the file lies (an authored tree not named, a tree folder not granted, no tree)."""
     tree = _tree_of(path)
     real = Path(os.path.realpath(path))
-    holder = next((t for t in _named_trees(roots) if t in real.parents), None)
+    named = _named_trees(roots)
+    holder = next((t for t in named if t in real.parents), None)
     if tree is not None:
-        fix = (f"it belongs to the authored tree {tree}: name that tree with `--tree {tree}` (allo-usd render, "
-               f"inspect, diff), or add the folder that holds the file to {ENV_ROOTS}")
+        fix = (f"it belongs to the authored tree {tree}: name that tree with `--tree {tree}`, or add its folder to "
+               f"{ENV_ROOTS}")
     elif holder is not None:   # inside a tree that was granted, but not in what a tree grants
-        fix = (f"it lies in the tree {holder}, which grants only {_grant_text(holder)}, not "
-               f"{real.relative_to(holder).parts[0]}: move the file into one of those, or add its directory to "
-               f"{ENV_ROOTS}")
-    elif _named_trees(roots):
-        fix = (f"no tree granted ({', '.join(map(str, _named_trees(roots)))}) holds it, and no folder above it is "
-               f"an authored tree (none holds {TREE_PLAN} or {STAGE_DIR}/{BASE_STAGE_FILE}): move the file into "
-               f"a granted tree, or add its directory to {ENV_ROOTS}")
+        fix = (f"the tree {holder} grants only {_grant_text(holder)}, not {real.relative_to(holder).parts[0]}: move "
+               f"the file into one of those, or add its folder to {ENV_ROOTS}")
+    elif named:
+        fix = (f"no tree granted ({roots_text(named, 1)}) holds it: move the file into a granted tree, or add its "
+               f"folder to {ENV_ROOTS}")
     else:
-        fix = (f"move the file under one of them, name its authored tree with `--tree OUT`, or add its directory to "
+        fix = (f"move the file under one of them, name its authored tree with `--tree OUT`, or add its folder to "
                f"{ENV_ROOTS}")
-    raise LayerError(f"{layer_path}: {what} {path} resolves outside the allowed roots "
-                     f"({', '.join(map(str, roots))}); {fix}")
+    raise LayerError(f"{layer_path}: {what} {path} resolves outside the allowed roots ({roots_text(roots)}); {fix}")
 
 
 def in_package(path: str, package: str) -> bool:

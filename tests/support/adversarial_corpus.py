@@ -509,7 +509,57 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     w.add("cli_usdc", "cli", CLI_OK_OR_ERROR, "cli", (usdc,),
           ("render", str(usdc), "--out", str(out / "cli_out" / "usdc")),
           "render of a .usdc layer")
+
+    # ---- packages: one line each, never USD's exception (a 0-byte package, an --out USD cannot name,
+    # a package lacking a texture its layer names)
+    empty = cli / "empty.usdz"
+    empty.write_bytes(b"")
+    for command, args in (("inspect", (str(empty),)),
+                          ("render", (str(empty), "--out", str(out / "cli_out" / "empty_usdz"))),
+                          ("diff", (str(empty), str(empty)))):
+        w.add(f"cli_empty_usdz_{command}", "cli", CLI_ERROR, "cli", (empty,), (command, *args),
+              f"{command} of a 0-byte .usdz")
+    w.add("cli_pack_out_newline", "cli", CLI_ERROR, "cli", (),
+          ("pack", str(good0), "--out", str(out / "cli_out" / "a\nb.usdz")), "pack --out with a newline in the name")
+    lacking, scene = cli / "lacking.usdz", cli / "with_texture" / "scene.usda"
+    (scene.parent / "moon.png").parent.mkdir()
+    (scene.parent / "moon.png").write_bytes(png_bytes())
+    scene.write_text(moon_texture(w.layer(scene), "./moon.png"))
+    _package_lacking_a_texture(scene, lacking, base)
+    w.add("cli_package_lacking_texture", "cli", CLI_ERROR, "cli", (lacking,),
+          ("render", str(lacking), "--out", str(out / "cli_out" / "lacking")),
+          "a package whose texture entry is missing (fix: pack again, not restore a textures/ folder)")
     return w.cases
+
+
+def _package_lacking_a_texture(scene: Path, dest: Path, base: Path) -> None:
+    """`allo-usd pack` of `scene` (a layer over the base stage `base`, whose moon texture is
+    moon.png beside it), then the package written again without that texture's entry (USD's own
+    zip writer, the others in order)."""
+    import zipfile
+
+    from pxr import Sdf
+
+    from allo_usd.usd.pack import pack
+    from allo_usd.usd.safety import ENV_ROOTS
+
+    work = scene.parent
+    before = os.environ.get(ENV_ROOTS)
+    os.environ[ENV_ROOTS] = os.pathsep.join([str(Path(base).parent), *([before] if before else [])])
+    try:
+        pack(scene, work / "whole.usdz")
+    finally:
+        if before is None:
+            os.environ.pop(ENV_ROOTS, None)
+        else:
+            os.environ[ENV_ROOTS] = before
+    with zipfile.ZipFile(work / "whole.usdz") as zf:
+        names = [n for n in zf.namelist() if not n.endswith("moon.png")]
+        zf.extractall(work / "entries", names)
+    writer = Sdf.ZipFileWriter.CreateNew(str(dest))
+    for name in names:
+        writer.AddFile(str(work / "entries" / name), name)
+    writer.Save()
 
 
 def _render_record(d: Path, name: str, scene: dict, files: dict | None) -> None:

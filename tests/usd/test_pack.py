@@ -283,3 +283,73 @@ def test_pack_applies_the_render_gate_before_packing(tiny_base, tmp_path, monkey
     assert sorted(p.name for p in tmp_path.glob("*.usdz")) == ["good.usdz"] and not list(tmp_path.glob(".*"))
     with pytest.raises(AlloError, match="already a package"):
         pack(tmp_path / "good.usdz", tmp_path / "twice.usdz")
+
+
+# ---------------------------------------------------------------- tracebacks turned into one line
+
+def test_an_empty_package_is_refused_by_name_not_by_usds_exception(tmp_path):
+    """USD raises (Tf.ErrorException) for a 0-byte .usdz instead of answering "no entries"."""
+    empty = tmp_path / "empty.usdz"
+    empty.write_bytes(b"")
+    with pytest.raises(LayerError, match=r"empty\.usdz is an empty file \(0 bytes\), not a USD package; pack"):
+        walk(empty)
+
+
+@pytest.mark.slow
+def test_an_empty_package_is_one_line_in_inspect_render_and_diff(tmp_path):
+    empty = tmp_path / "empty.usdz"
+    empty.write_bytes(b"")
+    for args in (("inspect", empty), ("render", empty, "--out", tmp_path / "out"), ("diff", empty, empty)):
+        one_line_error(cli(*args), "empty.usdz", "empty file", "allo-usd pack")
+
+
+@pytest.mark.parametrize("name", ["a\nb.usdz", "a\tb.usdz", "a\x7fb.usdz", "a\x85b.usdz"])
+def test_an_out_path_with_a_control_character_is_refused_naming_it(tmp_path, name):
+    """USD refuses control characters in asset paths: the packed temporary could not be opened, and
+    the refusal blamed the layer and named the temporary. The refusal names --out, escaped on one
+    line, and the rule."""
+    with pytest.raises(AlloError) as info:
+        check_destination(tmp_path / name)
+    message = str(info.value)
+    assert "\n" not in message and "\t" not in message
+    assert message.startswith(f"--out {tmp_path}/a") and "control characters" in message, message
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_pack_out_with_a_newline_is_one_line_naming_out(tree, tmp_path):
+    _, layer, _ = tree
+    line = one_line_error(cli("pack", layer, "--out", tmp_path / "a\nb.usdz"), "--out", "a\\nb.usdz",
+                          "control characters")
+    assert "temporary" not in line and ".usdz." not in line, line  # not the temporary's name
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_pack_onto_a_full_disk_is_one_line_and_leaves_nothing(tree, small_tmpfs):
+    """USD's packager reports no failed write: on a full device it left a package cut short, which
+    the timestamp fix read as a zip (BadZipFile traceback). Now: exit 2, one line naming --out and
+    the fix, no temporary left; the same command packs once there is room."""
+    _, layer, _ = tree
+    out = small_tmpfs / "scene.usdz"   # the package is ~5.6 MB; the device holds 1 MiB
+    line = one_line_error(cli("pack", layer, "--out", out), str(out), "no space left", "free space")
+    assert "BadZipFile" not in line
+    assert list(small_tmpfs.iterdir()) == []
+
+
+def test_a_texture_a_package_lacks_is_fixed_by_packing_again(tmp_path):
+    """A texture that does not resolve is "restore the asset's textures/ folder" in a tree; in a
+    package the package lacks the entry: the fix is to pack the scene again with the texture in."""
+    from pxr import Usd
+
+    from allo_usd.usd.read_material import _read_texture
+
+    body = ('def Xform "World"\n{\n}\ndef Shader "Tex"\n{\n    uniform token info:id = "UsdUVTexture"\n'
+            '    asset inputs:file = @../outside/tex.png@\n}\n')
+    package = _package(tmp_path / "pkg" / "scene.usdz", HEAD.format(subs="") + body)
+    stage = Usd.Stage.Open(str(package))
+    with pytest.raises(LayerError) as info:
+        _read_texture("/M", stage.GetPrimAtPath("/Tex"))
+    message = str(info.value)
+    assert "is not an entry of the package" in message and str(package) in message, message
+    assert "allo-usd pack" in message and "textures/ folder" not in message, message

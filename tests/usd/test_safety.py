@@ -77,3 +77,25 @@ def test_blender_never_auto_runs_scripts(tmp_path):
     assert "evil.py" in bpy.data.texts  # the file loaded ...
     assert not marker.exists()          # ... and its script did not run
     reset()
+
+
+def test_a_refusal_names_the_file_the_rule_and_the_fix_in_one_short_line(tiny_base, tmp_path, monkeypatch):
+    """The refusal listed every root (a tree grants five folders, ALLO_ASSET_ROOTS adds its own): about
+    600 characters. Now the first roots and how many more, the file, and the fix."""
+    granted = [tmp_path / f"a_granted_asset_folder_{i}" for i in range(6)]
+    monkeypatch.setenv(ENV_ROOTS, ":".join(map(str, [tiny_base.parent, *granted])))
+    outside = tmp_path / "elsewhere" / "extra.usda"
+    outside.parent.mkdir()
+    outside.write_text("#usda 1.0\n")
+    layer = write_scene_layer(make_spec(), tmp_path / "layers" / "s.usda", tiny_base)
+    layer.write_text(layer.read_text().replace("subLayers = [", f"subLayers = [\n        @{outside}@,", 1))
+    with pytest.raises(LayerError) as info:
+        read_scene(layer)
+    message = str(info.value)
+    roots = allowed_roots(layer)
+    assert len(roots) == 9 and "\n" not in message
+    assert f"{layer}: layer {outside} resolves outside the allowed roots ({roots[0]}, {roots[1]} and 7 more); " \
+           in message, message
+    assert not any(str(r) in message for r in granted), message
+    assert message.endswith(f"or add its folder to {ENV_ROOTS}"), message
+    assert len(message) < 200 + len(str(layer)) + len(str(outside)) + len(str(roots[0])) + len(str(roots[1])), message
