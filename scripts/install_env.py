@@ -88,6 +88,21 @@ def check_removable(venv: Path) -> None:
                        "fix: remove it or set VENV=another/path")
 
 
+def remove_venv(venv: Path) -> None:
+    """Remove a venv, its pyvenv.cfg last: a removal cut short leaves a folder check_removable still accepts."""
+    if not venv.exists():
+        return
+    for child in venv.iterdir():
+        if child.name == "pyvenv.cfg":
+            continue
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
+    (venv / "pyvenv.cfg").unlink(missing_ok=True)
+    venv.rmdir()
+
+
 def check_python() -> None:
     if sys.version_info[:2] != (3, 11):
         raise EnvError("allo-usd needs Python 3.11 (bpy==5.0.1); set PYTHON=/path/to/python3.11")
@@ -130,8 +145,7 @@ def build(venv: Path, lock: Path, project: Path, want: dict, action: str) -> Non
         check_removable(venv)
         print(f"{PREFIX}building {venv} from {lock} (wheels only, every file checked against its sha256)",
               flush=True)
-        if venv.exists():
-            shutil.rmtree(venv)
+        remove_venv(venv)
         subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
         rc, out = run([str(python_of(venv)), "-m", "pip", "install", "--quiet", "--require-hashes",
                        "--only-binary", ":all:", "--no-deps", "--force-reinstall", "-r", str(lock)])

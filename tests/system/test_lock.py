@@ -270,6 +270,10 @@ def test_the_stamp_decides_nothing_project_or_rebuild(tmp_path):
         ie.check_removable(venv)
     (venv / "pyvenv.cfg").touch()
     ie.check_removable(venv)
+    (venv / "lib").mkdir()
+    (venv / "lib64").symlink_to("lib")
+    ie.remove_venv(venv)
+    assert not venv.exists()
 
 
 def test_pip_failures_end_as_one_line_naming_the_package():
