@@ -31,6 +31,9 @@ Layout under OUT (the test renders each folder as one run):
                   renders of datasets (dataset_out/cache_*, manifest_index_*) assembled here whose
                   annotations/records.json or manifest.csv is then edited, replaced or made hostile
     cli/          a file given as --out, a .usdc layer
+    install/      locks of two real entries of requirements.lock (idna, setuptools) with idna's hashes
+                  altered, and a tiny project: `make env` with VENV, LOCK and PROJECT set to them (the
+                  lock's wheel hash is found with `pip download`: writing the corpus reads the index)
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ FAILS = "fails as layer error or timeout"     # either of the two, never a hang 
 CLI_ERROR = "cli exit 2 one line"             # exit status 2, stderr one line "error: ..."
 CLI_OK_OR_ERROR = "exit 0 or cli exit 2 one line"
 CLI_REFUSED = "cli exit 1, one note line naming the refused record"  # the rest assembled, like render's failures
+INSTALL_REFUSED = "make env fails, its last line naming the package and the fix"  # and no stamp is left
 RENDERS = "renders"                           # outputs byte-identical to a clean run
 REFUSED_OR_DISTINCT = "refused, or renders with distinct outputs"
 RERENDERED = "re-rendered, not skipped"
@@ -65,9 +69,10 @@ class Case:
     expect: str                 # one of the outcomes above
     run: str                    # which run meets it: pool, scan, single, names, resume, plan, dataset, cli
     paths: tuple[Path, ...]     # the case's files (the layer first)
-    argv: tuple[str, ...] = ()  # for plan, dataset and cli cases: the arguments after `allo-usd`
+    argv: tuple[str, ...] = ()  # for plan, dataset and cli cases: the arguments after `allo-usd`; install: after `make`
     note: str = ""
     forbidden: tuple[Path, ...] = field(default=())  # paths no process may open for this case
+    before: tuple[str, ...] = ()  # install cases: a `make` run (that must succeed) into the same venv first
 
 
 # ---------------------------------------------------------------- layer text surgery
@@ -529,6 +534,32 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     w.add("cli_package_lacking_texture", "cli", CLI_ERROR, "cli", (lacking,),
           ("render", str(lacking), "--out", str(out / "cli_out" / "lacking")),
           "a package whose texture entry is missing (fix: pack again, not restore a textures/ folder)")
+    # ---- install: `make env` with a tampered requirements.lock fails naming the package, fresh or not
+    inst = out / "install"
+    (inst / "project").mkdir(parents=True)
+    (inst / "project" / "pyproject.toml").write_text(
+        '[build-system]\nrequires = ["setuptools>=68"]\nbuild-backend = "setuptools.build_meta"\n\n'
+        '[project]\nname = "lockprobe"\nversion = "0"\n\n[tool.setuptools]\npy-modules = []\n')
+    pins = lock_pins(Path(__file__).resolve().parents[2] / "requirements.lock")
+    idna_version, idna_hashes = pins["idna"]
+    wheel = wheel_sha256("idna", idna_version)
+
+    def lock(name: str, idna: list[str]) -> Path:
+        path = inst / f"{name}.lock"
+        path.write_text(lock_entry("idna", idna_version, idna) + lock_entry("setuptools", *pins["setuptools"]))
+        return path
+
+    def make_env(venv: str, lock_file: Path) -> tuple[str, ...]:
+        return ("env", f"VENV={inst / venv}", f"LOCK={lock_file}", f"PROJECT={inst / 'project'}")
+
+    alter = lambda h: ("0" if h[0] != "0" else "1") + h[1:]  # noqa: E731
+    fresh = lock("wheel_hash", [alter(h) if h == wheel else h for h in idna_hashes])
+    w.add("install_fresh_wheel_hash", "install", INSTALL_REFUSED, "install", (fresh,), make_env("fresh", fresh),
+          "a fresh venv, idna's wheel hash altered (its source package's kept: no fallback to building it)")
+    both = lock("both_hashes", [alter(h) for h in idna_hashes])
+    w.add("install_existing_both_hashes", "install", INSTALL_REFUSED, "install", (both,), make_env("existing", both),
+          "a venv built from the real entries, then both of idna's hashes altered (not trusted as installed)",
+          before=make_env("existing", lock("good", idna_hashes)))
     return w.cases
 
 
@@ -560,6 +591,33 @@ def _package_lacking_a_texture(scene: Path, dest: Path, base: Path) -> None:
     for name in names:
         writer.AddFile(str(work / "entries" / name), name)
     writer.Save()
+
+
+LOCK_ENTRY = re.compile(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==(\S+) \\\n((?:[ \t]+--hash=sha256:[0-9a-f]{64}[ \t]*\\?\n?)+)", re.M)
+
+
+def lock_pins(lock: Path) -> dict[str, tuple[str, list[str]]]:
+    """{name: (version, sha256 hashes)} of a pip-compile lock."""
+    return {m.group(1).lower(): (m.group(2), re.findall(r"[0-9a-f]{64}", m.group(3)))
+            for m in LOCK_ENTRY.finditer(lock.read_text())}
+
+
+def lock_entry(name: str, version: str, hashes: list[str]) -> str:
+    return f"{name}=={version} \\\n" + " \\\n".join(f"    --hash=sha256:{h}" for h in hashes) + "\n"
+
+
+def wheel_sha256(name: str, version: str) -> str:
+    """The sha256 of the wheel pip fetches for name==version (a lock also lists its source package's)."""
+    import hashlib
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        subprocess.run([sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary", ":all:",
+                        "-d", d, f"{name}=={version}"], check=True, capture_output=True, timeout=120)
+        [whl] = Path(d).glob("*.whl")
+        return hashlib.sha256(whl.read_bytes()).hexdigest()
 
 
 def _render_record(d: Path, name: str, scene: dict, files: dict | None) -> None:

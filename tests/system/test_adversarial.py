@@ -108,6 +108,33 @@ def run_cli(args, env: dict, timeout: float, trace: Path | None = None) -> Ran:
     return Ran(list(map(str, args)), rc, out, err, time.monotonic() - t0, trace)
 
 
+INSTALL_TIMEOUT = 240     # seconds a `make env` of an install case may take (its `before` run included)
+ROOT_DIR = Path(__file__).resolve().parents[2]
+
+
+def run_make(case) -> Ran:
+    """`make -C ROOT` with the case's `before` arguments (which must succeed), then its own."""
+    python = getattr(sys, "_base_executable", sys.executable)
+    t0 = time.monotonic()
+    for args in ([case.before] if case.before else []) + [case.argv]:
+        r = subprocess.run(["make", "--no-print-directory", "-C", str(ROOT_DIR), *args, f"PYTHON={python}"],
+                           capture_output=True, text=True, errors="replace", timeout=INSTALL_TIMEOUT)
+        if args is case.before and r.returncode != 0:
+            return Ran(list(args), r.returncode, r.stdout, "the `before` run failed: " + r.stderr,
+                       time.monotonic() - t0)
+    return Ran(list(case.argv), r.returncode, r.stdout, r.stderr, time.monotonic() - t0)
+
+
+def install_refused(ran: Ran, case) -> str | None:
+    """None if `make env` failed with a last line of its own naming idna and the fix, leaving no stamp."""
+    ours = [line for line in ran.stderr.splitlines() if line.startswith("make env: ")]
+    venv = Path(next(a for a in case.argv if a.startswith("VENV=")).removeprefix("VENV="))
+    if ran.rc not in (0, None) and ours and "idna" in ours[-1] and "fix: " in ours[-1] \
+            and not (venv / ".installed-stamp").exists():
+        return None
+    return f"exit {ran.rc}; stderr tail {ran.stderr[-300:]!r}"
+
+
 def one_line_error(ran: Ran) -> str | None:
     """None if the command ended with exit 2 and one stderr line 'error: ...', else what it did."""
     if ran.hung:
@@ -190,12 +217,18 @@ def runs(tiny_base, tmp_path_factory) -> Runs:
     traces = tmp / "traces"
     traces.mkdir()
 
+    for c in cases.values():
+        if c.run == "install":
+            jobs[c.name] = (c, INSTALL_TIMEOUT)
+
     def go(name):
         args, timeout = jobs[name]
+        if isinstance(args, C.Case):
+            return name, run_make(args)
         return name, run_cli(args, env, timeout, traces / f"{name}.strace" if r.traced else None)
 
     with ThreadPoolExecutor(2) as pool:  # the pool run beside the light command-line cases
-        r.ran = dict(pool.map(go, sorted(jobs, key=lambda n: n not in ("pool", "scan"))))
+        r.ran = dict(pool.map(go, sorted(jobs, key=lambda n: (n not in ("pool", "scan"), not n.startswith("install_")))))
     return r
 
 
@@ -296,6 +329,18 @@ def test_command_line_cases_end_as_one_line_exit_2(runs):
         copied = [str(p) for p in (runs.root / "dataset_out").rglob("*") if p.is_file() and p.read_bytes() == data]
         if copied:
             problems["dataset_hostname_files"] = f"/etc/hostname copied into the dataset: {copied}"
+    assert not problems, "\n" + _report(problems)
+
+
+def test_install_cases_fail_naming_the_package(runs):
+    """`make env` with a tampered requirements.lock fails, fresh venv or existing, its last line naming
+    the package and the fix, and leaves no stamp that the next `make env` would trust."""
+    problems = {}
+    for case in runs.cases.values():
+        if case.run == "install":
+            what = install_refused(runs.ran[case.name], case)
+            if what:
+                problems[case.name] = what
     assert not problems, "\n" + _report(problems)
 
 

@@ -1,11 +1,21 @@
 """requirements.lock (the same bytes on every machine): every dependency, transitive ones
 included, pinned to one version with its sha256 hashes; in agreement with pyproject.toml's ranges; and
-installed in this environment exactly as locked (else: `make env`). Reads files and package metadata
-only: no network."""
+installed in this environment exactly as locked (else: `make env`). Those tests read files and package
+metadata only: no network.
+
+And `make env` itself (scripts/install_env.py): it installs wheels only, each checked against the lock's
+hashes, and builds a venv again when its lock changed. Those tests run `make env` with VENV, LOCK and
+PROJECT set to a scratch venv, a lock of two of the real lock's entries (idna, and setuptools to install
+a tiny project with) and that tiny project: they fetch from the package index as `make env` does."""
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
 import re
+import subprocess
+import sys
 import tomllib
 from importlib.metadata import PackageNotFoundError, distribution
 
@@ -120,3 +130,161 @@ def test_installed_versions_are_the_locked_ones():
         if Version(have) != version:
             drift.append(f"{name} {have} is installed, the lock pins {version}")
     assert not drift, f"{FIX}: " + "; ".join(drift)
+
+
+# ---------------------------------------------------------------- make env: wheels only, hash-checked, never stale
+
+PROBE = """[build-system]
+requires = ["setuptools>=68"]
+build-backend = "setuptools.build_meta"
+
+[project]
+name = "lockprobe"
+version = "0"
+
+[tool.setuptools]
+py-modules = []
+"""
+
+
+def lock_text(hashes: dict[str, list[str]]) -> str:
+    """Lock entries for the given names (the real pins), with `hashes` in place of the real ones."""
+    pins = locked()
+    return "".join(f"{name}=={pins[name]} \\\n" + " \\\n".join(f"    --hash=sha256:{h}" for h in hs) + "\n"
+                   for name, hs in hashes.items())
+
+
+def real_hashes() -> dict[str, list[str]]:
+    return {canonicalize_name(r.name): hs for r, hs in lock_entries()}
+
+
+def tampered(h: str) -> str:
+    return ("0" if h[0] != "0" else "1") + h[1:]
+
+
+def make_env(venv, lock, project) -> subprocess.CompletedProcess:
+    python = getattr(sys, "_base_executable", sys.executable)
+    return subprocess.run(["make", "--no-print-directory", "-C", str(ROOT), "env", f"PYTHON={python}",
+                           f"VENV={venv}", f"LOCK={lock}", f"PROJECT={project}"],
+                          capture_output=True, text=True, timeout=300)
+
+
+def installed(venv) -> set[str]:
+    return {canonicalize_name(p.name.split("-")[0]) for p in (venv / "lib").glob("python*/site-packages/*.dist-info")}
+
+
+def refused_naming(r: subprocess.CompletedProcess, package: str) -> str | None:
+    """None if `make env` failed with a last line of its own naming the package and the fix."""
+    ours = [line for line in r.stderr.splitlines() if line.startswith("make env: ")]
+    if r.returncode != 0 and ours and package in ours[-1] and "fix: " in ours[-1] and "\n" not in ours[-1]:
+        return None
+    return f"exit {r.returncode}; stderr tail {r.stderr[-600:]!r}; stdout tail {r.stdout[-300:]!r}"
+
+
+@pytest.fixture
+def probe(tmp_path):
+    (tmp_path / "proj").mkdir()
+    (tmp_path / "proj" / "pyproject.toml").write_text(PROBE)
+    return tmp_path / "proj"
+
+
+def wheel_hash(name: str, tmp_path) -> str:
+    """The sha256 of the wheel pip fetches for the locked `name` (the lock also holds its sdist's)."""
+    d = tmp_path / "dl"
+    subprocess.run([sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary", ":all:",
+                    "-d", str(d), f"{name}=={locked()[name]}"], check=True, capture_output=True, timeout=120)
+    [whl] = d.glob("*.whl")
+    return hashlib.sha256(whl.read_bytes()).hexdigest()
+
+
+@pytest.mark.process
+@pytest.mark.slow
+def test_a_wheel_whose_hash_is_not_in_the_lock_fails_a_fresh_env_naming_the_package(tmp_path, probe):
+    """idna's wheel hash altered, its source package's kept: pip must not fall back to building the source
+    package (which fetches flit_core, a build backend outside the lock); make env fails naming idna."""
+    hashes = real_hashes()
+    wheel = wheel_hash("idna", tmp_path)
+    assert wheel in hashes["idna"] and len(hashes["idna"]) > 1, "the test needs idna's wheel and sdist locked"
+    lock = tmp_path / "tampered.lock"
+    lock.write_text(lock_text({"idna": [tampered(h) if h == wheel else h for h in hashes["idna"]],
+                               "setuptools": hashes["setuptools"]}))
+    venv = tmp_path / "venv"
+    r = make_env(venv, lock, probe)
+    assert refused_naming(r, "idna") is None, refused_naming(r, "idna")
+    assert not (venv / ".installed-stamp").exists(), "a failed build left a stamp: the next make env would trust it"
+    assert not installed(venv) & {"idna", "flit-core"}, f"installed {sorted(installed(venv))}"
+
+
+@pytest.mark.process
+@pytest.mark.slow
+def test_a_changed_lock_builds_the_env_again_and_a_tampered_one_fails(tmp_path, probe):
+    """An existing venv is never trusted once its lock changed: both of idna's hashes altered, make env
+    fails naming idna (pip would skip the installed idna without checking a hash); an unchanged lock is
+    a no-op, a changed pyproject.toml installs the project again and keeps the rest."""
+    hashes = real_hashes()
+    good, bad = tmp_path / "good.lock", tmp_path / "bad.lock"
+    good.write_text(lock_text({"idna": hashes["idna"], "setuptools": hashes["setuptools"]}))
+    bad.write_text(lock_text({"idna": [tampered(h) for h in hashes["idna"]], "setuptools": hashes["setuptools"]}))
+    venv = tmp_path / "venv"
+    r = make_env(venv, good, probe)
+    assert r.returncode == 0, r.stderr[-800:]
+    first = installed(venv)
+    marker = venv / "marker"
+    marker.write_text("")
+    r = make_env(venv, good, probe)
+    assert r.returncode == 0 and "make env: " not in r.stdout + r.stderr, "an unchanged lock is a no-op"
+    (probe / "pyproject.toml").write_text(PROBE.replace('version = "0"', 'version = "1"'))
+    r = make_env(venv, good, probe)
+    assert r.returncode == 0 and marker.exists(), f"a changed pyproject.toml rebuilt the venv: {r.stderr[-400:]}"
+    again = {p.name for p in (venv / "lib").glob("python*/site-packages/lockprobe-*")}
+    os.utime(bad, (0, 0))   # older than the stamp: a changed lock is seen by its content, not its time
+    r = make_env(venv, bad, probe)
+    assert refused_naming(r, "idna") is None, refused_naming(r, "idna")
+    assert not (venv / ".installed-stamp").exists() and not marker.exists()
+    assert {"idna", "setuptools", "lockprobe"} <= first, f"the first build installed {sorted(first)}"
+    assert any(name.startswith("lockprobe-1.") for name in again), f"pyproject.toml's change not installed: {again}"
+
+
+def test_the_stamp_decides_nothing_project_or_rebuild(tmp_path):
+    from scripts import install_env as ie
+
+    (tmp_path / "proj").mkdir()
+    (tmp_path / "proj" / "pyproject.toml").write_text(PROBE)
+    lock = tmp_path / "lock"
+    lock.write_text("a==1\n")
+    venv = tmp_path / "venv"
+    want = ie.wanted(lock, tmp_path / "proj")
+    assert ie.what_to_do(venv, want) == "rebuild"                      # no venv
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").touch()
+    (venv / ie.STAMP).write_text("")                                   # a stamp of make env before this one
+    assert ie.what_to_do(venv, want) == "rebuild"
+    (venv / ie.STAMP).write_text(json.dumps(want))
+    assert ie.what_to_do(venv, want) == "nothing"
+    assert ie.what_to_do(venv, {**want, "pyproject_sha256": "0" * 64}) == "project"
+    assert ie.what_to_do(venv, {**want, "lock_sha256": "0" * 64}) == "rebuild"
+    assert ie.what_to_do(venv, {**want, "recipe": ie.RECIPE + 1}) == "rebuild"
+    (venv / "bin" / "python").unlink()
+    assert ie.what_to_do(venv, want) == "rebuild"
+    with pytest.raises(ie.EnvError, match="not a Python venv"):         # never rm -rf a folder that is not a venv
+        ie.check_removable(venv)
+    (venv / "pyvenv.cfg").touch()
+    ie.check_removable(venv)
+    (venv / "lib").mkdir()
+    (venv / "lib64").symlink_to("lib")
+    ie.remove_venv(venv)
+    assert not venv.exists()
+
+
+def test_pip_failures_end_as_one_line_naming_the_package():
+    from scripts import install_env as ie
+
+    lock = LOCK
+    mismatch = ("ERROR: THESE PACKAGES DO NOT MATCH THE HASHES FROM THE REQUIREMENTS FILE. If you have ...\n"
+                "    idna==3.20 from https://example.invalid/idna-3.20-py3-none-any.whl (from -r requirements.lock"
+                " (line 1)):\n        Expected sha256 00\n             Got        ab\n")
+    line = ie.pip_failure(mismatch, lock)
+    assert "idna==3.20" in line and "fix: " in line and "\n" not in line
+    line = ie.pip_failure("ERROR: No matching distribution found for idna==3.20\n", lock)
+    assert "idna==3.20" in line and "wheel" in line and "fix: " in line
+    assert "fix: " in ie.pip_failure("ERROR: something else\n", lock)

@@ -27,7 +27,7 @@ from allo_usd.core.paths import ROOT, SCHEMAS, STAGES
 pytestmark = pytest.mark.slow
 
 BUILD_REQUIRES = ("setuptools>=68", "wheel")   # pyproject's [build-system]; the `test` extra has them too
-SKIP_DIRS = {".git", ".venv", "out", "build", "dist", "__pycache__", ".pytest_cache", ".hypothesis"}
+SKIP_DIRS = {".git", ".venv", ".lock-tool", "out", "build", "dist", "__pycache__", ".pytest_cache", ".hypothesis"}
 
 
 def _env() -> dict:
