@@ -464,9 +464,9 @@ def dataset(render_dirs: list[Path] = typer.Argument(..., help="Render directori
                       if r["category"] == category)   # SPLIT/FOLDER: train/good, test/good, test/<defect>
     order = sorted(folders, key=lambda k: (k != "train/good", k != "test/good", k))
     typer.echo(f"{out / category}: " + ", ".join(f"{k} {folders[k]}" for k in order) + f"; manifest {manifest}")
-    from allo_usd.output.annotation_files import summary_line
+    from allo_usd.output.dataset import summary_line
 
-    typer.echo(summary_line(out))   # COCO, BOP, passes (allo_usd.output.annotation_files)
+    typer.echo(summary_line(out))   # COCO, BOP, passes (allo_usd.output.dataset)
     if any(issubclass(w.category, RefusedRenders) for w in notes):
         raise SystemExit(1)  # like `render` with failures: the rest is assembled, the refused ones are named
 

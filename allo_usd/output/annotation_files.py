@@ -263,10 +263,13 @@ def load_cache(out: Path, rows: int = 0) -> dict:
     """records.json's content, checked ({} when missing or of another version; {} and one warning
     when the read gate refuses it or its shape is wrong): pass it back to write_annotation_files,
     and read the dataset's `state` from it. `rows`: the manifest's rows (cache_limit)."""
-    return _load(Path(out), rows, warn=True)
+    return load_records(Path(out), rows, warn=True)
 
 
-def _load(out: Path, rows: int, warn: bool = False) -> dict:
+def load_records(out: Path, rows: int, warn: bool = False) -> dict:
+    """records.json read through the read gate (bounded by `rows`, inside `out`): its parsed top level,
+    or {} when it is absent, refused by the gate, of another RECORDS_VERSION or malformed (with one
+    note when `warn`, except for an absent file or another version)."""
     path = out / RECORDS
     try:
         cache = read_user_json(path, cache_limit(rows), "the dataset's cache", roots=(out,))
@@ -604,27 +607,3 @@ def _planned(rec: dict) -> dict:
 def _amodal_passed(rec: dict) -> bool:
     info = _planned(rec)["info"]
     return bool(info) and info.get("visib_source") == "amodal_pass"
-
-
-def summary_line(out: Path) -> str:
-    """One line on what the annotation files hold, from records.json: images, anomalies with a BOP
-    pose (an older render records none: re-render it), amodal masks (else visib_fract comes from
-    the ray cast), depth PNGs (render the depth pass for them). Entries are read as entry_of wrote
-    them (an anomaly: an entry with objects); one that is not such an entry is not counted."""
-    from allo_usd.output.dataset import MANIFEST, read_manifest
-
-    entries = {name: e for name, e in (_load(Path(out), len(read_manifest(Path(out) / MANIFEST))).get("records")
-                                        or {}).items() if isinstance(e, dict) and set(e) == ENTRY_KEYS
-               and isinstance(e["gt"], list) and all(isinstance(g, dict) and isinstance(g.get("info"), dict)
-                                                     for g in e["gt"])}
-    anomalous = {name: e for name, e in entries.items() if e["gt"]}
-    posed = [name for name, e in anomalous.items() if e["gt"][0].get("pose") is not None]
-    amodal = sum(e["gt"][0]["info"].get("visib_source") == "amodal_pass" for e in anomalous.values())
-    depth = sum(e["depth"] is True for e in entries.values())
-    line = (f"annotations: COCO {len(entries)} images, {len(anomalous)} anomalies; BOP poses {len(posed)} of "
-            f"{len(anomalous)}, amodal masks {amodal} of {len(anomalous)}, depth {depth} of {len(entries)} images")
-    missing = [name.split("/", 1)[-1] for name in anomalous if name not in posed]
-    if missing:
-        line += (f" ({len(missing)} render(s) record no pose, rendered before poses were: their scene_gt entries are "
-                 f"empty; re-render them: {', '.join(missing[:5])})")
-    return line

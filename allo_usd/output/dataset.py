@@ -83,7 +83,8 @@ from allo_usd.core.files import (MAX_RECORD_BYTES, InputRefused, RunLock, atomic
 from allo_usd.core.scene_labels import SPLITS, VARIANTS, label_problem
 from allo_usd.output.annotations import annotation_columns
 from allo_usd.output.contact import PER_SHEET, read_pixels, sheet_paths, split_sheets
-from allo_usd.output.annotation_files import compute_record, load_cache, write_annotation_files
+from allo_usd.output.annotation_files import (ENTRY_KEYS, compute_record, load_cache, load_records,
+                                             write_annotation_files)
 from allo_usd.output.dataset_files import (COLUMNS, FOLDERS, AnomalyPixels, Refused, inside, place, real_folder, real_path,
                                           source_entry, source_file)
 from allo_usd.output.pass_files import PASS_COLUMNS, pass_columns, passes_missing, place_passes
@@ -928,3 +929,25 @@ def remove_empty_folders(out: Path, category: str) -> None:
         for d in sorted(top.glob("*/*"), reverse=True):
             if d.is_dir() and not d.is_symlink() and not any(d.iterdir()):
                 d.rmdir()
+
+
+def summary_line(out: Path) -> str:
+    """One line on what the annotation files hold, from records.json: images, anomalies with a BOP
+    pose (an older render records none: re-render it), amodal masks (else visib_fract comes from
+    the ray cast), depth PNGs (render the depth pass for them). Entries are read as entry_of wrote
+    them (an anomaly: an entry with objects); one that is not such an entry is not counted."""
+    entries = {name: e for name, e in (load_records(Path(out), len(read_manifest(Path(out) / MANIFEST))).get("records")
+                                        or {}).items() if isinstance(e, dict) and set(e) == ENTRY_KEYS
+               and isinstance(e["gt"], list) and all(isinstance(g, dict) and isinstance(g.get("info"), dict)
+                                                     for g in e["gt"])}
+    anomalous = {name: e for name, e in entries.items() if e["gt"]}
+    posed = [name for name, e in anomalous.items() if e["gt"][0].get("pose") is not None]
+    amodal = sum(e["gt"][0]["info"].get("visib_source") == "amodal_pass" for e in anomalous.values())
+    depth = sum(e["depth"] is True for e in entries.values())
+    line = (f"annotations: COCO {len(entries)} images, {len(anomalous)} anomalies; BOP poses {len(posed)} of "
+            f"{len(anomalous)}, amodal masks {amodal} of {len(anomalous)}, depth {depth} of {len(entries)} images")
+    missing = [name.split("/", 1)[-1] for name in anomalous if name not in posed]
+    if missing:
+        line += (f" ({len(missing)} render(s) record no pose, rendered before poses were: their scene_gt entries are "
+                 f"empty; re-render them: {', '.join(missing[:5])})")
+    return line

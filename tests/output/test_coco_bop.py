@@ -18,7 +18,8 @@ import pytest
 from PIL import Image
 
 from allo_usd.core.paths import ROOT
-from allo_usd.output.annotation_files import read_depth_exr, summary_line
+from allo_usd.output.annotation_files import read_depth_exr
+from allo_usd.output.dataset import summary_line
 from allo_usd.output.bop import DEPTH_SCALE
 from allo_usd.output.dataset import assemble, read_manifest
 from allo_usd.output.pass_files import PASS_COLUMNS
