@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -154,14 +155,19 @@ def test_two_concurrent_author_runs_into_one_folder(tmp_path):
     refused = [r for r in results if r.returncode == 2]
     for r in refused:
         assert "another author run (pid" in error_line(r)
-    # the ordered case: B starts while A surely holds the tree
+    # the ordered case: B starts while A surely holds the tree (A is stopped while it holds the lock, so
+    # it cannot finish and release it before B asks: a stopped process keeps its lock)
     out2 = tmp_path / "tree2"
     a = subprocess.Popen(args(out2), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 300
     while not (out2 / TREE_LOCK).is_file() or not (out2 / TREE_LOCK).read_text():
         assert a.poll() is None and time.monotonic() < deadline, a.communicate()
         time.sleep(0.01)
-    b = cli("author", plan, "--out", out2, "--no-progress")
+    a.send_signal(signal.SIGSTOP)
+    try:
+        b = cli("author", plan, "--out", out2, "--no-progress")
+    finally:
+        a.send_signal(signal.SIGCONT)
     assert a.wait(timeout=600) == 0, a.communicate()
     assert "another author run (pid" in error_line(b)
     assert cli("author", plan, "--out", out, "--no-progress").returncode == 0
