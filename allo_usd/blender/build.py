@@ -263,16 +263,22 @@ def link_receivers(obj, desc) -> None:
     obj.light_linking.receiver_collection = coll
 
 
+def lamp_object(light, desc, position):
+    """The scene object of a lamp datablock, named after its prim: `position` sets its transform, then
+    its ray visibility (desc.rays) and light linking (desc.link) as every lamp builder sets them."""
+    obj = _bpy().data.objects.new(desc.path, light)
+    position(obj)
+    set_rays(obj, desc.rays)
+    _bpy().context.scene.collection.objects.link(obj)
+    link_receivers(obj, desc)
+    return obj
+
+
 def build_sun(desc: SunDesc):
     """A SUN lamp named after its prim; with a link, a receiver collection of the linked mesh objects."""
     bpy = _bpy()
     light = bpy.data.lights.new(desc.path, type="SUN")
-    obj = bpy.data.objects.new(desc.path, light)
-    set_sun(obj, desc)
-    set_rays(obj, desc.rays)
-    bpy.context.scene.collection.objects.link(obj)
-    link_receivers(obj, desc)
-    return obj
+    return lamp_object(light, desc, lambda obj: set_sun(obj, desc))
 
 
 def spot_power_w(desc: SpotDesc) -> float:
@@ -293,12 +299,7 @@ def build_spot(desc: SpotDesc):
                f"{desc.path} cone (2 x half angle, radians)")
         assign(light, "spot_blend", desc.softness, f"{desc.path} cone softness")
     assign(light, "color", desc.color, f"{desc.path} color")
-    obj = bpy.data.objects.new(desc.path, light)
-    place(obj, desc.matrix)
-    set_rays(obj, desc.rays)
-    bpy.context.scene.collection.objects.link(obj)
-    link_receivers(obj, desc)
-    return obj
+    return lamp_object(light, desc, lambda obj: place(obj, desc.matrix))
 
 
 def build_area(desc: AreaDesc):
@@ -313,12 +314,7 @@ def build_area(desc: AreaDesc):
         assign(light, "size_y", desc.size[1], f"{desc.path} height (m)")
     assign(light, "energy", desc.power, f"{desc.path} power (W)")
     assign(light, "color", desc.color, f"{desc.path} color")
-    obj = bpy.data.objects.new(desc.path, light)
-    place(obj, desc.matrix)
-    set_rays(obj, desc.rays)
-    bpy.context.scene.collection.objects.link(obj)
-    link_receivers(obj, desc)
-    return obj
+    return lamp_object(light, desc, lambda obj: place(obj, desc.matrix))
 
 
 CYLINDER_SIDES = 64

@@ -55,9 +55,21 @@ def _ray_visibility(prim) -> str:
     return "all"
 
 
+def flattened(primvar) -> np.ndarray | None:
+    """A primvar's values with its indices applied (UsdGeom.Primvar.ComputeFlattened), or None when USD
+    cannot flatten them (an index outside the values)."""
+    from pxr import Tf
+
+    try:
+        flat = primvar.ComputeFlattened()
+    except Tf.ErrorException:
+        return None
+    return None if flat is None else np.asarray(flat)
+
+
 def _read_uv(prim, n_face_vertices: int) -> np.ndarray | None:
     """primvars:st, face-varying: one finite (u, v) per face vertex, or None when the mesh has none."""
-    from pxr import Tf, UsdGeom
+    from pxr import UsdGeom
 
     path = prim.GetPath()
     st = UsdGeom.PrimvarsAPI(prim).GetPrimvar("st")
@@ -66,11 +78,7 @@ def _read_uv(prim, n_face_vertices: int) -> np.ndarray | None:
     if st.GetInterpolation() != UsdGeom.Tokens.faceVarying:
         raise LayerError(f"mesh {path}: primvars:st must be faceVarying, not {st.GetInterpolation()}; regenerate "
                          "its asset")
-    try:
-        flat = st.ComputeFlattened()
-    except Tf.ErrorException:
-        flat = None
-    uv = None if flat is None else np.asarray(flat)
+    uv = flattened(st)
     if uv is None or uv.dtype.kind not in "iuf" or uv.shape != (n_face_vertices, 2):
         shape = "nothing usable" if uv is None else f"{uv.shape[0]:,} values of {st.GetTypeName()}"
         raise LayerError(f"mesh {path}.primvars:st holds {shape}; faceVarying needs one (u, v) per face vertex "
@@ -249,18 +257,12 @@ def read_implicit(prim) -> S.Shape:
 
 def _primvar_values(primvar, width: int, hi: float) -> tuple[np.ndarray, str]:
     """An authored display primvar's (values (k, width) float32, interpolation), values finite in 0..hi."""
-    from pxr import Tf
-
     where = primvar.GetAttr().GetPath()
     space = primvar.GetAttr().GetColorSpace() if width == 3 else ""
     if space not in LINEAR_COLOUR_SPACES:
         raise LayerError(f"{where} is in colour space {space!r}; allo-usd reads display colours as linear Rec.709 "
                          "(USD's default): fix the layer: remove the colorSpace or convert the values")
-    try:
-        flat = primvar.ComputeFlattened()
-    except Tf.ErrorException:
-        flat = None
-    v = None if flat is None else np.asarray(flat)
+    v = flattened(primvar)
     if v is not None and v.ndim == 0:
         v = v.reshape(1)   # a scalar value authored where an array belongs: one value
     if v is None or v.dtype.kind not in "iuf" or len(v) == 0 or v.reshape(len(v), -1).shape[1] != width:
