@@ -187,30 +187,103 @@ def _model_frame(desc, meshes, recorded=None) -> tuple[np.ndarray, np.ndarray]:
     return m, np.concatenate(pts)
 
 
+CANVAS_RAYS = 1 << 19   # rays per embree call of the canvas cast (bounds its temporaries to ~40 MB)
+
+
+class _Silhouette:
+    """The triangles of some meshes in one embree scene (scene.raycast), cast through pixel centres:
+    the mask's pixel rule (column c, row r: the ray through (u, v) = (c, r) of the OpenCV image), at
+    any (c, r), inside the image or not."""
+
+    def __init__(self, meshes, k: np.ndarray, w2c: np.ndarray):
+        from allo_usd.assets.mesh import fan_triangulate
+        from allo_usd.scene.raycast import RayScene
+
+        parts = [(_world_points(m), fan_triangulate(m.face_counts, m.face_indices), ANOMALY) for m in meshes]
+        self.k, self.c2w = k, np.linalg.inv(w2c)
+        self.scene = RayScene(parts)
+        uv, z = project(k, w2c, np.concatenate([p for p, _, _ in parts]))
+        # every vertex in front of the camera: the silhouette lies inside the vertices' image box
+        # (the convex hull's); else (an object around the lens) it can be anywhere
+        self.box = ((int(np.floor(uv[:, 0].min())), int(np.floor(uv[:, 1].min())),
+                     int(np.ceil(uv[:, 0].max())), int(np.ceil(uv[:, 1].max()))) if (z > 0).all() else None)
+
+    def region(self, c0: int, r0: int, c1: int, r1: int) -> tuple[int, int, int, int]:
+        """[c0, c1] x [r0, r1] cut to where the silhouette can be (empty: c0 > c1 or r0 > r1)."""
+        if self.box is None:
+            return c0, r0, c1, r1
+        return max(c0, self.box[0]), max(r0, self.box[1]), min(c1, self.box[2]), min(r1, self.box[3])
+
+    def first_hit(self, c0: int, r0: int, c1: int, r1: int) -> np.ndarray:
+        """(r1 - r0 + 1, c1 - c0 + 1) bool: the pixels whose centre ray's first hit is these triangles
+        (RayScene.first_hit, as the in-image ray cast always did)."""
+        rows, cols = np.mgrid[r0:r1 + 1, c0:c1 + 1]
+        dirs = self._dirs(cols.ravel(), rows.ravel())
+        owner, _ = self.scene.first_hit(np.broadcast_to(self.c2w[:3, 3], dirs.shape), dirs)
+        return (owner == ANOMALY).reshape(rows.shape)
+
+    def _dirs(self, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        k = self.k
+        d_cam = np.stack([(cols - k[0, 2]) / k[0, 0], (rows - k[1, 2]) / k[1, 1], np.ones(cols.size)], axis=1)
+        return d_cam @ self.c2w[:3, :3].T
+
+    def hits(self, c0: int, r0: int, c1: int, r1: int) -> tuple[int, list[int] | None]:
+        """(how many pixel centres of [c0, c1] x [r0, r1] see the triangles, [x_min, y_min, x_max, y_max]
+        of those pixels or None): RayScene.hits_from, the same hits as first_hit without distances,
+        in slices of CANVAS_RAYS rays."""
+        from allo_usd.scene.raycast import RayFan
+
+        if c0 > c1 or r0 > r1:
+            return 0, None
+        n_cols = c1 - c0 + 1
+        step = max(1, CANVAS_RAYS // n_cols)
+        count, box = 0, None
+        for top in range(r0, r1 + 1, step):
+            rows, cols = np.mgrid[top:min(r1, top + step - 1) + 1, c0:c1 + 1]
+            rays, _ = self.scene.hits_from(self.c2w[:3, 3], RayFan.of_rows(self._dirs(cols.ravel(), rows.ravel())),
+                                           distances=False)
+            if rays.size:
+                u, v = cols.ravel()[rays], rows.ravel()[rays]
+                found = [int(u.min()), int(v.min()), int(u.max()), int(v.max())]
+                box = found if box is None else [min(box[0], found[0]), min(box[1], found[1]),
+                                                 max(box[2], found[2]), max(box[3], found[3])]
+                count += int(rays.size)
+        return count, box
+
+
 def amodal_raycast(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int, meshes=None) -> np.ndarray:
     """(H, W) bool: pixels whose centre ray meets `meshes`' triangles (default: every anomaly-class mesh),
     nothing else in the scene (scene.raycast, embree), only where their vertices' image box says it can be."""
-    from allo_usd.assets.mesh import fan_triangulate
-    from allo_usd.scene.raycast import RayScene
-
     meshes = [m for m in desc.meshes if m.class_id == ANOMALY] if meshes is None else meshes
-    parts = [(_world_points(m), fan_triangulate(m.face_counts, m.face_indices), ANOMALY) for m in meshes]
+    return _amodal_in_image(_Silhouette(meshes, k, w2c), width, height)
+
+
+def _amodal_in_image(cast: _Silhouette, width: int, height: int) -> np.ndarray:
     out = np.zeros((height, width), dtype=bool)
-    uv, z = project(k, w2c, np.concatenate([p for p, _, _ in parts]))
-    c0, r0, c1, r1 = 0, 0, width - 1, height - 1
-    if (z > 0).all():   # the silhouette lies inside the vertices' image box (the convex hull's)
-        c0, r0 = max(c0, int(np.floor(uv[:, 0].min()))), max(r0, int(np.floor(uv[:, 1].min())))
-        c1, r1 = min(c1, int(np.ceil(uv[:, 0].max()))), min(r1, int(np.ceil(uv[:, 1].max())))
-    if c0 > c1 or r0 > r1:
-        return out
-    rows, cols = np.mgrid[r0:r1 + 1, c0:c1 + 1]
-    d_cam = np.stack([(cols.ravel() - k[0, 2]) / k[0, 0], (rows.ravel() - k[1, 2]) / k[1, 1],
-                      np.ones(cols.size)], axis=1)
-    c2w = np.linalg.inv(w2c)
-    dirs = d_cam @ c2w[:3, :3].T
-    owner, _ = RayScene(parts).first_hit(np.broadcast_to(c2w[:3, 3], dirs.shape), dirs)
-    out[r0:r1 + 1, c0:c1 + 1] = (owner == ANOMALY).reshape(rows.shape)
+    c0, r0, c1, r1 = cast.region(0, 0, width - 1, height - 1)
+    if c0 <= c1 and r0 <= r1:
+        out[r0:r1 + 1, c0:c1 + 1] = cast.first_hit(c0, r0, c1, r1)
     return out
+
+
+def amodal_canvas(cast: _Silhouette, inside: np.ndarray) -> tuple[int, list[int] | None]:
+    """(pixel count, [x_min, y_min, x_max, y_max] in image pixels or None) of a full silhouette on the
+    BOP toolkit's canvas (module docstring): `inside`, its (H, W) pixels in the image, joined with
+    the ray cast of every canvas pixel outside the image, pixel centres (c, r) with c in [-W, 2W),
+    r in [-H, 2H) (only where the silhouette can be: _Silhouette.region)."""
+    height, width = inside.shape
+    count, box = int(np.count_nonzero(inside)), mask_bbox(inside.astype(np.uint8), 1)
+    c0, r0, c1, r1 = cast.region(-width, -height, 2 * width - 1, 2 * height - 1)
+    bands = ((c0, r0, c1, min(r1, -1)), (c0, max(r0, height), c1, r1),             # above and below the image
+             (c0, max(r0, 0), min(c1, -1), min(r1, height - 1)),                    # left of it
+             (max(c0, width), max(r0, 0), c1, min(r1, height - 1)))                 # right of it
+    for band in bands:
+        n, found = cast.hits(*band)
+        count += n
+        if found is not None:
+            box = found if box is None else [min(box[0], found[0]), min(box[1], found[1]),
+                                             max(box[2], found[2]), max(box[3], found[3])]
+    return count, box
 
 
 def object_paths(desc) -> list[str]:
@@ -259,11 +332,13 @@ def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray,
         visible = mask == ANOMALY
     else:
         raise ValueError(f"{len(objects)} anomaly objects: their pixels need the object index pass (ids)")
+    cast = _Silhouette(meshes, k, w2c)
     if amodal is not None and path == ANOMALY_PRIM:
         full, source = amodal == ANOMALY, "amodal_pass"
     else:
-        full, source = amodal_raycast(desc, k, w2c, width, height, meshes) | visible, "raycast"
+        full, source = _amodal_in_image(cast, width, height) | visible, "raycast"
     pixels, amodal_pixels = int(np.count_nonzero(visible)), int(np.count_nonzero(full))
+    canvas_pixels, canvas_box = amodal_canvas(cast, full)
     info = (desc.meta.get("anomaly") or {}) if planned else {}
     asset, variant = (info.get("asset"), info.get("assetVariant")) if planned else (None, None)
     asset, variant = asset or labels.get("asset"), variant or labels.get("variant")
@@ -279,7 +354,8 @@ def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray,
                      "model_units": "m", "model_scale": scale.tolist()},
             "bbox3d_cam_m": box_cam.tolist(), "bbox3d_px": _pixels(k, box_cam),
             "bbox_amodal_xyxy_px": mask_bbox(full.astype(np.uint8), 1), "amodal_pixels": amodal_pixels,
-            "visib_fract": pixels / amodal_pixels if amodal_pixels else 0.0, "visib_source": source,
+            "bbox_amodal_canvas_xyxy_px": canvas_box, "amodal_pixels_canvas": canvas_pixels,
+            "visib_fract": pixels / canvas_pixels if canvas_pixels else 0.0, "visib_source": source,
             "segmentation": visible_rle(visible) if pixels else None}
 
 

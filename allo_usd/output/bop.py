@@ -126,31 +126,71 @@ def model(anomaly: dict, scene_anomaly: dict) -> dict:
     return {"model_id": model_id, "asset": asset, "variant": variant, "path": path}
 
 
+def _canvas(anomaly: dict, shape, at_least: int) -> tuple[int, list[int] | None] | None:
+    """(px_count_all, inclusive box) of the render JSON's full silhouette on the toolkit's canvas
+    (`amodal_pixels_canvas`, `bbox_amodal_canvas_xyxy_px`), None when it records none (a render made
+    before the canvas was counted) or values that cannot be (not whole numbers, fewer pixels than
+    `at_least` or than the canvas holds, a box off the canvas or missing for a non-empty silhouette)."""
+    height, width = shape
+    count, box = anomaly.get("amodal_pixels_canvas"), anomaly.get("bbox_amodal_canvas_xyxy_px")
+    if isinstance(count, bool) or not isinstance(count, int) or not at_least <= count <= 9 * width * height:
+        return None
+    if box is None:
+        return (0, None) if count == 0 else None
+    if not (isinstance(box, list) and len(box) == 4 and all(isinstance(v, int) and not isinstance(v, bool) for v in box)):
+        return None
+    x0, y0, x1, y1 = box
+    if not (-width <= x0 <= x1 < 2 * width and -height <= y0 <= y1 < 2 * height) or count == 0:
+        return None
+    return count, box
+
+
 def gt_info(visible: np.ndarray, amodal: np.ndarray | None, anomaly: dict, depth_units: np.ndarray | None) -> dict:
-    """scene_gt_info.json's entry: the visible part from the class mask; the full silhouette from
-    the amodal pass when rendered (visib_source "amodal_pass"), else from the render JSON's
-    ray-cast count and box (its visib_source); px_count_valid with both amodal mask and depth."""
+    """scene_gt_info.json's entry, as the BOP toolkit's scripts/calc_gt_info.py computes it (the
+    toolkit renders the object on a canvas of 3W x 3H, principal point shifted by (W, H)):
+
+    - px_count_visib, bbox_visib: the visible part (the class mask's or the object's own pixels),
+      inside the image; bbox as misc.calc_2d_bbox;
+    - px_count_all: the full silhouette's pixels on that canvas (pixel centres (u, v) at integers,
+      u in [-W, 2W), v in [-H, 2H)), the part outside the image included: the render JSON's
+      `amodal_pixels_canvas` (allo_usd.output.annotations: the `amodal` pass's pixels in the image,
+      a ray cast outside it);
+    - bbox_obj: misc.calc_2d_bbox (clip=False) of those canvas pixels in image coordinates (it may
+      start below 0 and end past W or H): the render JSON's `bbox_amodal_canvas_xyxy_px`;
+    - bbox_obj and bbox_visib are [-1, -1, -1, -1] when px_count_visib is 0 (the toolkit's rule,
+      whatever the full silhouette);
+    - visib_fract = px_count_visib / px_count_all (0.0 when px_count_all is 0);
+    - px_count_valid: the silhouette's pixels in the image with a non-zero depth, where the full
+      silhouette's pixels in the image (`amodal`, the pass) and the depth are both there.
+
+    `silhouette` says which frame px_count_all, bbox_obj and visib_fract were counted on: "canvas"
+    (the toolkit's), or "image" for a render whose JSON predates the canvas count (its in-image
+    amodal mask or recorded count and box: a truncated object's visib_fract is then too high; re-render
+    it). `visib_source`: where the full silhouette comes from ("amodal_pass" or "raycast")."""
     from allo_usd.output.annotations import mask_bbox
 
     visible = np.asarray(visible, dtype=bool)
     px_visib = int(np.count_nonzero(visible))
-    info = {"bbox_visib": bop_box(mask_bbox(visible.astype(np.uint8), 1)), "px_count_visib": px_visib}
+    info = {"bbox_visib": bop_box(mask_bbox(visible.astype(np.uint8), 1)) if px_visib else list(NO_BOX),
+            "px_count_visib": px_visib}
     anomaly = anomaly if isinstance(anomaly, dict) else {}
-    if amodal is not None:
-        amodal = np.asarray(amodal, dtype=bool)
-        px_all = int(np.count_nonzero(amodal))
-        info |= {"bbox_obj": bop_box(mask_bbox(amodal.astype(np.uint8), 1)), "px_count_all": px_all,
-                 "visib_source": "amodal_pass"}
-        if depth_units is not None:
-            info["px_count_valid"] = int(np.count_nonzero(depth_units[amodal]))
+    amodal = None if amodal is None else np.asarray(amodal, dtype=bool)
+    in_image = 0 if amodal is None else int(np.count_nonzero(amodal))
+    source = "amodal_pass" if amodal is not None else str(anomaly.get("visib_source") or "raycast")
+    canvas = _canvas(anomaly, visible.shape, max(px_visib, in_image))
+    if canvas is not None:
+        (px_all, box), frame = canvas, "canvas"
+    elif amodal is not None:
+        px_all, box, frame = in_image, mask_bbox(amodal.astype(np.uint8), 1), "image"
     else:
-        px_all = anomaly.get("amodal_pixels")
-        box = anomaly.get("bbox_amodal_xyxy_px")
+        px_all, box, frame = anomaly.get("amodal_pixels"), anomaly.get("bbox_amodal_xyxy_px"), "image"
         if isinstance(px_all, bool) or not isinstance(px_all, int) or px_all < 0:
             return info   # an older render: no full silhouette recorded
         box = box if _numbers(box, 4) is not None else None
-        info |= {"bbox_obj": bop_box(box), "px_count_all": px_all,
-                 "visib_source": str(anomaly.get("visib_source") or "raycast")}
+    info |= {"bbox_obj": bop_box(box) if px_visib else list(NO_BOX), "px_count_all": px_all,
+             "visib_source": source, "silhouette": frame}
+    if amodal is not None and depth_units is not None:
+        info["px_count_valid"] = int(np.count_nonzero(depth_units[amodal]))
     info["visib_fract"] = px_visib / px_all if px_all > 0 else 0.0
     return info
 
