@@ -22,8 +22,9 @@ The cache is a derivation, never a source (docs/reliability/reliability.md, "The
 - an entry is bound (`bind`) to the code's RECORDS_VERSION, its whole manifest row and the stat of
   the files it was computed from (3-class mask, ground truth, depth, render JSON: make's quick
   check); an entry whose binding differs is recomputed;
-- its values are checked as any input is (types, ranges, finite numbers, boxes inside the image,
-  each COCO bbox and area those of its RLE); an entry that fails is recomputed, with one warning;
+- its values are checked as any input is (types, ranges, finite numbers, boxes inside the image --
+  BOP's bbox_obj inside the toolkit's 3W x 3H canvas --, each COCO bbox and area those of its RLE);
+  an entry that fails is recomputed, with one warning;
 - records.json is read through the read gate (a regular file inside OUT, at most cache_limit(rows)
   bytes, nested at most MAX_JSON_DEPTH); refused, or of the wrong shape, it is recomputed whole,
   with one warning.
@@ -64,7 +65,8 @@ from allo_usd.output.record import RenderRecord
 
 RECORDS = "annotations/records.json"
 INSTANCES = "instances.json"
-RECORDS_VERSION = 3   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files
+RECORDS_VERSION = 4   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files;
+                      # 4: scene_gt_info counted on the BOP toolkit's canvas (bop.gt_info)
 CACHE_BYTES = 16 << 20        # records.json's bound: this much, plus CACHE_ROW_BYTES per manifest row
 CACHE_ROW_BYTES = 256 << 10   # an entry is ~1 KB; an anomaly's RLE a few KB
 
@@ -445,16 +447,28 @@ def _gt_problem(g, width: int, height: int) -> bool:
                                   and (model["path"] is None or isinstance(model["path"], str))):
         return True
     known = {"bbox_visib", "px_count_visib", "bbox_obj", "px_count_all", "visib_source", "px_count_valid",
-             "visib_fract"}
+             "visib_fract", "silhouette"}
     if not (isinstance(info, dict) and {"bbox_visib", "px_count_visib"} <= set(info) <= known):
         return True
-    boxes = [info[k] for k in ("bbox_visib", "bbox_obj") if k in info]
     counts = [info[k] for k in ("px_count_visib", "px_count_all", "px_count_valid") if k in info]
-    return not (all(isinstance(b, list) and len(b) == 4 and all(_whole_number(v, -1) for v in b)
-                    and b[0] < width and b[1] < height for b in boxes)
+    return not (_box_ok(info["bbox_visib"], 0, width, height)   # bbox_obj: on the toolkit's 3W x 3H canvas
+                and ("bbox_obj" not in info or _box_ok(info["bbox_obj"], 1, width, height))
                 and all(_whole_number(c) for c in counts) and info["px_count_visib"] <= width * height
-                and isinstance(info.get("visib_source", ""), str)
+                and info.get("px_count_all", 0) <= 9 * width * height
+                and isinstance(info.get("visib_source", ""), str) and info.get("silhouette", "canvas") in ("canvas", "image")
                 and ("visib_fract" not in info or _finite([info["visib_fract"]], 1) and info["visib_fract"] >= 0))
+
+
+def _box_ok(box, margin: int, width: int, height: int) -> bool:
+    """A BOP box [x, y, w, h] of whole numbers, or [-1, -1, -1, -1], its pixels within `margin` images
+    of the image on every side (0: inside the image; 1: on the toolkit's canvas)."""
+    if box == bop.NO_BOX:
+        return True
+    if not (isinstance(box, list) and len(box) == 4 and all(_whole_number(v, -margin * max(width, height)) for v in box)):
+        return False
+    x, y, w, h = box
+    return (w >= 0 and h >= 0 and -margin * width <= x and x + w < (1 + margin) * width
+            and -margin * height <= y and y + h < (1 + margin) * height)
 
 
 def _records(out: Path, rows, cache: dict, early: dict | None = None) -> tuple[dict, dict, int]:

@@ -934,7 +934,8 @@ def remove_empty_folders(out: Path, category: str) -> None:
 def summary_line(out: Path) -> str:
     """One line on what the annotation files hold, from records.json: images, anomalies with a BOP
     pose (an older render records none: re-render it), amodal masks (else visib_fract comes from
-    the ray cast), depth PNGs (render the depth pass for them). Entries are read as entry_of wrote
+    the ray cast), depth PNGs (render the depth pass for them), and the renders whose full
+    silhouette is counted inside the image only (recorded before the BOP toolkit's canvas was). Entries are read as entry_of wrote
     them (an anomaly: an entry with objects); one that is not such an entry is not counted."""
     entries = {name: e for name, e in (load_records(Path(out), len(read_manifest(Path(out) / MANIFEST))).get("records")
                                         or {}).items() if isinstance(e, dict) and set(e) == ENTRY_KEYS
@@ -950,4 +951,10 @@ def summary_line(out: Path) -> str:
     if missing:
         line += (f" ({len(missing)} render(s) record no pose, rendered before poses were: their scene_gt entries are "
                  f"empty; re-render them: {', '.join(missing[:5])})")
+    clipped = [name.split("/", 1)[-1] for name, e in anomalous.items()
+               if any(g["info"].get("silhouette") == "image" for g in e["gt"])]
+    if clipped:
+        line += (f" ({len(clipped)} render(s) record the full silhouette inside the image only, rendered before it was "
+                 f"counted on the BOP toolkit's canvas: their px_count_all, visib_fract and bbox_obj are clipped to "
+                 f"the image (scene_gt_info's silhouette \"image\"); re-render them: {', '.join(clipped[:5])})")
     return line

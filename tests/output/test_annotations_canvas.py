@@ -141,3 +141,105 @@ def test_full_silhouette_is_counted_on_the_toolkits_canvas(scenes, name):
         assert info["bbox_obj"] == bop.bop_box(a["bbox_amodal_canvas_xyxy_px"])
         ys, xs = visible.nonzero()
         assert info["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]
+
+
+# ---------------------------------------------------------------- bop.gt_info's rules, without a scene
+def _visible(box=(20, 10, 23, 12), shape=(36, 64)) -> np.ndarray:
+    v = np.zeros(shape, dtype=bool)
+    x0, y0, x1, y1 = box
+    v[y0:y1 + 1, x0:x1 + 1] = True
+    return v
+
+
+CANVAS = {"amodal_pixels": 12, "bbox_amodal_xyxy_px": [20, 10, 23, 12], "amodal_pixels_canvas": 30,
+          "bbox_amodal_canvas_xyxy_px": [-6, 10, 23, 12], "visib_source": "raycast"}
+
+
+def test_gt_info_takes_the_canvas_count_and_an_unclipped_box():
+    info = bop.gt_info(_visible(), None, CANVAS, None)
+    assert info == {"px_count_visib": 12, "bbox_visib": [20, 10, 3, 2], "px_count_all": 30, "bbox_obj": [-6, 10, 29, 2],
+                    "visib_fract": 12 / 30, "visib_source": "raycast", "silhouette": "canvas"}
+    amodal = _visible((18, 10, 23, 12))   # the pass's pixels in the image: px_count_valid from them
+    depth = np.where(amodal, 100, 0).astype(np.uint16)
+    depth[10, 18] = 0
+    info = bop.gt_info(_visible(), amodal, CANVAS, depth)
+    assert (info["px_count_all"], info["px_count_valid"], info["visib_source"]) == (30, 17, "amodal_pass")
+
+
+def test_gt_info_boxes_are_minus_one_when_nothing_is_visible():
+    """calc_gt_info: bbox_obj and bbox_visib are [-1]*4 when px_count_visib is 0, whatever px_count_all."""
+    info = bop.gt_info(np.zeros((36, 64), bool), None, CANVAS, None)
+    assert info["bbox_obj"] == info["bbox_visib"] == [-1, -1, -1, -1]
+    assert (info["px_count_all"], info["px_count_visib"], info["visib_fract"]) == (30, 0, 0.0)
+
+
+def test_gt_info_of_an_older_render_keeps_the_image_values_and_says_so():
+    old = {k: v for k, v in CANVAS.items() if "canvas" not in k}
+    info = bop.gt_info(_visible(), None, old, None)
+    assert (info["px_count_all"], info["bbox_obj"], info["visib_fract"], info["silhouette"]) == \
+        (12, [20, 10, 3, 2], 1.0, "image")
+    amodal = _visible((18, 10, 23, 12))
+    info = bop.gt_info(_visible(), amodal, old, None)
+    assert (info["px_count_all"], info["bbox_obj"], info["silhouette"]) == (18, [18, 10, 5, 2], "image")
+    assert "silhouette" not in bop.gt_info(_visible(), None, {}, None)   # no full silhouette recorded at all
+
+
+@pytest.mark.parametrize("change", [{"amodal_pixels_canvas": 5},                    # fewer than the visible pixels
+                                    {"amodal_pixels_canvas": 10 ** 9},              # more than the canvas holds
+                                    {"amodal_pixels_canvas": True},
+                                    {"bbox_amodal_canvas_xyxy_px": [-65, 10, 23, 12]},   # off the canvas
+                                    {"bbox_amodal_canvas_xyxy_px": [30, 10, 23, 12]},    # reversed
+                                    {"bbox_amodal_canvas_xyxy_px": None},
+                                    {"bbox_amodal_canvas_xyxy_px": [0.5, 10, 23, 12]}])
+def test_gt_info_does_not_trust_impossible_canvas_values(change):
+    info = bop.gt_info(_visible(), None, CANVAS | change, None)
+    assert (info["px_count_all"], info["silhouette"]) == (12, "image")
+
+
+def test_the_cache_check_takes_a_box_on_the_canvas_and_refuses_one_off_it():
+    from allo_usd.output.annotation_files import _gt_problem
+
+    info = bop.gt_info(_visible(), None, CANVAS, None)
+    g = {"pose": None, "model": None, "info": info}
+    assert not _gt_problem(g, 64, 36)
+    for box in ([-65, 0, 3, 3], [100, 0, 28, 3], [0, 0, -2, 3], [-1, -1, -1, 0]):
+        assert _gt_problem({**g, "info": info | {"bbox_obj": box}}, 64, 36)
+    assert _gt_problem({**g, "info": info | {"bbox_visib": [-6, 10, 29, 2]}}, 64, 36)   # visible: in the image
+    assert _gt_problem({**g, "info": info | {"silhouette": "elsewhere"}}, 64, 36)
+    assert _gt_problem({**g, "info": info | {"px_count_all": 9 * 64 * 36 + 1}}, 64, 36)
+
+
+@pytest.mark.parametrize("canvas", [False, True])
+def test_the_dataset_says_how_many_renders_predate_the_canvas(tmp_path, canvas):
+    import json
+    import warnings
+
+    from PIL import Image
+
+    from allo_usd.output.dataset import assemble, summary_line
+
+    d = tmp_path / "renders"
+    d.mkdir()
+    mask = np.ones((36, 64), np.uint8)
+    mask[10:13, 20:24] = 2
+    Image.fromarray(np.full((36, 64, 3), 90, np.uint8)).save(d / "a1.png")
+    Image.fromarray(mask).save(d / "a1_mask.png")
+    anomaly = (CANVAS if canvas else {k: v for k, v in CANVAS.items() if "canvas" not in k}) | {
+        "pose": {"cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [0.0, 0.0, 3000.0], "model_scale": [1.0] * 3},
+        "model": {"asset": "crate", "variant": "blue", "model_id": "crate/blue", "path": None}}
+    meta = {"layer": str(d / "a1.usda"), "layer_sha256": "1" * 64, "package_version": "0.1.0", "render_seconds": 0.1,
+            "resolution": [64, 36], "class_pixels": {"background": 0, "station_and_bodies": 2292, "anomaly": 12},
+            "anomaly_fraction": 12 / 2304, "effects": {}, "annotations": {"anomaly": anomaly, "anomalies": [anomaly]},
+            "scene": {"sceneId": "a1", "split": "test", "variant": "anomaly", "pose": 1, "day": 0, "seed": 1,
+                      "seedPath": "1/0/1/1", "provenance": {}, "anomaly": {"asset": "crate", "assetVariant": "blue"}},
+            "files": {"rgb": "a1.png", "exr": "a1.exr", "mask": "a1_mask.png"}}
+    (d / "a1.json").write_text(json.dumps(meta))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assemble([d], tmp_path / "ds")
+    line = summary_line(tmp_path / "ds")
+    assert "BOP poses 1 of 1" in line
+    assert ("1 render(s) record the full silhouette inside the image only" in line) != canvas
+    (info,) = json.loads(next((tmp_path / "ds" / "bop").rglob("scene_gt_info.json")).read_text()).values()
+    assert info[0]["silhouette"] == ("canvas" if canvas else "image")
+    assert info[0]["px_count_all"] == (30 if canvas else 12)
