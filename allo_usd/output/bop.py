@@ -22,10 +22,15 @@ allo_usd.output.annotations: pixel centres at integers). `cam_t_m2c` maps the mo
 scaled by `model_scale` (the anomaly prim's scale, kept out of R so that R is a proper rotation):
 x_cam_mm = R @ (diag(model_scale) @ x_model_m * 1000) + t. Boxes are bop_toolkit's
 `misc.calc_2d_bbox`: [x_min, y_min, x_max - x_min, y_max - y_min] of the pixel indices (no + 1,
-unlike COCO), [-1, -1, -1, -1] when nothing is visible. `visib_fract` = px_count_visib /
-px_count_all. `px_count_valid` (silhouette pixels with a non-zero depth) only where both the depth
-and the amodal pass were rendered. An anomalous image whose render records no pose (rendered
-before poses were recorded) has empty lists; `allo-usd dataset` says how many.
+unlike COCO), [-1, -1, -1, -1] when nothing is visible. scene_gt_info follows the toolkit's
+scripts/calc_gt_info.py (gt_info): px_count_all, bbox_obj and visib_fract = px_count_visib /
+px_count_all count the full silhouette on its 3W x 3H canvas, the part outside the image included
+(bbox_obj unclipped: it may start below 0 or end past the image); px_count_visib and bbox_visib
+inside the image. `px_count_valid` (silhouette pixels in the image with a non-zero depth) only where
+both the depth and the amodal pass were rendered. An anomalous image whose render records no pose
+(rendered before poses were recorded) has empty lists, and one recorded before the canvas was
+counted keeps its in-image values, labelled `silhouette` "image"; `allo-usd dataset` says how many
+of each.
 
 Depth: DEPTH_SCALE = 10 (mm per unit: 1 cm steps, up to 655.35 m). A 1920x1080 arm camera sees
 the station from metres to a few hundred metres; 1 mm steps (BOP's 1.0) would end at 65.5 m. The

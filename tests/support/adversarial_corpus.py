@@ -719,6 +719,8 @@ _CACHE_CASES = (
      CACHE_RECOMPUTED, "a cached record whose image is /etc/passwd"),
     ("cache_shape", _edit_cache(lambda c, e: e.pop("width")),
      CACHE_RECOMPUTED, "a cached record without a field (its width)"),
+    ("cache_bbox_obj", _edit_cache(lambda c, e: e["gt"][0]["info"].update(bbox_obj=[-200, 0, 5, 5], px_count_all=20)),
+     CACHE_RECOMPUTED, "a cached BOP bbox_obj off the toolkit's 3W x 3H canvas"),
     ("cache_fifo", _replace_cache(lambda p: os.mkfifo(p)), CACHE_RECOMPUTED, "records.json as a FIFO"),
     ("cache_zero", _replace_cache(lambda p: os.symlink("/dev/zero", p)), CACHE_RECOMPUTED,
      "records.json linked to /dev/zero"),
