@@ -23,7 +23,8 @@ largest distance between two vertices), computed with the toolkit's arithmetic, 
 the bit. Symmetries as misc.get_symmetry_transformations reads them: `symmetries_discrete` (row-major 4x4,
 t in mm) and `symmetries_continuous` ({axis, offset}). BOP (the BOP Challenge 2019's MSSD, Hodan et al.,
 ECCVW 2020, section 2.2) takes a model's global symmetries S as those that leave the model's surface
-where it was. Ours are decided geometrically: S is a symmetry when every one of 2,000 seeded, area-uniform
+where it was (a Hausdorff distance between the model and the model moved by S below a small threshold).
+Ours are decided geometrically: S is a symmetry when every vertex and each of 2,000 seeded, area-uniform
 samples of the surface, moved by S and by S's inverse, lies within SYMMETRY_TOLERANCE (1 %) of the
 diameter of the model's surface (exact point-to-triangle distances, trimesh.proximity). Candidates are
 rotations about the centre of the model's box: the 23 rotations of the cube's group (axis, face-diagonal
@@ -183,8 +184,9 @@ def symmetries(points_mm: np.ndarray, triangles: np.ndarray, diam: float) -> dic
 
     mesh = trimesh.Trimesh(points_mm, triangles, process=False)
     centre = (points_mm.min(axis=0) + points_mm.max(axis=0)) / 2.0
-    samples = _samples(points_mm, triangles)
-    dense = cKDTree(_samples(points_mm, triangles, 25 * SYMMETRY_SAMPLES))
+    samples = np.concatenate([points_mm, _samples(points_mm, triangles)])   # every vertex, and the surface
+    coarse = np.random.default_rng(SYMMETRY_SEED).choice(len(samples), size=min(300, len(samples)), replace=False)
+    dense = cKDTree(_samples(points_mm, triangles, 100 * SYMMETRY_SAMPLES))
     tol = SYMMETRY_TOLERANCE * diam
     spacing = 2.0 * float(dense.query(samples)[0].max())   # the coarse test's own resolution, with room
 
@@ -194,9 +196,11 @@ def symmetries(points_mm: np.ndarray, triangles: np.ndarray, diam: float) -> dic
     def keeps(r) -> bool:
         for q in (r, r.T):
             pts = moved(q)
-            if float(dense.query(pts[:200])[0].max()) > tol + spacing:   # a cheap rejection first
+            if float(dense.query(pts[coarse])[0].max()) > tol + spacing:   # a cheap rejection first
                 return False
-            if float(trimesh.proximity.closest_point(mesh, pts)[1].max()) > tol:
+            near = dense.query(pts)[0]   # a sample of the surface is on it: an upper bound of the distance
+            far = pts[near > tol]
+            if len(far) and float(trimesh.proximity.closest_point(mesh, far)[1].max()) > tol:
                 return False
         return True
 
