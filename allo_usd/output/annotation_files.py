@@ -52,11 +52,12 @@ from pathlib import Path
 
 import numpy as np
 
-from allo_usd.core.files import MAX_RECORD_BYTES, InputRefused, read_user_bytes, read_user_json, write_text_atomic
+from allo_usd.core.files import (MAX_RECORD_BYTES, InputRefused, read_user_bytes, read_user_json, write_bytes_atomic,
+                                 write_text_atomic)
 from allo_usd.core.errors import AlloError
 from allo_usd.core.labels import ANOMALY
 from allo_usd.core.scene_labels import SPLITS
-from allo_usd.output import bop, coco
+from allo_usd.output import bop, bop_models, coco
 from allo_usd.output.contact import read_pixels
 from allo_usd.output.dataset_files import COLUMNS, Refused, inside, place, source_file
 from allo_usd.output.writers import write_png
@@ -68,9 +69,11 @@ INSTANCES = "instances.json"
 RECORDS_VERSION = 4   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files;
                       # 4: scene_gt_info counted on the BOP toolkit's canvas (bop.gt_info)
 CACHE_BYTES = 16 << 20        # records.json's bound: this much, plus CACHE_ROW_BYTES per manifest row
+MAX_MODEL_BYTES = 256 << 20  # an earlier run's PLY read back when its asset is gone (assets: under 1 MB)
 CACHE_ROW_BYTES = 256 << 10   # an entry is ~1 KB; an anomaly's RLE a few KB
 
-BOP_FILE = re.compile(r"^(?:\d{6}(?:_\d{6})?\.png|scene_(?:camera|gt|gt_info)\.json)$")
+BOP_FILE = re.compile(r"^(?:\d{6}(?:_\d{6})?\.png|scene_(?:camera|gt|gt_info)\.json|obj_\d{6}\.ply|models_info\.json"
+                      r"|test_targets_bop19\.json)$")
 PASS_FILE = re.compile(r"^\d{6}_.+\.(?:exr|png)$")
 
 
@@ -81,12 +84,13 @@ def row_key(row: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def write_if_changed(path: Path, text: str) -> bool:
-    """Write `text` atomically unless the file already holds exactly it; returns whether it wrote.
+def write_if_changed(path: Path, text: str | bytes) -> bool:
+    """Write `text` (str as UTF-8, or bytes) atomically unless the file already holds exactly it;
+    returns whether it wrote.
     Only a regular file (no link) of exactly the new size is read to compare (through the read
     gate: a link to /dev/zero or a huge file in its place is replaced, never read). A directory
     in its place is refused in one line (AlloError) naming it."""
-    data = text.encode("utf-8")
+    data = text if isinstance(text, bytes) else text.encode("utf-8")
     try:
         st = os.lstat(path)
     except OSError:
@@ -101,7 +105,10 @@ def write_if_changed(path: Path, text: str) -> bool:
         except InputRefused:
             pass
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(path, text, encoding="utf-8", newline="\n")
+    if isinstance(text, bytes):
+        write_bytes_atomic(path, data)
+    else:
+        write_text_atomic(path, text, encoding="utf-8", newline="\n")
     return True
 
 
@@ -525,8 +532,10 @@ def _coco_files(out: Path, records: dict, categories: dict[str, int]) -> None:
         write_if_changed(out / "annotations" / f"instances_{split}.json", text)
 
 
-def _bop_files(out: Path, records: dict, models: dict[str, dict[str, int]]) -> set[str]:
-    """Write each chunk's scene_*.json, each category's models.json and camera.json; the set of BOP files."""
+def _bop_files(out: Path, records: dict, models: dict[str, dict[str, int]], infos: dict | None = None) -> set[str]:
+    """Write each chunk's scene_*.json, each category's models.json, camera.json, object models
+    (allo_usd.output.bop_models) and test targets; the set of BOP files. `infos`: {PLY sha256:
+    models_info entry} kept between runs (read from the cache, checked; updated here)."""
     chunks: dict[str, dict[str, dict]] = {}
     expected: set[str] = set()
     tables: dict[str, dict] = {}
@@ -550,10 +559,62 @@ def _bop_files(out: Path, records: dict, models: dict[str, dict[str, int]]) -> s
                 for g in rec["bop"]["gt"] if g["model"]}
         table = {str(i): seen[m] for m, i in sorted(ids.items(), key=lambda kv: kv[1])}
         write_if_changed(inside(out, f"bop/{category}/models.json"), json.dumps(table, indent=1, sort_keys=True) + "\n")
+        expected |= _model_files(out, category, table, {} if infos is None else infos)
+        test = {Path(folder).name: (files["scene_gt"], files["scene_gt_info"]) for folder, files in chunks.items()
+                if folder.startswith(f"bop/{category}/test/")}
+        targets = f"bop/{category}/{bop_models.TARGETS}"
+        expected.add(targets)
+        write_if_changed(inside(out, targets), bop_models.dumps_list(bop_models.test_targets(test)))
     for category, t in tables.items():
         write_if_changed(inside(out, f"bop/{category}/camera.json"),
                          json.dumps(bop.sensor(*t["camera"]), indent=1, sort_keys=True) + "\n")
     return expected
+
+
+def _model_files(out: Path, category: str, table: dict, infos: dict) -> set[str]:
+    """Write models/ and models_eval/ (obj_NNNNNN.ply, models_info.json) of a category's models.json
+    `table`; the files written. A model whose asset cannot be read keeps its earlier PLY (one warning)."""
+    from allo_usd.usd.model_mesh import read_model
+
+    files, info, failed = set(), {}, []
+    for obj_id, model in table.items():
+        name = bop_models.ply_name(int(obj_id))
+        old = out / "bop" / category / bop_models.MODELS / name
+        if not model.get("path"):   # a render recorded before models were: no asset to read
+            continue
+        try:
+            mesh = read_model(os.path.normpath(out / model["path"]), model.get("variant") or None)
+            data = bop_models.ply_bytes(mesh.points, mesh.triangles)
+        except (AlloError, OSError) as exc:
+            failed.append(f"{model.get('model_id')}: {str(exc)[:200]}")
+            try:   # the PLY an earlier run wrote stays, as it is
+                data = read_user_bytes(old, MAX_MODEL_BYTES, "BOP model") if old.is_file() else None
+            except InputRefused:
+                data = None
+            if data is None:
+                continue
+        key = bop_models.digest(data)
+        entry = infos.get(key)
+        if bop_models.info_problem(entry):
+            try:
+                entry = infos[key] = bop_models.model_info(data)
+            except (ValueError, IndexError, StopIteration):   # an earlier PLY that is not ours any more
+                continue
+        info[int(obj_id)] = entry
+        for folder in (bop_models.MODELS, bop_models.MODELS_EVAL):
+            rel = f"bop/{category}/{folder}/{name}"
+            files.add(rel)
+            write_if_changed(inside(out, rel), data)
+    if failed:
+        warnings.warn(f"{len(failed)} BOP model(s) of {category} could not be read from their assets "
+                      f"({'; '.join(failed[:2])}); fix: keep the authored tree beside the dataset and re-run", stacklevel=3)
+    text = "{\n" + ",\n".join(f'  "{k}": {json.dumps(v, sort_keys=True)}' for k, v in sorted(info.items())) \
+        + ("\n" if info else "") + "}"
+    for folder in (bop_models.MODELS, bop_models.MODELS_EVAL):
+        rel = f"bop/{category}/{folder}/{bop_models.MODELS_INFO}"
+        files.add(rel)
+        write_if_changed(inside(out, rel), text)
+    return files
 
 
 def _prune(out: Path, top: str, keep: set[str], pattern: re.Pattern) -> None:
@@ -589,7 +650,9 @@ def write_annotation_files(out: Path, rows, cache: dict | None = None, state: di
                 for g in r["bop"]["gt"] if g["model"]}
         models[category] = coco.category_ids(used, (cache.get("models") or {}).get(category))
     _coco_files(out, records, categories)
-    expected = _bop_files(out, records, models)
+    infos = cache.get("model_info") if isinstance(cache.get("model_info"), dict) else {}
+    infos = {k: v for k, v in infos.items() if not bop_models.info_problem(v)}
+    expected = _bop_files(out, records, models, infos)
     _prune(out, "bop", expected, BOP_FILE)
     listed = {r[k] for r in rows for k in PASS_COLUMNS if r.get(k)}
     for name in PASS_COLUMNS:
@@ -601,7 +664,8 @@ def write_annotation_files(out: Path, rows, cache: dict | None = None, state: di
          "images": tables}, indent=1, sort_keys=True) + "\n")
     try:
         write_if_changed(out / RECORDS, json.dumps({"version": RECORDS_VERSION, "categories": categories,
-                                                    "models": models, "records": entries, "state": state or {}},
+                                                    "models": models, "records": entries, "state": state or {},
+                                                    "model_info": infos},
                                                    sort_keys=True, separators=(",", ":")) + "\n")
     except AlloError as exc:   # the dataset is complete: only its next run's shortcut is lost
         warnings.warn(f"the dataset's cache is not kept: {exc}; the next run recomputes every record", stacklevel=2)
