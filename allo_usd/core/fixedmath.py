@@ -842,26 +842,31 @@ def _pow_exp2(p_h: np.ndarray, p_l: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 def _pow(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """x ** y, fdlibm's __ieee754_pow on arrays: every lane takes the general path, then fdlibm's early
-    returns replace it, applied from the last to the first so that the first that applies wins."""
+    returns replace it, applied from the last to the first so that the first that applies wins (each
+    only where some lane needs it: a colour curve's lanes need none)."""
     hx, lx = _words(x)
     hy, _ = _words(y)
     ix, iy = hx & 0x7FFFFFFF, hy & 0x7FFFFFFF
     ax, ay = np.abs(x), np.abs(y)
-    integral = (ay >= _TWO53) | (np.rint(y) == y)
-    odd = integral & (ay < _TWO53) & ((np.where(ay < _TWO53, np.rint(y), 0.0).astype(np.int64) & 1) == 1)
-    s = np.where((hx < 0) & odd, -1.0, 1.0)     # the sign of (negative) ** (odd integer)
-    # log2|x| = t1 + t2: the series in |x| - 1 when |y| > 2**31 (then x is within 2**-20 of 1), else the main branch
-    near = ax - 1.0
-    w = (near * near) * (0.5 - near * (0.3333333333333333333333 - near * 0.25))
-    near_h = _high_word(near)
-    u = _IVLN2_H * near_h
-    v = ((near - near_h) * _IVLN2_H + near * _IVLN2_L) - w * _IVLN2
-    n1 = _high_word(u + v)
-    n2 = v - (n1 - u)
+    neg_x, big_y = hx < 0, iy > 0x41E00000
+    if neg_x.any():
+        integral = (ay >= _TWO53) | (np.rint(y) == y)
+        odd = integral & (ay < _TWO53) & ((np.where(ay < _TWO53, np.rint(y), 0.0).astype(np.int64) & 1) == 1)
+        s = np.where(neg_x & odd, -1.0, 1.0)   # the sign of (negative) ** (odd integer)
+    else:
+        integral = odd = np.zeros(x.shape, dtype=bool)    # only read where x < 0
+        s = 1.0
+    # log2|x| = t1 + t2: the main branch, or the series in |x| - 1 when |y| > 2**31 (x within 2**-20 of 1)
     finite_x = np.isfinite(x) & (x != 0.0)
-    m1, m2 = _pow_log2(np.where(finite_x, ax, 1.0), np.where(finite_x, ix, 0x3FF00000))
-    big_y = iy > 0x41E00000
-    t1, t2 = np.where(big_y, n1, m1), np.where(big_y, n2, m2)
+    t1, t2 = _pow_log2(np.where(finite_x, ax, 1.0), np.where(finite_x, ix, 0x3FF00000))
+    if big_y.any():
+        near = ax - 1.0
+        w = (near * near) * (0.5 - near * (0.3333333333333333333333 - near * 0.25))
+        near_h = _high_word(near)
+        u = _IVLN2_H * near_h
+        v = ((near - near_h) * _IVLN2_H + near * _IVLN2_L) - w * _IVLN2
+        n1 = _high_word(u + v)
+        t1, t2 = np.where(big_y, n1, t1), np.where(big_y, v - (n1 - u), t2)
     # (y1 + y2) * (t1 + t2) = p_h + p_l
     y1 = _high_word(y)
     p_l = (y - y1) * t1 + y * t2
@@ -871,26 +876,37 @@ def _pow(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     under = (z < -1075.0) | ((z == -1075.0) & (p_l <= z - p_h))
     ok = np.isfinite(z) & ~over & ~under
     out = s * _pow_exp2(np.where(ok, p_h, 0.0), np.where(ok, p_l, 0.0), np.where(ok, z, 0.0))
-    out = np.where(over, s * np.inf, np.where(under, s * 0.0, out))
-    # |y| > 2**31 and x not within 2**-20 of 1, |y| > 2**64: overflow or underflow outright
-    huge_of = np.where(y < 0.0, s * np.inf, s * 0.0), np.where(y > 0.0, s * np.inf, s * 0.0)
-    out = np.where(big_y & (ix < 0x3FEFFFFF), huge_of[0], np.where(big_y & (ix > 0x3FF00000), huge_of[1], out))
-    huge_y = iy > 0x43F00000
-    out = np.where(huge_y & (ix <= 0x3FEFFFFF), np.where(y < 0.0, np.inf, 0.0),
-                   np.where(huge_y & (ix >= 0x3FF00000), np.where(y > 0.0, np.inf, 0.0), out))
-    out = np.where((hx < 0) & ~integral, np.nan, out)          # (x < 0) ** (not an integer)
-    # x = +-0, +-inf, +-1
-    zx = np.where(hy < 0, 1.0 / ax, ax)
-    zx = np.where(hx < 0, np.where((ix == 0x3FF00000) & ~integral, np.nan, np.where(odd, -zx, zx)), zx)
-    out = np.where((lx == 0) & ((ix == 0x7FF00000) | (ix == 0) | (ix == 0x3FF00000)), zx, out)
+
+    def put(mask, value):
+        nonlocal out
+        if mask.any():
+            out = np.where(mask, value() if callable(value) else value, out)
+
+    put(over, lambda: s * np.inf)
+    put(under, lambda: s * 0.0)
+    if big_y.any():   # |y| > 2**31 and x not within 2**-20 of 1, and |y| > 2**64: overflow or underflow outright
+        put(big_y & (ix < 0x3FEFFFFF), lambda: np.where(y < 0.0, s * np.inf, s * 0.0))
+        put(big_y & (ix > 0x3FF00000), lambda: np.where(y > 0.0, s * np.inf, s * 0.0))
+        huge_y = iy > 0x43F00000
+        put(huge_y & (ix <= 0x3FEFFFFF), lambda: np.where(y < 0.0, np.inf, 0.0))
+        put(huge_y & (ix >= 0x3FF00000), lambda: np.where(y > 0.0, np.inf, 0.0))
+    put(neg_x & ~integral, np.nan)                               # (x < 0) ** (not an integer)
+
+    def special_x():                                             # x = +-0, +-inf, +-1
+        zx = np.where(hy < 0, 1.0 / ax, ax)
+        return np.where(neg_x, np.where((ix == 0x3FF00000) & ~integral, np.nan, np.where(odd, -zx, zx)), zx)
+
+    put((lx == 0) & ((ix == 0x7FF00000) | (ix == 0) | (ix == 0x3FF00000)), special_x)
     # y = +-inf, +-1, 2, 0.5
-    inf_y = np.where(ax == 1.0, 1.0, np.where(ax > 1.0, np.where(y > 0.0, np.inf, 0.0),
-                                               np.where(y < 0.0, np.inf, 0.0)))
-    out = np.where(np.isinf(y), inf_y, out)
-    out = np.where(y == 1.0, x, np.where(y == -1.0, 1.0 / x, np.where(y == 2.0, x * x, out)))
-    out = np.where((y == 0.5) & (hx >= 0), np.sqrt(ax), out)
-    out = np.where(np.isnan(x) | np.isnan(y), np.nan, out)
-    return np.where((x == 1.0) | (y == 0.0), 1.0, out)
+    put(np.isinf(y), lambda: np.where(ax == 1.0, 1.0, np.where(ax > 1.0, np.where(y > 0.0, np.inf, 0.0),
+                                                                np.where(y < 0.0, np.inf, 0.0))))
+    put(y == 2.0, lambda: x * x)
+    put(y == -1.0, lambda: 1.0 / x)
+    put(y == 1.0, x)
+    put((y == 0.5) & ~neg_x, lambda: np.sqrt(ax))
+    put(np.isnan(x) | np.isnan(y), np.nan)
+    put((x == 1.0) | (y == 0.0), 1.0)
+    return out
 
 
 def _s_words(x: float) -> tuple[int, int]:
