@@ -816,6 +816,17 @@ def _pow_log2(ax: np.ndarray, ix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t1, t2
 
 
+def _pow_log2_near_one(t, high_word):
+    """log2(1 + t) = t1 + t2 for |t| < 2**-20 by the series to t**4, floats or arrays alike (`high_word`:
+    the matching SET_LOW_WORD(x, 0)); t is split so that ivln2_h * t_hi is exact (the change above)."""
+    w = (t * t) * (0.5 - t * (0.3333333333333333333333 - t * 0.25))
+    t_h = high_word(t)
+    u = _IVLN2_H * t_h
+    v = ((t - t_h) * _IVLN2_H + t * _IVLN2_L) - w * _IVLN2
+    t1 = high_word(u + v)
+    return t1, v - (t1 - u)
+
+
 def _pow_exp2(p_h: np.ndarray, p_l: np.ndarray, z: np.ndarray) -> np.ndarray:
     """2**(p_h + p_l) for z = p_h + p_l in (-1075, 1024] (fdlibm's tail)."""
     j = _words(z)[0]
@@ -860,13 +871,8 @@ def _pow(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     finite_x = np.isfinite(x) & (x != 0.0)
     t1, t2 = _pow_log2(np.where(finite_x, ax, 1.0), np.where(finite_x, ix, 0x3FF00000))
     if big_y.any():
-        near = ax - 1.0
-        w = (near * near) * (0.5 - near * (0.3333333333333333333333 - near * 0.25))
-        near_h = _high_word(near)
-        u = _IVLN2_H * near_h
-        v = ((near - near_h) * _IVLN2_H + near * _IVLN2_L) - w * _IVLN2
-        n1 = _high_word(u + v)
-        t1, t2 = np.where(big_y, n1, t1), np.where(big_y, v - (n1 - u), t2)
+        n1, n2 = _pow_log2_near_one(ax - 1.0, _high_word)
+        t1, t2 = np.where(big_y, n1, t1), np.where(big_y, n2, t2)
     # (y1 + y2) * (t1 + t2) = p_h + p_l
     y1 = _high_word(y)
     p_l = (y - y1) * t1 + y * t2
@@ -966,13 +972,7 @@ def _s_pow(x: float, y: float) -> float:
             return s * _INF if y < 0.0 else s * 0.0
         if ix > 0x3FF00000:
             return s * _INF if y > 0.0 else s * 0.0
-        t = ax - 1.0
-        w = (t * t) * (0.5 - t * (0.3333333333333333333333 - t * 0.25))
-        t_h = _s_high_word(t)
-        u = _IVLN2_H * t_h
-        v = ((t - t_h) * _IVLN2_H + t * _IVLN2_L) - w * _IVLN2
-        t1 = _s_high_word(u + v)
-        t2 = v - (t1 - u)
+        t1, t2 = _pow_log2_near_one(ax - 1.0, _s_high_word)
     else:
         n = 0
         if ix < 0x00100000:
