@@ -2,8 +2,9 @@
 
 What makes authored files the same on every x86-64 machine is that every value reaching a file is
 computed from correctly rounded operations in a fixed order. Three checks guard it here:
-- accuracy: each function is within 1 ulp (a few for tan, log2, power) of the C library's on random
-  inputs, and exact on the special values that matter (signed zeros, infinities, powers of two);
+- accuracy: each function is within 1 ulp (a few for tan) of the C library's on random inputs, within
+  the module docstring's bound of the true value (mpmath) on random and hard inputs, exact where the
+  result is a double (powers of two, integer powers), and C99's on zeros, infinities, NaN and poles;
 - independence from numpy's SIMD loops: the vectorised functions give, bit for bit, what a plain
   Python transcription of fdlibm gives on Python floats (CPython does each float operation on its
   own, so no SIMD width, FMA contraction, BLAS kernel or libm variant can enter), and the sums of
@@ -424,3 +425,221 @@ def test_norm_quiet_state_restores_numpy_error_state():
         assert np.isinf(fm.norm(big, axis=-1)).all()     # no FloatingPointError from the guarded sum
         assert np.geterr() == inside
     assert np.geterr() == before
+
+
+# --- against the true value: mpmath at 160 bits, on random and hard inputs ---------------------------
+
+mpmath = pytest.importorskip("mpmath")
+_MP_PREC = 160
+
+# the bound each function must meet, in ulp of the true value (the module docstring's table)
+ULP_BOUNDS = {"sin": 1.0, "cos": 1.0, "tan": 2.0, "arcsin": 1.0, "arccos": 1.0, "arctan": 1.0, "arctan2": 1.5,
+              "exp": 1.0, "log": 1.0, "log2": 1.0, "power": 1.0, "hypot": 2.0, "radians": 1.0, "degrees": 1.0}
+
+
+def _true(name: str):
+    mp = mpmath.mpf
+    return {"sin": lambda x: mpmath.sin(mp(x)), "cos": lambda x: mpmath.cos(mp(x)), "tan": lambda x: mpmath.tan(mp(x)),
+            "arcsin": lambda x: mpmath.asin(mp(x)), "arccos": lambda x: mpmath.acos(mp(x)),
+            "arctan": lambda x: mpmath.atan(mp(x)), "exp": lambda x: mpmath.exp(mp(x)),
+            "log": lambda x: mpmath.log(mp(x)), "log2": lambda x: mpmath.log(mp(x), 2),
+            "radians": lambda x: mp(x) * mpmath.pi / 180, "degrees": lambda x: mp(x) * 180 / mpmath.pi,
+            "arctan2": lambda y, x: mpmath.atan2(mp(y), mp(x)), "hypot": lambda x, y: mpmath.hypot(mp(x), mp(y)),
+            "power": lambda x, y: mpmath.power(mp(x), mp(y))}[name]
+
+
+def ulp_errors(got, truths) -> np.ndarray:
+    """|got - true| in units of the last place of the true value (2**-1074 below the normal range); a
+    result of inf counts as exact where the true value rounds to inf."""
+    one_ulp_max = mpmath.mpf(2) ** 1024 * (1 - mpmath.mpf(2) ** -54)
+    out = []
+    for g, t in zip(np.asarray(got, dtype=np.float64).reshape(-1).tolist(), truths):
+        if math.isinf(g) and abs(t) >= one_ulp_max and (g > 0) == (t > 0):
+            out.append(0.0)
+        elif not math.isfinite(g):
+            out.append(math.inf)
+        else:
+            e = mpmath.frexp(t)[1] if t != 0 else -1074
+            out.append(float(abs(mpmath.mpf(g) - t) / mpmath.mpf(2) ** max(e - 53, -1074)))
+    return np.array(out)
+
+
+def _around(values, k: int = 4) -> np.ndarray:
+    """Each value and its k neighbours on either side."""
+    v = np.asarray(values, dtype=np.float64)
+    return np.concatenate([v + i * np.spacing(np.abs(v)) for i in range(-k, k + 1)])
+
+
+def hard_inputs(name: str, rng: np.random.Generator, n: int) -> list:
+    """Random inputs over the domain and the hard ones: near multiples of pi/2 for sin, cos and tan, near
+    1 for the logarithms and power, the ends of each polynomial's interval, subnormals, huge and tiny
+    exponents, the colour curve's 2.4 and 1/2.4 over [0, 1]. Tuples for the two-argument functions."""
+    u = rng.uniform
+    pio2 = np.arange(-2000, 2001) * (fm.PI / 2)
+    if name in ("sin", "cos"):
+        return [u(-7, 7, n), u(-8e5, 8e5, n), u(-1e-4, 1e-4, n), _around(pio2[::7])]
+    if name == "tan":
+        return [u(-1.5, 1.5, n), u(-1e5, 1e5, n), _around(pio2[::7]), _around(np.arange(1, 400) * (fm.PI / 4))]
+    if name in ("arcsin", "arccos"):
+        edges = _around([0.5, -0.5, 0.975, -0.975, 1e-9, 1.0, -1.0])
+        return [u(-1, 1, n), 1 - u(0, 1e-9, n), -1 + u(0, 1e-9, n), edges[np.abs(edges) <= 1.0]]
+    if name == "arctan":
+        return [u(-3, 3, n), rng.standard_cauchy(n) * 1e3, _around([0.4375, 0.6875, 1.1875, 2.4375, 1e16])]
+    if name == "exp":
+        return [u(-745, 709.7, n), u(-1, 1, n), u(-745.1, -708, n), _around([709.78, -708.39, 0.5 * math.log(2)])]
+    if name in ("log", "log2"):
+        return [np.exp(u(-744, 709, n)), u(0.6, 1.5, n), 1 + u(-1e-6, 1e-6, n), u(0, 1, n) * 2.0 ** -1022,
+                _around([1.0, math.sqrt(0.5), math.sqrt(2), 2.0, 0.5, 2.0 ** -1022], 8), np.arange(1, 40) * 5e-324]
+    if name in ("radians", "degrees"):
+        return [u(-400, 400, n), rng.standard_cauchy(n) * 1e6]
+    g = rng.normal
+    if name == "arctan2":
+        return [(g(size=n), g(size=n)), (g(size=n) * 1e-300, g(size=n)), (g(size=n), g(size=n) * 1e-10),
+                (g(size=n) * 1e300, g(size=n) * 1e-300)]
+    if name == "hypot":
+        return [(g(size=n), g(size=n)), (g(size=n) * 1e300, g(size=n) * 1e300), (g(size=n) * 1e-300, g(size=n))]
+    c = u(0, 1, n)
+    return [(np.exp(u(-20, 20, n)), u(-30, 30, n)),                         # power: general
+            (np.exp(u(-700, 700, n)), u(-1.5, 1.5, n)),                     # any magnitude of x
+            (c, np.full(n, 2.4)), (c, np.full(n, 1 / 2.4)),                 # the colour curve
+            (1 + u(-1e-8, 1e-8, n), u(-1e10, 1e10, n)),                     # near 1, huge y
+            (1 + u(-9.5e-7, 9.5e-7, n), rng.choice([-1.0, 1.0], n) * 2.0 ** u(31, 40, n)),   # the |y| > 2**31 series
+            (1 + u(-2e-6, 2e-6, n), u(-3e8, 3e8, n)),
+            (u(0.5, 2, n), u(-1e-10, 1e-10, n)),                            # tiny y
+            (np.exp(u(-3, 3, n)), u(-1070, -700, n) / u(0.9, 1.1, n)),      # results near underflow, subnormal
+            (u(0, 1, n) * 2.0 ** -1022, u(0.5, 1.0, n)),                    # subnormal x
+            (-np.exp(u(-5, 5, n)), np.rint(u(-60, 60, n))),                 # negative x, integer y
+            (u(1.0, 2.0, n), np.full(n, 1023.5))]                           # results near overflow
+
+
+@pytest.mark.parametrize("name", sorted(ULP_BOUNDS))
+def test_within_the_stated_ulps_of_the_true_value(name):
+    """Each function's error against the true value (mpmath at 160 bits) stays within the bound the
+    module docstring states, on random and hard inputs."""
+    f, true, rng = getattr(fm, name), _true(name), np.random.default_rng(sorted(ULP_BOUNDS).index(name))
+    with mpmath.workprec(_MP_PREC):
+        for case in hard_inputs(name, rng, 800):
+            if isinstance(case, tuple):
+                a, b = case
+                err = ulp_errors(f(a, b), [true(p, q) for p, q in zip(a.tolist(), b.tolist())])
+                where = (a[int(np.argmax(err))], b[int(np.argmax(err))])
+            else:
+                err = ulp_errors(f(case), [true(p) for p in case.tolist()])
+                where = case[int(np.argmax(err))]
+            assert err.max() <= ULP_BOUNDS[name], (name, err.max(), where)
+
+
+def test_power_is_exact_where_the_result_is_a_double():
+    """Integer powers of integers that fit, every power of two, the square root and the reciprocal."""
+    assert [fm.power(2.0, float(k)) for k in range(-1074, 1024)] == [2.0 ** k for k in range(-1074, 1024)]
+    k = np.arange(-1074, 1024, dtype=np.float64)
+    assert fm.power(np.full(k.shape, 2.0), k).tolist() == [2.0 ** int(v) for v in k]
+    assert fm.power(np.full(k.shape, 0.5), -k).tolist() == [2.0 ** int(v) for v in k]
+    for base in (3, 5, 7, 10, -3, -10, 12345):
+        for e in range(0, 80):
+            if abs(base) ** e < 2 ** 53:
+                assert fm.power(float(base), float(e)) == float(base ** e), (base, e)
+    assert fm.power(2.0, 0.5) == math.sqrt(2.0) and fm.power(10.0, -1.0) == 0.1 and fm.power(-3.0, 3.0) == -27.0
+
+
+def _same(a: float, b: float) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or (a == b and math.copysign(1.0, a) == math.copysign(1.0, b))
+
+
+INF, NAN = math.inf, math.nan
+# C99 Annex F.10.4.4 (pow), case by case: (x, y, result)
+C99_POW = [
+    (0.0, -3.0, INF), (-0.0, -3.0, -INF), (0.0, -1.0, INF), (-0.0, -1.0, -INF),     # pole, y an odd integer < 0
+    (0.0, -INF, INF), (-0.0, -INF, INF),
+    (0.0, -2.0, INF), (-0.0, -2.0, INF), (0.0, -0.5, INF), (-0.0, -0.5, INF), (-0.0, -2.4, INF),   # y < 0 not odd
+    (0.0, 3.0, 0.0), (-0.0, 3.0, -0.0), (-0.0, 1.0, -0.0),                          # y an odd integer > 0
+    (0.0, 2.0, 0.0), (-0.0, 2.0, 0.0), (-0.0, 0.5, 0.0), (0.0, 2.4, 0.0), (-0.0, INF, 0.0),    # y > 0 not odd
+    (-1.0, INF, 1.0), (-1.0, -INF, 1.0),
+    (1.0, NAN, 1.0), (1.0, INF, 1.0), (1.0, -INF, 1.0), (1.0, 2.4, 1.0), (1.0, -1e300, 1.0),
+    (NAN, 0.0, 1.0), (NAN, -0.0, 1.0), (INF, 0.0, 1.0), (-INF, -0.0, 1.0), (0.0, 0.0, 1.0), (-2.0, 0.0, 1.0),
+    (-2.0, 0.5, NAN), (-2.0, 2.4, NAN), (-0.5, -1.5, NAN), (-1.0, 0.5, NAN),        # finite x < 0, non-integer y
+    (0.5, -INF, INF), (-0.5, -INF, INF), (2.0, -INF, 0.0), (-2.0, -INF, 0.0),
+    (0.5, INF, 0.0), (-0.5, INF, 0.0), (2.0, INF, INF), (-2.0, INF, INF),
+    (-INF, -3.0, -0.0), (-INF, -1.0, -0.0), (-INF, -2.0, 0.0), (-INF, -0.5, 0.0),
+    (-INF, 3.0, -INF), (-INF, 1.0, -INF), (-INF, 2.0, INF), (-INF, 0.5, INF), (-INF, 2.4, INF),
+    (INF, -0.5, 0.0), (INF, -3.0, 0.0), (INF, 0.5, INF), (INF, 3.0, INF),
+    (NAN, 2.0, NAN), (NAN, 1.0, NAN), (NAN, -1.0, NAN), (NAN, 0.5, NAN), (NAN, INF, NAN),   # NaN stays NaN
+    (0.0, NAN, NAN), (2.0, NAN, NAN), (-1.0, NAN, NAN), (INF, NAN, NAN),
+    (-2.0, 3.0, -8.0), (-2.0, -3.0, -0.125), (-2.0, 2.0, 4.0), (-0.5, 2.0 ** 60, 0.0),     # x < 0, integer y
+    (-1.0, 2.0 ** 53 + 2, 1.0), (-1.0, 2.0 ** 52 + 1, -1.0),
+    (10.0, 400.0, INF), (-10.0, 401.0, -INF), (10.0, -400.0, 0.0), (-10.0, -401.0, -0.0),  # overflow, underflow
+    (1e-300, 1e300, 0.0), (1e300, 1e300, INF), (1 + 2.0 ** -52, 2.0 ** 70, INF), (1 - 2.0 ** -53, -(2.0 ** 70), INF),
+    (5e-324, 1.0, 5e-324), (5e-324, 2.0, 0.0), (2.0, -1074.0, 5e-324), (2.0, 1023.0, 2.0 ** 1023), (2.0, 1024.0, INF),
+]
+
+
+@pytest.mark.parametrize("x, y, want", C99_POW)
+def test_power_special_values_are_c99s(x, y, want):
+    assert _same(fm.power(x, y), want), (x, y, fm.power(x, y))
+    assert _same(float(fm.power(np.array([x]), np.array([y]))[0]), want)
+    got = fm.power(np.array([[x, x]]), y)
+    assert got.shape == (1, 2) and _same(float(got[0, 1]), want)
+
+
+# C99 Annex F for the other functions: (function, arguments, result); the scalar and the array path alike
+C99_OTHERS = [
+    ("sin", (0.0,), 0.0), ("sin", (-0.0,), -0.0), ("sin", (INF,), NAN), ("sin", (-INF,), NAN), ("sin", (NAN,), NAN),
+    ("cos", (0.0,), 1.0), ("cos", (-0.0,), 1.0), ("cos", (INF,), NAN), ("cos", (-INF,), NAN), ("cos", (NAN,), NAN),
+    ("tan", (0.0,), 0.0), ("tan", (-0.0,), -0.0), ("tan", (INF,), NAN), ("tan", (-INF,), NAN), ("tan", (NAN,), NAN),
+    ("arcsin", (0.0,), 0.0), ("arcsin", (-0.0,), -0.0), ("arcsin", (1.5,), NAN), ("arcsin", (-INF,), NAN),
+    ("arcsin", (NAN,), NAN), ("arcsin", (1.0,), math.pi / 2), ("arcsin", (-1.0,), -math.pi / 2),
+    ("arccos", (1.0,), 0.0), ("arccos", (-1.0,), math.pi), ("arccos", (1.0000000000000002,), NAN),
+    ("arccos", (INF,), NAN), ("arccos", (NAN,), NAN), ("arccos", (0.0,), math.pi / 2), ("arccos", (-0.0,), math.pi / 2),
+    ("arctan", (0.0,), 0.0), ("arctan", (-0.0,), -0.0), ("arctan", (INF,), math.pi / 2), ("arctan", (-INF,), -math.pi / 2),
+    ("arctan", (NAN,), NAN),
+    ("exp", (0.0,), 1.0), ("exp", (-0.0,), 1.0), ("exp", (INF,), INF), ("exp", (-INF,), 0.0), ("exp", (NAN,), NAN),
+    ("exp", (710.0,), INF), ("exp", (-746.0,), 0.0), ("exp", (-745.0,), 5e-324),
+    ("log", (0.0,), -INF), ("log", (-0.0,), -INF), ("log", (1.0,), 0.0), ("log", (-1.0,), NAN), ("log", (-INF,), NAN),
+    ("log", (INF,), INF), ("log", (NAN,), NAN), ("log", (-5e-324,), NAN),
+    ("log2", (0.0,), -INF), ("log2", (-0.0,), -INF), ("log2", (1.0,), 0.0), ("log2", (-1.0,), NAN),
+    ("log2", (-INF,), NAN), ("log2", (INF,), INF), ("log2", (NAN,), NAN), ("log2", (5e-324,), -1074.0),
+    ("hypot", (INF, NAN), INF), ("hypot", (NAN, -INF), INF), ("hypot", (-INF, 1.0), INF), ("hypot", (NAN, 1.0), NAN),
+    ("hypot", (1.0, NAN), NAN), ("hypot", (NAN, 0.0), NAN), ("hypot", (-3.0, 0.0), 3.0), ("hypot", (-0.0, -0.0), 0.0),
+    ("hypot", (1e308, 1e308), math.hypot(1e308, 1e308)), ("hypot", (5e-324, 5e-324), 5e-324),
+    ("radians", (-0.0,), -0.0), ("radians", (INF,), INF), ("radians", (NAN,), NAN),
+    ("degrees", (-0.0,), -0.0), ("degrees", (-INF,), -INF), ("degrees", (NAN,), NAN),
+] + [("arctan2", (a, b), math.atan2(a, b)) for a in (0.0, -0.0, 1.0, -1.0, INF, -INF, NAN)
+     for b in (0.0, -0.0, 1.0, -1.0, INF, -INF, NAN)]
+
+
+@pytest.mark.parametrize("name, args, want", C99_OTHERS)
+def test_special_values_are_c99s(name, args, want):
+    f = getattr(fm, name)
+    assert _same(f(*args), want), (name, args, f(*args))
+    assert _same(float(f(*(np.array([a]) for a in args))[0]), want)
+
+
+def test_power_scalar_gets_the_bits_of_the_vectorised_path():
+    """Python floats take fdlibm's code as written; arrays its masked form: the same bits everywhere,
+    special values included, and the array path broadcasts."""
+    rng = np.random.default_rng(39)
+    n = 1000
+    special = np.array([0.0, -0.0, 1.0, -1.0, INF, -INF, NAN, 0.5, -0.5, 2.0, -2.0, 3.0, -3.0, 2.4, 1 / 2.4, 5e-324,
+                        -5e-324, 1e308, -1e308, 2.0 ** 31, 2.0 ** 31 + 1, 2.0 ** 53, 2.0 ** 53 + 2, 2.0 ** 64, 1e20,
+                        1 - 2.0 ** -53, 1 + 2.0 ** -52, 1 - 2.0 ** -21, 1 + 2.0 ** -20, 1023.0, -1075.0, 1024.0])
+    x = np.concatenate([np.exp(rng.uniform(-745, 709, n)) * rng.choice([-1.0, 1.0], n), rng.uniform(0, 1, n),
+                        1 + rng.uniform(-1e-6, 1e-6, n), np.repeat(special, len(special))])
+    y = np.concatenate([rng.uniform(-40, 40, n), np.full(n, 2.4), rng.uniform(-3e9, 3e9, n), np.tile(special, len(special))])
+    y[:n // 3] = np.rint(y[:n // 3])
+    vectorised = fm.power(x, y)
+    assert _bits([fm.power(float(a), float(b)) for a, b in zip(x, y)]) == _bits(vectorised)
+    assert _bits([fm.power(a, b) for a, b in zip(x, y)]) == _bits(vectorised)      # numpy float64 scalars
+    assert _bits(fm.power(x[:, None], y[:50])) == _bits(fm.power(np.repeat(x, 50), np.tile(y[:50], len(x))))
+    assert type(fm.power(2.0, 3.0)) is float and type(fm.power(2, 3)) is float and fm.power(2, 3) == 8.0
+
+
+def test_power_of_srgb_codes_matches_the_correctly_rounded_curve():
+    """The importer's and the writers' sRGB decode, ((c + 0.055) / 1.055) ** 2.4, on every 8-bit and
+    16-bit code: within 1 ulp of the true value (the old exp(y log x) was up to 20 ulp off)."""
+    c = np.arange(0, 65536) / 65535.0
+    c = c[c > 0.04045]
+    base = (c + 0.055) / 1.055
+    got = fm.power(base, 2.4)
+    with mpmath.workprec(_MP_PREC):
+        err = ulp_errors(got[::16], [mpmath.power(mpmath.mpf(float(b)), mpmath.mpf(2.4)) for b in base[::16]])
+    assert err.max() <= 1.0
