@@ -501,3 +501,23 @@ def test_exp2_is_the_same_on_glibcs_fma_and_plain_paths():
     if " fma " in Path("/proc/cpuinfo").read_text():   # the check means something: glibc's pow did change
         assert runs[0][1] != runs[1][1]
     assert runs[0][0] == hashlib.sha256(fm.exp2(np.random.default_rng(7).uniform(-20, 20, 200_000)).tobytes()).hexdigest()
+
+
+def test_inv4_inverts_affine_and_general_matrices_without_lapack():
+    """inv4: an affine matrix's inverse keeps the exact last row 0 0 0 1, a rigid one's rotation is the
+    transpose to rounding; any invertible 4x4 agrees with LAPACK's inverse to rounding; a singular one
+    gives non-finite entries instead of an exception."""
+    rng = np.random.default_rng(20300105)
+    for _ in range(300):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        rigid = np.eye(4)
+        rigid[:3, :3], rigid[:3, 3] = q, rng.uniform(-500, 500, 3)
+        inv = fm.inv4(rigid)
+        assert inv[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+        assert np.abs(inv[:3, :3] - q.T).max() < 1e-14
+        assert np.abs(inv[:3, 3] + q.T @ rigid[:3, 3]).max() < 1e-11
+        general = rng.normal(size=(4, 4))
+        assert np.allclose(fm.inv4(general), np.linalg.inv(general), rtol=1e-9, atol=1e-9)
+    assert not np.isfinite(fm.inv4(np.zeros((4, 4)))).all()
+    with pytest.raises(ValueError, match="4x4"):
+        fm.inv4(np.eye(3))
