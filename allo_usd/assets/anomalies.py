@@ -103,7 +103,7 @@ def _waves(rng: np.random.Generator, pts: np.ndarray, n: int, lam_min: float, la
         w = (np.abs(fm.sin(arg)) - 2 / np.pi) * 2 * sign
     else:
         w = fm.sin(arg)
-    return (w * amp).sum(axis=1) / np.sqrt((amp ** 2).sum() * 2)
+    return (w * amp).sum(axis=1) / np.sqrt((amp * amp).sum() * 2)
 
 
 def _fold(pts: np.ndarray, origin, normal_angle: float, radius: float, angle: float) -> np.ndarray:
@@ -392,7 +392,7 @@ def _cable_harness(variant: str) -> tuple[Parts, Mats]:
     length = _arc_length(centre)
     tang, nrm, bin_ = path_frames(centre)
     s = np.linspace(0.0, length, len(centre))
-    fan = 1.0 + 2.5 * np.clip(1 - s / 0.08, 0, 1) ** 2 + 2.5 * np.clip(1 - (length - s) / 0.08, 0, 1) ** 2
+    fan = 1.0 + 2.5 * np.square(np.clip(1 - s / 0.08, 0, 1)) + 2.5 * np.square(np.clip(1 - (length - s) / 0.08, 0, 1))
     rho = 1.2 * r * fan
     twist = 2 * np.pi * s / 0.09
     wires, tips = [], []
@@ -488,7 +488,7 @@ def _finger_radius(s: np.ndarray, r0: float, r1: float) -> np.ndarray:
     total = s[-1]
     r = r0 + (r1 - r0) * s / total
     tip = s > total - r1
-    r[tip] = np.sqrt(np.clip(r1 ** 2 - (s[tip] - (total - r1)) ** 2, 0.0, None))
+    r[tip] = np.sqrt(np.clip(r1 * r1 - np.square(s[tip] - (total - r1)), 0.0, None))
     return r
 
 
@@ -738,7 +738,7 @@ def _crew_bag(variant: str) -> tuple[Parts, Mats]:
     g = np.sign(q) * fm.power(np.abs(q), 2 / e - 1) / (np.array([a, b, c]) / 2)
     nrm = g / fm.norm(g, axis=1, keepdims=True)
     wr = 0.006 * _waves(rng, p, 14, 0.05, 0.2, ridged=True) + 0.004 * _waves(rng, p, 6, 0.2, 0.5)
-    sag = np.column_stack([np.zeros(len(p)), np.zeros(len(p)), -0.012 * fm.cos(np.pi * p[:, 0] / a) ** 2])
+    sag = np.column_stack([np.zeros(len(p)), np.zeros(len(p)), -0.012 * np.square(fm.cos(np.pi * p[:, 0] / a))])
     parts = [_with(body, p + wr[:, None] * nrm + sag * (p[:, 2:3] > 0))]
     # Zipper all round the lid, just below the top edge.
     t = np.linspace(0.0, 2 * np.pi, 120, endpoint=False)

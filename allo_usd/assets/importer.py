@@ -463,7 +463,7 @@ def kept_triangles(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     finite = inside & np.isfinite(tri).all(axis=(1, 2))
     tri = np.where(finite[:, None, None], tri, 0.0)
     area2 = fm.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    edge2 = (np.diff(tri[:, [0, 1, 2, 0]], axis=1) ** 2).sum(axis=2).max(axis=1)
+    edge2 = np.square(np.diff(tri[:, [0, 1, 2, 0]], axis=1)).sum(axis=2).max(axis=1)
     return finite & (area2 > 2.0 * _DEGENERATE_REL_AREA * edge2) & (area2 > 0.0)
 
 

@@ -260,7 +260,7 @@ def dish(name: str, radius: float, depth: float, material: str, segments: int = 
     t = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
     x = rr[:, None] * fm.cos(t)[None, :]
     y = rr[:, None] * fm.sin(t)[None, :]
-    z = depth * (rr[:, None] / radius) ** 2 * np.ones_like(x)
+    z = depth * np.square(rr[:, None] / radius) * np.ones_like(x)
     front = np.stack([x, y, z], -1).reshape(-1, 3)
     back = front - np.array([0.0, 0.0, thickness])
     i, j = np.meshgrid(np.arange(rings), np.arange(segments), indexing="ij")

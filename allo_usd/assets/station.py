@@ -104,7 +104,7 @@ def _periodic_noise(rng: np.random.Generator, n: int, fmin: float, fmax: float,
     """Band-limited noise on an n x n torus (tiles seamlessly), zero mean, unit std."""
     fy = np.fft.fftfreq(n)[:, None] * n
     fx = np.fft.rfftfreq(n)[None, :] * n
-    f = np.sqrt((fx * aniso) ** 2 + fy ** 2)
+    f = np.sqrt(np.square(fx * aniso) + np.square(fy))
     band = ((f >= fmin) & (f <= fmax)).astype(np.float64) / np.maximum(f, 1.0)
     spec = (rng.normal(size=band.shape) + 1j * rng.normal(size=band.shape)) * band
     field = np.fft.irfft2(spec, s=(n, n))
@@ -176,7 +176,7 @@ def _mli_texture(rng: np.random.Generator, color, n: int = 512) -> np.ndarray:
     level = rng.uniform(0.55, 1.1, seeds)                 # each facet catches the light differently
     tilt = rng.normal(size=(seeds, 2)) * 0.22             # and shades across itself
     shade = level[idx] + fm.dot(rel, tilt[idx])
-    crease = fm.exp(-((f2 - f1) * (n / gv) / 1.6) ** 2)   # thin lines where facets meet
+    crease = fm.exp(-np.square((f2 - f1) * (n / gv) / 1.6))   # thin lines where facets meet
     shade = shade * (1.0 - 0.35 * crease) + 0.12 * crease * (level[idx] > 0.9)
     wave = _periodic_noise(rng, n, 2, 8)
     fine = _periodic_noise(rng, n, 40, 120)

@@ -34,7 +34,11 @@ masks), so no SIMD width, FMA contraction or library choice can change a result:
   give C99's Annex F results for every function here (test_special_values_are_c99s,
   test_power_special_values_are_c99s: power(x, +-0) = 1 and power(1, y) = 1 even for NaN, a negative x
   to an integer power, (-1) ** +-inf = 1, power(+-0, y < 0) = inf with the sign of an odd y);
-- `norm`, `dot`, `matmul`, `det3`, `cross`: sums of products written out in a fixed order;
+- `exp2` (the film exposure from its EV): exact for an integral x (ldexp), else fdlibm's exp kernel on
+  x ln 2 carried as a double-double; within 0.83 ulp measured against 60-digit decimal values (the
+  exp2 tests in tests/core/test_fixedmath.py), C99's special values;
+- `norm`, `dot`, `matmul`, `det3`, `cross`: sums of products written out in a fixed order; `inv4`: a 4x4
+  inverse by cofactors in a fixed order (no LAPACK), an affine matrix's last row kept exactly 0, 0, 0, 1;
 - `radians`, `degrees`: one multiplication, as numpy and math do it.
 Scalars in give Python floats out; arrays give float64 arrays. Range reduction for sin and cos is
 fdlibm's Cody-Waite with pi/2 in 33-bit pieces (to 85, 118 or 151 bits as cancellation needs), valid for |x| < 2**19 * pi/2 (823,550
@@ -1058,3 +1062,76 @@ def power(x, y):
     with np.errstate(all="ignore"):
         out = _pow(xb.reshape(-1), yb.reshape(-1))
     return _out(out.reshape(shape), sx and sy)
+
+
+# --- 2**x (the film exposure from its EV) -----------------------------------------------------------
+
+_SPLIT = 134217729.0                                  # 2**27 + 1: Veltkamp's split of a double into two halves
+_LN2_LO2 = 2.3190468138462996e-17                    # ln 2 - _LN2 (the double's own error)
+_LN2_H, _LN2_L = 6.931471824645996094e-01, -1.904654323148236e-09   # _LN2 = _LN2_H + _LN2_L, 26 bits each
+
+
+def exp2(x):
+    """2 ** x. An integral x is exact (ldexp: 2**-1074 .. 2**1023, 0 below, inf above); otherwise
+    x = k + f with k = rint(x) and |f| <= 1/2 (exact), and 2**f = exp(f ln 2) by fdlibm's exp kernel
+    on f ln 2 carried as a double-double (Dekker's product of f and ln 2's two doubles, no FMA), so
+    the one rounding error is the kernel's: within 1 ulp (tests/core/test_fixedmath.py checks against
+    2**x to 60 digits). C99's special values: exp2(nan) = nan, exp2(inf) = inf, exp2(-inf) = 0."""
+    a, scalar = _arr(x)
+    x1 = np.atleast_1d(a)
+    with np.errstate(all="ignore"):
+        finite = np.abs(x1) <= 1100.0                  # beyond, 2**x is 0 or inf (and nan stays nan)
+        k = np.where(finite, np.rint(x1), 0.0)
+        f = np.where(finite, x1 - k, 0.0)              # exact (Sterbenz), |f| <= 1/2
+        # f ln 2 = hi + e exactly up to ln 2's own error: hi = f * _LN2 rounded, e its remainder (Dekker)
+        hi = f * _LN2
+        c = _SPLIT * f
+        f_h = c - (c - f)
+        f_l = f - f_h
+        e = ((f_h * _LN2_H - hi) + f_h * _LN2_L + f_l * _LN2_H) + f_l * _LN2_L
+        lo = -(e + f * _LN2_LO2)                       # fdlibm's convention: the argument is hi - lo
+        r = hi - lo
+        t = r * r
+        cc = r - t * (_P[0] + t * (_P[1] + t * (_P[2] + t * (_P[3] + t * _P[4]))))
+        y = 1.0 - ((lo - (r * cc) / (2.0 - cc)) - hi)
+        y = np.where(f == 0.0, 1.0, y)
+        out = np.ldexp(y, k.astype(np.int64))         # one rounding, only for a subnormal result
+        out = np.where(finite, out, np.where(np.isnan(x1), np.nan, np.where(x1 > 0.0, np.inf, 0.0)))
+    return _out(out.reshape(a.shape), scalar)
+
+
+# --- the inverse of a 4x4 transform (no LAPACK) ----------------------------------------------------
+
+def inv4(m) -> np.ndarray:
+    """Inverse of a 4x4 matrix by cofactors, each entry a fixed sum of products divided by the
+    determinant (no LAPACK, whose LU kernels round by CPU). An affine matrix (last row exactly
+    0, 0, 0, 1: every transform USD composes) inverts as [[A^-1, -A^-1 t], [0, 0, 0, 1]], its last row
+    exact; a singular one gives inf or nan entries (numpy's inv raises instead)."""
+    a = np.asarray(m, dtype=np.float64)
+    if a.shape != (4, 4):
+        raise ValueError(f"inv4: a 4x4 matrix, got shape {a.shape}")
+    (a00, a01, a02, a03), (a10, a11, a12, a13), (a20, a21, a22, a23), (a30, a31, a32, a33) = a.tolist()
+    with np.errstate(all="ignore"):
+        if (a30, a31, a32, a33) == (0.0, 0.0, 0.0, 1.0):
+            c00, c01, c02 = a11 * a22 - a12 * a21, a12 * a20 - a10 * a22, a10 * a21 - a11 * a20
+            c10, c11, c12 = a02 * a21 - a01 * a22, a00 * a22 - a02 * a20, a01 * a20 - a00 * a21
+            c20, c21, c22 = a01 * a12 - a02 * a11, a02 * a10 - a00 * a12, a00 * a11 - a01 * a10
+            det = np.float64(a00 * c00 + a01 * c01 + a02 * c02)
+            r = [[c00 / det, c10 / det, c20 / det], [c01 / det, c11 / det, c21 / det],
+                 [c02 / det, c12 / det, c22 / det]]
+            t = [-(r[i][0] * a03 + r[i][1] * a13 + r[i][2] * a23) for i in range(3)]
+            return np.array([r[0] + [t[0]], r[1] + [t[1]], r[2] + [t[2]], [0.0, 0.0, 0.0, 1.0]])
+        s0, s1, s2 = a00 * a11 - a10 * a01, a00 * a12 - a10 * a02, a00 * a13 - a10 * a03
+        s3, s4, s5 = a01 * a12 - a11 * a02, a01 * a13 - a11 * a03, a02 * a13 - a12 * a03
+        c5, c4, c3 = a22 * a33 - a32 * a23, a21 * a33 - a31 * a23, a21 * a32 - a31 * a22
+        c2, c1, c0 = a20 * a33 - a30 * a23, a20 * a32 - a30 * a22, a20 * a31 - a30 * a21
+        det = np.float64(s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0)
+        adj = [[a11 * c5 - a12 * c4 + a13 * c3, -a01 * c5 + a02 * c4 - a03 * c3,
+                a31 * s5 - a32 * s4 + a33 * s3, -a21 * s5 + a22 * s4 - a23 * s3],
+               [-a10 * c5 + a12 * c2 - a13 * c1, a00 * c5 - a02 * c2 + a03 * c1,
+                -a30 * s5 + a32 * s2 - a33 * s1, a20 * s5 - a22 * s2 + a23 * s1],
+               [a10 * c4 - a11 * c2 + a13 * c0, -a00 * c4 + a01 * c2 - a03 * c0,
+                a30 * s4 - a31 * s2 + a33 * s0, -a20 * s4 + a21 * s2 - a23 * s0],
+               [-a10 * c3 + a11 * c1 - a12 * c0, a00 * c3 - a01 * c1 + a02 * c0,
+                -a30 * s3 + a31 * s1 - a32 * s0, a20 * s3 - a21 * s1 + a22 * s0]]
+        return np.array(adj, dtype=np.float64) / det

@@ -59,7 +59,7 @@ class SensorParams:
                             "1..24 bits, a seed in 0..2^63-1")
 
     def gain(self) -> float:
-        return (2 ** self.bits - 1) / self.full_well_e if self.gain_dn_per_e is None else self.gain_dn_per_e
+        return ((1 << self.bits) - 1) / self.full_well_e if self.gain_dn_per_e is None else self.gain_dn_per_e
 
     def resolved(self, film_exposure: float) -> SensorParams:
         """These parameters with the derived ones (gain, exposure time) made concrete."""
@@ -69,8 +69,8 @@ class SensorParams:
 
 
 def photons_per_radiance(p: SensorParams, exposure_time_s: float) -> float:
-    area = p.pixel_pitch_m ** 2
-    return (math.pi / 4.0) * p.transmission * area * exposure_time_s / (p.f_number ** 2 * PHOTON_ENERGY_J)
+    area = p.pixel_pitch_m * p.pixel_pitch_m   # squares as products: `** 2` is glibc's pow, which rounds by CPU
+    return (math.pi / 4.0) * p.transmission * area * exposure_time_s / (p.f_number * p.f_number * PHOTON_ENERGY_J)
 
 
 def exposure_time_for(p: SensorParams, film_exposure: float) -> float:

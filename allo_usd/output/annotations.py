@@ -74,6 +74,7 @@ import math
 
 import numpy as np
 
+from allo_usd.core import fixedmath as fm
 from allo_usd.core.labels import ANOMALY
 from allo_usd.output.record import RenderRecord
 from allo_usd.sky.model import BODIES
@@ -93,13 +94,13 @@ def intrinsics(width: int, height: int, focal_length_mm: float, sensor_width_mm:
 
 
 def world_to_cam_opencv(cam_to_world_usd: np.ndarray) -> np.ndarray:
-    return USD_TO_OPENCV @ np.linalg.inv(np.asarray(cam_to_world_usd, dtype=np.float64))
+    return fm.matmul(USD_TO_OPENCV, fm.inv4(cam_to_world_usd))   # fixed order, no BLAS or LAPACK: the same bits everywhere
 
 
 def project(k: np.ndarray, world_to_cam: np.ndarray, points) -> tuple[np.ndarray, np.ndarray]:
     """((N, 2) pixel coordinates, (N,) depth z) of world points through K and an OpenCV pose."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    cam = p @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+    cam = fm.apply(world_to_cam[:3, :3], p) + world_to_cam[:3, 3]
     uv = cam[:, :2] / cam[:, 2:3] * np.diag(k)[:2] + k[:2, 2]
     return uv, cam[:, 2]
 
@@ -125,22 +126,32 @@ def disc_in_view(direction, angular_radius: float, half_x: float, half_y: float,
     centre's direction, off the axis with a principal point offset)? Exact: the angle from the
     centre to the pyramid (0 inside; else to the nearest face or edge ray) is below the radius."""
     d = np.asarray(direction, dtype=np.float64)
-    d = d / np.linalg.norm(d)
+    d = d / fm.norm(d)
     cx, cy = centre
     corners = np.array([[cx - half_x, cy - half_y, 1.0], [cx + half_x, cy - half_y, 1.0],
                         [cx + half_x, cy + half_y, 1.0], [cx - half_x, cy + half_y, 1.0]])
-    corners /= np.linalg.norm(corners, axis=1, keepdims=True)
+    corners /= fm.norm(corners, axis=1, keepdims=True)
     normals = np.cross(corners, np.roll(corners, -1, axis=0))     # inward: the optical axis is on their + side
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    if np.all(normals @ d >= 0.0):
+    normals /= fm.norm(normals, axis=1, keepdims=True)
+    if np.all(fm.dot(normals, d) >= 0.0):
         return True
-    best = float(np.arccos(np.clip(corners @ d, -1.0, 1.0)).min())  # edge rays
+    best = float(fm.arccos(np.clip(fm.dot(corners, d), -1.0, 1.0)).min())  # edge rays
     for i, n in enumerate(normals):
-        p = d - (n @ d) * n                                        # nearest direction on this face's plane
-        a, b = np.linalg.lstsq(np.stack([corners[i], corners[(i + 1) % 4]], axis=1), p, rcond=None)[0]
+        nd = fm.dot(n, d)
+        p = d - nd * n                                             # nearest direction on this face's plane
+        a, b = _in_plane(corners[i], corners[(i + 1) % 4], p)
         if a >= 0.0 and b >= 0.0:                                  # within the face's wedge
-            best = min(best, math.asin(min(1.0, abs(float(n @ d)))))
+            best = min(best, fm.arcsin(min(1.0, abs(nd))))
     return best < angular_radius
+
+
+def _in_plane(e1: np.ndarray, e2: np.ndarray, p: np.ndarray) -> tuple[float, float]:
+    """(a, b) with p = a e1 + b e2 (p in the plane of e1 and e2, not parallel): the least-squares
+    solution by the normal equations and Cramer's rule, in fixed order (no LAPACK)."""
+    g11, g12, g22 = fm.dot(e1, e1), fm.dot(e1, e2), fm.dot(e2, e2)
+    h1, h2 = fm.dot(e1, p), fm.dot(e2, p)
+    det = g11 * g22 - g12 * g12
+    return (h1 * g22 - g12 * h2) / det, (g11 * h2 - g12 * h1) / det
 
 
 def camera_record(desc, width: int, height: int) -> dict:
@@ -162,16 +173,16 @@ def split_rotation_scale(a) -> tuple[np.ndarray, np.ndarray]:
     split: then R is its polar rotation (the nearest rotation, from the SVD) and s = diag(R^T a), the
     best per-axis scale for it."""
     a = np.asarray(a, dtype=np.float64)
-    s = np.linalg.norm(a, axis=0)
-    if np.linalg.det(a) < 0:
+    s = fm.norm(a, axis=0)
+    if fm.det3(a) < 0:
         s[2] = -s[2]
     r = a / s
-    if np.abs(r.T @ r - np.eye(3)).max() > 1e-9:
-        u, _, vt = np.linalg.svd(a)
-        if np.linalg.det(u @ vt) < 0:
+    if np.abs(fm.matmul(r.T, r) - np.eye(3)).max() > 1e-9:
+        u, _, vt = np.linalg.svd(a)   # a sheared transform only (none is authored here): LAPACK's bits
+        if fm.det3(fm.matmul(u, vt)) < 0:
             u[:, 2] = -u[:, 2]
-        r = u @ vt
-        s = np.diag(r.T @ a).copy()
+        r = fm.matmul(u, vt)
+        s = np.diag(fm.matmul(r.T, a)).copy()
     return r, s
 
 
@@ -193,11 +204,11 @@ def _model_frame(desc, meshes, recorded=None) -> tuple[np.ndarray, np.ndarray]:
     anomaly object's own (`recorded`: the reader's local_to_world of the object's prim, the frame of
     the file it references); without it (a description made another way) its first mesh's."""
     m = np.asarray(recorded if recorded is not None else meshes[0].matrix, dtype=np.float64)
-    inv = np.linalg.inv(m)
+    inv = fm.inv4(m)
     pts = []
     for mesh in meshes:
-        to_model = inv @ mesh.matrix
-        pts.append(np.asarray(mesh.points, dtype=np.float64) @ to_model[:3, :3].T + to_model[:3, 3])
+        to_model = fm.matmul(inv, mesh.matrix)
+        pts.append(fm.apply(to_model[:3, :3], np.asarray(mesh.points, dtype=np.float64)) + to_model[:3, 3])
     return m, np.concatenate(pts)
 
 
@@ -332,13 +343,13 @@ def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray,
     if recorded is None and planned:
         recorded = (desc.meta.get("anomaly_model") or {}).get("local_to_world")
     m2w, model_pts = _model_frame(desc, meshes, recorded)
-    m2c = w2c @ m2w
+    m2c = fm.matmul(w2c, m2w)
     rot, scale = split_rotation_scale(m2c[:3, :3])
     lo, hi = model_pts.min(axis=0), model_pts.max(axis=0)
     corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[n][2]]
                         for i in (0, 1) for j in (0, 1) for n in (0, 1)])
-    box_cam = corners @ m2c[:3, :3].T + m2c[:3, 3]
-    centre = m2c[:3, :3] @ ((lo + hi) / 2.0) + m2c[:3, 3]
+    box_cam = fm.apply(m2c[:3, :3], corners) + m2c[:3, 3]
+    centre = fm.matmul(m2c[:3, :3], (lo + hi) / 2.0) + m2c[:3, 3]
     instance = object_paths(desc).index(path) + 1
     if ids is not None:
         visible = ids == instance
@@ -360,7 +371,7 @@ def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray,
     model_path = labels.get("reference") if labels else (desc.meta.get("anomaly_model") or {}).get("reference")
     vmask = visible.astype(np.uint8)
     return {"path": path, "instance_id": instance, "bbox_xyxy_px": mask_bbox(vmask, 1), "pixels": pixels,
-            "center_cam_opencv_m": centre.tolist(), "distance_m": float(np.linalg.norm(centre)),
+            "center_cam_opencv_m": centre.tolist(), "distance_m": fm.norm(centre),
             "center_px": _pixels(k, centre)[0], "mask_centroid_px": mask_centroid(vmask, 1),
             "depth_offset_m": None if offset is None else float(offset),
             "model": {"asset": asset, "variant": variant, "model_id": model_id(asset, variant), "path": model_path},
@@ -397,10 +408,10 @@ def bodies_in_view(desc, k: np.ndarray, w2c: np.ndarray, width: int, height: int
             out[body] = None
             continue
         m = meshes[0].matrix
-        centre = w2c[:3, :3] @ m[:3, 3] + w2c[:3, 3]
-        radius = float(np.linalg.norm(m[:3, :3], axis=0).mean())   # a unit sphere scaled by the body's radius
-        dist = float(np.linalg.norm(centre))
-        out[body] = True if dist <= radius else disc_in_view(centre, math.asin(radius / dist), half_x, half_y,
+        centre = fm.matmul(w2c[:3, :3], m[:3, 3]) + w2c[:3, 3]
+        radius = float(fm.norm(m[:3, :3], axis=0).mean())   # a unit sphere scaled by the body's radius
+        dist = fm.norm(centre)
+        out[body] = True if dist <= radius else disc_in_view(centre, fm.arcsin(radius / dist), half_x, half_y,
                                                                          view_centre)
     return out
 

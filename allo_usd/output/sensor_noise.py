@@ -64,5 +64,5 @@ def apply_sensor_noise(image: np.ndarray, film_exposure: float, seed: int,
     electrons = rng.poisson(mean).astype(np.float64) + dsnu + rng.normal(0.0, p.read_noise_e, mean.shape)
     electrons = np.clip(electrons, 0.0, p.full_well_e)
     k = p.gain_dn_per_e
-    dn = np.clip(np.rint(electrons * k), 0, 2 ** p.bits - 1)
+    dn = np.clip(np.rint(electrons * k), 0, (1 << p.bits) - 1)
     return (dn / (k * p.full_well_e)).astype(np.float32)

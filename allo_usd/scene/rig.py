@@ -167,7 +167,7 @@ def base_poses(fixtures: np.ndarray, station_points: np.ndarray, station_triangl
         raise PlacementError(f"only {len(order)} of {len(pos)} candidate camera positions see station "
                              f"structure {VIEW_RANGE_M[0]:.0f}-{VIEW_RANGE_M[1]:.0f} m away; 50 are needed: give "
                              "more fixture points (rig.fixtures_from_mesh(count=...)) or check the model's units")
-    dist = np.sqrt(((pos[:, None, :] - pos[None, :, :]) ** 2).sum(axis=2))
+    dist = np.sqrt(np.square(pos[:, None, :] - pos[None, :, :]).sum(axis=2))
     ahead = np.array([-views[i][1][:, 2] if views[i] is not None else np.zeros(3) for i in range(len(pos))])
     turned = fm.matmul(ahead, ahead.T) < fm.cos(fm.radians(TEST_TURN_DEG))   # views at least TEST_TURN_DEG apart
 

@@ -76,7 +76,7 @@ def disc_overlap_area(r1, r2, d) -> np.ndarray:
         half1 = fm.arctan2(four_k, (dd - a2) * (dd + a2) + a1 * a1)  # chord half-angle at centre 1
         half2 = fm.arctan2(four_k, (dd - a1) * (dd + a1) + a2 * a2)
         area = 0.5 * a1 * a1 * _x_minus_sin_x(2.0 * half1) + 0.5 * a2 * a2 * _x_minus_sin_x(2.0 * half2)
-        out[lens] = np.minimum(area, np.pi * rs[lens] ** 2)
+        out[lens] = np.minimum(area, np.pi * np.square(rs[lens]))
     return out
 
 
@@ -172,7 +172,7 @@ def body_lit_fraction(sun, body, body_radius_m: float, occluder, occluder_radius
         if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
             raise SkyInputError(f"points must be a positive integer, got {points!r}")
         q = _sunflower(int(points))
-        up = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", q, q), 0.0))
+        up = np.sqrt(np.maximum(1.0 - fm.dot(q, q), 0.0))
         offset = (q[None, :, 0, None] * e1[:, None, :] + q[None, :, 1, None] * e2[:, None, :]
                   + up[None, :, None] * s_hat[:, None, :])
         p = body[cand, None, :] + r_b * offset  # (m, points, 3) on the sunlit face
@@ -200,7 +200,8 @@ def _sun_minus_discs_area(r0: float, discs: list[tuple[float, float, float]]) ->
 
     def inside(k: int, x: float, y: float) -> bool:
         cx, cy, r = circles[k]
-        return (x - cx) ** 2 + (y - cy) ** 2 < r * r
+        dx, dy = x - cx, y - cy
+        return dx * dx + dy * dy < r * r
 
     def on_boundary(i: int, x: float, y: float) -> bool:
         if i != 0 and not inside(0, x, y):

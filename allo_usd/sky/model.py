@@ -181,7 +181,7 @@ def _bodies_seen(geometric: dict, velocity: dict, observer_velocity, icrf_to_sta
         out[f"geometric_direction.{body}"] = fm.dot(icrf_to_station, g[:, None, :]) / fm.norm(
             g, axis=1)[:, None]
         out[f"angular_radius_rad.{body}"] = fm.arcsin(BODY_RADIUS_M[body] / d)
-    out["sun_irradiance_w_m2"] = SOLAR_CONSTANT * (AU_M / out["distance_m.sun"]) ** 2
+    out["sun_irradiance_w_m2"] = SOLAR_CONSTANT * np.square(AU_M / out["distance_m.sun"])
     return out, retarded
 
 
@@ -200,7 +200,7 @@ def _sunlight_on_bodies(sun: tuple, centres: dict, icrf_to_station) -> dict[str,
         d = fm.norm(to_sun, axis=1)
         out[f"body_sun_distance_m.{body}"] = d
         out[f"body_sun_direction.{body}"] = fm.dot(icrf_to_station, apparent[:, None, :])
-        out[f"body_sun_irradiance_w_m2.{body}"] = SOLAR_CONSTANT * (AU_M / d) ** 2
+        out[f"body_sun_irradiance_w_m2.{body}"] = SOLAR_CONSTANT * np.square(AU_M / d)
         out[f"body_lit_fraction.{body}"] = body_lit_fraction(
             p_b + to_sun, p_b, BODY_RADIUS_M[body], p_b + to_occ, BODY_RADIUS_M[occ])
     return out

@@ -1,5 +1,6 @@
 """UsdGeom's implicit shapes (Cube, Sphere, Cylinder, Cone, Capsule, Plane) as polygon meshes, at a
-stated accuracy. Pure numpy: no pxr, no bpy.
+stated accuracy. Pure numpy: no pxr, no bpy; angles through allo_usd.core.fixedmath, so the vertices
+(which reach the annotations' model boxes) are the same on every machine.
 
 Accuracy: every vertex lies on the true surface, and every point of the tessellated surface lies
 within CHORD_TOLERANCE x the shape's radius of it (0.1 %). A circle of radius r cut into n equal
@@ -27,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from allo_usd.core import fixedmath as fm
+
 CHORD_TOLERANCE = 1e-3   # distance of the tessellated surface from the true one, relative to the radius
 
 
@@ -45,14 +48,14 @@ def _even(x: float) -> int:
 
 def circle_segments(eps: float = CHORD_TOLERANCE) -> int:
     """Segments around a circle so that every chord stays within eps x the radius of the arc (even)."""
-    return _even(math.pi / math.acos(1.0 - eps))
+    return _even(math.pi / fm.arccos(1.0 - eps))
 
 
 def sphere_segments(eps: float = CHORD_TOLERANCE) -> int:
     """Segments around a sphere (and half as many rings from pole to pole) so that every face stays
     within eps x the radius of the sphere: sqrt(2) x circle_segments' count (even, a multiple of 4
     so that the capsule's hemispheres have whole rings)."""
-    n = math.ceil(math.sqrt(2.0) * math.pi / math.acos(1.0 - eps) - 1e-9)
+    n = math.ceil(math.sqrt(2.0) * math.pi / fm.arccos(1.0 - eps) - 1e-9)
     return n + (-n) % 4
 
 
@@ -83,7 +86,7 @@ class _Builder:
         """A surface of revolution about Z through the (radius, z) profile, bottom to top; a radius of 0
         (first or last only) is a pole, one vertex."""
         phi = 2.0 * math.pi * np.arange(n) / n
-        cos, sin = np.cos(phi), np.sin(phi)
+        cos, sin = fm.cos(phi), fm.sin(phi)
         rings = []
         for r, z in profile:
             if r == 0.0:
@@ -105,7 +108,7 @@ class _Builder:
     def disc(self, r: float, z: float, n: int, up: bool) -> None:
         """A flat n-gon of radius r at height z, facing +Z (up) or -Z, on vertices of its own."""
         phi = 2.0 * math.pi * np.arange(n) / n
-        start = self.add_points(np.column_stack([r * np.cos(phi), r * np.sin(phi), np.full(n, z)]))
+        start = self.add_points(np.column_stack([r * fm.cos(phi), r * fm.sin(phi), np.full(n, z)]))
         order = list(range(start, start + n))
         self.faces.append(order if up else order[::-1])
 
@@ -131,7 +134,7 @@ def sphere(radius: float, eps: float = CHORD_TOLERANCE) -> Shape:
     n = sphere_segments(eps)
     m = n // 2
     theta = math.pi * np.arange(m + 1) / m
-    profile = [(0.0, -radius)] + [(radius * math.sin(t), -radius * math.cos(t)) for t in theta[1:-1]] + [(0.0, radius)]
+    profile = [(0.0, -radius)] + [(radius * fm.sin(t), -radius * fm.cos(t)) for t in theta[1:-1]] + [(0.0, radius)]
     b = _Builder()
     b.revolve(profile, n)
     return b.shape(smooth=True)
@@ -164,8 +167,8 @@ def capsule(radius: float, height: float, axis: str = "Z", eps: float = CHORD_TO
     q = n // 4                     # rings from a pole to the equator, as on the sphere
     h = height / 2.0
     theta = (math.pi / 2.0) * np.arange(q + 1) / q          # 0 at the pole .. pi/2 at the equator
-    bottom = [(radius * math.sin(t), -h - radius * math.cos(t)) for t in theta]
-    top = [(radius * math.sin(t), h + radius * math.cos(t)) for t in theta[::-1]]
+    bottom = [(radius * fm.sin(t), -h - radius * fm.cos(t)) for t in theta]
+    top = [(radius * fm.sin(t), h + radius * fm.cos(t)) for t in theta[::-1]]
     bottom[0], top[-1] = (0.0, bottom[0][1]), (0.0, top[-1][1])
     b = _Builder()
     b.revolve(bottom + top, n)

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from allo_usd.core import fixedmath as fm
 from allo_usd.core.errors import LayerError
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
@@ -214,13 +215,13 @@ def describe(layer: str | Path) -> dict:
 
     def lamp(prim) -> dict:
         m = world_matrix(cache, prim)
-        d = m[:3, 2] / np.linalg.norm(m[:3, 2])  # light travels along -Z: +Z points at the Sun
+        d = m[:3, 2] / fm.norm(m[:3, 2])  # light travels along -Z: +Z points at the Sun
         link = UsdLux.LightAPI(prim).GetLightLinkCollectionAPI()
         normalize = bool(_attr(prim, "inputs:normalize", False))
         intensity, angle = _attr(prim, "inputs:intensity", 50000.0), _attr(prim, "inputs:angle", 0.53)
         exposure = _attr(prim, "inputs:exposure", 0.0)
         return {"path": str(prim.GetPath()), "intensity": intensity, "exposure": exposure, "normalize": normalize,
-                "irradiance": sun_irradiance(intensity * 2.0 ** exposure, angle, normalize),
+                "irradiance": sun_irradiance(intensity * fm.exp2(exposure), angle, normalize),
                 "irradiance_unoccluded": _attr(prim, A.IRRADIANCE_UNOCCLUDED.name),
                 "lit_fraction": _attr(prim, A.LIT_FRACTION.name),
                 "eclipse_state": _attr(prim, A.ECLIPSE_STATE.name), "eclipse_body": _attr(prim, A.ECLIPSE_BODY.name),

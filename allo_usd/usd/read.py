@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from allo_usd.core import fixedmath as fm
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout, schema
 from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
@@ -204,7 +205,7 @@ def camera_exposure(prim) -> tuple[float, dict]:
         value = attr.Get() if attr else None
         values[attr.GetName()] = _number(fallback if value is None else value, f"{where}.{attr.GetName()}", lo=lo, hi=hi)
     ev, f_stop, time, iso, responsivity = values.values()
-    scale = time * iso / 100.0 / f_stop ** 2 * 2.0 ** ev * responsivity
+    scale = time * iso / 100.0 / (f_stop * f_stop) * fm.exp2(ev) * responsivity   # as the author's film_exposure
     if not RENDER_EXPOSURE[0] < scale <= RENDER_EXPOSURE[1]:
         raise LayerError(f"{where}: the exposure attributes ({', '.join(f'{k}={v:g}' for k, v in values.items())}) give "
                          f"a linear exposure scale of {scale:.3g}, outside {_range(*RENDER_EXPOSURE)} (exclusive of 0); "

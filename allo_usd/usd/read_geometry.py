@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 
+from allo_usd.core import fixedmath as fm
 from allo_usd.core.errors import LayerError
 from allo_usd.core.labels import ANOMALY, CLASS_IDS, STATION
 from allo_usd.usd import attributes as A
@@ -393,8 +394,8 @@ def _check_instance_matrix(m: np.ndarray, where: str) -> None:
     if not (np.allclose(m[3], (0, 0, 0, 1)) and s[-1] >= MIN_SCALE and s[0] <= MAX_SCALE):
         raise LayerError(f"{where} has a degenerate transform (its axes scale by {s[-1]:.3g}..{s[0]:.3g}, outside "
                          f"{MIN_SCALE:g}..{MAX_SCALE:g}); fix the point instancer's scales")
-    if not np.linalg.norm(m[:3, 3]) <= MAX_POSITION_M:
-        raise LayerError(f"{where} is {np.linalg.norm(m[:3, 3]):.3g} m from the station, beyond the "
+    if not fm.norm(m[:3, 3]) <= MAX_POSITION_M:
+        raise LayerError(f"{where} is {fm.norm(m[:3, 3]):.3g} m from the station, beyond the "
                          f"{MAX_POSITION_M:g} m allowed; fix the point instancer's positions")
 
 
@@ -461,7 +462,7 @@ def _expand_instancer(prim, cache, materials: dict, checked: set, purposes: froz
         m_i = np.array(xforms[int(i)], dtype=np.float64).T
         for desc, rel, below in templates[k]:
             where = f"{path}/{protos[k].GetName()}_{int(i)}{rel}"
-            m = base @ m_i @ below
+            m = fm.matmul(fm.matmul(base, m_i), below)   # fixed order (no BLAS): the annotations read it
             _check_instance_matrix(m, where)
             out.append(dataclasses.replace(desc, path=where, matrix=m))
     return out

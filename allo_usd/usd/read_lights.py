@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from allo_usd.core import fixedmath as fm
 from allo_usd.core.errors import LayerError
 from allo_usd.usd.description import (AreaDesc, CylinderDesc, DomeDesc, LampRays, LightLink, SpotDesc,
                                       SunDesc)
@@ -39,7 +40,7 @@ def _intensity(light, where) -> float:
     intensity = _number(light.GetIntensityAttr().Get(), f"{where}.inputs:intensity", lo=0.0, hi=MAX_LIGHT)
     exposure_attr = light.GetExposureAttr().Get()
     exposure = _number(0.0 if exposure_attr is None else exposure_attr, f"{where}.inputs:exposure", lo=-64, hi=64)
-    value = intensity * 2.0 ** exposure
+    value = intensity * fm.exp2(exposure)
     if value > MAX_LIGHT:
         raise LayerError(f"{where}.inputs:exposure = {exposure:g} makes the intensity {value:.3g}, above the "
                          f"{MAX_LIGHT:g} allowed; fix the layer")

@@ -21,6 +21,7 @@ from pathlib import Path
 from allo_usd.sky import eclipse as sky_eclipse
 from allo_usd.core.sensor import SensorParams
 from allo_usd.core.errors import AlloError, LayerError
+from allo_usd.core import fixedmath as fm
 from allo_usd.core.camera_model import CLIP_M, DEFAULT_CAMERA, LENS_MM, MAX_SHIFT, SENSOR_MM
 from allo_usd.core.geometry import check_finite, rotation_towards
 from allo_usd.scene.spec import AnomalySpec, BodySpec, CameraSpec, SceneSpec, SunSpec
@@ -143,7 +144,7 @@ def body_light(body: BodySpec, sun: SunSpec) -> SunSpec:
 
 def film_exposure(exposure: float) -> float:
     """The linear film exposure a reader gets back from the camera's authored `exposure` (EV as a float)."""
-    return 2.0 ** camera_ev(exposure)
+    return fm.exp2(camera_ev(exposure))   # not 2.0 ** EV: glibc's pow rounds by CPU (FMA or not)
 
 
 def sun_prim(path: str, sun: SunSpec, **kw) -> Prim:

@@ -168,3 +168,23 @@ def test_a_sun_token_outside_the_schema_is_refused_before_writing(tiny_base, tmp
     with pytest.raises(LayerError, match="eclipse_body 'Earth' is not one of none, moon, earth"):
         write_scene_layer(bad, tmp_path / "bad.usda", tiny_base)
     assert not (tmp_path / "bad.usda").exists()
+
+
+def test_film_exposure_and_sensor_squares_are_machine_free():
+    """The film exposure is fixedmath.exp2 of the authored EV (exact for a power of two; not Python's
+    `2.0 ** EV`, glibc's pow, which rounds by CPU), and the sensor's squares are products (not `** 2`)."""
+    from allo_usd.core import fixedmath as fm
+    from allo_usd.core.sensor import PHOTON_ENERGY_J, SensorParams, photons_per_radiance
+    from allo_usd.usd.base_stage import camera_ev
+    from allo_usd.usd.scene_layer import film_exposure
+
+    for k in range(-20, 21):
+        assert film_exposure(2.0 ** k) == 2.0 ** k
+    rng = np.random.default_rng(20300104)
+    for e in rng.uniform(0.01, 100.0, 500):
+        assert film_exposure(float(e)) == fm.exp2(camera_ev(float(e)))
+    for pitch, f in zip(rng.uniform(1e-6, 2e-5, 5000), rng.uniform(1.0, 22.0, 5000)):
+        p = SensorParams(pixel_pitch_m=float(pitch), f_number=float(f))
+        want = (np.pi / 4.0) * p.transmission * (p.pixel_pitch_m * p.pixel_pitch_m) * 1.0 / (
+            p.f_number * p.f_number * PHOTON_ENERGY_J)
+        assert photons_per_radiance(p, 1.0) == want
