@@ -66,8 +66,9 @@ from allo_usd.output.record import RenderRecord
 
 RECORDS = "annotations/records.json"
 INSTANCES = "instances.json"
-RECORDS_VERSION = 4   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files;
+RECORDS_VERSION = 5   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files;
                       # 4: scene_gt_info counted on the BOP toolkit's canvas (bop.gt_info)
+                      # 5: every anomaly object's full silhouette in the image (mask/, px_count_valid)
 CACHE_BYTES = 16 << 20        # records.json's bound: this much, plus CACHE_ROW_BYTES per manifest row
 MAX_MODEL_BYTES = 256 << 20  # an earlier run's PLY read back when its asset is gone (assets: under 1 MB)
 CACHE_ROW_BYTES = 256 << 10   # an entry is ~1 KB; an anomaly's RLE a few KB
@@ -182,6 +183,19 @@ def _object_pixels(obj: dict, shape) -> np.ndarray:
     return np.zeros(shape, dtype=bool)
 
 
+def _recorded_silhouette(obj: dict, shape, visible: np.ndarray) -> np.ndarray | None:
+    """An anomaly object's full silhouette in the image from its recorded `amodal_segmentation` (COCO
+    RLE), None when it records none or one that cannot be its silhouette: not `amodal_pixels` pixels,
+    or missing a visible pixel (the render JSON is not trusted)."""
+    seg, count = obj.get("amodal_segmentation"), obj.get("amodal_pixels")
+    if not isinstance(seg, dict) or isinstance(count, bool) or not isinstance(count, int):
+        return None
+    full = _object_pixels({"segmentation": seg}, shape)
+    if int(np.count_nonzero(full)) != count or (visible & ~full).any():
+        return None
+    return full
+
+
 def _link(src: Path, dst: Path) -> None:
 
     place(src, dst, link=True)
@@ -244,9 +258,10 @@ def compute_record(out: Path, row: dict, mask: np.ndarray | None = None, meta: R
                                   else (model["asset"], model["variant"]))
                 rec["coco"].append({"asset": asset, "variant": variant, **instance}
                                    | ({"path": obj["path"]} if len(objects) > 1 else {}))
-            full = amodal if planned else None
+            full, source = (amodal, "amodal_pass") if planned and amodal is not None else (
+                _recorded_silhouette(obj, shape, mine), str(obj.get("visib_source") or "raycast"))
             rec["bop"]["gt"].append({"pose": bop.pose(obj), "model": model,
-                                     "info": bop.gt_info(mine, full, obj, depth_units)})
+                                     "info": bop.gt_info(mine, full, obj, depth_units, source)})
             files.append(f"{folder}/mask_visib/{index:06d}_{gt_id:06d}.png")
             truth = out / row["mask"] if row.get("mask") else None
             if len(objects) == 1 and truth is not None and truth.is_file():   # the same 0/255 pixels
@@ -361,7 +376,8 @@ def entry_of(rec: dict, bind: str) -> dict:
     return {"bind": bind, "width": rec["width"], "height": rec["height"], "coco": rec["coco"],
             "camera": rec["bop"]["camera"], "gt": rec["bop"]["gt"],
             "objects": None if rec["instances"] is None else rec["instances"]["objects"],
-            "depth": any("/depth/" in f for f in files), "amodal": any("/mask/" in f for f in files)}
+            "depth": any("/depth/" in f for f in files),
+            "amodal": [int(f.rsplit("_", 1)[1][:6]) for f in files if "/mask/" in f]}
 
 
 def record_of(row: dict, entry: dict, key: str | None = None) -> dict:
@@ -372,7 +388,7 @@ def record_of(row: dict, entry: dict, key: str | None = None) -> dict:
     files = [f"{folder}/rgb/{index:06d}.png"] + ([f"{folder}/depth/{index:06d}.png"] if entry["depth"] else [])
     for gt_id in range(len(entry["gt"])):
         files.append(f"{folder}/mask_visib/{index:06d}_{gt_id:06d}.png")
-        if gt_id == 0 and entry["amodal"]:
+        if gt_id in entry["amodal"]:
             files.append(f"{folder}/mask/{index:06d}_{gt_id:06d}.png")
     instances = None if entry["objects"] is None else {"instance": row["instance"], "objects": entry["objects"]}
     return {"key": key or row_key(row), "category": row["category"], "name": row["name"], "index": index,
@@ -392,12 +408,14 @@ def entry_problem(entry, row: dict) -> str | None:
     width, height = entry["width"], entry["height"]
     if not (_whole_number(width, 1, 65535) and _whole_number(height, 1, 65535)):
         return "its image size is not two whole numbers of pixels"
-    if not (isinstance(entry["depth"], bool) and isinstance(entry["amodal"], bool)) \
+    amodal = entry["amodal"]
+    if not (isinstance(entry["depth"], bool) and isinstance(amodal, list)
+            and all(_whole_number(i) for i in amodal) and amodal == sorted(set(amodal))) \
             or (entry["depth"] and not row.get("depth")):
-        return "its depth and amodal flags are not flags of its row"
+        return "its depth flag and full-silhouette objects are not those of its row"
     gt, items = entry["gt"], entry["coco"]
     if not isinstance(gt, list) or not isinstance(items, list) \
-            or (row["kind"] == "anomaly") != bool(gt) or len(items) > len(gt) or (entry["amodal"] and not gt):
+            or (row["kind"] == "anomaly") != bool(gt) or len(items) > len(gt) or (amodal and amodal[-1] >= len(gt)):
         return "its objects do not agree with its row's kind"
     if entry["camera"] is not None and _camera_problem(entry["camera"]):
         return "its camera is not a BOP camera entry"

@@ -46,7 +46,9 @@ check each):
   "amodal_pass", the `amodal` pass's STEM_amodal.png (a render of the anomaly alone: exact,
   blender.amodal); else "raycast", the anomaly's triangles alone ray-cast through every pixel centre
   (scene.raycast, embree; the same pixel rule as the mask, so it agrees with the pass to a pixel or
-  two on an edge), joined with the visible pixels so that visib_fract <= 1.
+  two on an edge), joined with the visible pixels so that visib_fract <= 1. `amodal_segmentation`:
+  those pixels as COCO compressed RLE (as `segmentation`; null when none), so the dataset writes BOP's
+  full-silhouette mask/ and px_count_valid for every anomaly object, pass or not.
 - Truncation, as the BOP toolkit counts it (scripts/calc_gt_info.py renders the object on a canvas of
   3W x 3H with the principal point shifted by (W, H)): `amodal_pixels_canvas` and
   `bbox_amodal_canvas_xyxy_px` are the full silhouette's count and inclusive box on that canvas, pixel
@@ -379,6 +381,7 @@ def anomaly_record(desc, mask: np.ndarray, k: np.ndarray, w2c: np.ndarray,
                      "model_units": "m", "model_scale": scale.tolist()},
             "bbox3d_cam_m": box_cam.tolist(), "bbox3d_px": _pixels(k, box_cam),
             "bbox_amodal_xyxy_px": mask_bbox(full.astype(np.uint8), 1), "amodal_pixels": amodal_pixels,
+            "amodal_segmentation": visible_rle(full) if amodal_pixels else None,
             "bbox_amodal_canvas_xyxy_px": canvas_box, "amodal_pixels_canvas": canvas_pixels,
             "visib_fract": pixels / canvas_pixels if canvas_pixels else 0.0, "visib_source": source,
             "segmentation": visible_rle(visible) if pixels else None}

@@ -8,7 +8,7 @@ and BlenderProc's BopWriter write them, so 6D-pose code reads the anomaly's pose
     bop/CATEGORY/SPLIT/CHUNK/scene_gt_info.json per image: [{bbox_obj, bbox_visib, px_count_all, ...}]
     bop/CATEGORY/SPLIT/CHUNK/rgb/IMID.png       the dataset image (a hard link)
     bop/CATEGORY/SPLIT/CHUNK/depth/IMID.png     uint16 depth, depth * depth_scale = mm (depth pass only)
-    bop/CATEGORY/SPLIT/CHUNK/mask/IMID_GTID.png        full silhouette, 0/255 (amodal pass only)
+    bop/CATEGORY/SPLIT/CHUNK/mask/IMID_GTID.png        full silhouette in the image, 0/255 (the amodal pass, else the render JSON's amodal_segmentation)
     bop/CATEGORY/SPLIT/CHUNK/mask_visib/IMID_GTID.png  visible part, 0/255 (from the class mask)
 
 Why this shape: BOP's DATASET/SPLIT/SCENE/ layout, the category as the dataset. A BOP "scene" is
@@ -26,8 +26,8 @@ unlike COCO), [-1, -1, -1, -1] when nothing is visible. scene_gt_info follows th
 scripts/calc_gt_info.py (gt_info): px_count_all, bbox_obj and visib_fract = px_count_visib /
 px_count_all count the full silhouette on its 3W x 3H canvas, the part outside the image included
 (bbox_obj unclipped: it may start below 0 or end past the image); px_count_visib and bbox_visib
-inside the image. `px_count_valid` (silhouette pixels in the image with a non-zero depth) only where
-both the depth and the amodal pass were rendered. An anomalous image whose render records no pose
+inside the image. `px_count_valid` (silhouette pixels in the image with a non-zero depth) wherever the
+depth pass was rendered (the silhouette in the image: the amodal pass's, else the recorded RLE's). An anomalous image whose render records no pose
 (rendered before poses were recorded) has empty lists, and one recorded before the canvas was
 counted keeps its in-image values, labelled `silhouette` "image"; `allo-usd dataset` says how many
 of each.
@@ -150,7 +150,8 @@ def _canvas(anomaly: dict, shape, at_least: int) -> tuple[int, list[int] | None]
     return count, box
 
 
-def gt_info(visible: np.ndarray, amodal: np.ndarray | None, anomaly: dict, depth_units: np.ndarray | None) -> dict:
+def gt_info(visible: np.ndarray, amodal: np.ndarray | None, anomaly: dict, depth_units: np.ndarray | None,
+            amodal_source: str = "amodal_pass") -> dict:
     """scene_gt_info.json's entry, as the BOP toolkit's scripts/calc_gt_info.py computes it (the
     toolkit renders the object on a canvas of 3W x 3H, principal point shifted by (W, H)):
 
@@ -166,7 +167,8 @@ def gt_info(visible: np.ndarray, amodal: np.ndarray | None, anomaly: dict, depth
       whatever the full silhouette);
     - visib_fract = px_count_visib / px_count_all (0.0 when px_count_all is 0);
     - px_count_valid: the silhouette's pixels in the image with a non-zero depth, where the full
-      silhouette's pixels in the image (`amodal`, the pass) and the depth are both there.
+      silhouette's pixels in the image (`amodal`: the pass's, or the render JSON's
+      `amodal_segmentation`, `amodal_source` naming which) and the depth are both there.
 
     `silhouette` says which frame px_count_all, bbox_obj and visib_fract were counted on: "canvas"
     (the toolkit's), or "image" for a render whose JSON predates the canvas count (its in-image
@@ -181,7 +183,7 @@ def gt_info(visible: np.ndarray, amodal: np.ndarray | None, anomaly: dict, depth
     anomaly = anomaly if isinstance(anomaly, dict) else {}
     amodal = None if amodal is None else np.asarray(amodal, dtype=bool)
     in_image = 0 if amodal is None else int(np.count_nonzero(amodal))
-    source = "amodal_pass" if amodal is not None else str(anomaly.get("visib_source") or "raycast")
+    source = amodal_source if amodal is not None else str(anomaly.get("visib_source") or "raycast")
     canvas = _canvas(anomaly, visible.shape, max(px_visib, in_image))
     if canvas is not None:
         (px_all, box), frame = canvas, "canvas"

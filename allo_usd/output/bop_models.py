@@ -147,7 +147,7 @@ def _cube_group() -> list[np.ndarray]:
             for row, (col, sign) in enumerate(zip(perm, signs)):
                 r[row, col] = sign
             inversions = sum(perm[i] > perm[j] for i in range(3) for j in range(i + 1, 3))
-            if (-1) ** inversions * signs[0] * signs[1] * signs[2] == 1:   # det +1: a rotation
+            if (-1.0 if inversions % 2 else 1.0) * signs[0] * signs[1] * signs[2] == 1.0:   # det +1: a rotation
                 out.append(r)
     return out
 

@@ -209,3 +209,27 @@ def test_a_manifest_that_is_no_file_on_disk_is_refused_by_the_gate(made, target)
         _run(renders, out)
     message = str(caught.value)
     assert "manifest" in message and "fix:" in message and "\n" not in message and "PATH=" not in message
+
+
+def test_a_recorded_full_silhouette_is_used_only_when_it_can_be_the_objects():
+    """The render JSON's amodal_segmentation (the full silhouette in the image) is not trusted: an RLE whose
+    count is not amodal_pixels, that misses a visible pixel, or is not an RLE of the image's size, is not
+    used (scene_gt_info then has no px_count_valid and no mask/ file for the object)."""
+    import numpy as np
+
+    from allo_usd.output.rle import rle
+
+    full = np.zeros((6, 8), dtype=bool)
+    full[1:4, 2:7] = True
+    visible = full.copy()
+    visible[1, :] = False
+    obj = {"amodal_segmentation": rle(full), "amodal_pixels": int(full.sum())}
+    assert (af._recorded_silhouette(obj, full.shape, visible) == full).all()
+    assert af._recorded_silhouette({**obj, "amodal_pixels": 14}, full.shape, visible) is None
+    assert af._recorded_silhouette({**obj, "amodal_pixels": True}, full.shape, visible) is None
+    outside = visible.copy()
+    outside[5, 0] = True
+    assert af._recorded_silhouette(obj, full.shape, outside) is None
+    assert af._recorded_silhouette(obj, (8, 6), np.zeros((8, 6), dtype=bool)) is None
+    assert af._recorded_silhouette({**obj, "amodal_segmentation": {"size": [6, 8], "counts": 7}},
+                                   full.shape, visible) is None

@@ -1,7 +1,8 @@
 """The dataset's bop/CATEGORY/ evaluated as the BOP toolkit would (tests/support/bop_toolkit.py: its
 load_ply, calc_pts_diameter, calc_gt_info, mssd, mspd, vsd, written from its definitions), on tiny renders
 of the demo's anomalous scene as authored and with a user layer moving /World/Anomaly onto the image's
-left edge, 1.5 m from the camera (a truncated anomaly), with the depth and amodal passes."""
+left edge, 1.5 m from the camera (a truncated anomaly): the first with the depth and amodal passes, the
+second with depth alone (its full silhouette in the image from the render JSON's amodal_segmentation)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from tests.support.user_layers import DEMO_ANOMALY, demo_layers, override, rende
 pytestmark = pytest.mark.render
 
 PASSES = ("rgb", "exr", "mask", "depth", "amodal")
+NO_AMODAL = ("rgb", "exr", "mask", "depth")
 NAME, SPLIT = "allo", "test"
 
 
@@ -36,7 +38,7 @@ def dataset(tmp_path_factory):
     x, y = (0 - k[0, 2]) / k[0, 0] * d, (a["center_px"][1] - k[1, 2]) / k[1, 1] * d   # centred on the left edge
     p = (np.array(read_scene(scene).camera.matrix) @ [x, -y, -d, 1.0])[:3]
     body = 'over "World"\n{\n    over "Anomaly"\n    {\n        double3 xformOp:translate = (%r, %r, %r)\n    }\n}\n'
-    render(override(scene, root / "mine" / "edge.usda", body % tuple(map(float, p))), root / "renders", passes=PASSES)
+    render(override(scene, root / "mine" / "edge.usda", body % tuple(map(float, p))), root / "renders", passes=NO_AMODAL)
     out = root / "ds"
     assemble([root / "renders"], out)
     return out
@@ -122,6 +124,9 @@ def test_the_models_vertices_in_the_gt_pose_cover_mask_visib(dataset):
         grown[1:] |= silhouette[:-1]; grown[:-1] |= silhouette[1:]
         grown[:, 1:] |= silhouette[:, :-1]; grown[:, :-1] |= silhouette[:, 1:]
         assert visib.any() and not (visib & ~grown).any(), (im_id, int((visib & ~grown).sum()))
+        with Image.open(str(paths["mask"]).format(im_id=im_id, gt_id=gt_id)) as im:
+            full = np.asarray(im) == 255   # the full silhouette in the image: the amodal pass's, or the recorded RLE's
+        assert not (full & ~grown).any() and abs(int(full.sum()) - int(silhouette.sum())) <= edge_pixels(silhouette), im_id
 
 
 def recomputed(dataset):
