@@ -604,7 +604,7 @@ def _model_files(out: Path, category: str, table: dict, infos: dict) -> set[str]
             mesh = read_model(os.path.normpath(out / model["path"]), model.get("variant") or None)
             data = bop_models.ply_bytes(mesh.points, mesh.triangles)
         except (AlloError, OSError) as exc:
-            failed.append(f"{model.get('model_id')}: {str(exc)[:200]}")
+            failed.append(f"{model.get('model_id')}: {exc}")
             try:   # the PLY an earlier run wrote stays, as it is
                 data = read_user_bytes(old, MAX_MODEL_BYTES, "BOP model") if old.is_file() else None
             except InputRefused:
@@ -624,8 +624,9 @@ def _model_files(out: Path, category: str, table: dict, infos: dict) -> set[str]
             files.add(rel)
             write_if_changed(inside(out, rel), data)
     if failed:
-        warnings.warn(f"{len(failed)} BOP model(s) of {category} could not be read from their assets "
-                      f"({'; '.join(failed[:2])}); fix: keep the authored tree beside the dataset and re-run", stacklevel=3)
+        more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
+        warnings.warn(f"{len(failed)} BOP model(s) of {category} not written from their assets (a PLY an earlier "
+                      f"run wrote is kept): {failed[0]}{more}", stacklevel=3)
     text = "{\n" + ",\n".join(f'  "{k}": {json.dumps(v, sort_keys=True)}' for k, v in sorted(info.items())) \
         + ("\n" if info else "") + "}"
     for folder in (bop_models.MODELS, bop_models.MODELS_EVAL):

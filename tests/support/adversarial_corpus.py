@@ -496,6 +496,20 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
         w.add(f"dataset_{name}", "dataset", expect, "dataset", (target,),
               ("dataset", str(d), "--out", str(made)), note)   # not forbidden: the run writes the cache anew
 
+    # ---- a render JSON naming a hostile anomaly model (BOP's PLY is read from it): a note, no PLY, no hang
+    for name, make, note in (
+            ("model_fifo", lambda f: os.mkfifo(f), "the anomaly's model file a FIFO"),
+            ("model_zero", lambda f: os.symlink("/dev/zero", f), "the anomaly's model linked to /dev/zero"),
+            ("model_passwd", lambda f: os.symlink("/etc/passwd", f), "the anomaly's model linked to /etc/passwd"),
+            ("model_garbage", lambda f: f.write_bytes(b"#usda 1.0\n(\n" + b"\xff" * 4096), "a model that is not USD")):
+        d, made = ds / name, out / "dataset_out" / name
+        _cached_dataset(d, made)
+        make(d / "m.usda")
+        _name_model(d / "a1.json", "m.usda")
+        w.add(f"dataset_{name}", "dataset", MODEL_WARNED, "dataset", (d / "m.usda",),
+              ("dataset", str(d), "--out", str(made)), note,
+              forbidden=(d / "m.usda",) if name in ("model_fifo", "model_zero", "model_passwd") else ())
+
     # ---- command lines
     cli = out / "cli"
     cli.mkdir()
@@ -670,6 +684,20 @@ def _cached_dataset(d: Path, out: Path) -> None:
         assemble([d], out)
 
 
+def _name_model(record: Path, model: str) -> None:
+    """The render record's anomaly names `model` (relative to its layer's folder) as its model file, with a
+    pose, as a render of a user's layer records them."""
+    import json
+
+    meta = json.loads(record.read_text())
+    obj = {"path": "/World/Anomaly", "pixels": 12, "model": {"asset": "crate", "variant": "blue", "model_id": "crate/blue",
+                                                            "path": model},
+           "pose": {"cam_R_m2c": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "cam_t_m2c": [0.0, 0.0, 2000.0],
+                    "model_units": "m", "model_scale": [1.0, 1.0, 1.0]}}
+    meta["annotations"] = {"anomaly": obj, "anomalies": [obj]}
+    record.write_text(json.dumps(meta))
+
+
 def _edit_cache(change):
     """A tamper: records.json parsed, `change(cache, entry of a1)` applied, written back."""
     import json
@@ -710,6 +738,7 @@ def _manifest_index(value: str):
 
 
 CACHE_RECOMPUTED = "cli exit 0, notes, one naming records.json"   # the cache recomputed, the dataset assembled
+MODEL_WARNED = "cli exit 0, one note naming the BOP model, no PLY of it"   # the rest of the dataset assembled
 _CACHE_CASES = (
     ("cache_folder", _edit_cache(lambda c, e: e.update(bop={"folder": "../escaped"}, camera={"INJECTED": "x"})),
      CACHE_RECOMPUTED, "a cached record whose BOP folder is ../escaped (and an injected camera)"),
