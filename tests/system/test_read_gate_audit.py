@@ -60,6 +60,8 @@ ALLOWED: dict[str, tuple[int, str]] = {
     "usd/dependencies.py:unpacked_file:Sdf.ZipFile.Open": (1, "a package the walk checked"),
     "usd/hazard.py:read_usd_hazard:Usd.Stage.Open": (1, "every file of the hazard's composition passed the "
                                                         "dependency walk (usd_hazard_walk) just before"),
+    "usd/model_mesh.py:read_model:Usd.Stage.Open": (1, "every file of the model's composition passed the "
+                                                      "dependency walk (dependencies.walk) just before"),
     "usd/sniff.py:is_scene_layer:Sdf.Layer.FindOrOpen": (1, "after refusal() (dependencies.check_root: the gate's "
                                                             "rule and the roots) and read_head"),
     "usd/sniff.py:render_cost:Sdf.Layer.FindOrOpen": (1, "after refusal() (dependencies.check_root)"),
