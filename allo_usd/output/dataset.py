@@ -81,7 +81,7 @@ from allo_usd.core.errors import AlloError
 from allo_usd.core.files import (MAX_RECORD_BYTES, InputRefused, RunLock, atomic_path, read_user_json, sha256_file,
                                  write_bytes_atomic)
 from allo_usd.core.scene_labels import SPLITS, VARIANTS, label_problem
-from allo_usd.output.annotations import annotation_columns
+from allo_usd.output.annotations import accuracy_columns, annotation_columns
 from allo_usd.output.contact import PER_SHEET, read_pixels, sheet_paths, split_sheets
 from allo_usd.output.annotation_files import (ENTRY_KEYS, compute_record, load_cache, load_records,
                                              write_annotation_files)
@@ -464,7 +464,8 @@ def _row(category, index, name, meta_path: Path, meta: RenderRecord, kind: str, 
     """The manifest row of one scene (its files are placed by _place_row)."""
     files = file_columns(category, index, name, meta.scene["split"], kind, where)
     return (files | pass_columns(files["image"], meta_path, meta)   # depth/, normal/, instance/ (output.pass_files)
-            | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out))
+            | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out)
+            | accuracy_columns(meta))
 
 
 def _place_row(row: dict, meta_path: Path, meta: RenderRecord, out: Path, link: bool,
@@ -493,6 +494,8 @@ def _unchanged(old: dict, meta_path: Path, meta: RenderRecord, kind: str, where:
     split = meta.scene["split"]
     if isinstance(meta.annotations, dict) and not old.get("fx"):
         return False  # a row from before the camera/annotation columns: fill them in
+    if str(old.get("est_psnr_db") or "") != str(accuracy_columns(meta)["est_psnr_db"]):
+        return False  # the render's estimate is not the row's (a row from before the column reads as "")
     if passes_missing(old, meta_path, meta, out):
         return False  # a pass the row lacks (a row from before the pass columns, or a file gone)
     if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (
