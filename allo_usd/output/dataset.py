@@ -121,7 +121,8 @@ class Brief(RenderRecord):
     """What planning reads of a render record whose JSON kept the stat at which it passed
     check_render (a re-run does not parse 51,409 JSONs to find 1,000 new ones): its scene's split,
     variant and anomaly, its files, the class pixel counts _kind and the dark warning read, its
-    layer_sha256, and whether it has an annotations table. A RenderRecord with only those fields,
+    layer_sha256, whether it has an annotations table, and the accuracy's estimated_psnr_db (the
+    manifest's est_psnr_db, which _unchanged compares). A RenderRecord with only those fields,
     kept in records.json's state (as_dict) beside the stat and read back with Brief.of; a record
     that is placed again is read whole (_whole)."""
 
@@ -132,7 +133,9 @@ class Brief(RenderRecord):
         return cls(files=meta.files, layer_sha256=meta.layer_sha256,
                    scene={k: scene[k] for k in ("split", "variant", "anomaly") if k in scene},
                    class_pixels={k: pixels[k] for k in ("station_and_bodies", "anomaly") if k in pixels},
-                   annotations={} if isinstance(meta.annotations, dict) else None)
+                   annotations={} if isinstance(meta.annotations, dict) else None,
+                   accuracy=({"estimated_psnr_db": meta.accuracy.get("estimated_psnr_db")}
+                             if isinstance(meta.accuracy, dict) else None))
 
 
 def _json_stat(path: Path) -> list[int] | None:

@@ -413,7 +413,7 @@ class Quality(_Model):
 
     @model_validator(mode="after")
     def _target(self):
-        problem = target_problem(self.target_psnr, self.time_limit, "quality.target_psnr", "quality.time_limit")
+        problem = target_problem(self.target_psnr, self.time_limit)   # the error names the quality table
         if problem:
             raise ValueError(problem)
         return self
