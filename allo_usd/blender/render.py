@@ -40,6 +40,9 @@ class RenderResult:
     normal: np.ndarray | None = None   # (H, W, 3) float32 world-space normal, when the layer asks for it
     amodal: np.ndarray | None = None   # (H, W) uint8 0/2: the anomaly alone (blender.amodal), when asked for
     amodal_seconds: float = 0.0        # that second render's time
+    # the render's estimate of its own error: {"mode": "target" | "fixed", "target_psnr_db", "estimated_psnr_db",
+    # "samples", "rounds", "stopped_by": "target" | "samples" | "seconds", "estimator"}; None: not estimated
+    accuracy: dict | None = None
 
 
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
