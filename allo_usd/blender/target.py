@@ -1,0 +1,212 @@
+"""Rendering to a target accuracy: samples spent in rounds of two independent halves until the delivered
+image's estimated PSNR reaches the layer's `allo:render:targetPsnr` (or its sample cap or time limit stops it).
+
+Why halves: nothing in one Monte Carlo render says how far it is from the converged image, but two renders
+of the same scene and settings with independent seeds are two independent draws of the same noise. Their
+difference has twice the variance of either, four times that of their mean, so
+
+    estimated MSE of the mean = mean over pixels and channels of (s(A) - s(B))**2 / 4  (+ 1/6, below)
+
+where A and B are the halves (each the running mean of its rounds' samples) and s the delivered image's own
+transfer: the film's exposure is in the render, then IEC 61966-2-1 sRGB on clipped values, in 8-bit units,
+not rounded. The PSNR it gives is that of the benchmark (scripts/bench_accuracy.py: 8-bit sRGB against the
+converged image, peak 255). Rounding the image and a converged reference to 8 bits adds two independent
+uniform errors, 1/12 each, to the squared error a benchmark measures: the estimate adds those 1/6.
+
+Denoised layers (`allo:render:denoise`): each half is denoised (OIDN with the layer's quality and prefilter,
+allo_usd.blender.oidn, as Cycles would) and the delivered image is the mean of the two denoised halves, so
+the halves' difference measures exactly the variance of what is delivered. A denoiser also blurs (a bias
+both halves share, which their difference cannot see): docs/benchmarks/bench_accuracy.md measures how the
+estimate relates to the true error.
+
+Rounds: the first gives each half `FIRST_SAMPLES` samples; after each, the samples the target needs are
+predicted from the estimate (a Monte Carlo error's variance falls as 1/N: N_needed = N * MSE / MSE_target,
+with HEADROOM), at most doubling the samples so far, within the cap. Adaptive sampling is off in this mode
+(the rounds are the adaptation; per-pixel sample counts would make the halves' means unweighable). The
+mask, object ids, depth and normal passes are those of the first half of the first round (its first sample
+lands where a fixed render's does: the same seed). Everything changed on the Blender scene is put back
+afterwards, value for value, so a warm session (blender.session) keeps patching the scene it believes it shows.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+
+import numpy as np
+
+from allo_usd.core.errors import AlloError
+from allo_usd.usd.description import SceneDescription
+
+FIRST_SAMPLES = 16            # per half, the first round
+HEADROOM = 1.15               # the next round aims this far past the predicted need
+QUANTISATION_MSE = 1.0 / 6.0  # two 8-bit roundings (image and reference), 1/12 each, in 8-bit units squared
+SEED_STEP = 7919              # half h of round r renders with seed + SEED_STEP * (2 r + h + 1) (mod 2**31)
+ESTIMATOR = "two independent halves: MSE = mean((A - B)^2) / 4 + 1/6, 8-bit sRGB units"
+
+_SRGB_PEAK = 255.0
+
+
+def srgb_units(rgb: np.ndarray) -> np.ndarray:
+    """The delivered transfer in 8-bit units, not rounded: IEC 61966-2-1 on values clipped to [0, 1] (an
+    estimate of this machine's image: numpy's power, not fixedmath's, is fast enough for 6M values)."""
+    c = np.clip(np.nan_to_num(np.asarray(rgb, dtype=np.float64), nan=0.0), 0.0, 1.0)
+    return _SRGB_PEAK * np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+
+
+def estimated_mse(half_a: np.ndarray, half_b: np.ndarray) -> float:
+    """The estimated squared error (8-bit units) of the mean of two independent halves against the converged
+    image (module docstring)."""
+    d = srgb_units(half_a) - srgb_units(half_b)
+    return float(np.mean(d * d)) / 4.0 + QUANTISATION_MSE
+
+
+def psnr_db(mse: float) -> float:
+    return math.inf if mse <= 0.0 else 10.0 * math.log10(_SRGB_PEAK * _SRGB_PEAK / mse)
+
+
+def next_samples(done_per_half: int, mse: float, target_mse: float, cap_per_half: int) -> int:
+    """Samples per half for the next round: the 1/N prediction of what the target needs, with HEADROOM,
+    at least FIRST_SAMPLES // 2, at most doubling what each half has, within the cap."""
+    needed = math.ceil(done_per_half * mse / target_mse * HEADROOM) - done_per_half
+    return max(0, min(max(needed, FIRST_SAMPLES // 2), done_per_half, cap_per_half - done_per_half))
+
+
+def half_seed(seed: int, round_: int, half: int) -> int:
+    return (int(seed) + SEED_STEP * (2 * round_ + half + 1)) % (2 ** 31)
+
+
+@contextmanager
+def _noisy_halves_settings():
+    """Within: Cycles' denoiser and adaptive sampling off, the denoising passes stored; after: as before."""
+    import bpy
+
+    scene = bpy.context.scene
+    layer = scene.view_layers[0]
+    saved = [(scene.cycles, p, getattr(scene.cycles, p)) for p in ("samples", "seed", "use_denoising",
+                                                                     "use_adaptive_sampling")]
+    saved.append((layer.cycles, "denoising_store_passes", layer.cycles.denoising_store_passes))
+    try:
+        scene.cycles.use_denoising = False
+        scene.cycles.use_adaptive_sampling = False
+        layer.cycles.denoising_store_passes = True
+        yield scene
+    finally:
+        for owner, prop, value in reversed(saved):
+            setattr(owner, prop, value)
+
+
+class _Half:
+    """One half's running sums (colour, and the denoiser's albedo and normal), weighted by samples."""
+
+    def __init__(self) -> None:
+        self.samples = 0
+        self.color = self.albedo = self.normal = None
+
+    def add(self, n: int, color: np.ndarray, albedo: np.ndarray | None, normal: np.ndarray | None) -> None:
+        def acc(total, value):
+            value = np.asarray(value, dtype=np.float64) * n
+            return value if total is None else total + value
+        self.color = acc(self.color, color)
+        self.albedo = None if albedo is None else acc(self.albedo, albedo)
+        self.normal = None if normal is None else acc(self.normal, normal)
+        self.samples += n
+
+    def mean(self, what: str) -> np.ndarray | None:
+        total = getattr(self, what)
+        return None if total is None else (total / self.samples).astype(np.float32)
+
+
+def _stack(ch: dict, name: str, comps: str) -> np.ndarray | None:
+    if f"ViewLayer.{name}.{comps[0]}" not in ch:
+        return None
+    return np.stack([ch[f"ViewLayer.{name}.{c}"] for c in comps], axis=-1)
+
+
+def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.ndarray, dict, float, dict]:
+    """Render the current Blender scene (built from `desc`) to desc.render.target_psnr (module docstring).
+    `render_once(missing)`: one render of the scene as it is set, (its channels, seconds) (render.py's
+    render_channels); `missing(channels)`: the pass a channel set lacks, or None. Returns (the delivered
+    linear RGB, the first render's channels (for the mask, ids, depth and normal), render seconds, the
+    accuracy record)."""
+    from allo_usd.blender.compositor import has_compositor
+
+    render = desc.render
+    if has_compositor():
+        raise AlloError(f"{desc.layer}: a PSNR target (allo:render:targetPsnr) with lens glare is not rendered "
+                        "(the glare is composited before a denoise the target mode runs itself); fix: turn "
+                        "allo:effects:lensGlare off or remove the target")
+    target_mse = _SRGB_PEAK * _SRGB_PEAK / 10.0 ** (render.target_psnr / 10.0)
+    cap_per_half = max(1, int(render.samples) // 2)
+    limit = float(getattr(render, "time_limit", 0.0) or 0.0)
+    halves = (_Half(), _Half())
+    first = None
+    rounds, seconds, mse, stopped = 0, 0.0, math.inf, "samples"
+    start = time.perf_counter()
+    n = min(FIRST_SAMPLES, cap_per_half)
+
+    def needs(ch) -> str | None:
+        return "ViewLayer.Combined" if "ViewLayer.Combined.R" not in ch else missing(ch)
+
+    with _noisy_halves_settings() as scene:
+        while n > 0:
+            for h, half in enumerate(halves):
+                scene.cycles.samples = n
+                scene.cycles.seed = half_seed(render.seed, rounds, h)
+                ch, s = render_once(needs)
+                seconds += s
+                if first is None:
+                    first = ch
+                half.add(n, _stack(ch, "Combined", "RGB"), _stack(ch, "Denoising Albedo", "RGB"),
+                         _stack(ch, "Denoising Normal", "XYZ"))
+            rounds += 1
+            delivered_a, delivered_b = _delivered_halves(halves, render)
+            mse = estimated_mse(delivered_a, delivered_b)
+            if mse <= target_mse:
+                stopped = "target"
+                break
+            if limit and time.perf_counter() - start >= limit:
+                stopped = "seconds"
+                break
+            n = next_samples(halves[0].samples, mse, target_mse, cap_per_half)
+    rgb = ((delivered_a.astype(np.float64) + delivered_b) / 2.0).astype(np.float32)
+    accuracy = {"mode": "target", "target_psnr_db": float(render.target_psnr), "estimated_psnr_db": psnr_db(mse),
+                "samples": halves[0].samples + halves[1].samples, "rounds": rounds, "stopped_by": stopped,
+                "estimator": ESTIMATOR + (", each half denoised (OIDN)" if render.denoise else "")}
+    return rgb, first, seconds, accuracy
+
+
+def estimate_fixed(desc: SceneDescription, delivered: np.ndarray, render_once, missing) -> dict:
+    """The accuracy record of a fixed-sample render (`delivered`, its linear RGB, as rendered: unchanged)
+    from one more render of the same settings with an independent seed (`render_once`, `missing` as for
+    render_to_target): two independent draws F and G of the same image, so the estimated MSE of F is
+    mean((s(F) - s(G))**2) / 2 (+ QUANTISATION_MSE), denoiser and all. It doubles the render's cost: it runs
+    only when asked (`allo-usd render --estimate`)."""
+    import bpy
+
+    scene = bpy.context.scene
+    saved = scene.cycles.seed
+    try:
+        scene.cycles.seed = half_seed(desc.render.seed, 0, 0)
+        ch, seconds = render_once(missing)
+    finally:
+        scene.cycles.seed = saved
+    layer = "Composite.Combined" if "Composite.Combined.R" in ch else "ViewLayer.Combined"
+    other = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1)
+    d = srgb_units(delivered) - srgb_units(other)
+    mse = float(np.mean(d * d)) / 2.0 + QUANTISATION_MSE
+    return {"mode": "fixed", "target_psnr_db": None, "estimated_psnr_db": psnr_db(mse),
+            "samples": int(desc.render.samples), "rounds": 1, "stopped_by": "samples",
+            "estimator": "a second render of the same settings, independent seed: MSE = mean((F - G)^2) / 2 + 1/6, "
+                         "8-bit sRGB units", "estimate_seconds": seconds}
+
+
+def _delivered_halves(halves, render) -> tuple[np.ndarray, np.ndarray]:
+    """Each half as it would be delivered: its running mean, denoised when the layer denoises."""
+    if not render.denoise:
+        return halves[0].mean("color"), halves[1].mean("color")
+    from allo_usd.blender.oidn import denoise
+
+    return tuple(denoise(h.mean("color"), h.mean("albedo"), h.mean("normal"), quality=render.denoise_quality,
+                         prefilter=render.denoise_prefilter, threads=render.threads) for h in halves)
