@@ -23,8 +23,8 @@ Rounds: the first gives each half `FIRST_SAMPLES` samples; after each, the sampl
 predicted from the estimate (a Monte Carlo error's variance falls as 1/N: N_needed = N * MSE / MSE_target,
 with HEADROOM), at most doubling the samples so far, within the cap. Adaptive sampling is off in this mode
 (the rounds are the adaptation; per-pixel sample counts would make the halves' means unweighable). The
-mask, object ids, depth and normal passes are those of the first half of the first round (its first sample
-lands where a fixed render's does: the same seed). Everything changed on the Blender scene is put back
+mask, object ids, depth and normal passes are those of the first half of the first round, rendered with the
+layer's own seed (its first sample lands where a fixed render's does, so the mask is the fixed render's). Everything changed on the Blender scene is put back
 afterwards, value for value, so a warm session (blender.session) keeps patching the scene it believes it shows.
 """
 
@@ -42,7 +42,7 @@ from allo_usd.usd.description import SceneDescription
 FIRST_SAMPLES = 16            # per half, the first round
 HEADROOM = 1.15               # the next round aims this far past the predicted need
 QUANTISATION_MSE = 1.0 / 6.0  # two 8-bit roundings (image and reference), 1/12 each, in 8-bit units squared
-SEED_STEP = 7919              # half h of round r renders with seed + SEED_STEP * (2 r + h + 1) (mod 2**31)
+SEED_STEP = 7919              # half h of round r renders with seed + SEED_STEP * (2 r + h) (mod 2**31)
 ESTIMATOR = "two independent halves: MSE = mean((A - B)^2) / 4 + 1/6, 8-bit sRGB units"
 
 _SRGB_PEAK = 255.0
@@ -74,7 +74,9 @@ def next_samples(done_per_half: int, mse: float, target_mse: float, cap_per_half
 
 
 def half_seed(seed: int, round_: int, half: int) -> int:
-    return (int(seed) + SEED_STEP * (2 * round_ + half + 1)) % (2 ** 31)
+    """Cycles' seed of half `half` of round `round_`: the layer's own for the first (whose mask, ids, depth
+    and normal the result keeps: those of a fixed render of the layer), distinct for every other."""
+    return (int(seed) + SEED_STEP * (2 * round_ + half)) % (2 ** 31)
 
 
 @contextmanager
@@ -188,7 +190,7 @@ def estimate_fixed(desc: SceneDescription, delivered: np.ndarray, render_once, m
     scene = bpy.context.scene
     saved = scene.cycles.seed
     try:
-        scene.cycles.seed = half_seed(desc.render.seed, 0, 0)
+        scene.cycles.seed = half_seed(desc.render.seed, 0, 1)
         ch, seconds = render_once(missing)
     finally:
         scene.cycles.seed = saved
