@@ -52,7 +52,6 @@ naming it.
 from __future__ import annotations
 
 import ctypes
-import importlib.machinery
 import sys
 import threading
 from collections import OrderedDict
@@ -84,15 +83,16 @@ _filters: OrderedDict = OrderedDict()
 
 
 def library_path() -> Path:
-    """The OIDN library bpy bundles (found from bpy's package folder, without importing bpy)."""
-    try:   # the path finder alone: it locates bpy on sys.path and imports nothing
-        spec = importlib.machinery.PathFinder.find_spec("bpy")
-    except (ImportError, ValueError):
-        spec = None
-    if spec is None or not spec.origin:
-        raise DenoiseError("the denoiser needs bpy (its bundled Open Image Denoise library) and bpy is not "
-                           "installed in this Python; fix: install the locked environment (make run creates .venv)")
-    return Path(spec.origin).parent / "lib" / _LIBRARY_NAMES.get(sys.platform, _LIBRARY_NAMES["linux"])
+    """The OIDN library bpy bundles: bpy/lib/ of the bpy package on sys.path (found without importing bpy;
+    once bpy is imported, sys.path also holds Blender's scripts/modules, whose inner `bpy` package has no
+    lib/ folder: the first bpy/ that holds the library is the one)."""
+    name = _LIBRARY_NAMES.get(sys.platform, _LIBRARY_NAMES["linux"])
+    for entry in sys.path:
+        candidate = Path(entry or ".") / "bpy" / "lib" / name
+        if candidate.is_file():
+            return candidate
+    raise DenoiseError("the denoiser needs bpy (its bundled Open Image Denoise library) and bpy is not "
+                       "installed in this Python; fix: install the locked environment (make run creates .venv)")
 
 
 def load_library(path: Path | None = None):

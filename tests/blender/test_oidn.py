@@ -90,10 +90,20 @@ def test_a_library_that_cannot_load_names_the_fix(tmp_path, monkeypatch):
     assert "\n" not in msg and str(fake) in msg and "fix: reinstall bpy 5.0.1" in msg
     with pytest.raises(DenoiseError, match="fix: reinstall bpy"):
         oidn.load_library(tmp_path / "missing.so")
-    monkeypatch.setattr(oidn.importlib.machinery.PathFinder, "find_spec", staticmethod(lambda name: None))
+    monkeypatch.setattr(oidn.sys, "path", [str(tmp_path)])   # no bpy/lib/ on the path
     monkeypatch.setattr(oidn, "_lib", None)
     with pytest.raises(DenoiseError, match="bpy is not installed in this Python; fix: install the locked"):
         denoise(_image())
+
+
+@pytest.mark.bpy
+def test_the_library_is_found_after_bpy_is_imported_too():
+    """Once bpy is imported, sys.path also holds Blender's scripts/modules (an inner bpy package without
+    lib/): the library is still bpy's own."""
+    import bpy  # noqa: F401
+
+    path = oidn.library_path()
+    assert path.is_file() and path.parent.name == "lib" and path.parent.parent.name == "bpy"
 
 
 def test_an_oidn_error_is_raised_as_one_line_naming_it():

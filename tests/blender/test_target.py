@@ -40,6 +40,25 @@ def test_the_estimate_of_independent_noise_is_the_means_true_error():
     assert tg.estimated_mse(a, b) - tg.QUANTISATION_MSE == pytest.approx(measured, rel=0.05)
 
 
+def test_a_denoisers_blur_is_in_the_estimate_not_only_its_variance():
+    """A stand-in denoiser that blurs (a 5x5 box: less variance, a bias on every detail both halves share):
+    the cross-validated estimate finds the delivered image's measured error, bias included, where the
+    denoised halves' own difference alone misses most of it."""
+    from scipy.ndimage import uniform_filter
+
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[0:400, 0:600]
+    truth = np.repeat((0.3 + 0.2 * np.sin(xx / 6.0) * np.sin(yy / 7.0))[..., None], 3, axis=-1)   # detail to blur
+    a, b = (truth + rng.normal(0.0, 0.03, truth.shape) for _ in range(2))
+    da, db = (uniform_filter(x, size=(5, 5, 1)) for x in (a, b))
+    delivered = (da + db) / 2
+    measured = float(np.mean((tg.srgb_units(delivered) - tg.srgb_units(truth)) ** 2))
+    estimate = tg.estimated_mse(a, b, da, db) - tg.QUANTISATION_MSE
+    assert estimate == pytest.approx(measured, rel=0.1)
+    variance_only = float(np.mean((tg.srgb_units(da) - tg.srgb_units(db)) ** 2)) / 4
+    assert variance_only < 0.5 * measured
+
+
 @pytest.mark.parametrize("done, mse, target, cap, expected", [
     (16, 40.0, 10.0, 4096, 16),       # needs ~4.6x: at most doubles
     (16, 12.0, 10.0, 4096, 8),        # needs a little: at least FIRST_SAMPLES // 2
@@ -116,3 +135,18 @@ def test_without_a_target_the_render_records_no_estimate(tiny_scene):
 
     build_scene(tiny_scene)
     assert render_current(tiny_scene).accuracy is None
+
+
+@pytest.mark.render
+def test_a_target_renders_mask_is_the_fixed_renders(tiny_scene):
+    """The first half renders with the layer's own seed: the class mask and object ids are those a fixed
+    render of the layer gives (sample 0 lands in the same place)."""
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    build_scene(tiny_scene)
+    fixed = render_current(tiny_scene)
+    desc = _with_target(tiny_scene, 25.0, tiny_scene.render.samples)
+    build_scene(desc)
+    aimed = render_current(desc)
+    assert (aimed.mask == fixed.mask).all() and (aimed.ids == fixed.ids).all()
