@@ -192,14 +192,17 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
                 return "normal"
             return None
 
-        ch, seconds = render_channels(desc, workdir, missing)
+        estimate = getattr(desc.render, "estimate", False) and set(COLOR_PASSES) & set(desc.render.outputs)
+        if estimate:   # the same render, its noisy image stored beside it (blender.target.estimate_fixed)
+            from allo_usd.blender.target import estimate_fixed, noisy_image_stored
+
+            with noisy_image_stored():
+                ch, seconds = render_channels(desc, workdir, missing)
+        else:
+            ch, seconds = render_channels(desc, workdir, missing)
         rgb = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1).astype(np.float32)  # EXR rows run top-down
         mask, ids, depth, normal, objects = result_passes(desc, ch)
-        accuracy = None
-        if getattr(desc.render, "estimate", False) and set(COLOR_PASSES) & set(desc.render.outputs):
-            from allo_usd.blender.target import estimate_fixed
-
-            accuracy = estimate_fixed(desc, rgb, lambda m: render_channels(desc, workdir, m), missing)
+        accuracy = estimate_fixed(desc, ch, lambda m: render_channels(desc, workdir, m), missing) if estimate else None
         result = RenderResult(rgb, mask, depth, seconds, ids=ids, objects=objects, normal=normal, accuracy=accuracy)
     if "amodal" in desc.render.outputs:   # a second render: the anomaly alone (the scene is restored after it)
         from allo_usd.blender.amodal import amodal_mask, anomaly_alone

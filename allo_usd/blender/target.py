@@ -217,29 +217,63 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
     return rgb, first, seconds, accuracy
 
 
-def estimate_fixed(desc: SceneDescription, delivered: np.ndarray, render_once, missing) -> dict:
-    """The accuracy record of a fixed-sample render (`delivered`, its linear RGB, as rendered: unchanged)
-    from one more render of the same settings with an independent seed (`render_once`, `missing` as for
-    render_to_target): two independent draws F and G of the same image, so the estimated MSE of F is
-    mean((s(F) - s(G))**2) / 2 (+ QUANTISATION_MSE), denoiser and all. It doubles the render's cost: it runs
-    only when asked (`allo-usd render --estimate`)."""
+def fixed_error_map(delivered_f: np.ndarray, delivered_g: np.ndarray, noisy_f: np.ndarray | None = None,
+                    noisy_g: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) estimated squared error (8-bit sRGB units, mean over channels) of a fixed render F, from a
+    second render G of the same settings with an independent seed: two draws of the same process. Without a
+    denoiser E (s(F) - s(G))**2 = 2 E (s(F) - s(T))**2; with one (DF, DG delivered, Fn, Gn their noisy
+    images), as error_map: e = ((DF - Gn)**2 + (DG - Fn)**2 - (Fn - Gn)**2) / 2 in linear values is the
+    mean of DF's and DG's squared errors in expectation, which are the same; times the sRGB slope squared."""
+    if noisy_f is None:
+        d = srgb_units(delivered_f) - srgb_units(delivered_g)
+        return (d * d / 2.0).mean(axis=-1)
+    df, dg, fn, gn = (np.asarray(x, dtype=np.float64) for x in (delivered_f, delivered_g, noisy_f, noisy_g))
+    lin = ((df - gn) ** 2 + (dg - fn) ** 2 - (fn - gn) ** 2) / 2.0
+    return (srgb_slope_sq(df) * lin).mean(axis=-1)
+
+
+@contextmanager
+def noisy_image_stored():
+    """Within: Cycles stores its denoising passes (the Noisy Image beside the denoised Combined; the
+    Combined itself is unchanged); after: as before."""
+    import bpy
+
+    layer = bpy.context.scene.view_layers[0]
+    saved = layer.cycles.denoising_store_passes
+    try:
+        layer.cycles.denoising_store_passes = True
+        yield
+    finally:
+        layer.cycles.denoising_store_passes = saved
+
+
+def estimate_fixed(desc: SceneDescription, first: dict, render_once, missing) -> dict:
+    """The accuracy record of a fixed-sample render, whose channels (`first`, rendered within
+    noisy_image_stored) are delivered unchanged, from one more render of the same settings with an
+    independent seed (`render_once(missing)`: (channels, seconds)), by fixed_error_map. The estimate is of
+    the render before any lens glare (the view layer's Combined). It doubles the render's cost: it runs only
+    when asked (`allo:render:estimate`, `allo-usd render --estimate`)."""
     import bpy
 
     scene = bpy.context.scene
     saved = scene.cycles.seed
     try:
         scene.cycles.seed = half_seed(desc.render.seed, 0, 1)
-        ch, seconds = render_once(missing)
+        with noisy_image_stored():
+            second, seconds = render_once(missing)
     finally:
         scene.cycles.seed = saved
-    layer = "Composite.Combined" if "Composite.Combined.R" in ch else "ViewLayer.Combined"
-    other = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1)
-    d = srgb_units(delivered) - srgb_units(other)
-    mse = float(np.mean(d * d)) / 2.0 + QUANTISATION_MSE
+    f, g = _stack(first, "Combined", "RGB"), _stack(second, "Combined", "RGB")
+    fn, gn = _stack(first, "Noisy Image", "RGB"), _stack(second, "Noisy Image", "RGB")
+    denoised = desc.render.denoise and fn is not None and gn is not None
+    mse = max(float(np.mean(fixed_error_map(f, g, fn if denoised else None, gn if denoised else None))), 0.0)
+    mse += QUANTISATION_MSE
     return {"mode": "fixed", "target_psnr_db": None, "estimated_psnr_db": psnr_db(mse),
             "samples": int(desc.render.samples), "rounds": 1, "stopped_by": "samples",
-            "estimator": "a second render of the same settings, independent seed: MSE = mean((F - G)^2) / 2 + 1/6, "
-                         "8-bit sRGB units", "estimate_seconds": seconds}
+            "estimator": ("a second render G of the same settings, independent seed: per pixel ((DF-Gn)^2 + (DG-Fn)^2 "
+                          "- (Fn-Gn)^2)/2 in linear values times the sRGB slope squared" if denoised else
+                          "a second render G of the same settings, independent seed: (s(F) - s(G))^2 / 2")
+                         + ", mean + 1/6 (8-bit units)", "estimate_seconds": seconds}
 
 
 def _delivered_halves(halves, render) -> tuple[np.ndarray, np.ndarray]:

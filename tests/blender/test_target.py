@@ -150,3 +150,25 @@ def test_a_target_renders_mask_is_the_fixed_renders(tiny_scene):
     build_scene(desc)
     aimed = render_current(desc)
     assert (aimed.mask == fixed.mask).all() and (aimed.ids == fixed.ids).all()
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("denoise", [True, False])
+def test_a_fixed_renders_estimate_leaves_its_image_as_it_was(tiny_scene, denoise):
+    """Asked for (allo:render:estimate), a fixed render's estimate costs one more render and changes nothing
+    it delivers: the image is the one the render gives without it, bit for bit."""
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    plain = dataclasses.replace(tiny_scene, render=dataclasses.replace(tiny_scene.render, denoise=denoise))
+    build_scene(plain)
+    before = render_current(plain)
+    render = dataclasses.replace(plain.render)
+    object.__setattr__(render, "estimate", True)   # until the layer carries it: the reader's field
+    asked = dataclasses.replace(plain, render=render)
+    build_scene(asked)
+    after = render_current(asked)
+    assert (after.rgb == before.rgb).all() and (after.mask == before.mask).all()
+    acc = after.accuracy
+    assert acc["mode"] == "fixed" and acc["stopped_by"] == "samples" and acc["samples"] == plain.render.samples
+    assert 10.0 < acc["estimated_psnr_db"] < 80.0 and ("DF" in acc["estimator"]) == denoise
