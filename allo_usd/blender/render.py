@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ import numpy as np
 from allo_usd.usd.description import SceneDescription
 from allo_usd.core.errors import DiskFullError, RenderFailedError
 from allo_usd.blender.build import build_scene, object_ids
+from allo_usd.plan.settings import COLOR_PASSES
 
 MIN_FREE_BYTES = 1 << 20  # after a failed render, less free than this on the temp device means "disk full"
 
@@ -40,8 +41,9 @@ class RenderResult:
     normal: np.ndarray | None = None   # (H, W, 3) float32 world-space normal, when the layer asks for it
     amodal: np.ndarray | None = None   # (H, W) uint8 0/2: the anomaly alone (blender.amodal), when asked for
     amodal_seconds: float = 0.0        # that second render's time
-    # the render's estimate of its own error: {"mode": "target" | "fixed", "target_psnr_db", "estimated_psnr_db",
-    # "samples", "rounds", "stopped_by": "target" | "samples" | "seconds", "estimator"}; None: not estimated
+    # the render's estimate of its own error (blender.target): {"mode": "target" | "fixed", "target_psnr_db",
+    # "estimated_psnr_db", "samples", "rounds", "stopped_by": "target" | "samples" | "seconds", "estimator"};
+    # None: not estimated
     accuracy: dict | None = None
 
 
@@ -153,37 +155,65 @@ def object_index(desc: SceneDescription, ch: dict[str, np.ndarray]) -> np.ndarra
     return np.clip(np.rint(_find(ch, *INDEX_CHANNELS)), 0, len(object_ids(desc))).astype(np.uint16)
 
 
-def render_current(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
-    from allo_usd.blender.compositor import has_compositor
-
-    layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
-    wants_normal = "normal" in desc.render.outputs
-
-    def missing(ch) -> str | None:
-        if f"{layer}.R" not in ch:
-            return layer
-        if no_object_index(ch):
-            return "object index"
-        if wants_normal and any(_find(ch, f"Normal.{c}") is None for c in "XYZ"):
-            return "normal"
-        return None
-
-    ch, seconds = render_channels(desc, workdir, missing)
-    rgb = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1).astype(np.float32)  # EXR rows run top-down
+def result_passes(desc: SceneDescription, ch: dict[str, np.ndarray]):
+    """(class mask, object ids, depth, normal, object paths) of a render's channels."""
     table = object_ids(desc)
     classes = np.array([0] + [c for _, c in table], dtype=np.uint8)   # object id -> class id
     ids = object_index(desc, ch)
     depth = _find(ch, "Depth.Z", "Depth.V") if "depth" in desc.render.outputs else None
-    normal = np.stack([_find(ch, f"Normal.{c}") for c in "XYZ"], axis=-1).astype(np.float32) if wants_normal else None
-    amodal, amodal_seconds = None, 0.0
+    normal = (np.stack([_find(ch, f"Normal.{c}") for c in "XYZ"], axis=-1).astype(np.float32)
+              if "normal" in desc.render.outputs else None)
+    return classes[ids], ids, depth, normal, tuple(p for p, _ in table)
+
+
+def render_current(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
+    """Render the scene Blender holds (built from `desc`): one render of the layer's samples, or, with a
+    PSNR target (allo:render:targetPsnr), rounds of two halves until the estimate reaches it
+    (blender.target); then the amodal pass's second render when the layer asks for it."""
+    from allo_usd.blender.compositor import has_compositor
+
+    if getattr(desc.render, "target_psnr", 0.0) > 0 and set(COLOR_PASSES) & set(desc.render.outputs):
+        from allo_usd.blender.target import render_to_target
+
+        def needs(ch) -> str | None:
+            return no_object_index(ch) or ("normal" if "normal" in desc.render.outputs
+                                           and any(_find(ch, f"Normal.{c}") is None for c in "XYZ") else None)
+
+        rgb, ch, seconds, accuracy = render_to_target(desc, lambda m: render_channels(desc, workdir, m), needs)
+        mask, ids, depth, normal, objects = result_passes(desc, ch)
+        result = RenderResult(rgb, mask, depth, seconds, ids=ids, objects=objects, normal=normal, accuracy=accuracy)
+    else:
+        layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
+        wants_normal = "normal" in desc.render.outputs
+
+        def missing(ch) -> str | None:
+            if f"{layer}.R" not in ch:
+                return layer
+            if no_object_index(ch):
+                return "object index"
+            if wants_normal and any(_find(ch, f"Normal.{c}") is None for c in "XYZ"):
+                return "normal"
+            return None
+
+        estimate = getattr(desc.render, "estimate", False) and set(COLOR_PASSES) & set(desc.render.outputs)
+        if estimate:   # the same render, its noisy image stored beside it (blender.target.estimate_fixed)
+            from allo_usd.blender.target import estimate_fixed, noisy_image_stored
+
+            with noisy_image_stored():
+                ch, seconds = render_channels(desc, workdir, missing)
+        else:
+            ch, seconds = render_channels(desc, workdir, missing)
+        rgb = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1).astype(np.float32)  # EXR rows run top-down
+        mask, ids, depth, normal, objects = result_passes(desc, ch)
+        accuracy = estimate_fixed(desc, ch, lambda m: render_channels(desc, workdir, m), missing) if estimate else None
+        result = RenderResult(rgb, mask, depth, seconds, ids=ids, objects=objects, normal=normal, accuracy=accuracy)
     if "amodal" in desc.render.outputs:   # a second render: the anomaly alone (the scene is restored after it)
         from allo_usd.blender.amodal import amodal_mask, anomaly_alone
 
         with anomaly_alone(desc):
             ch, amodal_seconds = render_channels(desc, workdir, no_object_index)
-        amodal = amodal_mask(desc, object_index(desc, ch))
-    return RenderResult(rgb, classes[ids], depth, seconds, ids=ids, objects=tuple(p for p, _ in table), normal=normal,
-                        amodal=amodal, amodal_seconds=amodal_seconds)
+        result = replace(result, amodal=amodal_mask(desc, object_index(desc, ch)), amodal_seconds=amodal_seconds)
+    return result
 
 
 def render_scene(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:

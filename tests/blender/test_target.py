@@ -1,0 +1,174 @@
+"""Rendering to a PSNR target (allo_usd.blender.target): the estimator's arithmetic, the round schedule,
+and real tiny Cycles renders that stop on the target or on the cap and leave the Blender scene as it was."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from allo_usd.blender import target as tg
+
+
+def test_identical_halves_estimate_only_the_two_roundings():
+    a = np.random.default_rng(1).random((6, 8, 3))
+    assert tg.estimated_mse(a, a) == pytest.approx(tg.QUANTISATION_MSE)
+    assert tg.psnr_db(tg.QUANTISATION_MSE) == pytest.approx(10 * math.log10(255.0 ** 2 * 6))
+
+
+def test_the_estimate_is_a_quarter_of_the_halves_squared_difference_in_srgb_units():
+    rng = np.random.default_rng(2)
+    a = rng.uniform(0.2, 0.8, (10, 12, 3))
+    b = a + rng.normal(0.0, 0.01, a.shape)
+    d = tg.srgb_units(a) - tg.srgb_units(b)
+    assert tg.estimated_mse(a, b) == pytest.approx(float(np.mean(d * d)) / 4 + 1 / 6)
+    # the transfer is IEC 61966-2-1's, 0..255 unrounded, clipped
+    assert tg.srgb_units(np.array([0.0, 1.0, 2.0, -1.0, 0.0031308])).tolist() == pytest.approx(
+        [0.0, 255.0, 255.0, 0.0, 255 * 12.92 * 0.0031308])
+
+
+def test_the_estimate_of_independent_noise_is_the_means_true_error():
+    """Two independent noisy halves of a known image: the estimate is the mean's measured error (in
+    expectation; here within 5 % on a million values)."""
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.05, 0.6, (500, 700, 3))
+    a, b = (truth + rng.normal(0.0, 0.02, truth.shape) for _ in range(2))
+    delivered = (a + b) / 2
+    measured = float(np.mean((tg.srgb_units(delivered) - tg.srgb_units(truth)) ** 2))
+    assert tg.estimated_mse(a, b) - tg.QUANTISATION_MSE == pytest.approx(measured, rel=0.05)
+
+
+def test_a_denoisers_blur_is_in_the_estimate_not_only_its_variance():
+    """A stand-in denoiser that blurs (a 5x5 box: less variance, a bias on every detail both halves share):
+    the cross-validated estimate finds the delivered image's measured error, bias included, where the
+    denoised halves' own difference alone misses most of it."""
+    from scipy.ndimage import uniform_filter
+
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[0:400, 0:600]
+    truth = np.repeat((0.3 + 0.2 * np.sin(xx / 6.0) * np.sin(yy / 7.0))[..., None], 3, axis=-1)   # detail to blur
+    a, b = (truth + rng.normal(0.0, 0.03, truth.shape) for _ in range(2))
+    da, db = (uniform_filter(x, size=(5, 5, 1)) for x in (a, b))
+    delivered = (da + db) / 2
+    measured = float(np.mean((tg.srgb_units(delivered) - tg.srgb_units(truth)) ** 2))
+    estimate = tg.estimated_mse(a, b, da, db) - tg.QUANTISATION_MSE
+    assert estimate == pytest.approx(measured, rel=0.1)
+    variance_only = float(np.mean((tg.srgb_units(da) - tg.srgb_units(db)) ** 2)) / 4
+    assert variance_only < 0.5 * measured
+
+
+@pytest.mark.parametrize("done, mse, target, cap, expected", [
+    (16, 40.0, 10.0, 4096, 16),       # needs ~4.6x: at most doubles
+    (16, 12.0, 10.0, 4096, 8),        # needs a little: at least FIRST_SAMPLES // 2
+    (64, 11.0, 10.0, 4096, 17),       # 64 * 1.1 * 1.15 -> 81: 17 more
+    (2000, 40.0, 10.0, 2048, 48),     # the cap
+    (2048, 40.0, 10.0, 2048, 0),      # at the cap: stop
+])
+def test_each_round_asks_for_what_the_target_needs_within_bounds(done, mse, target, cap, expected):
+    assert tg.next_samples(done, mse, target, cap) == expected
+
+
+def test_half_seeds_are_distinct_and_cycles_seeds():
+    seeds = {tg.half_seed(2 ** 31 - 5, r, h) for r in range(50) for h in (0, 1)}
+    assert len(seeds) == 100 and all(0 <= s < 2 ** 31 for s in seeds)
+    assert tg.half_seed(2 ** 31 - 5, 0, 0) == 2 ** 31 - 5   # the first half is the layer's own render: its mask
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tiny_base, tmp_path_factory):
+    from allo_usd.usd.read import read_scene
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from tests.support.helpers import make_spec
+
+    root = tmp_path_factory.mktemp("target")
+    return read_scene(write_scene_layer(make_spec(anomaly=True, samples=256), root / "t.usda", tiny_base))
+
+
+def _with_target(desc, target: float, samples: int, denoise: bool = False):
+    render = dataclasses.replace(desc.render, samples=samples, denoise=denoise)
+    object.__setattr__(render, "target_psnr", target)   # until the layer carries it: the reader's field
+    object.__setattr__(render, "time_limit", 0.0)
+    return dataclasses.replace(desc, render=render)
+
+
+@pytest.mark.render
+def test_a_target_render_stops_on_the_target_and_restores_the_scene(tiny_scene):
+    import bpy
+
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    desc = _with_target(tiny_scene, 30.0, 4096)
+    build_scene(desc)
+    scene = bpy.context.scene
+    before = (scene.cycles.samples, scene.cycles.seed, scene.cycles.use_denoising,
+              scene.cycles.use_adaptive_sampling, scene.view_layers[0].cycles.denoising_store_passes)
+    result = render_current(desc)
+    acc = result.accuracy
+    assert acc["mode"] == "target" and acc["stopped_by"] == "target" and acc["estimated_psnr_db"] >= 30.0
+    assert acc["samples"] <= 4096 and acc["rounds"] >= 1 and acc["samples"] % 2 == 0
+    assert result.rgb.shape == (36, 64, 3) and np.isfinite(result.rgb).all() and result.rgb.max() > 0.05
+    assert set(np.unique(result.mask)) == {0, 1, 2}
+    after = (scene.cycles.samples, scene.cycles.seed, scene.cycles.use_denoising,
+             scene.cycles.use_adaptive_sampling, scene.view_layers[0].cycles.denoising_store_passes)
+    assert after == before
+
+
+@pytest.mark.render
+def test_a_target_beyond_the_cap_stops_on_the_samples_and_says_so(tiny_scene):
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    desc = _with_target(tiny_scene, 90.0, 8)
+    build_scene(desc)
+    acc = render_current(desc).accuracy
+    assert acc["stopped_by"] == "samples" and acc["samples"] == 8 and acc["estimated_psnr_db"] < 90.0
+
+
+@pytest.mark.render
+def test_without_a_target_the_render_records_no_estimate(tiny_scene):
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    build_scene(tiny_scene)
+    assert render_current(tiny_scene).accuracy is None
+
+
+@pytest.mark.render
+def test_a_target_renders_mask_is_the_fixed_renders(tiny_scene):
+    """The first half renders with the layer's own seed: the class mask and object ids are those a fixed
+    render of the layer gives (sample 0 lands in the same place)."""
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    build_scene(tiny_scene)
+    fixed = render_current(tiny_scene)
+    desc = _with_target(tiny_scene, 25.0, tiny_scene.render.samples)
+    build_scene(desc)
+    aimed = render_current(desc)
+    assert (aimed.mask == fixed.mask).all() and (aimed.ids == fixed.ids).all()
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("denoise", [True, False])
+def test_a_fixed_renders_estimate_leaves_its_image_as_it_was(tiny_scene, denoise):
+    """Asked for (allo:render:estimate), a fixed render's estimate costs one more render and changes nothing
+    it delivers: the image is the one the render gives without it, bit for bit."""
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    plain = dataclasses.replace(tiny_scene, render=dataclasses.replace(tiny_scene.render, denoise=denoise))
+    build_scene(plain)
+    before = render_current(plain)
+    render = dataclasses.replace(plain.render)
+    object.__setattr__(render, "estimate", True)   # until the layer carries it: the reader's field
+    asked = dataclasses.replace(plain, render=render)
+    build_scene(asked)
+    after = render_current(asked)
+    assert (after.rgb == before.rgb).all() and (after.mask == before.mask).all()
+    acc = after.accuracy
+    assert acc["mode"] == "fixed" and acc["stopped_by"] == "samples" and acc["samples"] == plain.render.samples
+    assert 10.0 < acc["estimated_psnr_db"] < 80.0 and ("DF" in acc["estimator"]) == denoise
