@@ -206,7 +206,13 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
                                       help="The passes to write this run, replacing what the layers order: a comma "
                                            "list of " + ", ".join(PASSES) + ". A single layer records them in its "
                                            "JSON; a plan's layers are authored with them."),
-           target_psnr: float = TARGET_OPTION, time_limit: float = TIME_LIMIT_OPTION):
+           target_psnr: float = TARGET_OPTION, time_limit: float = TIME_LIMIT_OPTION,
+           estimate: bool = typer.Option(False, "--estimate", help=(
+               "Also estimate each fixed-sample render's error (its estimated PSNR in the JSON's accuracy and the "
+               "manifest's est_psnr_db) from one more render of the same settings with another seed: twice the "
+               "time, the image unchanged. A finished single layer without an estimate renders again; in a "
+               "directory or plan, renders already done are kept (--force renders them again). A render to a "
+               "target (--target-psnr) always has its estimate."))):
     """Render scene layers: per scene the passes its layer orders (default RGB PNG, linear EXR, 3-class
     mask PNG; docs/formats/render_outputs.md, Passes) and a metadata JSON.
 
@@ -230,7 +236,8 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
         _render(source, out, RunOptions.from_cli(force=force, workers=workers, scheduler=scheduler, threads=threads,
                                                  retries=retries, timeout=timeout, verify=verify,
                                                  save_blend=save_blend, device=device, passes=passes,
-                                                 target_psnr=target_psnr, time_limit=time_limit))
+                                                 target_psnr=target_psnr, time_limit=time_limit,
+                                                 estimate=estimate))
 
 
 def _render(source: Path, out: Path, options: RunOptions) -> None:

@@ -172,7 +172,7 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
     (blender.target); then the amodal pass's second render when the layer asks for it."""
     from allo_usd.blender.compositor import has_compositor
 
-    if getattr(desc.render, "target_psnr", 0.0) > 0 and set(COLOR_PASSES) & set(desc.render.outputs):
+    if desc.render.target_psnr > 0 and set(COLOR_PASSES) & set(desc.render.outputs):
         from allo_usd.blender.target import render_to_target
 
         def needs(ch) -> str | None:
@@ -195,7 +195,7 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
                 return "normal"
             return None
 
-        estimate = getattr(desc.render, "estimate", False) and set(COLOR_PASSES) & set(desc.render.outputs)
+        estimate = desc.render.estimate and set(COLOR_PASSES) & set(desc.render.outputs)
         if estimate:   # the same render, its noisy image stored beside it (blender.target.estimate_fixed)
             from allo_usd.blender.target import estimate_fixed, noisy_image_stored
 

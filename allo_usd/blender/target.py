@@ -178,7 +178,7 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
                         "allo:effects:lensGlare off or remove the target")
     target_mse = _SRGB_PEAK * _SRGB_PEAK / 10.0 ** (render.target_psnr / 10.0)
     cap_per_half = max(1, int(render.samples) // 2)
-    limit = float(getattr(render, "time_limit", 0.0) or 0.0)
+    limit = float(render.time_limit)
     halves = (_Half(), _Half())
     first = None
     rounds, seconds, mse, stopped = 0, 0.0, math.inf, "samples"

@@ -84,13 +84,13 @@ def aimed_target(settings, options: JobOptions) -> tuple[float, float]:
 def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
                  workdir: Path | None = None, session=None, save_blend: Path | None = None,
                  device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True,
-                 target_psnr: float | None = None, time_limit: float | None = None) -> dict:
+                 target_psnr: float | None = None, time_limit: float | None = None, estimate: bool = False) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON): render_record's
     record as the JSON's object, for callers outside the package (allo_usd.render_layer). `force`,
-    `threads`, `device`, `passes`, `save_blend`, `target_psnr` and `time_limit` build the JobOptions (allo_usd.run.options) that
+    `threads`, `device`, `passes`, `save_blend`, `target_psnr`, `time_limit` and `estimate` build the JobOptions (allo_usd.run.options) that
     render_record reads; `workdir`, `session` and `index` are render_record's."""
     job = JobOptions(device=device, threads=threads, passes=passes, force=force, save_blend=save_blend,
-                     target_psnr=target_psnr, time_limit=time_limit)
+                     target_psnr=target_psnr, time_limit=time_limit, estimate=estimate)
     return render_record(layer, out_dir, job, workdir=workdir, session=session, index=index).as_dict()
 
 
@@ -141,7 +141,7 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
     aimed = options.target_psnr is not None or options.time_limit is not None   # another target than the layer's
     if not force and save_blend is None and passes is None and not aimed:
         meta = done_record(layer, out_dir)  # the rule every entry point uses (allo_usd.run.render_index.is_done)
-        if meta is not None:
+        if meta is not None and not (options.estimate and not isinstance(getattr(meta, "accuracy", None), dict)):
             return meta
     import_held("bpy")   # Blender's start-up swallows a Ctrl-C (and leaves numpy half-loaded): held until it is in
     used = select(options.device or "auto")
@@ -158,6 +158,8 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
         target_psnr, time_limit = aimed_target(desc.render, options)
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, target_psnr=target_psnr,
                                                                     time_limit=time_limit))
+    if options.estimate:
+        desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, estimate=True))
     target = render_target(desc.render)
     result = _render(desc, workdir, session, save_blend, used, replace_blend=force)
     paths = output_paths(layer, out_dir, desc.render.outputs)

@@ -55,7 +55,9 @@ class JobOptions:
     `save_blend` replace an existing file; `save_blend` also saves the built Blender scene there.
     `target_psnr` and `time_limit` replace the layer's allo:render:targetPsnr / timeLimit for this run
     (None: the layer's; target 0: fixed samples): the JSON records both targets, and a render to
-    another target than its layer's is never skipped as done.
+    another target than its layer's is never skipped as done. `estimate`: a fixed-sample render also
+    estimates its own error (one more render of the same settings; its image is unchanged); a finished
+    render without an estimate is then not done.
     """
     device: str | None = "auto"
     threads: int | None = None
@@ -64,6 +66,7 @@ class JobOptions:
     save_blend: Path | None = None
     target_psnr: float | None = None
     time_limit: float | None = None
+    estimate: bool = False
 
     def __post_init__(self):
         from allo_usd.plan.settings import target_problem
@@ -112,7 +115,7 @@ class RunOptions:
     def from_cli(cls, *, force: bool = False, workers: int = 0, scheduler: str | None = None, threads: int = 0,
                  retries: int = 2, timeout: float | None = None, verify: bool = False, save_blend: Path | None = None,
                  device: str | None = None, passes: str | None = None, target_psnr: float | None = None,
-                 time_limit: float | None = None) -> "RunOptions":
+                 time_limit: float | None = None, estimate: bool = False) -> "RunOptions":
         """The value `allo-usd render` builds from its options, with the command line's messages:
         `passes` as given ("rgb,mask"), `device` None when --device was left out (a plan's
         render.device decides), 0 for the default of --workers and --threads. Checks, in this order:
@@ -121,7 +124,7 @@ class RunOptions:
         dispatcher's)."""
         job = JobOptions(device=device, threads=threads or None, force=force, save_blend=save_blend,
                          passes=None if passes is None else [p.strip() for p in passes.split(",") if p.strip()],
-                         target_psnr=target_psnr, time_limit=time_limit)
+                         target_psnr=target_psnr, time_limit=time_limit, estimate=bool(estimate))
         for name, value in (("--workers", workers), ("--threads", threads), ("--retries", retries),
                             ("--timeout", timeout or 0)):
             if value < 0:

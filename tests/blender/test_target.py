@@ -88,9 +88,7 @@ def tiny_scene(tiny_base, tmp_path_factory):
 
 
 def _with_target(desc, target: float, samples: int, denoise: bool = False):
-    render = dataclasses.replace(desc.render, samples=samples, denoise=denoise)
-    object.__setattr__(render, "target_psnr", target)   # until the layer carries it: the reader's field
-    object.__setattr__(render, "time_limit", 0.0)
+    render = dataclasses.replace(desc.render, samples=samples, denoise=denoise, target_psnr=target, time_limit=0.0)
     return dataclasses.replace(desc, render=render)
 
 
@@ -163,12 +161,32 @@ def test_a_fixed_renders_estimate_leaves_its_image_as_it_was(tiny_scene, denoise
     plain = dataclasses.replace(tiny_scene, render=dataclasses.replace(tiny_scene.render, denoise=denoise))
     build_scene(plain)
     before = render_current(plain)
-    render = dataclasses.replace(plain.render)
-    object.__setattr__(render, "estimate", True)   # until the layer carries it: the reader's field
-    asked = dataclasses.replace(plain, render=render)
+    asked = dataclasses.replace(plain, render=dataclasses.replace(plain.render, estimate=True))
     build_scene(asked)
     after = render_current(asked)
     assert (after.rgb == before.rgb).all() and (after.mask == before.mask).all()
     acc = after.accuracy
     assert acc["mode"] == "fixed" and acc["stopped_by"] == "samples" and acc["samples"] == plain.render.samples
     assert 10.0 < acc["estimated_psnr_db"] < 80.0 and ("DF" in acc["estimator"]) == denoise
+
+
+@pytest.mark.render
+def test_render_with_estimate_records_it_and_keeps_the_image(tiny_base, tmp_path):
+    """`render_layer(..., estimate=True)` (`allo-usd render --estimate`): a finished render without an
+    estimate renders again, its JSON gains `accuracy` (mode fixed) and the manifest's est_psnr_db, and its
+    image files are the same bytes; without --estimate the finished render stays done."""
+    from allo_usd.run.job import render_layer
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from tests.support.helpers import make_spec
+
+    layer = write_scene_layer(make_spec(anomaly=True), tmp_path / "layers" / "a.usda", tiny_base)
+    out = tmp_path / "renders"
+    plain = render_layer(layer, out)
+    png = (out / plain["files"]["rgb"]).read_bytes()
+    assert plain.get("accuracy") is None
+    asked = render_layer(layer, out, estimate=True)
+    assert asked["accuracy"]["mode"] == "fixed" and asked["accuracy"]["estimated_psnr_db"] > 10
+    assert (out / asked["files"]["rgb"]).read_bytes() == png
+    again = render_layer(layer, out)   # done: the estimate is kept
+    assert again["accuracy"] == asked["accuracy"]
