@@ -173,9 +173,9 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
 
     render = desc.render
     if has_compositor():
-        raise AlloError(f"{desc.layer}: a PSNR target (allo:render:targetPsnr) with lens glare is not rendered "
-                        "(the glare is composited before a denoise the target mode runs itself); fix: turn "
-                        "allo:effects:lensGlare off or remove the target")
+        from allo_usd.plan.settings import TARGET_WITH_GLARE
+
+        raise AlloError(f"{desc.layer}: {TARGET_WITH_GLARE}")
     target_mse = _SRGB_PEAK * _SRGB_PEAK / 10.0 ** (render.target_psnr / 10.0)
     cap_per_half = max(1, int(render.samples) // 2)
     limit = float(render.time_limit)

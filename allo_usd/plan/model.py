@@ -615,6 +615,14 @@ class Plan(_Model):
         self.camera.model(self.quality.resolution)   # the sensor's aspect and the offset against the image
         return self
 
+    @model_validator(mode="after")
+    def _target_without_glare(self):
+        from allo_usd.plan.settings import TARGET_WITH_GLARE
+
+        if self.quality.target_psnr > 0 and self.effects.glare:
+            raise ValueError("quality.target_psnr with effects.glare: " + TARGET_WITH_GLARE)
+        return self
+
     def camera_model(self) -> tuple[CameraModel, tuple[int, int]]:
         """(the plan's lens, the image size (width, height)) it renders with."""
         size = tuple(int(v) for v in self.quality.resolution)

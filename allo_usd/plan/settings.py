@@ -153,6 +153,10 @@ class EffectsSpec(EffectFlags):
 # The named presets render fixed samples (no target): their meaning, and their layers' bytes, are as before
 # the target mode; a plan sets quality.target_psnr (and time_limit) over any of them to aim at a quality.
 FIXED = dict(target_psnr=0.0, time_limit=0.0)
+# The target mode denoises its halves itself, after Cycles' render, where Blender composites the lens glare:
+# a target with glare would lose the glare, so it is refused (author, reader, render).
+TARGET_WITH_GLARE = ("a PSNR target is not rendered with lens glare (the target mode denoises after the render, where "
+                     "Blender composites the glare); fix: turn lens glare off, or remove the target for fixed samples")
 PRESETS: dict[str, dict] = {
     "draft": dict(samples=4, adaptive_threshold=0.0, denoise=True, max_bounces=8,
                   denoise_prefilter="FAST", denoise_quality="BALANCED", **FIXED),

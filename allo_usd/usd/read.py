@@ -17,7 +17,7 @@ import numpy as np
 from allo_usd.core import fixedmath as fm
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout, schema
-from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
+from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES, TARGET_WITH_GLARE
 from allo_usd.usd.description import CameraDesc, EffectsDesc, RenderDesc, SceneDescription
 from allo_usd.core.errors import LayerError
 from allo_usd.usd.base_stage import RENDER_VARS
@@ -266,6 +266,8 @@ def read_render(settings_prim, exposure: float = 1.0) -> tuple[RenderDesc, Effec
                           inspection_light=flag(A.EFFECTS_INSPECTION_LIGHT.name, True),
                           body_shine=flag(A.EFFECTS_BODY_SHINE.name, True),
                           sensor=read_sensor(settings_prim) if noise else None)
+    if render.target_psnr > 0 and effects.glare:
+        raise LayerError(f"{A.RENDER_TARGET_PSNR.name} and {A.EFFECTS_GLARE.name} are both on: " + TARGET_WITH_GLARE)
     return render, effects
 
 

@@ -30,7 +30,7 @@ from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
 from allo_usd.usd.base_stage import LIT_BODIES, camera_ev, gf_quatd, product_vars
-from allo_usd.plan.settings import DEFAULT_PASSES, canonical_passes, target_problem
+from allo_usd.plan.settings import TARGET_WITH_GLARE, DEFAULT_PASSES, canonical_passes, target_problem
 from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.core.files import relpath
 from allo_usd.usd.usda_writer import Prim, write_layer
@@ -75,6 +75,8 @@ def validate_spec(spec: SceneSpec) -> None:
     problem = target_problem(spec.render.target_psnr, spec.render.time_limit)
     if problem:
         raise LayerError(problem)
+    if spec.render.target_psnr > 0 and spec.effects.glare:
+        raise LayerError(TARGET_WITH_GLARE)
     if spec.split not in ("train", "test"):
         raise LayerError(f"split must be 'train' or 'test', got {spec.split!r}")
     _check_lens(spec)

@@ -283,3 +283,10 @@ def _toml(v):
 
 def _yaml(v):
     return {"nan": ".nan", "inf": ".inf"}.get(v, v) if isinstance(v, str) else repr(v)
+
+
+def test_a_target_with_lens_glare_is_a_plan_error(tmp_path):
+    path = tmp_path / "p.toml"
+    path.write_text('name = "x"\n[quality]\ntarget_psnr = 40\n[effects]\nglare = true\n')
+    with pytest.raises(PlanError, match="quality.target_psnr with effects.glare: .*fix: turn lens glare off"):
+        load_plan(path)

@@ -497,3 +497,11 @@ def test_inspect_says_a_foreign_layer_is_not_ours(tmp_path, tiny_base):
         describe(tiny_base)  # the base stage is ours, but not a scene
     result = CliRunner().invoke(app, ["inspect", str(foreign)])
     assert result.exit_code != 0 and "None" not in result.output
+
+
+def test_a_target_beside_lens_glare_is_refused(layer):
+    """The target mode denoises after the render, where Blender composites the glare: a layer with both
+    would lose its glare, so it is refused in one line naming both attributes and the fix."""
+    override(layer, SETTINGS, "allo:render:targetPsnr", T.Float, 40.0)
+    override(layer, SETTINGS, "allo:effects:glare", T.Bool, True)
+    refused(layer, "allo:render:targetPsnr and allo:effects:glare are both on", "fix: turn lens glare off")

@@ -224,3 +224,13 @@ def test_a_bad_target_writes_no_layer(tiny_base, tmp_path, target, limit, needle
         write_scene_layer(replace(spec, render=replace(spec.render, target_psnr=target, time_limit=limit)),
                           tmp_path / "s.usda", tiny_base)
     assert not (tmp_path / "s.usda").exists()
+
+
+def test_a_target_with_lens_glare_writes_no_layer(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    spec = make_spec()
+    aimed = replace(spec, render=replace(spec.render, target_psnr=40.0), effects=replace(spec.effects, glare=True))
+    with pytest.raises(LayerError, match="not rendered with lens glare"):
+        write_scene_layer(aimed, tmp_path / "s.usda", tiny_base)
+    assert not (tmp_path / "s.usda").exists()
