@@ -89,7 +89,14 @@ def error_map(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None
         return (d * d / 4.0).mean(axis=-1)
     a, b, da, db = (np.asarray(x, dtype=np.float64) for x in (noisy_a, noisy_b, den_a, den_b))
     lin = ((da - b) ** 2 + (db - a) ** 2 - (a - b) ** 2) / 2.0 - (da - db) ** 2 / 4.0
-    return (srgb_slope_sq((da + db) / 2.0) * lin).mean(axis=-1)
+    return _bounded((srgb_slope_sq((da + db) / 2.0) * lin).mean(axis=-1))
+
+
+def _bounded(e: np.ndarray) -> np.ndarray:
+    """A pixel's estimated squared error within what an 8-bit pixel can be wrong by (+-255**2): the slope
+    linearisation holds for small errors, and a firefly that a denoised half keeps (hundreds in linear values
+    beside a dark delivered value) would otherwise outweigh the whole image."""
+    return np.clip(e, -_SRGB_PEAK * _SRGB_PEAK, _SRGB_PEAK * _SRGB_PEAK)
 
 
 def estimated_mse(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None = None,
@@ -229,7 +236,7 @@ def fixed_error_map(delivered_f: np.ndarray, delivered_g: np.ndarray, noisy_f: n
         return (d * d / 2.0).mean(axis=-1)
     df, dg, fn, gn = (np.asarray(x, dtype=np.float64) for x in (delivered_f, delivered_g, noisy_f, noisy_g))
     lin = ((df - gn) ** 2 + (dg - fn) ** 2 - (fn - gn) ** 2) / 2.0
-    return (srgb_slope_sq(df) * lin).mean(axis=-1)
+    return _bounded((srgb_slope_sq(df) * lin).mean(axis=-1))
 
 
 @contextmanager

@@ -190,3 +190,19 @@ def test_render_with_estimate_records_it_and_keeps_the_image(tiny_base, tmp_path
     assert (out / asked["files"]["rgb"]).read_bytes() == png
     again = render_layer(layer, out)   # done: the estimate is kept
     assert again["accuracy"] == asked["accuracy"]
+
+
+def test_a_firefly_a_denoised_half_keeps_weighs_at_most_one_pixels_worth():
+    """A firefly in one half (hundreds in linear values) that its denoised image keeps, beside a dark
+    delivered value: its pixel counts at most 255**2 (all an 8-bit pixel can be wrong by), not the slope's
+    linearisation of a huge error, which outweighed the whole image."""
+    rng = np.random.default_rng(5)
+    truth = np.full((90, 160, 3), 0.01)
+    a, b = (truth + rng.normal(0.0, 0.002, truth.shape) for _ in range(2))
+    da, db = truth + 0.0005, truth - 0.0005
+    calm = tg.estimated_mse(a, b, da, db)
+    b[40, 70], db[40, 70] = 650.0, 200.0
+    hot = tg.estimated_mse(a, b, da, db)
+    assert hot - calm <= 255.0 ** 2 / (90 * 160) + 1e-9
+    fixed = tg.fixed_error_map(da, db, a, b)
+    assert np.abs(fixed).max() <= 255.0 ** 2
