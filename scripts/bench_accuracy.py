@@ -1092,6 +1092,8 @@ def main(argv=None) -> int:
                         save_rows(rows)
         if args.phase in ("all", "presets"):
             run_presets(views, rows, args.rounds)
+        if args.phase == "reference":   # it wrote no rows: re-read them, so rows another phase wrote since stay
+            rows = load_rows()
         rows["runs"].append(benchinfo.finish(run))
         save_rows(rows)
     refs = {v.id: load_reference(v, args.ref_samples, chunk) for v in views}
