@@ -90,6 +90,44 @@ def _timeout_seconds(text):
     return value
 
 
+def _real(option: str, low: float, high: float, fix: str):
+    """A typer parser: the text given as a finite number in low..high, else an AlloError that prints the text."""
+    def parse(text):
+        if isinstance(text, (int, float)) and not isinstance(text, bool):
+            value = float(text)   # a default
+        else:
+            try:
+                value = float(str(text).strip())
+            except ValueError:
+                value = math.nan
+        if not (math.isfinite(value) and low <= value <= high):
+            sign = "negative: " if value < 0 else ""
+            raise AlloError(f"{option} {_as_given(text)} is {sign}not a number from {low:g} to {high:.0f}; fix: {fix}")
+        return value
+    return parse
+
+
+def _target_options():
+    """`--target-psnr DB` and `--time-limit S` (render, demo): the target mode for this run (allo_usd.plan.settings)."""
+    from allo_usd.plan.settings import TARGET_PSNR_DB, TIME_LIMIT_S
+
+    return (typer.Option(None, "--target-psnr", metavar="DB", show_default=False,
+                         parser=_real("--target-psnr", 0.0, TARGET_PSNR_DB[1], "give the PSNR in dB the render should "
+                                      "reach, e.g. 40, or 0 for fixed samples"),
+                         help="Render to a quality: spend samples in rounds of two independent halves until the "
+                              "estimated PSNR of the delivered image (8-bit sRGB, against the converged image) "
+                              "reaches DB (0-100; 0: fixed samples), or the samples or --time-limit stop "
+                              "it; the JSON records which. Replaces the layers' allo:render:targetPsnr for this run (demo: authored into its layers)."),
+            typer.Option(None, "--time-limit", metavar="S", show_default=False,
+                         parser=_real("--time-limit", TIME_LIMIT_S[0], TIME_LIMIT_S[1], "give the seconds one render "
+                                      "may spend reaching its target, e.g. 60, or 0 for no limit"),
+                         help="With a target: stop spending samples after S seconds (0: no limit). Replaces the "
+                              "layers' allo:render:timeLimit for this run."))
+
+
+TARGET_OPTION, TIME_LIMIT_OPTION = _target_options()
+
+
 def _render_samples_max() -> int:
     from allo_usd.usd.reader_bounds import RENDER_SAMPLES
 
@@ -167,7 +205,14 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
            passes: str = typer.Option(None, "--passes", metavar="P1,P2", show_default=False,
                                       help="The passes to write this run, replacing what the layers order: a comma "
                                            "list of " + ", ".join(PASSES) + ". A single layer records them in its "
-                                           "JSON; a plan's layers are authored with them.")):
+                                           "JSON; a plan's layers are authored with them."),
+           target_psnr: float = TARGET_OPTION, time_limit: float = TIME_LIMIT_OPTION,
+           estimate: bool = typer.Option(False, "--estimate", help=(
+               "Also estimate each fixed-sample render's error (its estimated PSNR in the JSON's accuracy and the "
+               "manifest's est_psnr_db) from one more render of the same settings with another seed: twice the "
+               "time, the image unchanged. A finished single layer without an estimate renders again; in a "
+               "directory or plan, renders already done are kept (--force renders them again). A render to a "
+               "target (--target-psnr) always has its estimate."))):
     """Render scene layers: per scene the passes its layer orders (default RGB PNG, linear EXR, 3-class
     mask PNG; docs/formats/render_outputs.md, Passes) and a metadata JSON.
 
@@ -181,6 +226,7 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
     authored tree, that tree's authored folders; --tree OUT grants a tree to a layer of your own.
     A packed scene (.usdz, `allo-usd pack`) renders as its layer would and reads only its own files.
     --device picks the Cycles device (auto, cpu, gpu); the JSON of each render records it.
+    --target-psnr DB renders to a quality instead of a fixed number of samples (a single layer or a plan).
     """
     from allo_usd.run.options import RunOptions
     from allo_usd.usd.safety import trees_granted
@@ -189,7 +235,9 @@ def render(source: Path = typer.Argument(..., metavar="PLAN_OR_DIR_OR_LAYER",
         # the one value the rest reads; built and checked here (passes, device, numbers, --scheduler)
         _render(source, out, RunOptions.from_cli(force=force, workers=workers, scheduler=scheduler, threads=threads,
                                                  retries=retries, timeout=timeout, verify=verify,
-                                                 save_blend=save_blend, device=device, passes=passes))
+                                                 save_blend=save_blend, device=device, passes=passes,
+                                                 target_psnr=target_psnr, time_limit=time_limit,
+                                                 estimate=estimate))
 
 
 def _render(source: Path, out: Path, options: RunOptions) -> None:
@@ -219,6 +267,10 @@ def _render(source: Path, out: Path, options: RunOptions) -> None:
         raise AlloError("--passes overrides the passes of a single layer (rendered in this process) or of a plan's "
                         "layers; a directory's layers record their own: render a plan with --passes, or set "
                         "quality.passes in the plan and author the layers again")
+    if (job.target_psnr is not None or job.time_limit is not None) and (source.is_dir() or (is_layer and not single)):
+        raise AlloError("--target-psnr and --time-limit override the target of a single layer (rendered in this "
+                        "process) or of a plan's layers; a directory's layers record their own: render a plan with "
+                        "--target-psnr, or set quality.target_psnr in the plan and author the layers again")
     ensure_output_dir(out)
     if single:
         _render_one(source, out, job)
@@ -251,6 +303,17 @@ def _render(source: Path, out: Path, options: RunOptions) -> None:
         raise SystemExit(1)
 
 
+def _accuracy_text(meta) -> str:
+    """", estimated 40.3 dB (target 40, stopped by target)" of a render that estimated its accuracy, else ""."""
+    acc = meta.accuracy if isinstance(meta.accuracy, dict) else {}
+    est, target, why = acc.get("estimated_psnr_db"), acc.get("target_psnr_db"), acc.get("stopped_by")
+    if not isinstance(est, (int, float)) or isinstance(est, bool):
+        return ""
+    more = ", ".join(x for x in (f"target {target:g}" if isinstance(target, (int, float)) and target else "",
+                                 f"stopped by {why}" if why in ("target", "samples", "seconds") else "") if x)
+    return f", estimated {est:.1f} dB" + (f" ({more})" if more else "")
+
+
 def _render_one(layer: Path, out: Path, job: JobOptions) -> None:
     """One layer in this process as `job` (a JobOptions; device None: auto) says, under the same output
     lock as a directory render; a full disk (our writers' ENOSPC, or OpenEXR's RuntimeError for one) is
@@ -275,7 +338,7 @@ def _render_one(layer: Path, out: Path, job: JobOptions) -> None:
                 raise
             raise full from None
     _show_device_notes()
-    typer.echo(f"{layer} -> {out}: {meta.render_seconds:.2f} s, classes {meta.class_pixels}")
+    typer.echo(f"{layer} -> {out}: {meta.render_seconds:.2f} s, classes {meta.class_pixels}" + _accuracy_text(meta))
     if job.save_blend is not None:
         typer.echo(f"Blender scene saved as {job.save_blend}")
 
@@ -314,18 +377,25 @@ def demo(out: Path = typer.Option(Path("out/demo"), "--out",
          samples: int = typer.Option(32, metavar="N", help="Cycles samples per pixel.",
                                      parser=_whole("--samples", 1, _render_samples_max, "give Cycles samples per "
                                                    "pixel, e.g. --samples 32")),
-         device: str = _device_option("auto")):
-    """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet."""
+         device: str = _device_option("auto"),
+         target_psnr: float = TARGET_OPTION, time_limit: float = TIME_LIMIT_OPTION):
+    """Author and render the small demo dataset (2 normal, 2 anomalous scenes) and a contact sheet.
+    With --target-psnr DB the layers ask for the target mode, --samples being its cap."""
     from allo_usd.blender.device import check_device
+    from allo_usd.plan.settings import target_problem
     from allo_usd.run.demo import run_demo
 
     device = check_device(device)
     why = resolution_problem(width, height)
     if why:
         raise AlloError(f"--width {width} --height {height}: {why}")
+    why = target_problem(target_psnr or 0.0, time_limit or 0.0, "--target-psnr", "--time-limit")
+    if why:
+        raise AlloError(why)
     ensure_output_dir(out)
     try:
-        sheet = run_demo(out, (width, height), samples, device=device)
+        sheet = run_demo(out, (width, height), samples, device=device, target_psnr=target_psnr or 0.0,
+                         time_limit=time_limit or 0.0)
     except KeyboardInterrupt:
         typer.echo(f"interrupted: finished scenes are kept under {out}; re-run the same command to render the "
                    "rest", err=True)

@@ -41,7 +41,10 @@ class RenderResult:
     normal: np.ndarray | None = None   # (H, W, 3) float32 world-space normal, when the layer asks for it
     amodal: np.ndarray | None = None   # (H, W) uint8 0/2: the anomaly alone (blender.amodal), when asked for
     amodal_seconds: float = 0.0        # that second render's time
-    accuracy: dict | None = None       # the render's estimated error (blender.target), when it has one
+    # the render's estimate of its own error (blender.target): {"mode": "target" | "fixed", "target_psnr_db",
+    # "estimated_psnr_db", "samples", "rounds", "stopped_by": "target" | "samples" | "seconds", "estimator"};
+    # None: not estimated
+    accuracy: dict | None = None
 
 
 def read_multilayer_exr(path: Path) -> dict[str, np.ndarray]:
@@ -169,7 +172,7 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
     (blender.target); then the amodal pass's second render when the layer asks for it."""
     from allo_usd.blender.compositor import has_compositor
 
-    if getattr(desc.render, "target_psnr", 0.0) > 0 and set(COLOR_PASSES) & set(desc.render.outputs):
+    if desc.render.target_psnr > 0 and set(COLOR_PASSES) & set(desc.render.outputs):
         from allo_usd.blender.target import render_to_target
 
         def needs(ch) -> str | None:
@@ -192,14 +195,17 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
                 return "normal"
             return None
 
-        ch, seconds = render_channels(desc, workdir, missing)
+        estimate = desc.render.estimate and set(COLOR_PASSES) & set(desc.render.outputs)
+        if estimate:   # the same render, its noisy image stored beside it (blender.target.estimate_fixed)
+            from allo_usd.blender.target import estimate_fixed, noisy_image_stored
+
+            with noisy_image_stored():
+                ch, seconds = render_channels(desc, workdir, missing)
+        else:
+            ch, seconds = render_channels(desc, workdir, missing)
         rgb = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1).astype(np.float32)  # EXR rows run top-down
         mask, ids, depth, normal, objects = result_passes(desc, ch)
-        accuracy = None
-        if getattr(desc.render, "estimate", False) and set(COLOR_PASSES) & set(desc.render.outputs):
-            from allo_usd.blender.target import estimate_fixed
-
-            accuracy = estimate_fixed(desc, rgb, lambda m: render_channels(desc, workdir, m), missing)
+        accuracy = estimate_fixed(desc, ch, lambda m: render_channels(desc, workdir, m), missing) if estimate else None
         result = RenderResult(rgb, mask, depth, seconds, ids=ids, objects=objects, normal=normal, accuracy=accuracy)
     if "amodal" in desc.render.outputs:   # a second render: the anomaly alone (the scene is restored after it)
         from allo_usd.blender.amodal import amodal_mask, anomaly_alone

@@ -23,8 +23,8 @@ Rounds: the first gives each half `FIRST_SAMPLES` samples; after each, the sampl
 predicted from the estimate (a Monte Carlo error's variance falls as 1/N: N_needed = N * MSE / MSE_target,
 with HEADROOM), at most doubling the samples so far, within the cap. Adaptive sampling is off in this mode
 (the rounds are the adaptation; per-pixel sample counts would make the halves' means unweighable). The
-mask, object ids, depth and normal passes are those of the first half of the first round (its first sample
-lands where a fixed render's does: the same seed). Everything changed on the Blender scene is put back
+mask, object ids, depth and normal passes are those of the first half of the first round, rendered with the
+layer's own seed (its first sample lands where a fixed render's does, so the mask is the fixed render's). Everything changed on the Blender scene is put back
 afterwards, value for value, so a warm session (blender.session) keeps patching the scene it believes it shows.
 """
 
@@ -42,8 +42,9 @@ from allo_usd.usd.description import SceneDescription
 FIRST_SAMPLES = 16            # per half, the first round
 HEADROOM = 1.15               # the next round aims this far past the predicted need
 QUANTISATION_MSE = 1.0 / 6.0  # two 8-bit roundings (image and reference), 1/12 each, in 8-bit units squared
-SEED_STEP = 7919              # half h of round r renders with seed + SEED_STEP * (2 r + h + 1) (mod 2**31)
-ESTIMATOR = "two independent halves: MSE = mean((A - B)^2) / 4 + 1/6, 8-bit sRGB units"
+SEED_STEP = 7919              # half h of round r renders with seed + SEED_STEP * (2 r + h) (mod 2**31)
+ESTIMATOR = ("two independent halves A, B (denoised DA, DB): per pixel ((DA-B)^2 + (DB-A)^2 - (A-B)^2)/2 - (DA-DB)^2/4 "
+             "in linear values, times the sRGB slope squared, mean + 1/6 (8-bit units)")
 
 _SRGB_PEAK = 255.0
 
@@ -55,11 +56,47 @@ def srgb_units(rgb: np.ndarray) -> np.ndarray:
     return _SRGB_PEAK * np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
 
 
-def estimated_mse(half_a: np.ndarray, half_b: np.ndarray) -> float:
-    """The estimated squared error (8-bit units) of the mean of two independent halves against the converged
-    image (module docstring)."""
-    d = srgb_units(half_a) - srgb_units(half_b)
-    return float(np.mean(d * d)) / 4.0 + QUANTISATION_MSE
+def srgb_slope_sq(rgb: np.ndarray) -> np.ndarray:
+    """(d srgb_units / d linear)**2 at each value: how a small linear error shows in the 8-bit image; 0 where
+    the value is clipped (>= 1: a brighter or darker-but-still-clipped truth shows the same code)."""
+    c = np.nan_to_num(np.asarray(rgb, dtype=np.float64), nan=1.0)
+    slope = np.where(c <= 0.0031308, 12.92, 1.055 / 2.4 * np.power(np.clip(c, 0.0031308, 1.0), 1.0 / 2.4 - 1.0))
+    return np.where(c >= 1.0, 0.0, _SRGB_PEAK * slope) ** 2
+
+
+def error_map(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None = None,
+              den_b: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) estimated squared error, 8-bit sRGB units (mean over channels), of the delivered image
+    (den_a + den_b) / 2 against the converged one, from two independent noisy halves and the same halves
+    denoised (None: not denoised, delivered = their mean). In linear values, per pixel, with A, B the noisy
+    halves and DA, DB the denoised ones (T the converged value; A, B unbiased and independent):
+
+        E (DA - B)**2 = E (DA - T)**2 + E (B - T)**2        (B's noise is independent of DA)
+        E (A - B)**2  = E (A - T)**2 + E (B - T)**2
+        ((DA + DB)/2 - T)**2 = ((DA - T)**2 + (DB - T)**2) / 2 - (DA - DB)**2 / 4   (an identity)
+
+    so  e = ((DA - B)**2 + (DB - A)**2 - (A - B)**2) / 2 - (DA - DB)**2 / 4  has the delivered image's
+    squared error as its expectation, the denoiser's blur (a bias both halves share, which DA - DB alone
+    cannot see) included; a firefly in either noisy half cancels within its own pixel. Linear errors become
+    8-bit sRGB errors by the transfer's slope at the delivered value (srgb_slope_sq): small errors, as at
+    the targets this mode is for. Without a denoiser e = (A - B)**2 / 4, taken in the delivered transfer
+    itself, (s(A) - s(B))**2 / 4 (clipping and the curve included). Which form where is measured
+    (docs/benchmarks/bench_accuracy.md): on the demo's shaded anomaly view at 240x135, the linear form
+    with OIDN was 0.4-0.7 dB below the true PSNR and the sRGB form 0.5-1.7 dB below; without a denoiser
+    the sRGB form was 0.2-0.3 dB above it and the linear one 0.7 dB above."""
+    if den_a is None:   # the halves' own difference in the delivered transfer: clipping and curve included
+        d = srgb_units(noisy_a) - srgb_units(noisy_b)
+        return (d * d / 4.0).mean(axis=-1)
+    a, b, da, db = (np.asarray(x, dtype=np.float64) for x in (noisy_a, noisy_b, den_a, den_b))
+    lin = ((da - b) ** 2 + (db - a) ** 2 - (a - b) ** 2) / 2.0 - (da - db) ** 2 / 4.0
+    return (srgb_slope_sq((da + db) / 2.0) * lin).mean(axis=-1)
+
+
+def estimated_mse(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None = None,
+                  den_b: np.ndarray | None = None) -> float:
+    """The delivered image's estimated MSE in 8-bit units against the converged image: error_map's mean
+    (at least 0) plus the two 8-bit roundings a measurement against a converged reference adds."""
+    return max(float(np.mean(error_map(noisy_a, noisy_b, den_a, den_b))), 0.0) + QUANTISATION_MSE
 
 
 def psnr_db(mse: float) -> float:
@@ -74,7 +111,9 @@ def next_samples(done_per_half: int, mse: float, target_mse: float, cap_per_half
 
 
 def half_seed(seed: int, round_: int, half: int) -> int:
-    return (int(seed) + SEED_STEP * (2 * round_ + half + 1)) % (2 ** 31)
+    """Cycles' seed of half `half` of round `round_`: the layer's own for the first (whose mask, ids, depth
+    and normal the result keeps: those of a fixed render of the layer), distinct for every other."""
+    return (int(seed) + SEED_STEP * (2 * round_ + half)) % (2 ** 31)
 
 
 @contextmanager
@@ -134,12 +173,12 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
 
     render = desc.render
     if has_compositor():
-        raise AlloError(f"{desc.layer}: a PSNR target (allo:render:targetPsnr) with lens glare is not rendered "
-                        "(the glare is composited before a denoise the target mode runs itself); fix: turn "
-                        "allo:effects:lensGlare off or remove the target")
+        from allo_usd.plan.settings import TARGET_WITH_GLARE
+
+        raise AlloError(f"{desc.layer}: {TARGET_WITH_GLARE}")
     target_mse = _SRGB_PEAK * _SRGB_PEAK / 10.0 ** (render.target_psnr / 10.0)
     cap_per_half = max(1, int(render.samples) // 2)
-    limit = float(getattr(render, "time_limit", 0.0) or 0.0)
+    limit = float(render.time_limit)
     halves = (_Half(), _Half())
     first = None
     rounds, seconds, mse, stopped = 0, 0.0, math.inf, "samples"
@@ -161,8 +200,9 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
                 half.add(n, _stack(ch, "Combined", "RGB"), _stack(ch, "Denoising Albedo", "RGB"),
                          _stack(ch, "Denoising Normal", "XYZ"))
             rounds += 1
+            noisy = (halves[0].mean("color"), halves[1].mean("color"))
             delivered_a, delivered_b = _delivered_halves(halves, render)
-            mse = estimated_mse(delivered_a, delivered_b)
+            mse = estimated_mse(*noisy, *((delivered_a, delivered_b) if render.denoise else (None, None)))
             if mse <= target_mse:
                 stopped = "target"
                 break
@@ -173,33 +213,67 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
     rgb = ((delivered_a.astype(np.float64) + delivered_b) / 2.0).astype(np.float32)
     accuracy = {"mode": "target", "target_psnr_db": float(render.target_psnr), "estimated_psnr_db": psnr_db(mse),
                 "samples": halves[0].samples + halves[1].samples, "rounds": rounds, "stopped_by": stopped,
-                "estimator": ESTIMATOR + (", each half denoised (OIDN)" if render.denoise else "")}
+                "estimator": ESTIMATOR + ("" if render.denoise else ", no denoiser: DA = A, DB = B")}
     return rgb, first, seconds, accuracy
 
 
-def estimate_fixed(desc: SceneDescription, delivered: np.ndarray, render_once, missing) -> dict:
-    """The accuracy record of a fixed-sample render (`delivered`, its linear RGB, as rendered: unchanged)
-    from one more render of the same settings with an independent seed (`render_once`, `missing` as for
-    render_to_target): two independent draws F and G of the same image, so the estimated MSE of F is
-    mean((s(F) - s(G))**2) / 2 (+ QUANTISATION_MSE), denoiser and all. It doubles the render's cost: it runs
-    only when asked (`allo-usd render --estimate`)."""
+def fixed_error_map(delivered_f: np.ndarray, delivered_g: np.ndarray, noisy_f: np.ndarray | None = None,
+                    noisy_g: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) estimated squared error (8-bit sRGB units, mean over channels) of a fixed render F, from a
+    second render G of the same settings with an independent seed: two draws of the same process. Without a
+    denoiser E (s(F) - s(G))**2 = 2 E (s(F) - s(T))**2; with one (DF, DG delivered, Fn, Gn their noisy
+    images), as error_map: e = ((DF - Gn)**2 + (DG - Fn)**2 - (Fn - Gn)**2) / 2 in linear values is the
+    mean of DF's and DG's squared errors in expectation, which are the same; times the sRGB slope squared."""
+    if noisy_f is None:
+        d = srgb_units(delivered_f) - srgb_units(delivered_g)
+        return (d * d / 2.0).mean(axis=-1)
+    df, dg, fn, gn = (np.asarray(x, dtype=np.float64) for x in (delivered_f, delivered_g, noisy_f, noisy_g))
+    lin = ((df - gn) ** 2 + (dg - fn) ** 2 - (fn - gn) ** 2) / 2.0
+    return (srgb_slope_sq(df) * lin).mean(axis=-1)
+
+
+@contextmanager
+def noisy_image_stored():
+    """Within: Cycles stores its denoising passes (the Noisy Image beside the denoised Combined; the
+    Combined itself is unchanged); after: as before."""
+    import bpy
+
+    layer = bpy.context.scene.view_layers[0]
+    saved = layer.cycles.denoising_store_passes
+    try:
+        layer.cycles.denoising_store_passes = True
+        yield
+    finally:
+        layer.cycles.denoising_store_passes = saved
+
+
+def estimate_fixed(desc: SceneDescription, first: dict, render_once, missing) -> dict:
+    """The accuracy record of a fixed-sample render, whose channels (`first`, rendered within
+    noisy_image_stored) are delivered unchanged, from one more render of the same settings with an
+    independent seed (`render_once(missing)`: (channels, seconds)), by fixed_error_map. The estimate is of
+    the render before any lens glare (the view layer's Combined). It doubles the render's cost: it runs only
+    when asked (`allo:render:estimate`, `allo-usd render --estimate`)."""
     import bpy
 
     scene = bpy.context.scene
     saved = scene.cycles.seed
     try:
-        scene.cycles.seed = half_seed(desc.render.seed, 0, 0)
-        ch, seconds = render_once(missing)
+        scene.cycles.seed = half_seed(desc.render.seed, 0, 1)
+        with noisy_image_stored():
+            second, seconds = render_once(missing)
     finally:
         scene.cycles.seed = saved
-    layer = "Composite.Combined" if "Composite.Combined.R" in ch else "ViewLayer.Combined"
-    other = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1)
-    d = srgb_units(delivered) - srgb_units(other)
-    mse = float(np.mean(d * d)) / 2.0 + QUANTISATION_MSE
+    f, g = _stack(first, "Combined", "RGB"), _stack(second, "Combined", "RGB")
+    fn, gn = _stack(first, "Noisy Image", "RGB"), _stack(second, "Noisy Image", "RGB")
+    denoised = desc.render.denoise and fn is not None and gn is not None
+    mse = max(float(np.mean(fixed_error_map(f, g, fn if denoised else None, gn if denoised else None))), 0.0)
+    mse += QUANTISATION_MSE
     return {"mode": "fixed", "target_psnr_db": None, "estimated_psnr_db": psnr_db(mse),
             "samples": int(desc.render.samples), "rounds": 1, "stopped_by": "samples",
-            "estimator": "a second render of the same settings, independent seed: MSE = mean((F - G)^2) / 2 + 1/6, "
-                         "8-bit sRGB units", "estimate_seconds": seconds}
+            "estimator": ("a second render G of the same settings, independent seed: per pixel ((DF-Gn)^2 + (DG-Fn)^2 "
+                          "- (Fn-Gn)^2)/2 in linear values times the sRGB slope squared" if denoised else
+                          "a second render G of the same settings, independent seed: (s(F) - s(G))^2 / 2")
+                         + ", mean + 1/6 (8-bit units)", "estimate_seconds": seconds}
 
 
 def _delivered_halves(halves, render) -> tuple[np.ndarray, np.ndarray]:

@@ -498,3 +498,17 @@ def annotation_columns(meta: RenderRecord | dict) -> dict:
         seen = _get(meta.annotations, "in_view", body)
         row[f"{body}_in_view"] = seen if isinstance(seen, bool) else ""
     return row
+
+
+# The render's own estimate of its accuracy (the JSON's "accuracy", allo_usd.blender.render.RenderResult):
+# est_psnr_db is its estimated_psnr_db (8-bit sRGB, against the converged image), "" when not estimated or
+# not a finite number in ESTIMATED_PSNR_DB (an 8-bit image is never below 0 dB; 200 dB is past any render).
+ACCURACY_COLUMNS = ("est_psnr_db",)
+ESTIMATED_PSNR_DB = (0.0, 200.0)
+
+
+def accuracy_columns(meta: RenderRecord | dict) -> dict:
+    """The ACCURACY_COLUMNS of a render record (or its JSON object): "" where it records no usable estimate."""
+    value = _num(_get(RenderRecord.given(meta).accuracy, "estimated_psnr_db"))
+    lo, hi = ESTIMATED_PSNR_DB
+    return {"est_psnr_db": value if value != "" and lo <= value <= hi else ""}

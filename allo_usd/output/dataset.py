@@ -81,7 +81,7 @@ from allo_usd.core.errors import AlloError
 from allo_usd.core.files import (MAX_RECORD_BYTES, InputRefused, RunLock, atomic_path, read_user_json, sha256_file,
                                  write_bytes_atomic)
 from allo_usd.core.scene_labels import SPLITS, VARIANTS, label_problem
-from allo_usd.output.annotations import annotation_columns
+from allo_usd.output.annotations import accuracy_columns, annotation_columns
 from allo_usd.output.contact import PER_SHEET, read_pixels, sheet_paths, split_sheets
 from allo_usd.output.annotation_files import (ENTRY_KEYS, compute_record, load_cache, load_records,
                                              write_annotation_files)
@@ -121,7 +121,8 @@ class Brief(RenderRecord):
     """What planning reads of a render record whose JSON kept the stat at which it passed
     check_render (a re-run does not parse 51,409 JSONs to find 1,000 new ones): its scene's split,
     variant and anomaly, its files, the class pixel counts _kind and the dark warning read, its
-    layer_sha256, and whether it has an annotations table. A RenderRecord with only those fields,
+    layer_sha256, whether it has an annotations table, and the accuracy's estimated_psnr_db (the
+    manifest's est_psnr_db, which _unchanged compares). A RenderRecord with only those fields,
     kept in records.json's state (as_dict) beside the stat and read back with Brief.of; a record
     that is placed again is read whole (_whole)."""
 
@@ -132,7 +133,9 @@ class Brief(RenderRecord):
         return cls(files=meta.files, layer_sha256=meta.layer_sha256,
                    scene={k: scene[k] for k in ("split", "variant", "anomaly") if k in scene},
                    class_pixels={k: pixels[k] for k in ("station_and_bodies", "anomaly") if k in pixels},
-                   annotations={} if isinstance(meta.annotations, dict) else None)
+                   annotations={} if isinstance(meta.annotations, dict) else None,
+                   accuracy=({"estimated_psnr_db": meta.accuracy.get("estimated_psnr_db")}
+                             if isinstance(meta.accuracy, dict) else None))
 
 
 def _json_stat(path: Path) -> list[int] | None:
@@ -464,7 +467,8 @@ def _row(category, index, name, meta_path: Path, meta: RenderRecord, kind: str, 
     """The manifest row of one scene (its files are placed by _place_row)."""
     files = file_columns(category, index, name, meta.scene["split"], kind, where)
     return (files | pass_columns(files["image"], meta_path, meta)   # depth/, normal/, instance/ (output.pass_files)
-            | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out))
+            | scene_columns(name, meta) | annotation_columns(meta) | provenance_columns(meta_path, meta, out)
+            | accuracy_columns(meta))
 
 
 def _place_row(row: dict, meta_path: Path, meta: RenderRecord, out: Path, link: bool,
@@ -493,6 +497,8 @@ def _unchanged(old: dict, meta_path: Path, meta: RenderRecord, kind: str, where:
     split = meta.scene["split"]
     if isinstance(meta.annotations, dict) and not old.get("fx"):
         return False  # a row from before the camera/annotation columns: fill them in
+    if str(old.get("est_psnr_db") or "") != str(accuracy_columns(meta)["est_psnr_db"]):
+        return False  # the render's estimate is not the row's (a row from before the column reads as "")
     if passes_missing(old, meta_path, meta, out):
         return False  # a pass the row lacks (a row from before the pass columns, or a file gone)
     if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (

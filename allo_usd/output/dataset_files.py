@@ -15,7 +15,7 @@ import numpy as np
 
 from allo_usd.core.errors import AlloError
 from allo_usd.core.files import atomic_path, folder_realpath, memo_realpath, sha256_file
-from allo_usd.output.annotations import ANNOTATION_COLUMNS, CAMERA_COLUMNS
+from allo_usd.output.annotations import ACCURACY_COLUMNS, ANNOTATION_COLUMNS, CAMERA_COLUMNS
 
 # Manifest columns, in groups; a new group is a tuple here and a function in dataset._row.
 PASS_COLUMNS = ("depth", "normal", "instance")     # the passes' paths (output.pass_files): names and top folders
@@ -24,8 +24,9 @@ SCENE_COLUMNS = ("scene_id", "pose", "day", "epoch", "anomaly_asset", "anomaly_v
                  "depth_offset", "anomaly_fraction")
 PROVENANCE_COLUMNS = ("seed", "plan_seed", "seed_path", "layer", "layer_sha256", "sha256", "source")
 # CAMERA_COLUMNS and ANNOTATION_COLUMNS (K, pose, clipping; anomaly box and place, pixel counts, bodies
-# in view) are defined beside the JSON block they flatten: allo_usd.output.annotations.
-COLUMNS = FILE_COLUMNS + SCENE_COLUMNS + CAMERA_COLUMNS + ANNOTATION_COLUMNS + PROVENANCE_COLUMNS
+# in view) and ACCURACY_COLUMNS (the render's estimated PSNR) are defined beside the JSON blocks they
+# flatten: allo_usd.output.annotations. ACCURACY_COLUMNS come last: the columns before keep their places.
+COLUMNS = FILE_COLUMNS + SCENE_COLUMNS + CAMERA_COLUMNS + ANNOTATION_COLUMNS + PROVENANCE_COLUMNS + ACCURACY_COLUMNS
 
 
 def place(src: Path, dst: Path, link: bool = True) -> str:

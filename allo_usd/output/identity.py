@@ -51,10 +51,22 @@ def render_versions() -> dict[str, str]:
             "numpy": installed("numpy")}
 
 
-def render_identity(inputs: dict[str, str], versions: dict[str, str] | None = None) -> str:
-    """SHA-256 of the canonical JSON of a render's inputs ({relative path: sha256}) and versions."""
+def render_identity(inputs: dict[str, str], versions: dict[str, str] | None = None, target=None) -> str:
+    """SHA-256 of the canonical JSON of a render's inputs ({relative path: sha256}) and versions, and of
+    its `target` (render_target: the target mode it rendered to) when it has one: a render without a
+    target keeps the identity it had before the target mode, and a changed target re-renders."""
     record = {"inputs": inputs, "versions": render_versions() if versions is None else versions}
+    if target:
+        record["target"] = target
     return hashlib.sha256(json.dumps(record, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def render_target(render) -> dict | None:
+    """The target mode a render's settings (a RenderDesc) ask for, as its record and identity hold it:
+    {"target_psnr": dB, "time_limit": seconds}, or None for fixed samples."""
+    if not render.target_psnr > 0:
+        return None
+    return {"target_psnr": float(render.target_psnr), "time_limit": float(render.time_limit)}
 
 
 def input_hashes(layer: Path, files) -> dict[str, str]:
@@ -71,7 +83,7 @@ def input_hashes(layer: Path, files) -> dict[str, str]:
     return out
 
 
-def current_identity(layer: Path, inputs) -> str | None:
+def current_identity(layer: Path, inputs, target=None) -> str | None:
     """The identity of a new render of `layer` whose recorded `inputs` still hold: recomputed from
     those files' current bytes. None if the record is unusable (not a mapping or a list of its
     paths, or not naming the layer itself) or an input is missing or not a regular file. Inside the
@@ -99,7 +111,7 @@ def current_identity(layer: Path, inputs) -> str | None:
         paths.add(path)
     if real_path(layer) not in paths:
         return None
-    return render_identity(now)
+    return render_identity(now, target=target)
 
 
 def record_json(path: Path) -> dict:
@@ -118,9 +130,11 @@ def done_record(layer: Path, out_dir: Path, strict: bool = False) -> RenderRecor
     current bytes, else None. The JSON (written last, beside its outputs) is the source of truth:
 
     - it names the layer's current bytes (`layer_sha256`) and was not rendered with other passes
-      than its layer orders (`passes` == `layer_passes`: a `--passes` override is never done);
+      than its layer orders (`passes` == `layer_passes`: a `--passes` override is never done), nor to
+      another target (`target` == `layer_target`: likewise a `--target-psnr` override);
     - every output the layer orders exists, with the checksum the JSON records (`outputs_sha256`);
-    - the identity recomputed from the current bytes of the inputs it records is its `identity`.
+    - the identity recomputed from the current bytes of the inputs it records (and its `target`) is
+      its `identity`.
 
     A JSON without `outputs_sha256` (written before JSONs carried them) is accepted on the
     outputs' presence alone unless `strict` (the dispatcher: it re-renders such a scene unless
@@ -139,6 +153,8 @@ def done_record(layer: Path, out_dir: Path, strict: bool = False) -> RenderRecor
         return None
     if meta.passes != meta.layer_passes:
         return None  # rendered with other passes than the layer orders (render_layer(passes=...))
+    if meta.target != meta.layer_target:
+        return None  # rendered to another target than the layer's (`render --target-psnr`)
     paths = output_paths(layer, out_dir)
     if not all(p.is_file() for p in paths.values()):
         return None
@@ -149,7 +165,7 @@ def done_record(layer: Path, out_dir: Path, strict: bool = False) -> RenderRecor
             return None
     elif strict:
         return None
-    return meta if current_identity(layer, meta.inputs) == identity else None
+    return meta if current_identity(layer, meta.inputs, meta.target) == identity else None
 
 
 def outputs_sha256(paths: dict[str, Path]) -> dict[str, str]:

@@ -49,6 +49,9 @@ class RenderRecord:
     bodies: dict | None = None             # {"sun"|"earth"|"moon": {"pixels": n}}
     passes: list | None = None             # the passes written (a record without it: its layer's)
     layer_passes: list | None = None       # the passes its layer orders
+    target: dict | None = None             # the target mode it rendered to (identity.render_target), in the identity
+    layer_target: dict | None = None       # the target its layer orders (differs from `target` after an override)
+    accuracy: dict | None = None           # the render's estimated accuracy (allo_usd.blender.render.RenderResult)
     instances: dict | None = None          # only with the instance pass: {"id": prim path}
     scene: dict | None = None              # allo_usd.usd.read_labels.read_meta of the layer
     effects: dict | None = None            # post-render effects applied (sensor noise)
@@ -107,4 +110,5 @@ class RenderRecord:
         return json_text(self.as_dict())
 
 
-OPTIONAL = ("amodal_seconds", "instances")   # written only with their passes (amodal, instance)
+# written only with their passes (amodal, instance), with a target (target, layer_target) or an estimate (accuracy)
+OPTIONAL = ("amodal_seconds", "instances", "target", "layer_target", "accuracy")

@@ -23,7 +23,7 @@ from allo_usd.core.errors import EpochError, PlanError
 from allo_usd.core.limits import resolution_problem
 from allo_usd.core.timefmt import format_utc, parse_utc
 from allo_usd.plan.settings import (DEFAULT_PASSES, DENOISE_PREFILTERS, DENOISE_QUALITIES, DEVICES, PASSES, PRESETS,
-                                    EffectFlags, QualitySettings, passes_problem)
+                                    EffectFlags, QualitySettings, passes_problem, target_problem)
 
 DEPTH_COUNT = 5  # allo_usd.scene.placement.DEPTH_OFFSETS: 0, -1, +1, -2, +2 m
 N_POSES = 50
@@ -362,6 +362,14 @@ class Quality(_Model):
     denoise_quality: Literal[DENOISE_QUALITIES] = QualitySettings.denoise_quality
     max_bounces: int = Field(QualitySettings.max_bounces, ge=0, le=1024)
     adaptive_threshold: float = Field(QualitySettings.adaptive_threshold, ge=0.0, le=1.0)
+    target_psnr: float = Field(QualitySettings.target_psnr, description=(
+        "Target mode: spend samples in rounds of two independent halves until the estimated PSNR of the delivered "
+        "image (8-bit sRGB, against the converged image) reaches this many dB, in (0, 100]; `samples` caps the "
+        "samples per pixel (both halves together) and time_limit the seconds, and each render's JSON records which "
+        "stopped it. 0: fixed samples (every named preset). `render --target-psnr` overrides it for a run."))
+    time_limit: float = Field(QualitySettings.time_limit, description=(
+        "Target mode: seconds after which a render stops spending samples, 0..1e6 (0: no limit); only with "
+        "target_psnr."))
     passes: list[str] = Field(list(DEFAULT_PASSES), json_schema_extra={"items": {"enum": list(PASSES)}},
                               description="The files each scene writes, recorded in its layer as UsdRender vars: "
                                           + ", ".join(PASSES) + " (docs/formats/render_outputs.md, Passes); "
@@ -402,6 +410,13 @@ class Quality(_Model):
         if not 1 <= v <= 65536:
             raise ValueError(f"samples={v} is outside 1..65536; fix: e.g. 64")
         return v
+
+    @model_validator(mode="after")
+    def _target(self):
+        problem = target_problem(self.target_psnr, self.time_limit)   # the error names the quality table
+        if problem:
+            raise ValueError(problem)
+        return self
 
 
 class Render(_Model):
@@ -598,6 +613,14 @@ class Plan(_Model):
                              f"{list(self.quality.resolution)}; fix: give the resolution in one of them, or the same "
                              "in both")
         self.camera.model(self.quality.resolution)   # the sensor's aspect and the offset against the image
+        return self
+
+    @model_validator(mode="after")
+    def _target_without_glare(self):
+        from allo_usd.plan.settings import TARGET_WITH_GLARE
+
+        if self.quality.target_psnr > 0 and self.effects.glare:
+            raise ValueError("quality.target_psnr with effects.glare: " + TARGET_WITH_GLARE)
         return self
 
     def camera_model(self) -> tuple[CameraModel, tuple[int, int]]:

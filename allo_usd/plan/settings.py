@@ -10,6 +10,7 @@ the fields its author set (allo_usd.plan.model.Quality, allo_usd.plan.io.save_pl
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 
 from allo_usd.core.errors import AlloError
@@ -68,6 +69,11 @@ class QualitySettings:
     max_bounces: int = 8
     denoise_prefilter: str = "FAST"      # OIDN prefilter: NONE, FAST, ACCURATE
     denoise_quality: str = "BALANCED"    # OIDN quality: FAST, BALANCED, HIGH
+    # The target mode (TARGET_PSNR_DB): a render spends samples in rounds until the estimated PSNR of its
+    # delivered image (8-bit sRGB, against the converged image) reaches target_psnr dB, `samples` (the cap,
+    # both halves together) or time_limit seconds stop it. 0: fixed samples, as the named presets.
+    target_psnr: float = 0.0
+    time_limit: float = 0.0             # seconds; 0: no limit
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,6 +85,41 @@ class EffectFlags:
 
 
 QUALITY_FIELDS = tuple(f.name for f in fields(QualitySettings))
+TARGET_FIELDS = ("target_psnr", "time_limit")   # authored (allo:render:targetPsnr, :timeLimit) only when > 0
+
+# The target mode's bounds, for a plan, the command line, the author and the reader alike: a target in
+# (0, 100] dB (0: none; 100 dB is an 8-bit image within 1e-5 of its converged one, beyond any render),
+# a time limit in [0, 1e6] s (0: none; 1e6 s is 11.6 days for one image).
+TARGET_PSNR_DB = (0.0, 100.0)
+TIME_LIMIT_S = (0.0, 1e6)
+
+
+def _real(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def target_problem(target_psnr, time_limit, target_name: str = "target_psnr",
+                   limit_name: str = "time_limit") -> str | None:
+    """What is wrong with a target and a time limit (None: nothing), in one line that names the fix:
+    a finite target in (0, 100] dB or 0 (fixed samples), a finite time limit in 0..1e6 s (0: none),
+    and no time limit without a target (it would limit nothing)."""
+    lo, hi = TARGET_PSNR_DB
+    if not _real(target_psnr) or not (target_psnr == 0 or lo < target_psnr <= hi):
+        return (f"{target_name} {_shown(target_psnr)} is not a PSNR in dB; fix: give a target in (0, {hi:g}] dB, "
+                "e.g. 40, or 0 for fixed samples")
+    lo, hi = TIME_LIMIT_S
+    if not _real(time_limit) or not lo <= time_limit <= hi:
+        return (f"{limit_name} {_shown(time_limit)} is not a number of seconds in {lo:g}..{hi:.0f}; fix: give the "
+                "seconds one render may take, e.g. 60, or 0 for no limit")
+    if time_limit > 0 and target_psnr == 0:
+        return (f"{limit_name} {time_limit:g} is given without {target_name}: a time limit stops the target mode "
+                f"only; fix: give {target_name} too (e.g. 40) or drop {limit_name}")
+    return None
+
+
+def _shown(value) -> str:
+    text = f"{value:g}" if _real(value) or isinstance(value, float) else repr(value)
+    return text if len(text) <= 40 else text[:40] + "..."
 EFFECT_FLAGS = tuple(f.name for f in fields(EffectFlags))
 
 
@@ -109,20 +150,27 @@ class EffectsSpec(EffectFlags):
     sensor: SensorParams = field(default_factory=SensorParams)
 
 
+# The named presets render fixed samples (no target): their meaning, and their layers' bytes, are as before
+# the target mode; a plan sets quality.target_psnr (and time_limit) over any of them to aim at a quality.
+FIXED = dict(target_psnr=0.0, time_limit=0.0)
+# The target mode denoises its halves itself, after Cycles' render, where Blender composites the lens glare:
+# a target with glare would lose the glare, so it is refused (author, reader, render).
+TARGET_WITH_GLARE = ("a PSNR target is not rendered with lens glare (the target mode denoises after the render, where "
+                     "Blender composites the glare); fix: turn lens glare off, or remove the target for fixed samples")
 PRESETS: dict[str, dict] = {
     "draft": dict(samples=4, adaptive_threshold=0.0, denoise=True, max_bounces=8,
-                  denoise_prefilter="FAST", denoise_quality="BALANCED"),
+                  denoise_prefilter="FAST", denoise_quality="BALANCED", **FIXED),
     "preview": dict(samples=64, adaptive_threshold=0.05, denoise=True, max_bounces=8,
-                    denoise_prefilter="FAST", denoise_quality="BALANCED"),
+                    denoise_prefilter="FAST", denoise_quality="BALANCED", **FIXED),
     "final": dict(samples=192, adaptive_threshold=0.01, denoise=True, max_bounces=8,
-                  denoise_prefilter="NONE", denoise_quality="HIGH"),
+                  denoise_prefilter="NONE", denoise_quality="HIGH", **FIXED),
     # The paper's setting: 256 spp, OIDN with Blender's defaults, Blender's default bounces.
     "paper": dict(samples=256, adaptive_threshold=0.0, denoise=True, max_bounces=12,
-                  denoise_prefilter="ACCURATE", denoise_quality="HIGH"),
+                  denoise_prefilter="ACCURATE", denoise_quality="HIGH", **FIXED),
     # The demo's setting (allo_usd.plan.model.demo_plan, `allo-usd demo`): 32 spp, no adaptive
     # sampling, the default denoiser; quick at the demo's 480x270.
     "demo": dict(samples=32, adaptive_threshold=0.0, denoise=True, max_bounces=8,
-                 denoise_prefilter="FAST", denoise_quality="BALANCED"),
+                 denoise_prefilter="FAST", denoise_quality="BALANCED", **FIXED),
 }
 
 _SPEC_FIELDS = {f.name for f in fields(RenderSpec)}

@@ -62,12 +62,14 @@ def demo_passes() -> tuple[str, ...]:
     return ("rgb", "exr", "mask", "depth", "instance") + (("amodal",) if "amodal" in PASS_FILES else ())
 
 
-def demo_spec(inputs: SceneInputs, index: int, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED) -> SceneSpec:
-    """Demo scene `index` of DEMO_SCENES, fully resolved."""
+def demo_spec(inputs: SceneInputs, index: int, resolution=(480, 270), samples: int = 32, seed: int = DEMO_SEED,
+              target_psnr: float = 0.0, time_limit: float = 0.0) -> SceneSpec:
+    """Demo scene `index` of DEMO_SCENES, fully resolved; with `target_psnr` (and `time_limit`) its layer
+    asks for the target mode (samples: the cap)."""
     from allo_usd.assets.catalogue import ANOMALY_VARIANTS
 
     render = RenderSpec(resolution=tuple(resolution), preset="demo", samples=samples, exposure=EXPOSURE,
-                        passes=demo_passes())
+                        passes=demo_passes(), target_psnr=float(target_psnr), time_limit=float(time_limit))
     day, pose, anomaly = DEMO_SCENES[index]
     if anomaly is not None:
         name = anomaly[0] if anomaly[0] in ANOMALY_VARIANTS else sorted(ANOMALY_VARIANTS)[index]
@@ -133,12 +135,13 @@ def demo_dataset(renders: Path, dataset: Path, resolution) -> Path:
 
 
 def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage: Path = BASE_STAGE,
-             progress: bool = True, device: str = "auto") -> Path:
+             progress: bool = True, device: str = "auto", target_psnr: float = 0.0, time_limit: float = 0.0) -> Path:
     """Author, render and contact-sheet the demo scenes under `out_dir`, and assemble them into an
     MVTec AD tree in `out_dir/dataset` (hard links); returns the sheet's path.
     A progress bar (counts and ETA) runs over the scenes; Ctrl-C raises KeyboardInterrupt between
     atomic file writes, so finished scenes are kept and a re-run renders only what is missing.
-    `device` is the Cycles device (allo_usd.blender.device: auto, cpu, gpu)."""
+    `device` is the Cycles device (allo_usd.blender.device: auto, cpu, gpu). `target_psnr` and
+    `time_limit` (allo_usd.plan.settings.target_problem; 0: fixed samples) go into the layers."""
     from tqdm import tqdm
 
     from allo_usd.core.provenance import record_tree_versions
@@ -163,7 +166,7 @@ def run_demo(out_dir: Path, resolution=(480, 270), samples: int = 32, base_stage
     rows = []
     with tqdm(total=len(DEMO_SCENES), unit="scene", desc="demo", disable=not progress) as bar:
         for i in range(len(DEMO_SCENES)):
-            spec = demo_spec(inputs, i, resolution, samples)
+            spec = demo_spec(inputs, i, resolution, samples, target_psnr=target_psnr, time_limit=time_limit)
             layer = write_demo_layer(spec, tree, stage)
             with output_to(out_dir / "logs" / "demo.log"):  # Blender's own prints stay out of the bar
                 # skipped when done for these very layer bytes (allo_usd.run.render_index.is_done); a

@@ -587,10 +587,11 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     # checked as it is built: the device, workers >= 0, the timeout (NaN would turn the limit off)
     options = run_options(options, workers=workers, scheduler=scheduler, threads=threads, retries=retries,
                           progress=progress, timeout=timeout, device=device, verify=verify)
-    for name in ("passes", "save_blend"):
+    for name in ("passes", "save_blend", "target_psnr", "time_limit"):
         if getattr(options.job, name) is not None:
-            raise AlloError(f"options.job.{name}: a run renders each layer's own passes and saves no Blender scene; "
-                            f"fix: render one layer with allo_usd.render_layer({name}=...), or leave it None")
+            raise AlloError(f"options.job.{name}: a run renders each layer's own passes and target and saves no "
+                            f"Blender scene; fix: render one layer with allo_usd.render_layer({name}=...), or leave "
+                            "it None")
     job = options.job   # device None renders as auto (run.job.render_record)
     out_dir = Path(os.path.abspath(out_dir))  # workers elsewhere (Dask) must see the same paths
     extra_roots = (*extra_roots, *(r for t in trees for r in tree_roots(t, "trees=")))
@@ -653,9 +654,21 @@ def dispatch(source, out_dir: str | Path, workers: int | None = None, scheduler=
     return summary
 
 
+def aimed_plan(plan, job: JobOptions):
+    """`plan` with the job's target and time limit (`render PLAN --target-psnr --time-limit`) in its quality,
+    so its layers are authored with them; the pair checked as the plan's own would be."""
+    if job.target_psnr is None and job.time_limit is None:
+        return plan
+    from allo_usd.run.job import aimed_target
+
+    target_psnr, time_limit = aimed_target(plan.quality, job)   # the plan's Quality carries the same two fields
+    update = {"target_psnr": target_psnr, "time_limit": time_limit}
+    return plan.model_copy(update={"quality": plan.quality.model_copy(update=update)})
+
+
 def author_and_dispatch(plan_path: Path, out_dir: Path, options: RunOptions | None = None, **kwargs) -> Summary:
-    """A plan file: author its layers into OUT/layers (with the job's passes instead of the plan's
-    quality.passes, when set), then render them into OUT/renders on the job's device (None, as when
+    """A plan file: author its layers into OUT/layers (with the job's passes, target and time limit
+    instead of the plan's quality.passes, target_psnr and time_limit, when set), then render them into OUT/renders on the job's device (None, as when
     `options` is left out: the plan's render.device). `kwargs` are dispatch's other keywords
     (before_render, extra_roots, progress_interval)."""
     from allo_usd.plan.io import load_plan
@@ -667,7 +680,9 @@ def author_and_dispatch(plan_path: Path, out_dir: Path, options: RunOptions | No
     passes = options.job.passes
     if passes is not None:
         plan = plan.model_copy(update={"quality": plan.quality.model_copy(update={"passes": list(passes)})})
-    job = dataclasses.replace(options.job, device=options.job.device or plan.render.device, passes=None)
+    plan = aimed_plan(plan, options.job)
+    job = dataclasses.replace(options.job, device=options.job.device or plan.render.device, passes=None,
+                              target_psnr=None, time_limit=None)
     layers = author_plan(plan, layers_dir)
     # the tree's authored folders, not all of OUT (OUT/renders and whatever else lies there)
     return dispatch(list(layers) if layers else layers_dir, Path(out_dir) / "renders", trees=(layers_dir,),

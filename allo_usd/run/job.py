@@ -22,7 +22,8 @@ from allo_usd.core.interrupts import import_held
 from allo_usd.core.provenance import library_versions
 from allo_usd.output.annotations import image_annotations
 from allo_usd.output.checksums import file_sha256
-from allo_usd.output.identity import done_record, input_hashes, outputs_sha256, render_identity, render_versions
+from allo_usd.output.identity import (done_record, input_hashes, outputs_sha256, render_identity, render_target,
+                                      render_versions)
 from allo_usd.output.record import RenderRecord
 from allo_usd.output.render_outputs import check_output_names, output_paths
 from allo_usd.output.writers import write_exr, write_instance_png, write_mask_png, write_rgb_exr, write_rgb_png
@@ -63,14 +64,33 @@ def object_pixels(ids: np.ndarray, objects: tuple[str, ...]) -> dict:
             "bodies": {b.lower(): {"pixels": under(body_path(b))} for b in ("Sun", "Earth", "Moon")}}
 
 
+def aimed_target(settings, options: JobOptions) -> tuple[float, float]:
+    """(target_psnr, time_limit) of render settings that carry them (a RenderDesc, a plan's Quality) with
+    the run's (JobOptions.target_psnr, time_limit; None keeps the settings' own), the pair checked as a
+    plan's is, in one line naming the options."""
+    from allo_usd.core.errors import AlloError
+    from allo_usd.plan.settings import target_problem
+
+    target = settings.target_psnr if options.target_psnr is None else float(options.target_psnr)
+    limit = settings.time_limit if options.time_limit is None else float(options.time_limit)
+    if target == 0 and options.time_limit is None:
+        limit = 0.0   # --target-psnr 0 renders fixed samples: the settings' time limit has nothing to stop
+    problem = target_problem(target, limit, "--target-psnr", "--time-limit")
+    if problem:
+        raise AlloError(problem)
+    return target, limit
+
+
 def render_layer(layer: Path, out_dir: Path, force: bool = False, threads: int | None = None,
                  workdir: Path | None = None, session=None, save_blend: Path | None = None,
-                 device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True) -> dict:
+                 device: str = "auto", passes: tuple[str, ...] | None = None, index: bool = True,
+                 target_psnr: float | None = None, time_limit: float | None = None, estimate: bool = False) -> dict:
     """Render one layer into out_dir; returns its metadata (also written as JSON): render_record's
     record as the JSON's object, for callers outside the package (allo_usd.render_layer). `force`,
-    `threads`, `device`, `passes` and `save_blend` build the JobOptions (allo_usd.run.options) that
+    `threads`, `device`, `passes`, `save_blend`, `target_psnr`, `time_limit` and `estimate` build the JobOptions (allo_usd.run.options) that
     render_record reads; `workdir`, `session` and `index` are render_record's."""
-    job = JobOptions(device=device, threads=threads, passes=passes, force=force, save_blend=save_blend)
+    job = JobOptions(device=device, threads=threads, passes=passes, force=force, save_blend=save_blend,
+                     target_psnr=target_psnr, time_limit=time_limit, estimate=estimate)
     return render_record(layer, out_dir, job, workdir=workdir, session=session, index=index).as_dict()
 
 
@@ -93,6 +113,9 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
     `options.passes` (allo_usd.plan.settings.PASSES) replaces the passes the layer orders for this run:
     the JSON records both ("passes" written, "layer_passes"), and a render with other passes than its
     layer's is never skipped as done.
+    `options.target_psnr` / `time_limit` replace the layer's target mode for this run (aimed_target): the
+    JSON records the target used ("target", in the identity) and the layer's ("layer_target"), and a
+    render given either is never skipped as done.
     A scene is skipped (its JSON returned) when done by the rule every entry point shares
     (allo_usd.output.identity.done_record: the JSON beside the outputs is the record), whoever rendered
     it, unless `options.force`. A render into a folder that holds a dispatcher's manifest.jsonl appends
@@ -115,9 +138,10 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
         save_blend = check_blend_target(save_blend, replace=force)
     if passes is not None and passes == layer_outputs(layer):
         passes = None  # what the layer orders anyway
-    if not force and save_blend is None and passes is None:
+    aimed = options.target_psnr is not None or options.time_limit is not None   # another target than the layer's
+    if not force and save_blend is None and passes is None and not aimed:
         meta = done_record(layer, out_dir)  # the rule every entry point uses (allo_usd.run.render_index.is_done)
-        if meta is not None:
+        if meta is not None and not (options.estimate and not isinstance(getattr(meta, "accuracy", None), dict)):
             return meta
     import_held("bpy")   # Blender's start-up swallows a Ctrl-C (and leaves numpy half-loaded): held until it is in
     used = select(options.device or "auto")
@@ -127,9 +151,16 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
     del read
     if threads is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, threads=int(threads)))
-    layer_passes = desc.render.outputs
+    layer_passes, layer_target = desc.render.outputs, render_target(desc.render)
     if passes is not None:
         desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, outputs=passes))
+    if aimed:
+        target_psnr, time_limit = aimed_target(desc.render, options)
+        desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, target_psnr=target_psnr,
+                                                                    time_limit=time_limit))
+    if options.estimate:
+        desc = dataclasses.replace(desc, render=dataclasses.replace(desc.render, estimate=True))
+    target = render_target(desc.render)
     result = _render(desc, workdir, session, save_blend, used, replace_blend=force)
     paths = output_paths(layer, out_dir, desc.render.outputs)
     effects = {}
@@ -154,7 +185,7 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
         layer=str(Path(layer).resolve()),   # where it was rendered from (this machine's path)
         layer_relative=relpath(Path(layer), Path(out_dir)),  # from the render folder: moves with the tree
         layer_sha256=file_sha256(layer),
-        identity=render_identity(inputs),
+        identity=render_identity(inputs, target=target),
         inputs=inputs,
         versions=render_versions(),
         libraries=library_versions(),   # every library that computes values, and the lock (core.provenance)
@@ -168,6 +199,8 @@ def render_record(layer: Path, out_dir: Path, options: JobOptions | None = None,
         anomaly_fraction=float(counts[2] / result.mask.size),
         **object_pixels(result.ids, result.objects),
         passes=list(desc.render.outputs), layer_passes=list(layer_passes),
+        target=target, layer_target=layer_target,   # both None for fixed samples: the JSON as before
+        accuracy=result.accuracy,   # the render's own estimate of its error (None: not estimated)
         instances={str(i): p for i, p in enumerate(result.objects, start=1)} if "instance" in paths else None,
         scene=desc.meta,
         effects=effects,

@@ -53,14 +53,29 @@ class JobOptions:
     process (None: the layer's). `passes` replaces the passes the layer orders (canonicalised to
     PASSES order; None: the layer's). `force` renders a scene even when it is done and lets
     `save_blend` replace an existing file; `save_blend` also saves the built Blender scene there.
+    `target_psnr` and `time_limit` replace the layer's allo:render:targetPsnr / timeLimit for this run
+    (None: the layer's; target 0: fixed samples): the JSON records both targets, and a render to
+    another target than its layer's is never skipped as done. `estimate`: a fixed-sample render also
+    estimates its own error (one more render of the same settings; its image is unchanged); a finished
+    render without an estimate is then not done.
     """
     device: str | None = "auto"
     threads: int | None = None
     passes: tuple[str, ...] | None = None
     force: bool = False
     save_blend: Path | None = None
+    target_psnr: float | None = None
+    time_limit: float | None = None
+    estimate: bool = False
 
     def __post_init__(self):
+        from allo_usd.plan.settings import target_problem
+
+        # each on its own: a time limit alone may stop the layer's own target (the pair is checked at the render)
+        problem = ((self.target_psnr is not None and target_problem(self.target_psnr, 0.0))
+                   or (self.time_limit is not None and target_problem(1.0, self.time_limit)))
+        if problem:
+            raise AlloError(problem)
         if self.passes is not None:
             from allo_usd.plan.settings import canonical_passes
 
@@ -99,7 +114,8 @@ class RunOptions:
     @classmethod
     def from_cli(cls, *, force: bool = False, workers: int = 0, scheduler: str | None = None, threads: int = 0,
                  retries: int = 2, timeout: float | None = None, verify: bool = False, save_blend: Path | None = None,
-                 device: str | None = None, passes: str | None = None) -> "RunOptions":
+                 device: str | None = None, passes: str | None = None, target_psnr: float | None = None,
+                 time_limit: float | None = None, estimate: bool = False) -> "RunOptions":
         """The value `allo-usd render` builds from its options, with the command line's messages:
         `passes` as given ("rgb,mask"), `device` None when --device was left out (a plan's
         render.device decides), 0 for the default of --workers and --threads. Checks, in this order:
@@ -107,7 +123,8 @@ class RunOptions:
         malformed --scheduler address (one line before anything starts; an unreachable one is the
         dispatcher's)."""
         job = JobOptions(device=device, threads=threads or None, force=force, save_blend=save_blend,
-                         passes=None if passes is None else [p.strip() for p in passes.split(",") if p.strip()])
+                         passes=None if passes is None else [p.strip() for p in passes.split(",") if p.strip()],
+                         target_psnr=target_psnr, time_limit=time_limit, estimate=bool(estimate))
         for name, value in (("--workers", workers), ("--threads", threads), ("--retries", retries),
                             ("--timeout", timeout or 0)):
             if value < 0:

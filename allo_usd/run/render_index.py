@@ -104,12 +104,13 @@ ROW_RECORD = "record"  # a row's copy of what check_row needs of the render's JS
 def record_fields(meta: RenderRecord) -> dict:
     """{ROW_RECORD: ...} of a render record `meta`: the paths of its inputs (the keys of its "inputs";
     their checksums are recomputed from the files, never trusted), the passes its layer orders and
-    the passes it was rendered with. A row carries them so that the resume check need not open
+    the passes it was rendered with (and, for a render to a target, the target and its layer's). A row carries them so that the resume check need not open
     51,409 JSONs: they are the JSON's own as long as the JSON passes the row's check (it is one of
     the row's files, with its checksum and stat), so trusting them is trusting the JSON."""
     inputs = meta.inputs
+    targets = {k: getattr(meta, k) for k in ("target", "layer_target") if getattr(meta, k) is not None}
     return {ROW_RECORD: {"inputs": sorted(inputs) if isinstance(inputs, dict) else None,
-                         "layer_passes": meta.layer_passes, "passes": meta.passes}}
+                         "layer_passes": meta.layer_passes, "passes": meta.passes, **targets}}
 
 
 def _row_record(row: dict) -> RenderRecord | None:
@@ -119,7 +120,7 @@ def _row_record(row: dict) -> RenderRecord | None:
     if not isinstance(rec, dict) or not isinstance(rec.get("inputs"), list):
         return None
     return RenderRecord(identity=row.get("identity"), inputs=rec["inputs"], layer_passes=rec.get("layer_passes"),
-                        passes=rec.get("passes"))
+                        passes=rec.get("passes"), target=rec.get("target"), layer_target=rec.get("layer_target"))
 
 
 def prefetch(layers, rows: dict[str, dict]) -> int:
@@ -213,9 +214,9 @@ def check_row(row: dict | None, layer: Path, out_dir: Path, verify: bool = False
                 if got is None or got != digest:
                     return None
         now[name] = stat_record(st)
-    if meta.passes != meta.layer_passes:
-        return None  # a `--passes` override's render (indexed by render_layer): not the layer's own outputs
-    if meta.identity != row["identity"] or current_identity(layer, meta.inputs) != row["identity"]:
+    if meta.passes != meta.layer_passes or meta.target != meta.layer_target:
+        return None  # a `--passes` or `--target-psnr` override's render (indexed by render_layer): not the layer's own
+    if meta.identity != row["identity"] or current_identity(layer, meta.inputs, meta.target) != row["identity"]:
         return None
     if now == recorded and carried is not None:
         return row

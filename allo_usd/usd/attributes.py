@@ -79,13 +79,16 @@ LIT_FRACTION, ECLIPSE_STATE, ECLIPSE_BODY, IRRADIANCE_UNOCCLUDED, SUN_DISTANCE =
 # ---------------------------------------------------------------- AlloRenderQualityAPI (render settings)
 # `field`: the RenderSpec / RenderDesc field each records.
 (RENDER_PRESET, RENDER_SAMPLES, RENDER_ADAPTIVE_THRESHOLD, RENDER_DENOISE, RENDER_DENOISE_PREFILTER,
- RENDER_DENOISE_QUALITY, RENDER_MAX_BOUNCES, RENDER_SEED, RENDER_THREADS) = RENDER_QUALITY = _group(
+ RENDER_DENOISE_QUALITY, RENDER_MAX_BOUNCES, RENDER_SEED, RENDER_THREADS, RENDER_TARGET_PSNR,
+ RENDER_TIME_LIMIT) = RENDER_QUALITY = _group(
     "AlloRenderQualityAPI", layout.RENDER_SETTINGS,
     ("allo:render:preset", "token", "preset"), ("allo:render:samples", "int", "samples"),
     ("allo:render:adaptiveThreshold", "float", "adaptive_threshold"), ("allo:render:denoise", "bool", "denoise"),
     ("allo:render:denoisePrefilter", "token", "denoise_prefilter"),
     ("allo:render:denoiseQuality", "token", "denoise_quality"), ("allo:render:maxBounces", "int", "max_bounces"),
-    ("allo:render:seed", "int", "seed"), ("allo:render:threads", "int", "threads"))
+    ("allo:render:seed", "int", "seed"), ("allo:render:threads", "int", "threads"),
+    # the target mode, authored only when > 0 (a layer without them renders fixed samples, as before)
+    ("allo:render:targetPsnr", "float", "target_psnr"), ("allo:render:timeLimit", "float", "time_limit"))
 # The film exposure is not here: it is the render camera's standard UsdGeom.Camera exposure attributes
 # (exposure, exposure:fStop/time/iso/responsivity), read by read.camera_exposure.
 

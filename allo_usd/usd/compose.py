@@ -78,20 +78,30 @@ def copy_schema(out_dir: Path) -> Path:
     with `PXR_PLUGINPATH_NAME=out_dir/schema` applies the Allo*API schemas (`_copy_into_tree`)."""
     from allo_usd.usd.schema import PLUGIN, PLUGIN_FILES
 
+    from allo_usd.usd.schema import extends_copy
+
     dest = tree_schema(out_dir)
-    _copy_into_tree(PLUGIN, list(PLUGIN_FILES), dest, out_dir)
+    _copy_into_tree(PLUGIN, list(PLUGIN_FILES), dest, out_dir, older=extends_copy)
     return dest
 
 
-def _copy_into_tree(src: Path, files: list[str], dest: Path, out_dir: Path) -> None:
+def _copy_into_tree(src: Path, files: list[str], dest: Path, out_dir: Path, older=None) -> None:
     """Copy `files` (relative to `src`) to `dest` (copied to a temporary directory, then renamed: a
     killed copy leaves nothing under the final name). An existing copy is kept if it matches the
-    source byte for byte; one that differs is an error, since the tree's layers were authored with it."""
+    source byte for byte; one that differs is an error, since the tree's layers were authored with it,
+    unless `older(dest)` says the source extends it (the schema, whose later versions only add
+    attributes): then each differing file is replaced by the source's, atomically."""
     from allo_usd.core.errors import LayerError
+    from allo_usd.core.files import atomic_path
 
     if dest.exists():
         differ = [f for f in files if not (dest / f).is_file()
                   or not filecmp.cmp(src / f, dest / f, shallow=False)]
+        if differ and older is not None and not os.path.islink(dest) and older(dest):
+            for f in differ:
+                with atomic_path(dest / f) as tmp:
+                    shutil.copyfile(src / f, tmp)
+            return
         if differ:
             raise LayerError(f"{dest} is not a copy of {src} ({len(differ)} files differ, "
                              f"e.g. {differ[0]}); the layers under {out_dir} were authored with that copy. "

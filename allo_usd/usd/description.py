@@ -166,6 +166,8 @@ class RenderDesc(QualitySettings):
     exposure: float                        # linear film exposure: the camera's UsdGeom exposure scale
     threads: int
     outputs: tuple[str, ...]               # passes (plan.settings.PASSES) of the render vars the product orders
+    estimate: bool = False                 # a fixed render also estimates its error (one more render, not authored:
+                                           # `allo-usd render --estimate`, blender.target.estimate_fixed)
 
 
 @dataclass(frozen=True)

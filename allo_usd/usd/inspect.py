@@ -209,6 +209,9 @@ def describe(layer: str | Path) -> dict:
               "denoise": r(A.RENDER_DENOISE), "max_bounces": r(A.RENDER_MAX_BOUNCES),
               "adaptive_threshold": r(A.RENDER_ADAPTIVE_THRESHOLD),
               "denoise_prefilter": r(A.RENDER_DENOISE_PREFILTER), "denoise_quality": r(A.RENDER_DENOISE_QUALITY)}
+    for attr in (A.RENDER_TARGET_PSNR, A.RENDER_TIME_LIMIT):   # the target mode: shown where a layer has it
+        if r(attr) is not None:
+            render[attr.field] = r(attr)
     effects = {e.short: r(e) for e in A.EFFECT_FLAGS}
     sensor = ({a.GetName().rsplit(":", 1)[1]: _attr(sp, a.GetName()) for a in sp.GetAttributes()
                if a.GetName().startswith(A.SENSOR_PREFIX)} if effects[A.EFFECTS_SENSOR_NOISE.short] else None)
@@ -355,7 +358,7 @@ def format_description(d: dict) -> str:
     r = d["render"]
     res = r["resolution"] or ("?", "?")
     lines.append(f"render   {res[0]}x{res[1]}  {r['samples']} spp  preset {r['preset']}  seed {r['seed']}  "
-                 f"denoise {r['denoise']}")
+                 f"denoise {r['denoise']}" + _target_text(r))
     lines.append("effects  " + "  ".join(f"{k}={v}" for k, v in d["effects"].items()))
     if d.get("sensor"):
         lines.append("sensor   " + "  ".join(f"{k}={_fmt(v)}" for k, v in sorted(d["sensor"].items())))
@@ -365,6 +368,15 @@ def format_description(d: dict) -> str:
                      + f"  (degrees; from {', '.join(sources)})")
     lines.append("stack    " + " -> ".join(d["layer_stack"]["layers"]))
     return "\n".join(lines)
+
+
+def _target_text(render: dict) -> str:
+    """The render line's target mode: "  target 40 dB (cap 256 spp, 60 s)", or "" for fixed samples."""
+    target, limit = render.get("target_psnr"), render.get("time_limit")
+    if not target:
+        return ""
+    return (f"  target {_fmt(target)} dB (cap {render['samples']} spp"
+            + (f", {_fmt(limit)} s" if limit else "") + ")")
 
 
 # ----------------------------------------------------------------------------- diff

@@ -17,7 +17,7 @@ import numpy as np
 from allo_usd.core import fixedmath as fm
 from allo_usd.usd import attributes as A
 from allo_usd.usd import layout, schema
-from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES
+from allo_usd.plan.settings import DENOISE_PREFILTERS, DENOISE_QUALITIES, TARGET_WITH_GLARE
 from allo_usd.usd.description import CameraDesc, EffectsDesc, RenderDesc, SceneDescription
 from allo_usd.core.errors import LayerError
 from allo_usd.usd.base_stage import RENDER_VARS
@@ -26,7 +26,8 @@ from allo_usd.usd.read_labels import check_variants, read_meta
 from allo_usd.usd.read_lights import read_lights
 from allo_usd.usd.reader_bounds import (CAMERA_EV, CAMERA_EXPOSURE_FACTOR, CLIP_M, LENS_MM, MAX_CAMERA_DISTANCE_M,
                                         MAX_SCENE_POINTS, MAX_SHIFT, OFFSET_TOLERANCE, RENDER_ADAPTIVE, RENDER_BOUNCES,
-                                        RENDER_EXPOSURE, RENDER_SAMPLES, RENDER_SEED, RENDER_THREADS, SENSOR_MM,
+                                        RENDER_EXPOSURE, RENDER_SAMPLES, RENDER_SEED, RENDER_TARGET_PSNR,
+                                        RENDER_THREADS, RENDER_TIME_LIMIT, SENSOR_MM,
                                         as_stored, _check_resolution, _check_size, _millimetres, _number, _range, snap,
                                         _vector, world_matrix)
 
@@ -258,13 +259,39 @@ def read_render(settings_prim, exposure: float = 1.0) -> tuple[RenderDesc, Effec
                         seed=num(A.RENDER_SEED.name, 0, True, RENDER_SEED), exposure=exposure,
                         threads=num(A.RENDER_THREADS.name, 0, True, RENDER_THREADS), outputs=tuple(outputs),
                         denoise_prefilter=choice(A.RENDER_DENOISE_PREFILTER.name, "FAST", DENOISE_PREFILTERS),
-                        denoise_quality=choice(A.RENDER_DENOISE_QUALITY.name, "BALANCED", DENOISE_QUALITIES))
+                        denoise_quality=choice(A.RENDER_DENOISE_QUALITY.name, "BALANCED", DENOISE_QUALITIES),
+                        **read_target(settings_prim))
     noise = flag(A.EFFECTS_SENSOR_NOISE.name, False)
     effects = EffectsDesc(sensor_noise=noise, glare=flag(A.EFFECTS_GLARE.name, False),
                           inspection_light=flag(A.EFFECTS_INSPECTION_LIGHT.name, True),
                           body_shine=flag(A.EFFECTS_BODY_SHINE.name, True),
                           sensor=read_sensor(settings_prim) if noise else None)
+    if render.target_psnr > 0 and effects.glare:
+        raise LayerError(f"{A.RENDER_TARGET_PSNR.name} and {A.EFFECTS_GLARE.name} are both on: " + TARGET_WITH_GLARE)
     return render, effects
+
+
+def read_target(settings_prim) -> dict:
+    """The target mode's allo:render:targetPsnr and allo:render:timeLimit (0.0 each when not authored):
+    finite, the target in (0, 100] dB or 0, the time limit in 0..1e6 s and only beside a target; else
+    one LayerError naming the attribute and the fix (the value itself is printed only as a number)."""
+    values = {}
+    for attr, bounds, fix in ((A.RENDER_TARGET_PSNR, RENDER_TARGET_PSNR, "a PSNR in dB, e.g. 40, or remove it for "
+                               "fixed samples"),
+                              (A.RENDER_TIME_LIMIT, RENDER_TIME_LIMIT, "seconds, e.g. 60, or remove it for no limit")):
+        value = _get(settings_prim, attr.name, 0.0)
+        lo, hi = bounds
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise LayerError(f"{attr.name} is not a number (a {type(value).__name__}); fix the layer: author it as a "
+                             f"float, {fix}")
+        if not (np.isfinite(value) and lo <= value <= hi):
+            raise LayerError(f"{attr.name} = {float(value):g} is outside {lo:g}..{hi:g}; fix the layer: {fix}")
+        values[attr.field] = float(value)
+    if values["time_limit"] > 0 and values["target_psnr"] == 0:
+        raise LayerError(f"{A.RENDER_TIME_LIMIT.name} is authored without {A.RENDER_TARGET_PSNR.name}: a time limit "
+                         f"stops the target mode only; fix the layer: author {A.RENDER_TARGET_PSNR.name} too or "
+                         "remove the time limit")
+    return values
 
 
 PRODUCT_NAME = "image"    # the base stage's one RenderProduct's productName (base_stage.define_render_settings)

@@ -22,6 +22,7 @@ from allo_usd.core.errors import LayerError
 from allo_usd.core.files import file_problem
 from allo_usd.core.limits import resolution_problem
 from allo_usd.core import fixedmath as fm
+from allo_usd.plan.settings import TARGET_PSNR_DB, TIME_LIMIT_S
 
 
 # Sanity bounds on what a layer may ask for (the fuzz tests feed absurd values through here).
@@ -53,6 +54,8 @@ RENDER_ADAPTIVE = (0.0, 1.0)      # Cycles adaptive_threshold
 RENDER_SEED = (0, 2 ** 31 - 1)    # Cycles seed (hard 0..2^31-1; plans author seed % 2^31)
 RENDER_THREADS = (0, 1024)        # RenderSettings.threads (1..1024; 0 = one per core)
 RENDER_EXPOSURE = (0.0, 2.0 ** 32)  # Cycles film_exposure (> 0): the camera's linear exposure scale
+RENDER_TARGET_PSNR = TARGET_PSNR_DB  # allo:render:targetPsnr, dB: (0, 100], 0 (or not authored) = fixed samples
+RENDER_TIME_LIMIT = TIME_LIMIT_S      # allo:render:timeLimit, s: 0..1e6, 0 = none (only with a target)
 CAMERA_EV = (-64.0, 64.0)         # UsdGeom.Camera exposure (EV, log2), like a light's inputs:exposure
 CAMERA_EXPOSURE_FACTOR = (1e-9, 1e9)  # exposure:fStop, :time, :iso, :responsivity (each > 0)
 # Size of what the reader takes in at all, checked before the expensive work.

@@ -30,7 +30,7 @@ from allo_usd.usd import attributes as A
 from allo_usd.usd import layout
 from allo_usd.usd.attributes import SENSOR_ATTRIBUTES
 from allo_usd.usd.base_stage import LIT_BODIES, camera_ev, gf_quatd, product_vars
-from allo_usd.plan.settings import DEFAULT_PASSES, canonical_passes
+from allo_usd.plan.settings import TARGET_WITH_GLARE, DEFAULT_PASSES, canonical_passes, target_problem
 from allo_usd.usd.layout import STATION_SUN, body_sun_path
 from allo_usd.core.files import relpath
 from allo_usd.usd.usda_writer import Prim, write_layer
@@ -72,6 +72,11 @@ def validate_spec(spec: SceneSpec) -> None:
         raise LayerError(problem)
     if not 1 <= spec.render.samples <= 65536:
         raise LayerError(f"samples={spec.render.samples} is outside 1..65536")
+    problem = target_problem(spec.render.target_psnr, spec.render.time_limit)
+    if problem:
+        raise LayerError(problem)
+    if spec.render.target_psnr > 0 and spec.effects.glare:
+        raise LayerError(TARGET_WITH_GLARE)
     if spec.split not in ("train", "test"):
         raise LayerError(f"split must be 'train' or 'test', got {spec.split!r}")
     _check_lens(spec)
@@ -250,6 +255,15 @@ def sensor_attrs(sensor: SensorParams, film_exposure: float) -> dict:
     return {name: (type_name, cast[type_name](values[key])) for key, (name, type_name) in SENSOR_ATTRIBUTES.items()}
 
 
+def target_attrs(render) -> dict:
+    """allo:render:targetPsnr and allo:render:timeLimit, each only when > 0: a layer without a target
+    keeps the bytes it had before the target mode existed (and the time limit means nothing without one)."""
+    if not render.target_psnr > 0:
+        return {}
+    return A.opinions((A.RENDER_TARGET_PSNR, float(render.target_psnr)),
+                      *(((A.RENDER_TIME_LIMIT, float(render.time_limit)),) if render.time_limit > 0 else ()))
+
+
 def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
     """Only this image's opinions: identity and seed, anomaly, effects and render settings."""
     from pxr import Gf
@@ -273,6 +287,7 @@ def scene_prims(spec: SceneSpec, anomaly_ref: str = "") -> list[Prim]:
                      (A.RENDER_DENOISE_PREFILTER, r.denoise_prefilter), (A.RENDER_DENOISE_QUALITY, r.denoise_quality),
                      (A.EFFECTS_SENSOR_NOISE, bool(e.sensor_noise)), (A.EFFECTS_GLARE, bool(e.glare)),
                      (A.EFFECTS_INSPECTION_LIGHT, bool(e.inspection_light)), (A.EFFECTS_BODY_SHINE, bool(e.body_shine))),
+        **target_attrs(r),
         **(sensor_attrs(e.sensor, film_exposure(r.exposure)) if e.sensor_noise else {})}))
     passes = canonical_passes(r.passes)
     if passes != DEFAULT_PASSES:  # the base product orders the default passes; change only if asked

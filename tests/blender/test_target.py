@@ -40,6 +40,25 @@ def test_the_estimate_of_independent_noise_is_the_means_true_error():
     assert tg.estimated_mse(a, b) - tg.QUANTISATION_MSE == pytest.approx(measured, rel=0.05)
 
 
+def test_a_denoisers_blur_is_in_the_estimate_not_only_its_variance():
+    """A stand-in denoiser that blurs (a 5x5 box: less variance, a bias on every detail both halves share):
+    the cross-validated estimate finds the delivered image's measured error, bias included, where the
+    denoised halves' own difference alone misses most of it."""
+    from scipy.ndimage import uniform_filter
+
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[0:400, 0:600]
+    truth = np.repeat((0.3 + 0.2 * np.sin(xx / 6.0) * np.sin(yy / 7.0))[..., None], 3, axis=-1)   # detail to blur
+    a, b = (truth + rng.normal(0.0, 0.03, truth.shape) for _ in range(2))
+    da, db = (uniform_filter(x, size=(5, 5, 1)) for x in (a, b))
+    delivered = (da + db) / 2
+    measured = float(np.mean((tg.srgb_units(delivered) - tg.srgb_units(truth)) ** 2))
+    estimate = tg.estimated_mse(a, b, da, db) - tg.QUANTISATION_MSE
+    assert estimate == pytest.approx(measured, rel=0.1)
+    variance_only = float(np.mean((tg.srgb_units(da) - tg.srgb_units(db)) ** 2)) / 4
+    assert variance_only < 0.5 * measured
+
+
 @pytest.mark.parametrize("done, mse, target, cap, expected", [
     (16, 40.0, 10.0, 4096, 16),       # needs ~4.6x: at most doubles
     (16, 12.0, 10.0, 4096, 8),        # needs a little: at least FIRST_SAMPLES // 2
@@ -54,7 +73,7 @@ def test_each_round_asks_for_what_the_target_needs_within_bounds(done, mse, targ
 def test_half_seeds_are_distinct_and_cycles_seeds():
     seeds = {tg.half_seed(2 ** 31 - 5, r, h) for r in range(50) for h in (0, 1)}
     assert len(seeds) == 100 and all(0 <= s < 2 ** 31 for s in seeds)
-    assert 2 ** 31 - 5 not in seeds   # neither half repeats the fixed render's own seed
+    assert tg.half_seed(2 ** 31 - 5, 0, 0) == 2 ** 31 - 5   # the first half is the layer's own render: its mask
 
 
 @pytest.fixture(scope="module")
@@ -69,9 +88,7 @@ def tiny_scene(tiny_base, tmp_path_factory):
 
 
 def _with_target(desc, target: float, samples: int, denoise: bool = False):
-    render = dataclasses.replace(desc.render, samples=samples, denoise=denoise)
-    object.__setattr__(render, "target_psnr", target)   # until the layer carries it: the reader's field
-    object.__setattr__(render, "time_limit", 0.0)
+    render = dataclasses.replace(desc.render, samples=samples, denoise=denoise, target_psnr=target, time_limit=0.0)
     return dataclasses.replace(desc, render=render)
 
 
@@ -116,3 +133,60 @@ def test_without_a_target_the_render_records_no_estimate(tiny_scene):
 
     build_scene(tiny_scene)
     assert render_current(tiny_scene).accuracy is None
+
+
+@pytest.mark.render
+def test_a_target_renders_mask_is_the_fixed_renders(tiny_scene):
+    """The first half renders with the layer's own seed: the class mask and object ids are those a fixed
+    render of the layer gives (sample 0 lands in the same place)."""
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    build_scene(tiny_scene)
+    fixed = render_current(tiny_scene)
+    desc = _with_target(tiny_scene, 25.0, tiny_scene.render.samples)
+    build_scene(desc)
+    aimed = render_current(desc)
+    assert (aimed.mask == fixed.mask).all() and (aimed.ids == fixed.ids).all()
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("denoise", [True, False])
+def test_a_fixed_renders_estimate_leaves_its_image_as_it_was(tiny_scene, denoise):
+    """Asked for (allo:render:estimate), a fixed render's estimate costs one more render and changes nothing
+    it delivers: the image is the one the render gives without it, bit for bit."""
+    from allo_usd.blender.build import build_scene
+    from allo_usd.blender.render import render_current
+
+    plain = dataclasses.replace(tiny_scene, render=dataclasses.replace(tiny_scene.render, denoise=denoise))
+    build_scene(plain)
+    before = render_current(plain)
+    asked = dataclasses.replace(plain, render=dataclasses.replace(plain.render, estimate=True))
+    build_scene(asked)
+    after = render_current(asked)
+    assert (after.rgb == before.rgb).all() and (after.mask == before.mask).all()
+    acc = after.accuracy
+    assert acc["mode"] == "fixed" and acc["stopped_by"] == "samples" and acc["samples"] == plain.render.samples
+    assert 10.0 < acc["estimated_psnr_db"] < 80.0 and ("DF" in acc["estimator"]) == denoise
+
+
+@pytest.mark.render
+def test_render_with_estimate_records_it_and_keeps_the_image(tiny_base, tmp_path):
+    """`render_layer(..., estimate=True)` (`allo-usd render --estimate`): a finished render without an
+    estimate renders again, its JSON gains `accuracy` (mode fixed) and the manifest's est_psnr_db, and its
+    image files are the same bytes; without --estimate the finished render stays done."""
+    from allo_usd.run.job import render_layer
+    from allo_usd.usd.scene_layer import write_scene_layer
+
+    from tests.support.helpers import make_spec
+
+    layer = write_scene_layer(make_spec(anomaly=True), tmp_path / "layers" / "a.usda", tiny_base)
+    out = tmp_path / "renders"
+    plain = render_layer(layer, out)
+    png = (out / plain["files"]["rgb"]).read_bytes()
+    assert plain.get("accuracy") is None
+    asked = render_layer(layer, out, estimate=True)
+    assert asked["accuracy"]["mode"] == "fixed" and asked["accuracy"]["estimated_psnr_db"] > 10
+    assert (out / asked["files"]["rgb"]).read_bytes() == png
+    again = render_layer(layer, out)   # done: the estimate is kept
+    assert again["accuracy"] == asked["accuracy"]

@@ -39,9 +39,12 @@ def _refused(args: list, *words: str) -> str:
 NUMBERS = {
     "render": [("--workers", ["nan", "-1", "1025", "1e3", "2.5", "inf"]), ("--threads", ["nan", "-1", "99999"]),
                ("--retries", ["-1", "101", "many"]),
-               ("--timeout", ["nan", "NaN", "inf", "-inf", "-1", "0", "-0", "1e400", "abc", ""])],
+               ("--timeout", ["nan", "NaN", "inf", "-inf", "-1", "0", "-0", "1e400", "abc", ""]),
+               ("--target-psnr", ["nan", "-inf", "-1", "100.5", "1e9", "1e308", "forty", ""]),
+               ("--time-limit", ["nan", "inf", "-1", "1e7", "an hour"])],
     "author": [("--workers", ["0", "-3", "nan"]), ("--limit", ["-1", "nan", "1.5"])],
-    "demo": [("--width", ["0", "3", "8193", "nan"]), ("--height", ["-270", "1e9"]), ("--samples", ["0", "65537", "x"])],
+    "demo": [("--width", ["0", "3", "8193", "nan"]), ("--height", ["-270", "1e9"]), ("--samples", ["0", "65537", "x"]),
+             ("--target-psnr", ["nan", "-3", "101"]), ("--time-limit", ["-1", "nan"])],
     "sky": [("--year", ["1899", "2054", "99999", "nan"]), ("--days", ["0", "56321", "100000000", "-5"])],
 }
 CASES = [(cmd, opt, value) for cmd, table in NUMBERS.items() for opt, values in table for value in values]
@@ -190,3 +193,14 @@ def test_save_blend_replaces_with_force_atomically_and_leaves_no_backup(tiny_bas
     assert head.startswith(b"BLENDER") or head.startswith(b"\x28\xb5\x2f\xfd"), head   # plain or zstd
     assert [p.name for p in saved.parent.iterdir()] == ["s.blend"]   # no .blend1 backup, no temporary
     assert (tmp_path / "o" / "s.png").is_file()
+
+
+def test_a_target_override_is_for_one_layer_or_a_plan_and_a_time_limit_needs_a_target(tmp_path):
+    """--target-psnr / --time-limit replace the target of a single layer (or a plan's, authored with it); a
+    directory's layers keep their own, and a time limit with no target (the demo's) limits nothing."""
+    (tmp_path / "layers").mkdir()
+    for option in (["--target-psnr", "40"], ["--time-limit", "60"]):
+        _refused(["render", tmp_path / "layers", "--out", tmp_path / "o", *option],
+                 "--target-psnr and --time-limit override the target of a single layer", "quality.target_psnr")
+    _refused(["demo", "--out", tmp_path / "o", "--time-limit", "60"], "--time-limit 60 is given without --target-psnr")
+    assert not (tmp_path / "o").exists()

@@ -237,3 +237,56 @@ def test_author_limit_does_not_enumerate_the_whole_plan(tmp_path, monkeypatch):
                       "base_stage": str(BASE_STAGE)})
     done = authoring.author(plan, tmp_path, limit=2, progress=False, workers=1)
     assert len(done.paths) == 2 and len(taken) <= 3
+
+
+# ---------------------------------------------------------------------------------------------
+# The target mode: a quality to aim at
+
+def test_a_plans_target_is_written_read_and_reaches_the_render_spec(tmp_path):
+    from allo_usd.plan.settings import RenderSpec, quality_of
+
+    plan = make_plan({"name": "x", "quality": {"preset": "final", "target_psnr": 40, "time_limit": 120}})
+    assert (plan.quality.target_psnr, plan.quality.time_limit, plan.quality.samples) == (40.0, 120.0, 192)
+    path = save_plan(plan, tmp_path / "p.toml")
+    assert "target_psnr = 40" in path.read_text() and load_plan(path) == plan
+    spec = RenderSpec(**quality_of(plan.quality))
+    assert (spec.target_psnr, spec.time_limit) == (40.0, 120.0)
+    for name in PRESETS:   # the named presets keep their fixed samples
+        fixed = make_plan({"name": "x", "quality": {"preset": name}}).quality
+        assert (fixed.target_psnr, fixed.time_limit) == (0.0, 0.0)
+    assert "target_psnr" not in save_plan(make_plan({"name": "x"}), tmp_path / "q.toml").read_text()
+
+
+@pytest.mark.parametrize("quality,needle", [
+    ({"target_psnr": "nan"}, "quality: target_psnr nan is not a PSNR in dB"),
+    ({"target_psnr": -1}, "quality: target_psnr -1 is not a PSNR in dB"),
+    ({"target_psnr": 1e9}, "quality: target_psnr 1e+09 is not a PSNR in dB"),
+    ({"target_psnr": "inf"}, "quality: target_psnr inf is not"),
+    ({"target_psnr": 40, "time_limit": -5}, "quality: time_limit -5 is not a number of seconds"),
+    ({"target_psnr": 40, "time_limit": 1e300}, "quality: time_limit 1e+300 is not"),
+    ({"time_limit": 60}, "quality: time_limit 60 is given without target_psnr"),
+])
+def test_a_bad_target_is_a_plan_error_naming_the_field_and_the_fix(tmp_path, quality, needle):
+    for suffix, text in ((".toml", "[quality]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in quality.items())),
+                         (".yaml", "quality:\n" + "".join(f"  {k}: {_yaml(v)}\n" for k, v in quality.items()))):
+        path = tmp_path / f"p{suffix}"
+        path.write_text('name = "x"\n' + text if suffix == ".toml" else "name: x\n" + text)
+        with pytest.raises(PlanError) as info:
+            load_plan(path)
+        message = str(info.value)
+        assert needle in message and "fix:" in message, message
+
+
+def _toml(v):
+    return {"nan": "nan", "inf": "inf"}.get(v, repr(v)) if isinstance(v, str) else repr(v)
+
+
+def _yaml(v):
+    return {"nan": ".nan", "inf": ".inf"}.get(v, v) if isinstance(v, str) else repr(v)
+
+
+def test_a_target_with_lens_glare_is_a_plan_error(tmp_path):
+    path = tmp_path / "p.toml"
+    path.write_text('name = "x"\n[quality]\ntarget_psnr = 40\n[effects]\nglare = true\n')
+    with pytest.raises(PlanError, match="quality.target_psnr with effects.glare: .*fix: turn lens glare off"):
+        load_plan(path)

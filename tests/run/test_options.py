@@ -8,6 +8,7 @@ import dataclasses
 import inspect
 import math
 import pickle
+import re
 from pathlib import Path
 
 import pytest
@@ -91,8 +92,9 @@ def test_the_api_keywords_build_the_value_and_none_goes_beside_it():
 def test_a_run_refuses_a_job_that_only_one_layer_can_do(tmp_path):
     from allo_usd.run.dispatch import dispatch
 
-    for job in (JobOptions(passes=("mask",)), JobOptions(save_blend=tmp_path / "x.blend")):
-        with pytest.raises(AlloError, match=r"^options\.job\.(passes|save_blend): a run renders"):
+    for job in (JobOptions(passes=("mask",)), JobOptions(save_blend=tmp_path / "x.blend"), JobOptions(target_psnr=40),
+                JobOptions(time_limit=5)):
+        with pytest.raises(AlloError, match=r"^options\.job\.(passes|save_blend|target_psnr|time_limit): a run renders"):
             dispatch(tmp_path, tmp_path / "out", options=RunOptions(job=job))
     with pytest.raises(AlloError, match="beside options="):
         dispatch(tmp_path, tmp_path / "out", workers=2, options=RunOptions())
@@ -107,3 +109,19 @@ def test_the_worker_and_the_job_take_the_one_value():
                                                                "before_render"]
     assert list(inspect.signature(render_record).parameters) == ["layer", "out_dir", "options", "workdir",
                                                                  "session", "index"]
+
+
+@pytest.mark.parametrize("given,needle", [
+    (dict(target_psnr=math.nan), "target_psnr nan is not a PSNR in dB"),
+    (dict(target_psnr=-1), "target_psnr -1 is not a PSNR in dB"), (dict(target_psnr=101), "target_psnr 101 is not"),
+    (dict(target_psnr="40"), "target_psnr '40' is not"), (dict(target_psnr=True), "target_psnr True is not"),
+    (dict(time_limit=math.inf), "time_limit inf is not a number of seconds"),
+    (dict(time_limit=-2), "time_limit -2 is not"), (dict(time_limit=2e6), "time_limit 2e+06 is not"),
+])
+def test_the_job_checks_its_target_and_time_limit_each_on_its_own(given, needle):
+    with pytest.raises(AlloError, match="^" + re.escape(needle)) as info:
+        JobOptions(**given)
+    assert "fix:" in str(info.value) and "\n" not in str(info.value)
+    # accepted: a target alone, 0 (fixed samples), and a time limit alone (it may stop the layer's own target)
+    assert JobOptions(target_psnr=40).target_psnr == 40 and JobOptions(target_psnr=0).target_psnr == 0
+    assert JobOptions(time_limit=60).time_limit == 60

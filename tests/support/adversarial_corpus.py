@@ -329,6 +329,17 @@ def make_corpus(out_dir, base: Path | None = None, spec=None, canary: str | None
     w.bad(pool, "resolution_zero", "extreme", LAYER_ERROR, lambda t: _sub(res, "uniform int2 resolution = (0, 0)", t))
     w.bad(pool, "resolution_huge", "extreme", LAYER_ERROR,
           lambda t: _sub(res, "uniform int2 resolution = (2000000000, 2000000000)", t))
+    # the target mode's attributes (allo:render:targetPsnr, timeLimit): NaN, out of range, not numbers, a time
+    # limit without a target; each one line naming the attribute, before Blender starts
+    for name, lines in (("target_nan", "float allo:render:targetPsnr = nan"),
+                        ("target_negative", "float allo:render:targetPsnr = -40"),
+                        ("target_huge", "float allo:render:targetPsnr = 1e9"),
+                        ("target_string", 'string allo:render:targetPsnr = "forty"'),
+                        ("time_limit_inf", "float allo:render:targetPsnr = 40\n        float allo:render:timeLimit = inf"),
+                        ("time_limit_string", 'float allo:render:targetPsnr = 40\n        string allo:render:timeLimit = "1h"'),
+                        ("time_limit_without_target", "float allo:render:timeLimit = 60")):
+        w.bad(pool, name, "extreme", LAYER_ERROR,
+              lambda t, lines=lines: _sub(res, lambda m: m.group(0) + "\n        " + lines, t))
 
     # ---- scan: hostile files the directory walk meets before any worker
     scan = out / "scan"

@@ -54,12 +54,17 @@ ALLOWED: dict[str, tuple[int, str]] = {
     "usd/reader_bounds.py:check_texture_file:open": (1, "file_problem just before: reads 16 bytes at each end"),
     "usd/read.py:open_stage:Usd.Stage.Open": (1, "every layer and asset the stage names passed the gate in the "
                                                  "dependency walk (usd.dependencies) first"),
+    "usd/schema.py:extends_copy:Sdf.Layer.FindOrOpen": (1, "the package's own generatedSchema.usda (schema.PLUGIN); "
+                                                           "the tree's copy it is compared with is read through "
+                                                           "read_user_text"),
     "usd/dependencies.py:_open:Sdf.Layer.FindOrOpen": (1, "the dependency walk's own open, after its gate check "
                                                           "(_check: file_problem on the real path)"),
     "usd/dependencies.py:_package:Sdf.ZipFile.Open": (1, "a package the walk checked (_check, MAX_PACKAGE_BYTES)"),
     "usd/dependencies.py:unpacked_file:Sdf.ZipFile.Open": (1, "a package the walk checked"),
     "usd/hazard.py:read_usd_hazard:Usd.Stage.Open": (1, "every file of the hazard's composition passed the "
                                                         "dependency walk (usd_hazard_walk) just before"),
+    "usd/model_mesh.py:read_model:Usd.Stage.Open": (1, "every file of the model's composition passed the "
+                                                      "dependency walk (dependencies.walk) just before"),
     "usd/sniff.py:is_scene_layer:Sdf.Layer.FindOrOpen": (1, "after refusal() (dependencies.check_root: the gate's "
                                                             "rule and the roots) and read_head"),
     "usd/sniff.py:render_cost:Sdf.Layer.FindOrOpen": (1, "after refusal() (dependencies.check_root)"),

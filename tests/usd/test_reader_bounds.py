@@ -337,6 +337,38 @@ def test_render_settings_within_blenders_limits(layer, name, type_name, value):
     refused(layer, name)
 
 
+@pytest.mark.parametrize("name,type_name,value,needle", [
+    ("allo:render:targetPsnr", T.Float, float("nan"), "nan is outside 0..100"),
+    ("allo:render:targetPsnr", T.Float, -1.0, "-1 is outside 0..100"),
+    ("allo:render:targetPsnr", T.Float, 1e9, "1e+09 is outside 0..100"),
+    ("allo:render:targetPsnr", T.Float, float("inf"), "inf is outside 0..100"),
+    ("allo:render:targetPsnr", T.String, "forty dB, please", "is not a number (a str)"),
+    ("allo:render:targetPsnr", T.Bool, True, "is not a number (a bool)"),
+    ("allo:render:timeLimit", T.Float, float("nan"), "nan is outside 0..1e+06"),
+    ("allo:render:timeLimit", T.Float, -5.0, "-5 is outside 0..1e+06"),
+    ("allo:render:timeLimit", T.Double, 1e9, "1e+09 is outside 0..1e+06"),
+    ("allo:render:timeLimit", T.String, "an hour", "is not a number (a str)"),
+])
+def test_a_hostile_target_or_time_limit_is_one_line_naming_the_attribute(layer, name, type_name, value, needle):
+    override(layer, SETTINGS, "allo:render:targetPsnr", T.Float, 40.0)   # a valid target beside the time limit
+    override(layer, SETTINGS, name, type_name, value)
+    message = refused(layer, name, needle, "fix the layer")
+    assert "\n" not in message and "please" not in message and "hour" not in message   # never quotes the file
+
+
+def test_a_time_limit_without_a_target_is_refused_and_a_valid_target_reads(layer):
+    override(layer, SETTINGS, "allo:render:timeLimit", T.Float, 60.0)
+    refused(layer, "allo:render:timeLimit is authored without allo:render:targetPsnr")
+    override(layer, SETTINGS, "allo:render:targetPsnr", T.Float, 40.0)
+    render = read_scene(layer).render
+    assert (render.target_psnr, render.time_limit) == (40.0, 60.0)
+
+
+def test_a_layer_without_a_target_reads_as_fixed_samples(layer):
+    render = read_scene(layer).render
+    assert (render.target_psnr, render.time_limit) == (0.0, 0.0)
+
+
 def test_resolution_below_blenders_minimum_is_refused(layer):
     override(layer, SETTINGS, "resolution", T.Int2, Gf.Vec2i(2, 2), uniform=True)
     refused(layer, "resolution")
@@ -465,3 +497,11 @@ def test_inspect_says_a_foreign_layer_is_not_ours(tmp_path, tiny_base):
         describe(tiny_base)  # the base stage is ours, but not a scene
     result = CliRunner().invoke(app, ["inspect", str(foreign)])
     assert result.exit_code != 0 and "None" not in result.output
+
+
+def test_a_target_beside_lens_glare_is_refused(layer):
+    """The target mode denoises after the render, where Blender composites the glare: a layer with both
+    would lose its glare, so it is refused in one line naming both attributes and the fix."""
+    override(layer, SETTINGS, "allo:render:targetPsnr", T.Float, 40.0)
+    override(layer, SETTINGS, "allo:effects:glare", T.Bool, True)
+    refused(layer, "allo:render:targetPsnr and allo:effects:glare are both on", "fix: turn lens glare off")

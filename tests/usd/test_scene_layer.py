@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
@@ -188,3 +190,47 @@ def test_film_exposure_and_sensor_squares_are_machine_free():
         want = (np.pi / 4.0) * p.transmission * (p.pixel_pitch_m * p.pixel_pitch_m) * 1.0 / (
             p.f_number * p.f_number * PHOTON_ENERGY_J)
         assert photons_per_radiance(p, 1.0) == want
+
+
+def test_a_target_is_authored_only_when_set(tiny_base, tmp_path):
+    """allo:render:targetPsnr / timeLimit appear only with a target: a spec without one writes the bytes it
+    wrote before the target mode (no attribute, not even a 0), one with one records both (the time limit
+    only when > 0)."""
+    from dataclasses import replace
+
+    spec = make_spec(anomaly=True)
+    fixed = write_scene_layer(spec, tmp_path / "fixed" / "s.usda", tiny_base).read_text()
+    assert "targetPsnr" not in fixed and "timeLimit" not in fixed
+    aimed = write_scene_layer(replace(spec, render=replace(spec.render, target_psnr=40.0)),
+                              tmp_path / "aimed" / "s.usda", tiny_base).read_text()
+    assert "float allo:render:targetPsnr = 40" in aimed and "timeLimit" not in aimed
+    capped = write_scene_layer(replace(spec, render=replace(spec.render, target_psnr=38.5, time_limit=90.0)),
+                               tmp_path / "capped" / "s.usda", tiny_base)
+    stage = Usd.Stage.Open(str(capped))
+    settings = stage.GetPrimAtPath("/Render/Settings")
+    assert settings.GetAttribute("allo:render:targetPsnr").Get() == 38.5
+    assert settings.GetAttribute("allo:render:timeLimit").Get() == 90.0
+
+
+@pytest.mark.parametrize("target,limit,needle", [
+    (float("nan"), 0.0, "target_psnr nan"), (-3.0, 0.0, "target_psnr -3"), (1e9, 0.0, "target_psnr 1e+09"),
+    (40.0, -1.0, "time_limit -1"), (40.0, float("inf"), "time_limit inf"), (0.0, 60.0, "without target_psnr"),
+])
+def test_a_bad_target_writes_no_layer(tiny_base, tmp_path, target, limit, needle):
+    from dataclasses import replace
+
+    spec = make_spec()
+    with pytest.raises(LayerError, match=re.escape(needle)):
+        write_scene_layer(replace(spec, render=replace(spec.render, target_psnr=target, time_limit=limit)),
+                          tmp_path / "s.usda", tiny_base)
+    assert not (tmp_path / "s.usda").exists()
+
+
+def test_a_target_with_lens_glare_writes_no_layer(tiny_base, tmp_path):
+    from dataclasses import replace
+
+    spec = make_spec()
+    aimed = replace(spec, render=replace(spec.render, target_psnr=40.0), effects=replace(spec.effects, glare=True))
+    with pytest.raises(LayerError, match="not rendered with lens glare"):
+        write_scene_layer(aimed, tmp_path / "s.usda", tiny_base)
+    assert not (tmp_path / "s.usda").exists()

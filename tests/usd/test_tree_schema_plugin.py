@@ -133,3 +133,34 @@ def test_a_tree_whose_plugin_differs_is_refused(tmp_path):
     (tree_schema(tmp_path) / "plugInfo.json").write_text("{}")
     with pytest.raises(LayerError, match=r"schema is not a copy of .*alloUsd .*plugInfo.json.*Fix:"):
         copy_schema(tmp_path)
+
+
+def _without_target_attributes(text: str) -> str:
+    """The schema as it was before the target mode's two attributes (a tree authored then holds this copy)."""
+    kept = [line for line in text.splitlines(keepends=True)
+            if "allo:render:targetPsnr" not in line and "allo:render:timeLimit" not in line]
+    assert len(kept) == len(text.splitlines()) - 2
+    return "".join(kept)
+
+
+def test_a_tree_with_an_earlier_schema_is_upgraded_and_one_edited_otherwise_is_refused(tmp_path):
+    """A tree authored before attributes were added keeps working: its copy, which the package's schema
+    extends, is replaced by the package's (its layers use nothing the new one lacks); a copy with an
+    attribute of its own, a retyped one, or a FIFO in its place is still refused."""
+    from allo_usd.usd.schema import PLUGIN
+
+    schema = tree_schema(tmp_path) / "generatedSchema.usda"
+    current = (PLUGIN / "generatedSchema.usda").read_text()
+    copy_schema(tmp_path)
+    schema.write_text(_without_target_attributes(current))
+    copy_schema(tmp_path)
+    assert schema.read_text() == current
+    for edited in (current.replace("    int allo:render:seed = 0", "    int allo:render:seed = 0\n    int allo:mine = 1"),
+                   current.replace("int allo:render:samples = 64", "float allo:render:samples = 64")):
+        schema.write_text(edited)
+        with pytest.raises(LayerError, match=r"schema is not a copy of .*generatedSchema.usda.*Fix:"):
+            copy_schema(tmp_path)
+    schema.unlink()
+    os.mkfifo(schema)
+    with pytest.raises(LayerError, match=r"schema is not a copy of .*Fix:"):
+        copy_schema(tmp_path)
