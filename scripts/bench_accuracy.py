@@ -138,40 +138,47 @@ def render_settings(render_desc, **values):
 def render(desc, samples, denoiser="off", adaptive=0.0, bounces=8, scale=1.0, seed=0, size=None, target=0.0,
            estimate=False):
     """Render `desc` (at `size` if given, times `scale`) with the given settings. `target` > 0: the target
-    mode (allo_usd.blender.target; `samples` is its cap). `estimate`: a fixed render's estimate, by the
-    renderer's own estimate_fixed, from one more independent render after the timed call (not timed).
-    Returns (rgb, CPU seconds, wall seconds of the render call, its accuracy record or None)."""
+    mode (allo_usd.blender.target; `samples` is its cap). `estimate`: a fixed render's estimate, as
+    `allo-usd render --estimate` makes it (render_current with the layer's `estimate` on: one more render of
+    the same settings, an independent seed, by blender.target.estimate_fixed); the estimate's own CPU and
+    wall seconds are taken out of the row's (they are in the record as estimate_cpu, estimate_wall), so the
+    seconds are those of the fixed render a user pays without the estimate. Returns (rgb, CPU seconds,
+    wall seconds of the render call, its accuracy record or None)."""
+    from allo_usd.blender import target as target_mode
     from allo_usd.blender.build import build_scene
     from allo_usd.blender.render import render_current
 
     denoise, prefilter, quality = DENOISERS[denoiser]
     w, h = size or desc.render.resolution
+    estimate = bool(estimate and not target)
     r = render_settings(desc.render, samples=int(samples), denoise=denoise, adaptive_threshold=float(adaptive),
                         max_bounces=int(bounces), seed=int(seed), resolution=(round(w * scale), round(h * scale)),
                         denoise_prefilter=prefilter, denoise_quality=quality, target_psnr=float(target),
-                        time_limit=0.0, estimate=False)
+                        time_limit=0.0, estimate=estimate)
     d = dataclasses.replace(desc, render=r)
     build_scene(d)
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    res = render_current(d)
-    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    spent = {"cpu": 0.0, "wall": 0.0}
+    original = target_mode.estimate_fixed
+
+    def timed_estimate(*args, **kwargs):   # render_current imports it from the module when it runs
+        c0, w0 = time.process_time(), time.perf_counter()
+        try:
+            return original(*args, **kwargs)
+        finally:
+            spent["cpu"] += time.process_time() - c0
+            spent["wall"] += time.perf_counter() - w0
+
+    target_mode.estimate_fixed = timed_estimate
+    try:
+        cpu0, wall0 = time.process_time(), time.perf_counter()
+        res = render_current(d)
+        cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    finally:
+        target_mode.estimate_fixed = original
     accuracy = res.accuracy
-    if estimate and not target:
-        accuracy = estimate_fixed(d, res.rgb)
-    return res.rgb, cpu, wall, accuracy
-
-
-def estimate_fixed(d, rgb) -> dict:
-    """The renderer's estimate of a fixed render (allo_usd.blender.target.estimate_fixed: one more render of
-    the scene as built, an independent seed), its CPU seconds in the record."""
-    from allo_usd.blender.compositor import has_compositor
-    from allo_usd.blender.render import render_channels
-    from allo_usd.blender.target import estimate_fixed as fixed
-
-    layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
-    cpu0 = time.process_time()
-    acc = fixed(d, rgb, lambda m: render_channels(d, None, m), lambda ch: None if f"{layer}.R" in ch else layer)
-    return acc | {"estimate_cpu": time.process_time() - cpu0}
+    if estimate and accuracy is not None:
+        accuracy = accuracy | {"estimate_cpu": spent["cpu"], "estimate_wall": spent["wall"]}
+    return res.rgb, cpu - spent["cpu"], wall - spent["wall"], accuracy
 
 
 def write_rgb(path: Path, rgb: np.ndarray) -> None:
