@@ -40,11 +40,15 @@ COVERED_ELSEWHERE = {
 # {layer} and {layer2} are 32x18, 1-sample scene layers over the tests' tiny base stage, two views).
 SMOKE: dict[str, list[list[str]]] = {
     "bench_accuracy.py": [  # two views; the report after the reference alone (2 chunks: its noise is measured),
-        # then after the presets alone
+        # then after the presets alone, then with the target mode and the fixed sweep of the layer's denoiser
         ["--phase", "reference", "--layer", "{layer}", "--layer", "{layer2}", "--ref-samples", "2", "--ref-chunk", "1",
          "--cache", "{tmp}/cache", "--out", "{out}"],
         ["--phase", "presets", "--layer", "{layer}", "--layer", "{layer2}", "--ref-samples", "2", "--ref-chunk", "1",
          "--rounds", "1", "--cache", "{tmp}/cache", "--out", "{out}"],
+        ["--phase", "target", "--layer", "{layer}", "--layer", "{layer2}@48x27", "--ref-samples", "2",
+         "--ref-chunk", "1", "--targets", "20", "--target-cap", "64", "--cache", "{tmp}/cache", "--out", "{out}"],
+        ["--phase", "sweep", "--layer", "{layer}", "--layer", "{layer2}@48x27", "--ref-samples", "2",
+         "--ref-chunk", "1", "--oidn-samples", "1,2", "--cache", "{tmp}/cache", "--out", "{out}"],
     ],
     "bench_amodal.py": [["--layer", "{layer2}", "--sizes", "32x18,64x36", "--samples", "1", "--repeats", "1",
                          "--work", "{tmp}/work", "--out", "{out}"]],
@@ -66,7 +70,7 @@ NO_RENDER = {"bench_author.py", "bench_scale.py", "bench_sky.py"}
 
 ACCURACY_CSV = ["view", "group", "preset", "samples", "denoiser", "adaptive", "bounces", "scale", "seconds", "wall",
                 "x_paper", "psnr_srgb8", "psnr_vs_paper", "psnr_linear", "ssim_srgb8", "psnr_converged", "ref_samples",
-                "loadavg"]
+                "target_psnr", "est_psnr", "est_minus_measured", "rounds", "stopped_by", "size", "loadavg"]
 # script -> {file written: the CSV's columns, or a table header line the .md holds}; every run writes a plot too.
 EXPECT: dict[str, dict[str, list[str] | str]] = {
     "bench_accuracy.py": {"bench_accuracy.csv": ACCURACY_CSV,
@@ -190,7 +194,7 @@ def test_bench_smoke(script, tmp_path, request):
             if k == 0:   # the reference alone: no rows, still a report (each view's reference) and a plot
                 assert rows == [] and "## P1 per view" not in md
                 assert "| small | 2 |" in md and "| small_anomaly | 2 |" in md, md
-            else:        # the presets alone, on both views, scored against the references, relative to paper
+            elif k == 1:  # the presets alone, on both views, scored against the references, relative to paper
                 from allo_usd.plan.settings import PRESETS
 
                 assert {(r["view"], r["preset"]) for r in rows} == {(v, p) for v in ("small", "small_anomaly")
@@ -203,6 +207,23 @@ def test_bench_smoke(script, tmp_path, request):
                 for heading in ("## P1 per view", "### small ", "### small_anomaly ", "## P1 overall",
                                 "## Does the reference cap the PSNR?"):
                     assert heading in md, heading
+                for r in rows:   # every fixed row carries the renderer's estimate (a second, independent render)
+                    assert 0.0 < float(r["est_psnr"]) < 100.0 and r["stopped_by"] == "samples", r
+            elif k == 2:  # the target mode without denoise (and with it where blender.oidn is there), each view
+                targets = [r for r in rows if r["group"] == "target"]
+                assert {r["view"] for r in targets if r["denoiser"] == "off"} == {"small", "small_anomaly"}, targets
+                for r in targets:
+                    assert r["target_psnr"] == "20.0000" and r["stopped_by"] in ("target", "samples"), r
+                    assert 0 < int(r["samples"]) <= 64 and float(r["est_psnr"]) > 0.0, r
+                assert {r["size"] for r in targets} == {"32x18", "48x27"}   # a view's own size: PATH@WxH
+                assert "## Time to 35, 40 and 45 dB per view" in md
+                assert "## The estimate against the measured PSNR, every row" in md
+                assert "| small | target 20 | " in md and "| small_anomaly | target 20 | " in md, md
+            else:         # the fixed sweep of the layer's own denoiser, 1 and 2 spp, each with its estimate
+                sweep = [r for r in rows if r["group"] == "sweep"]
+                assert {(r["view"], r["samples"]) for r in sweep} == {(v, n) for v in ("small", "small_anomaly")
+                                                                      for n in ("1", "2")}, sweep
+                assert all(float(r["est_psnr"]) > 0.0 for r in sweep)
     if script == "bench_gpu.py":   # the CPU rows are always there; GPU rows only where Cycles finds a GPU
         rows = list(csv.DictReader(texts["bench_gpu.csv"].splitlines()))
         assert [r["preset"] for r in rows if not r["device"].startswith("GPU")][:2] == ["draft", "preview"]
