@@ -366,13 +366,14 @@ def can_denoise_halves() -> bool:
     return importlib.util.find_spec("allo_usd.blender.oidn") is not None
 
 
-def run_targets(views: list[View], rows: dict, targets: list[float], cap: int) -> None:
-    """The target mode on every view: each target, with the layer's own denoiser and without, capped at `cap`
-    samples per pixel (no time limit); target by target over the views, saved after each render."""
+def run_targets(views: list[View], rows: dict, targets: list[float], cap: int, modes=("layer", "off")) -> None:
+    """The target mode on every view: each target, with the layer's own denoiser and without (`modes`:
+    "layer", "off"), capped at `cap` samples per pixel (no time limit); target by target over the views,
+    saved after each render."""
     for t in targets:
         for v in views:
             vrows = rows["views"].setdefault(v.id, {})
-            for dn in dict.fromkeys((layer_denoiser(v.desc), "off")):
+            for dn in dict.fromkeys(layer_denoiser(v.desc) if m == "layer" else "off" for m in modes):
                 key = f"target_{t:g}_{dn}"
                 if key in vrows:
                     continue
@@ -1042,6 +1043,8 @@ def main(argv=None) -> int:
     ap.add_argument("--targets", default=",".join(f"{x:g}" for x in LEVELS),
                     help="the target phase's PSNR targets, dB (comma-separated)")
     ap.add_argument("--target-cap", type=int, default=8192, help="the target mode's cap, samples per pixel")
+    ap.add_argument("--target-modes", default="layer,off",
+                    help="the target phase's denoisers: layer (the layer's own), off (none), or both")
     ap.add_argument("--oidn-samples", default="16,32,64,128,256,512,1024,2048",
                     help="the oidn sweep's sample counts (a view stops once its estimate passes the top level + 2 dB)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks"))
@@ -1073,7 +1076,10 @@ def main(argv=None) -> int:
                 for v in views:                            # reference grows alike if the run is stopped
                     render_reference(v, (k + 1) * chunk, chunk)
         if args.phase in ("all", "target"):
-            run_targets(views, rows, parse_floats(args.targets, "--targets"), args.target_cap)
+            modes = tuple(m.strip() for m in args.target_modes.split(",") if m.strip())
+            if not modes or set(modes) - {"layer", "off"}:
+                ap.error(f"--target-modes {args.target_modes!r}: give layer, off or layer,off")
+            run_targets(views, rows, parse_floats(args.targets, "--targets"), args.target_cap, modes)
         if args.phase in ("all", "sweep") and args.sweep == "oidn":
             run_oidn_sweep(views, rows, [int(x) for x in parse_floats(args.oidn_samples, "--oidn-samples")],
                            max(LEVELS) + 2.0)
