@@ -513,29 +513,27 @@ def with_estimate(r: dict) -> dict:
 
 
 # ----------------------------------------------------------------------------- report
-FINDINGS = """## Findings (five views; preliminary: references of 512-1,024 spp)
+FINDINGS = """## Findings (five views; references of 4,096 spp at 240x135 and 2,048 at 480x270)
 
-- **State of this measurement.** The timed rows (target mode 35 and 40 dB with and without the layer's
-  denoiser, the five named presets) ran at a 1-minute load of 2.5-6.5 on 2 cores (other work shared the
-  machine; the load per row is in the CSV). The references are still growing: 1,024 spp (512 on the
-  close-up), their own noise 40.7-45.0 dB, so rows measured near 40 dB are resolved only on the glossy
-  view (reference noise 45.0 dB); on the shaded, dark and close-up views a row's `measured` near 40 dB
-  carries the error of removing a reference noise as large as its own. The fixed sweep and the 45 dB
-  targets are not measured yet. Re-run `--phase report` when the references have grown: every row is
-  re-scored without re-rendering.
-- **Target mode against the glossy view's reference** (the one resolved): 35 / 40 dB asked, 37.5 / 40.0 dB
-  measured with OIDN (32 / 84 spp, 14 / 37 CPU s), 34.9 / 40.5 dB without (128 / 452 spp, 49 / 165 CPU s);
-  the estimate is within +0.1 to +0.3 dB of the measured PSNR on all four rows. The denoiser cuts the time
-  to 40 dB by 4.4x there.
-- **The fixed render's estimate with a denoiser fails on fireflies.** On the dark view (d000_p42) the
-  estimate of `final` was -5.6 dB (measured 37.5): one pixel of the second render holds a firefly
-  (noisy 650, denoised 130-290 in linear values), and the linear-value form multiplies its cross terms by
-  the sRGB slope squared of the delivered value (~2.6e5 there) without the clipping the 8-bit image
-  applies, so that one pixel carries 99.99% of the estimated MSE. The sRGB form of the same two renders
-  gives 41.8 dB. The estimates of denoised fixed rows miss by -43 to +5 dB here; those rows wait for a fix
-  of the estimator before they say anything about it.
-- **The eclipse view is nearly black** (mean 8-bit value 2.7): every setting measures 54-62 dB, the target
-  mode stops after its first round (32 spp), and the denoised estimator is 4-6 dB pessimistic there.
+- **Where this stands: neither target of the issue is met yet.** The 40 dB target mode with the layer's
+  denoiser costs 119 CPU s over the five views, 0.67x `final`'s 177 s and 0.44x `paper`'s 270 s, but it
+  measures below 40 dB on three views (39.98 glossy, 38.95 shaded anomaly, 37.54 dark, 38.49 close-up)
+  and no named preset reaches 40 dB on every view either (`final`'s worst is 38.60).
+- **The estimate is within 1 dB on the glossy view** (every row, -0.84 to +0.35 dB) **and on the eclipse
+  view without the denoiser; elsewhere it misses.** Target rows are optimistic by 1.2-4.1 dB on the shaded,
+  dark and close-up views, most at low sample counts: without a denoiser too (+2.9 dB at 176 spp on the
+  shaded view, against a reference whose own noise is 46 dB), so it is not the denoiser's blur alone. Path
+  tracing's noise is heavy-tailed there (rare bright paths off the shaded anomaly and the dark hull): two
+  halves of a few hundred samples seldom catch them, so the halves' difference is most often below the
+  error's mean. A stop margin, or an estimate that accounts for the tail (median of means over pixel
+  blocks, or a third independent batch), is the next step. Fixed denoised presets are pessimistic by
+  1.5-3.8 dB on the dark view (the cross-validation's noisy second render at a dark, clipped-low pixel).
+- **The dark view's reference is the weakest** (its own noise 42.9 dB at 4,096 spp): rows near 45 dB there
+  are resolved to about a dB.
+- **The eclipse view is nearly black** (mean 8-bit value 2.7): every setting measures 54-62 dB; the
+  target mode stops after its first round (32 spp); the denoised estimate is 4-6 dB pessimistic there.
+- **Time to quality where it holds:** on the glossy view the target mode reaches 40 dB (39.98, 0.02 short)
+  in 46 CPU s against `final`'s 74 s (43.8 dB), and 45 dB in 192 s where no preset reaches it.
 """
 
 NOTES = """## Notes from the earlier one-view sweep
