@@ -14,18 +14,19 @@ converged image, peak 255). Rounding the image and a converged reference to 8 bi
 uniform errors, 1/12 each, to the squared error a benchmark measures: the estimate adds those 1/6.
 
 Denoised layers (`allo:render:denoise`): each half is denoised (OIDN with the layer's quality and prefilter,
-allo_usd.blender.oidn, as Cycles would) and the delivered image is the mean of the two denoised halves, so
-the halves' difference measures exactly the variance of what is delivered. A denoiser also blurs (a bias
-both halves share, which their difference cannot see): docs/benchmarks/bench_accuracy.md measures how the
-estimate relates to the true error.
+allo_usd.blender.oidn, as Cycles would) and the delivered image is the mean of the two denoised halves. A
+denoiser also blurs, a bias both halves share that their difference cannot see, so the estimate checks each
+denoised half against the other half's noisy image (error_map), which sees it;
+docs/benchmarks/bench_accuracy.md measures how the estimate relates to the true error.
 
 Rounds: the first gives each half `FIRST_SAMPLES` samples; after each, the samples the target needs are
 predicted from the estimate (a Monte Carlo error's variance falls as 1/N: N_needed = N * MSE / MSE_target,
 with HEADROOM), at most doubling the samples so far, within the cap. Adaptive sampling is off in this mode
 (the rounds are the adaptation; per-pixel sample counts would make the halves' means unweighable). The
 mask, object ids, depth and normal passes are those of the first half of the first round, rendered with the
-layer's own seed (its first sample lands where a fixed render's does, so the mask is the fixed render's). Everything changed on the Blender scene is put back
-afterwards, value for value, so a warm session (blender.session) keeps patching the scene it believes it shows.
+layer's own seed (its first sample lands where a fixed render's does, so the mask is the fixed render's).
+Everything changed on the Blender scene is put back afterwards, value for value, so a warm session
+(blender.session) keeps patching the scene it believes it shows.
 """
 
 from __future__ import annotations
@@ -80,10 +81,12 @@ def error_map(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None
     cannot see) included; a firefly in either noisy half cancels within its own pixel. Linear errors become
     8-bit sRGB errors by the transfer's slope at the delivered value (srgb_slope_sq): small errors, as at
     the targets this mode is for. Without a denoiser e = (A - B)**2 / 4, taken in the delivered transfer
-    itself, (s(A) - s(B))**2 / 4 (clipping and the curve included). Which form where is measured
-    (docs/benchmarks/bench_accuracy.md): on the demo's shaded anomaly view at 240x135, the linear form
-    with OIDN was 0.4-0.7 dB below the true PSNR and the sRGB form 0.5-1.7 dB below; without a denoiser
-    the sRGB form was 0.2-0.3 dB above it and the linear one 0.7 dB above."""
+    itself, (s(A) - s(B))**2 / 4 (clipping and the curve included). Which form where was chosen on the demo
+    plan's d000_p41 anomaly view at 240x135 against a 2,048-spp reference: with OIDN the linear form was
+    0.4-0.7 dB below the true PSNR and the sRGB form 0.5-1.7 dB below; without a denoiser the sRGB form was
+    0.2-0.3 dB above it and the linear one 0.7 dB above. docs/benchmarks/bench_accuracy.md measures both on
+    five views: within 1 dB on the sunlit one, 1.2-4.1 dB optimistic on the shaded, dark and close-up ones
+    at low sample counts (heavy-tailed noise the two halves seldom catch)."""
     if den_a is None:   # the halves' own difference in the delivered transfer: clipping and curve included
         d = srgb_units(noisy_a) - srgb_units(noisy_b)
         return (d * d / 4.0).mean(axis=-1)
