@@ -249,7 +249,7 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
     from allo_usd.assets.mesh import fan_triangulate
     from allo_usd.core.errors import LayerError
     from allo_usd.usd.dependencies import tf_message
-    from allo_usd.usd.reader_bounds import MAX_PRIMS, mesh_topology, world_matrix
+    from allo_usd.usd.reader_bounds import mesh_topology, object_meshes, world_matrix
 
     def fail(why: str) -> PlanError:
         return PlanError(f"{what} {name!r}: {path} {why}")
@@ -270,16 +270,8 @@ def read_usd_hazard(path: Path, name: str, units: str | None, up_axis: str | Non
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     parts, materials, seen, n_in = [], {}, set(), 0
     # Instanced meshes count (instance proxies); guide and proxy purposes are not the object itself.
-    prims = Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
-    for count, prim in enumerate(prims, 1):
-        if count > MAX_PRIMS:
-            raise fail(f"holds more than {MAX_PRIMS:,} prims; fix: give a single hazard model")
-        if not prim.IsA(UsdGeom.Mesh):
-            continue
-        imageable = UsdGeom.Imageable(prim)
-        if (imageable.ComputeVisibility() == UsdGeom.Tokens.invisible
-                or imageable.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)):
-            continue
+    for prim in object_meshes(stage.GetPseudoRoot(),
+                              lambda limit: fail(f"holds more than {limit:,} prims; fix: give a single hazard model")):
         try:
             points, counts, indices = mesh_topology(prim)
             m = world_matrix(cache, prim)

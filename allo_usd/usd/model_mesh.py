@@ -42,7 +42,7 @@ def read_model(path: str | Path, variant: str | None) -> ModelMesh:
     from allo_usd.usd import schema
     from allo_usd.assets.mesh import fan_triangulate
     from allo_usd.usd.dependencies import tf_message, walk
-    from allo_usd.usd.reader_bounds import MAX_PRIMS, mesh_topology
+    from allo_usd.usd.reader_bounds import mesh_topology, object_meshes
     from allo_usd.usd.safety import check_stage
 
     path = Path(path)
@@ -71,15 +71,8 @@ def read_model(path: str | Path, variant: str | None) -> ModelMesh:
     check_stage(stage, path)
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     points, triangles, count = [], [], 0
-    for n, prim in enumerate(Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)), 1):
-        if n > MAX_PRIMS:
-            raise LayerError(f"model {path} holds more than {MAX_PRIMS:,} prims; fix: give a single object model")
-        if not prim.IsA(UsdGeom.Mesh):
-            continue
-        imageable = UsdGeom.Imageable(prim)
-        if (imageable.ComputeVisibility() == UsdGeom.Tokens.invisible
-                or imageable.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)):
-            continue
+    for prim in object_meshes(root, lambda limit: LayerError(f"model {path} holds more than {limit:,} prims; fix: "
+                                                             "give a single object model")):
         pts, counts, indices = mesh_topology(prim)
         m = np.array(cache.ComputeRelativeTransform(prim, root)[0], dtype=np.float64).T   # column vectors
         tris = fan_triangulate(counts, indices)

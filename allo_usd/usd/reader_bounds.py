@@ -296,6 +296,23 @@ def _mesh_array(attr, what: str, kind: str, width: int | None, limit: int) -> np
     return arr
 
 
+def object_meshes(root, too_many):
+    """The meshes that make an object's shape under `root` (a prim, or a stage's pseudo-root): every Mesh
+    prim, instance proxies included, that is not invisible and whose purpose is not guide or proxy (those are
+    not the object itself). More than MAX_PRIMS prims traversed raises too_many(MAX_PRIMS), an exception."""
+    from pxr import Usd, UsdGeom
+
+    for n, prim in enumerate(Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)), 1):
+        if n > MAX_PRIMS:
+            raise too_many(MAX_PRIMS)
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        imageable = UsdGeom.Imageable(prim)
+        if (imageable.ComputeVisibility() != UsdGeom.Tokens.invisible
+                and imageable.ComputePurpose() not in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)):
+            yield prim
+
+
 def mesh_topology(prim) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points float32 (N, 3), faceVertexCounts int32, faceVertexIndices int32) of a UsdGeom.Mesh, checked:
     bounded sizes, finite points within MAX_POSITION_M of the mesh's origin, every face at least 3 vertices,
