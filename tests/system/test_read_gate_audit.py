@@ -17,6 +17,8 @@ from pathlib import Path
 
 import allo_usd
 
+from tests.support.source_audit import ScopedSites
+
 PACKAGE = Path(allo_usd.__file__).parent
 
 # Attribute names that open or read a file given by name, whatever they are called on.
@@ -131,26 +133,16 @@ def read_sites() -> Counter:
     for path in sorted(PACKAGE.rglob("*.py")):
         module = path.relative_to(PACKAGE).as_posix()
 
-        class Visitor(ast.NodeVisitor):
-            def __init__(self):
-                self.scope: list[str] = []
-
-            def visit_FunctionDef(self, node):
-                self.scope.append(node.name)
-                self.generic_visit(node)
-                self.scope.pop()
-
-            visit_AsyncFunctionDef = visit_ClassDef = visit_FunctionDef
-
+        class Visitor(ScopedSites):
             def visit_Call(self, node):
                 callee = _callee(node)
                 if callee == "open":
                     callee = _mode_read(node, 1, callee)
                 if callee is not None:
-                    sites[f"{module}:{'.'.join(self.scope) or '<module>'}:{callee}"] += 1
+                    self.add(callee)
                 self.generic_visit(node)
 
-        Visitor().visit(ast.parse(path.read_text(encoding="utf-8")))
+        Visitor(module, sites).visit(ast.parse(path.read_text(encoding="utf-8")))
     return sites
 
 

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import allo_usd
 
+from tests.support.source_audit import ScopedSites
+
 PACKAGE = Path(allo_usd.__file__).parent
 FIXEDMATH = "core/fixedmath.py"
 
@@ -186,20 +188,7 @@ def written_value_sites() -> Counter:
         nodes = list(ast.walk(tree))
         names, consts = _names(nodes), _constants(tree, nodes)
 
-        class Visitor(ast.NodeVisitor):
-            def __init__(self):
-                self.scope: list[str] = []
-
-            def add(self, construct: str):
-                sites[f"{module}:{'.'.join(self.scope) or '<module>'}:{construct}"] += 1
-
-            def visit_FunctionDef(self, node):
-                self.scope.append(node.name)
-                self.generic_visit(node)
-                self.scope.pop()
-
-            visit_AsyncFunctionDef = visit_ClassDef = visit_FunctionDef
-
+        class Visitor(ScopedSites):
             def visit_BinOp(self, node):
                 if isinstance(node.op, ast.Pow) and not _exact_power(node, consts):
                     self.add("**")
@@ -237,7 +226,7 @@ def written_value_sites() -> Counter:
                 if dotted is not None and _forbidden(dotted):
                     self.add(dotted)
 
-        Visitor().visit(tree)
+        Visitor(module, sites).visit(tree)
     return sites
 
 
