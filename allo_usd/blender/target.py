@@ -211,7 +211,7 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
                          _stack(ch, "Denoising Normal", "XYZ"))
             rounds += 1
             noisy = (halves[0].mean("color"), halves[1].mean("color"))
-            delivered_a, delivered_b = _delivered_halves(halves, render)
+            delivered_a, delivered_b = _delivered_halves(halves, noisy, render)
             mse = estimated_mse(*noisy, *((delivered_a, delivered_b) if render.denoise else (None, None)))
             if mse <= target_mse:
                 stopped = "target"
@@ -286,11 +286,11 @@ def estimate_fixed(desc: SceneDescription, first: dict, render_once, missing) ->
                          + ", mean + 1/6 (8-bit units)", "estimate_seconds": seconds}
 
 
-def _delivered_halves(halves, render) -> tuple[np.ndarray, np.ndarray]:
-    """Each half as it would be delivered: its running mean, denoised when the layer denoises."""
+def _delivered_halves(halves, noisy, render) -> tuple[np.ndarray, np.ndarray]:
+    """Each half as it would be delivered: its running mean (`noisy`), denoised when the layer denoises."""
     if not render.denoise:
-        return halves[0].mean("color"), halves[1].mean("color")
+        return noisy
     from allo_usd.blender.oidn import denoise
 
-    return tuple(denoise(h.mean("color"), h.mean("albedo"), h.mean("normal"), quality=render.denoise_quality,
-                         prefilter=render.denoise_prefilter, threads=render.threads) for h in halves)
+    return tuple(denoise(color, h.mean("albedo"), h.mean("normal"), quality=render.denoise_quality,
+                         prefilter=render.denoise_prefilter, threads=render.threads) for h, color in zip(halves, noisy))
