@@ -166,36 +166,39 @@ def result_passes(desc: SceneDescription, ch: dict[str, np.ndarray]):
     return classes[ids], ids, depth, normal, tuple(p for p, _ in table)
 
 
+def _missing(desc: SceneDescription, layer: str):
+    """render_channels' `missing` for a colour render: the `layer` Combined pass, the object index, and the
+    normal when the layer orders it."""
+    wants_normal = "normal" in desc.render.outputs
+
+    def missing(ch) -> str | None:
+        if f"{layer}.R" not in ch:
+            return layer
+        if no_object_index(ch):
+            return "object index"
+        if wants_normal and any(_find(ch, f"Normal.{c}") is None for c in "XYZ"):
+            return "normal"
+        return None
+    return missing
+
+
 def render_current(desc: SceneDescription, workdir: Path | None = None) -> RenderResult:
     """Render the scene Blender holds (built from `desc`): one render of the layer's samples, or, with a
     PSNR target (allo:render:targetPsnr), rounds of two halves until the estimate reaches it
     (blender.target); then the amodal pass's second render when the layer asks for it."""
     from allo_usd.blender.compositor import has_compositor
 
-    if desc.render.target_psnr > 0 and set(COLOR_PASSES) & set(desc.render.outputs):
+    colour = bool(set(COLOR_PASSES) & set(desc.render.outputs))
+    aimed = desc.render.target_psnr > 0 and colour
+    # the target mode reads the view layer's passes (it refuses a compositor: blender.target)
+    layer = "Composite.Combined" if not aimed and has_compositor() else "ViewLayer.Combined"
+    missing = _missing(desc, layer)
+    if aimed:
         from allo_usd.blender.target import render_to_target
 
-        def needs(ch) -> str | None:
-            return no_object_index(ch) or ("normal" if "normal" in desc.render.outputs
-                                           and any(_find(ch, f"Normal.{c}") is None for c in "XYZ") else None)
-
-        rgb, ch, seconds, accuracy = render_to_target(desc, lambda m: render_channels(desc, workdir, m), needs)
-        mask, ids, depth, normal, objects = result_passes(desc, ch)
-        result = RenderResult(rgb, mask, depth, seconds, ids=ids, objects=objects, normal=normal, accuracy=accuracy)
+        rgb, ch, seconds, accuracy = render_to_target(desc, lambda m: render_channels(desc, workdir, m), missing)
     else:
-        layer = "Composite.Combined" if has_compositor() else "ViewLayer.Combined"
-        wants_normal = "normal" in desc.render.outputs
-
-        def missing(ch) -> str | None:
-            if f"{layer}.R" not in ch:
-                return layer
-            if no_object_index(ch):
-                return "object index"
-            if wants_normal and any(_find(ch, f"Normal.{c}") is None for c in "XYZ"):
-                return "normal"
-            return None
-
-        estimate = desc.render.estimate and set(COLOR_PASSES) & set(desc.render.outputs)
+        estimate = desc.render.estimate and colour
         if estimate:   # the same render, its noisy image stored beside it (blender.target.estimate_fixed)
             from allo_usd.blender.target import estimate_fixed, noisy_image_stored
 
@@ -204,9 +207,9 @@ def render_current(desc: SceneDescription, workdir: Path | None = None) -> Rende
         else:
             ch, seconds = render_channels(desc, workdir, missing)
         rgb = np.stack([ch[f"{layer}.{c}"] for c in "RGB"], axis=-1).astype(np.float32)  # EXR rows run top-down
-        mask, ids, depth, normal, objects = result_passes(desc, ch)
         accuracy = estimate_fixed(desc, ch, lambda m: render_channels(desc, workdir, m), missing) if estimate else None
-        result = RenderResult(rgb, mask, depth, seconds, ids=ids, objects=objects, normal=normal, accuracy=accuracy)
+    mask, ids, depth, normal, objects = result_passes(desc, ch)
+    result = RenderResult(rgb, mask, depth, seconds, ids=ids, objects=objects, normal=normal, accuracy=accuracy)
     if "amodal" in desc.render.outputs:   # a second render: the anomaly alone (the scene is restored after it)
         from allo_usd.blender.amodal import amodal_mask, anomaly_alone
 

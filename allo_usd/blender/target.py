@@ -176,7 +176,8 @@ def _stack(ch: dict, name: str, comps: str) -> np.ndarray | None:
 def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.ndarray, dict, float, dict]:
     """Render the current Blender scene (built from `desc`) to desc.render.target_psnr (module docstring).
     `render_once(missing)`: one render of the scene as it is set, (its channels, seconds) (render.py's
-    render_channels); `missing(channels)`: the pass a channel set lacks, or None. Returns (the delivered
+    render_channels); `missing(channels)`: the pass a channel set lacks, or None (render.py's, which asks
+    for the view layer's Combined, the object index and the normal the layer orders). Returns (the delivered
     linear RGB, the first render's channels (for the mask, ids, depth and normal), render seconds, the
     accuracy record)."""
     from allo_usd.blender.compositor import has_compositor
@@ -195,15 +196,12 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
     start = time.perf_counter()
     n = min(FIRST_SAMPLES, cap_per_half)
 
-    def needs(ch) -> str | None:
-        return "ViewLayer.Combined" if "ViewLayer.Combined.R" not in ch else missing(ch)
-
     with _noisy_halves_settings() as scene:
         while n > 0:
             for h, half in enumerate(halves):
                 scene.cycles.samples = n
                 scene.cycles.seed = half_seed(render.seed, rounds, h)
-                ch, s = render_once(needs)
+                ch, s = render_once(missing)
                 seconds += s
                 if first is None:
                     first = ch
