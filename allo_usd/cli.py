@@ -304,14 +304,21 @@ def _render(source: Path, out: Path, options: RunOptions) -> None:
 
 
 def _accuracy_text(meta) -> str:
-    """", estimated 40.3 dB (target 40, stopped by target)" of a render that estimated its accuracy, else ""."""
+    """", estimated 40.3 dB, at least 39.1 dB (target 40, stopped by target)" of a render that estimated its
+    accuracy, else ""."""
     acc = meta.accuracy if isinstance(meta.accuracy, dict) else {}
-    est, target, why = acc.get("estimated_psnr_db"), acc.get("target_psnr_db"), acc.get("stopped_by")
-    if not isinstance(est, (int, float)) or isinstance(est, bool):
+    est, low = acc.get("estimated_psnr_db"), acc.get("lower_psnr_db")
+    target, why = acc.get("target_psnr_db"), acc.get("stopped_by")
+
+    def number(x) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+    if not number(est):
         return ""
-    more = ", ".join(x for x in (f"target {target:g}" if isinstance(target, (int, float)) and target else "",
+    more = ", ".join(x for x in (f"target {target:g}" if number(target) and target else "",
                                  f"stopped by {why}" if why in ("target", "samples", "seconds") else "") if x)
-    return f", estimated {est:.1f} dB" + (f" ({more})" if more else "")
+    return (f", estimated {est:.1f} dB" + (f", at least {low:.1f} dB" if number(low) else "")
+            + (f" ({more})" if more else ""))
 
 
 def _render_one(layer: Path, out: Path, job: JobOptions) -> None:

@@ -1,17 +1,22 @@
 """Rendering to a target accuracy: samples spent in rounds of two independent halves until the delivered
-image's estimated PSNR reaches the layer's `allo:render:targetPsnr` (or its sample cap or time limit stops it).
+image is, with confidence, at the layer's `allo:render:targetPsnr` (or its sample cap or time limit stops it).
 
 Why halves: nothing in one Monte Carlo render says how far it is from the converged image, but two renders
 of the same scene and settings with independent seeds are two independent draws of the same noise. Their
-difference has twice the variance of either, four times that of their mean, so
+difference has twice the variance of either, four times that of their mean, so per pixel
 
-    estimated MSE of the mean = mean over pixels and channels of (s(A) - s(B))**2 / 4  (+ 1/6, below)
+    estimated squared error of the mean = mean over channels of (s(A) - s(B))**2 / 4
 
 where A and B are the halves (each the running mean of its rounds' samples) and s the delivered image's own
 transfer: the film's exposure is in the render, then IEC 61966-2-1 sRGB on clipped values, in 8-bit units,
-not rounded. The PSNR it gives is that of the benchmark (scripts/bench_accuracy.py: 8-bit sRGB against the
-converged image, peak 255). Rounding the image and a converged reference to 8 bits adds two independent
-uniform errors, 1/12 each, to the squared error a benchmark measures: the estimate adds those 1/6.
+not rounded. The PSNR it gives is that of the benchmark (scripts/bench_accuracy.py: the 8-bit sRGB image
+against the converged image's 8-bit codes, peak 255). Rounding to 8 bits adds to each pixel's squared error
+what rounding_mse says: up to 1/6 for a noisy pixel, nothing for an exact one.
+
+How sure: a render's error is heavy-tailed (a glint or a sun caustic that a few samples in a thousand
+find), so the mean over pixels is itself uncertain; its standard error is measured from the spread of
+8x8-block means (Estimate). The target is reached when the estimate plus CONFIDENCE_Z standard errors is
+within it: the record keeps the point estimate (`estimated_psnr_db`) and that bound (`lower_psnr_db`).
 
 Denoised layers (`allo:render:denoise`): each half is denoised (OIDN with the layer's quality and prefilter,
 allo_usd.blender.oidn, as Cycles would) and the delivered image is the mean of the two denoised halves. A
@@ -20,7 +25,7 @@ denoised half against the other half's noisy image (error_map), which sees it;
 docs/benchmarks/bench_accuracy.md measures how the estimate relates to the true error.
 
 Rounds: the first gives each half `FIRST_SAMPLES` samples; after each, the samples the target needs are
-predicted from the estimate (a Monte Carlo error's variance falls as 1/N: N_needed = N * MSE / MSE_target,
+predicted from the bound the target must clear (a Monte Carlo error's variance falls as 1/N: N_needed = N * MSE / MSE_target,
 with HEADROOM), at most doubling the samples so far, within the cap. Adaptive sampling is off in this mode
 (the rounds are the adaptation; per-pixel sample counts would make the halves' means unweighable). The
 mask, object ids, depth and normal passes are those of the first half of the first round, rendered with the
@@ -34,6 +39,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,10 +48,16 @@ from allo_usd.usd.description import SceneDescription
 
 FIRST_SAMPLES = 16            # per half, the first round
 HEADROOM = 1.15               # the next round aims this far past the predicted need
-QUANTISATION_MSE = 1.0 / 6.0  # two 8-bit roundings (image and reference), 1/12 each, in 8-bit units squared
+STDERR_BLOCK = 8              # the estimate's standard error is taken over means of 8x8-pixel blocks
+PSNR_CEILING_DB = 100.0       # the PSNR an estimated-exact image is recorded at
+CONFIDENCE_Z = 2.0            # the bound a target must clear: the estimated MSE plus 2 standard errors
 SEED_STEP = 7919              # half h of round r renders with seed + SEED_STEP * (2 r + h) (mod 2**31)
-ESTIMATOR = ("two independent halves A, B (denoised DA, DB): per pixel ((DA-B)^2 + (DB-A)^2 - (A-B)^2)/2 - (DA-DB)^2/4 "
-             "in linear values, times the sRGB slope squared, mean + 1/6 (8-bit units)")
+ESTIMATOR_DENOISED = ("two independent halves A, B, denoised DA, DB: per pixel ((DA-B)^2 + (DB-A)^2 - (A-B)^2)/2 "
+                      "- (DA-DB)^2/4 in linear values times the sRGB slope squared")
+ESTIMATOR_NOISY = ("two independent halves A, B, delivered M = (A+B)/2: per pixel max((s(M)-s(A))^2, (s(M)-s(B))^2) "
+                   "in 8-bit sRGB")
+ESTIMATOR_BOUND = ("; plus each pixel's rounding; standard error from 8x8-block means; the target is met when the "
+                   "mean plus 2 standard errors is within it")
 
 _SRGB_PEAK = 255.0
 
@@ -80,16 +92,21 @@ def error_map(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None
     squared error as its expectation, the denoiser's blur (a bias both halves share, which DA - DB alone
     cannot see) included; a firefly in either noisy half cancels within its own pixel. Linear errors become
     8-bit sRGB errors by the transfer's slope at the delivered value (srgb_slope_sq): small errors, as at
-    the targets this mode is for. Without a denoiser e = (A - B)**2 / 4, taken in the delivered transfer
-    itself, (s(A) - s(B))**2 / 4 (clipping and the curve included). Which form where was chosen on the demo
-    plan's d000_p41 anomaly view at 240x135 against a 2,048-spp reference: with OIDN the linear form was
-    0.4-0.7 dB below the true PSNR and the sRGB form 0.5-1.7 dB below; without a denoiser the sRGB form was
-    0.2-0.3 dB above it and the linear one 0.7 dB above. docs/benchmarks/bench_accuracy.md measures both on
-    five views: within 1 dB on the sunlit one, 1.2-4.1 dB optimistic on the shaded, dark and close-up ones
-    at low sample counts (heavy-tailed noise the two halves seldom catch)."""
-    if den_a is None:   # the halves' own difference in the delivered transfer: clipping and curve included
-        d = srgb_units(noisy_a) - srgb_units(noisy_b)
-        return (d * d / 4.0).mean(axis=-1)
+    the targets this mode is for.
+
+    Without a denoiser the delivered image is M = (A + B)/2 and, in the delivered transfer s itself,
+    e = max((s(M) - s(A))**2, (s(M) - s(B))**2). For small errors both terms are (s(A) - s(B))**2 / 4,
+    the mean's variance. The max matters where clipping does: a sun glint, one sample of thousands of
+    times the pixel's value, saturates M and one half. Then e is the full (255 - s(B))**2 where
+    (s(A) - s(B))**2 / 4 would say a quarter of it. A glint one half found stands for the glints of
+    similar odds that neither found (a pixel with one hit is as likely as one with none when the odds
+    are one in N samples), whose error the halves cannot see at all.
+
+    docs/benchmarks/bench_accuracy.md measures both forms against references on five views."""
+    if den_a is None:   # the halves' distance from their mean in the delivered transfer: clipping included
+        sa, sb = srgb_units(noisy_a), srgb_units(noisy_b)
+        sm = srgb_units((np.asarray(noisy_a, dtype=np.float64) + noisy_b) / 2.0)
+        return np.maximum((sm - sa) ** 2, (sm - sb) ** 2).mean(axis=-1)
     a, b, da, db = (np.asarray(x, dtype=np.float64) for x in (noisy_a, noisy_b, den_a, den_b))
     lin = ((da - b) ** 2 + (db - a) ** 2 - (a - b) ** 2) / 2.0 - (da - db) ** 2 / 4.0
     return _bounded((srgb_slope_sq((da + db) / 2.0) * lin).mean(axis=-1))
@@ -102,15 +119,90 @@ def _bounded(e: np.ndarray) -> np.ndarray:
     return np.clip(e, -_SRGB_PEAK * _SRGB_PEAK, _SRGB_PEAK * _SRGB_PEAK)
 
 
-def estimated_mse(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None = None,
-                  den_b: np.ndarray | None = None) -> float:
-    """The delivered image's estimated MSE in 8-bit units against the converged image: error_map's mean
-    (at least 0) plus the two 8-bit roundings a measurement against a converged reference adds."""
-    return max(float(np.mean(error_map(noisy_a, noisy_b, den_a, den_b))), 0.0) + QUANTISATION_MSE
+def rounding_mse(e: np.ndarray) -> np.ndarray:
+    """Per pixel, what rounding adds to the squared error between the delivered image's 8-bit code and the
+    converged image's, given e, the pixel's estimated squared error before rounding (8-bit units): with
+    the converged value's place within its code uniform and the error eps ~ N(0, e), the codes differ by
+    floor(eps) or ceil(eps), so E(code difference)**2 = e + E frac(eps) (1 - frac(eps)). The second term is
+    1/6 for errors of a code or more (two independent roundings, 1/12 each), sigma sqrt(2/pi) for small
+    ones, and 0 where the image is exact (a black sky rounds to the same code as its converged image)."""
+    sigma = np.sqrt(np.clip(np.nan_to_num(np.asarray(e, dtype=np.float64)), 0.0, None))
+    return np.interp(sigma, _ROUNDING_SIGMA, _ROUNDING_EXTRA)
+
+
+def _rounding_table() -> tuple[np.ndarray, np.ndarray]:
+    """E frac(eps) (1 - frac(eps)) for eps ~ N(0, sigma**2) on a sigma grid, by its Fourier series:
+    frac(x) (1 - frac(x)) = 1/6 - sum_k cos(2 pi k x) / (pi k)**2 and E cos(2 pi k eps) = exp(-2 (pi k sigma)**2)."""
+    sigma = np.concatenate([[0.0], np.geomspace(1e-3, 3.0, 600)])
+    k = np.arange(1, 4001, dtype=np.float64)[:, None]
+    extra = 1.0 / 6.0 - (np.exp(-2.0 * (np.pi * k * sigma) ** 2) / (np.pi * k) ** 2).sum(axis=0)
+    extra[0] = 0.0   # an exact pixel rounds to its converged code (the truncated series leaves 2.5e-5)
+    return sigma, np.clip(extra, 0.0, 1.0 / 6.0)
+
+
+_ROUNDING_SIGMA, _ROUNDING_EXTRA = _rounding_table()
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The delivered image's estimated MSE against the converged image (8-bit sRGB units, rounding
+    included) and that estimate's standard error. Both come from the pixels: a render's error is heavy-
+    tailed (a sun glint a few samples find), so the estimate of one image is itself uncertain, and how
+    uncertain is measured, not assumed."""
+    mse: float
+    stderr: float
+
+    @property
+    def psnr_db(self) -> float:
+        return psnr_db(self.mse)
+
+    @property
+    def upper_mse(self) -> float:
+        """The MSE the image is within at CONFIDENCE_Z standard errors: what a target must clear."""
+        return self.mse + CONFIDENCE_Z * self.stderr
+
+    @property
+    def lower_psnr_db(self) -> float:
+        return psnr_db(self.upper_mse)
+
+
+def estimate_of(e: np.ndarray) -> Estimate:
+    """The Estimate of an (H, W) error map (error_map, fixed_error_map), from the means of its
+    STDERR_BLOCK x STDERR_BLOCK blocks (an image smaller than a block is one block each way; the last
+    rows and columns that make no whole block are left out). Each block's mean is its pixels' squared
+    error, plus the rounding its noise level adds (rounding_mse of the block mean, not of each pixel: one
+    pixel's error is too noisy a measure of its noise level, and rounding_mse bends, so per-pixel values
+    would bias it low). The estimate is the blocks' mean, at least 0; its standard error is their spread
+    over the square root of their number (a denoiser's errors are correlated across a few pixels; block
+    means 8 apart are nearly independent)."""
+    e = np.asarray(e, dtype=np.float64)
+    bh, bw = (min(STDERR_BLOCK, n) for n in e.shape)
+    h, w = e.shape[0] - e.shape[0] % bh, e.shape[1] - e.shape[1] % bw
+    blocks = e[:h, :w].reshape(h // bh, bh, w // bw, bw).mean(axis=(1, 3))
+    blocks = blocks + rounding_mse(blocks)
+    stderr = float(blocks.std(ddof=1) / math.sqrt(blocks.size)) if blocks.size > 1 else 0.0
+    return Estimate(max(float(blocks.mean()), 0.0), stderr)
+
+
+def estimated(noisy_a: np.ndarray, noisy_b: np.ndarray, den_a: np.ndarray | None = None,
+              den_b: np.ndarray | None = None) -> Estimate:
+    """The Estimate of the delivered image (den_a + den_b) / 2 (or (noisy_a + noisy_b) / 2) from its halves."""
+    return estimate_of(error_map(noisy_a, noisy_b, den_a, den_b))
+
+
+def _record(est: Estimate) -> dict:
+    """The render JSON's estimate fields: the point estimate, the bound a target must clear (the PSNR
+    the image is at least, at CONFIDENCE_Z standard errors), and the standard error in 8-bit units**2."""
+    return {"estimated_psnr_db": est.psnr_db, "lower_psnr_db": est.lower_psnr_db, "estimated_mse": est.mse,
+            "estimate_stderr_mse": est.stderr}
 
 
 def psnr_db(mse: float) -> float:
-    return math.inf if mse <= 0.0 else 10.0 * math.log10(_SRGB_PEAK * _SRGB_PEAK / mse)
+    """10 log10(255**2 / mse), at most PSNR_CEILING_DB: an image estimated exact in every code (a black sky
+    rounds to its converged codes) is recorded at the ceiling, a finite number JSON and the manifest hold."""
+    if not mse > 0.0:
+        return PSNR_CEILING_DB
+    return min(10.0 * math.log10(_SRGB_PEAK * _SRGB_PEAK / mse), PSNR_CEILING_DB)
 
 
 def next_samples(done_per_half: int, mse: float, target_mse: float, cap_per_half: int) -> int:
@@ -192,7 +284,7 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
     limit = float(render.time_limit)
     halves = (_Half(), _Half())
     first = None
-    rounds, seconds, mse, stopped = 0, 0.0, math.inf, "samples"
+    rounds, seconds, est, stopped = 0, 0.0, Estimate(math.inf, 0.0), "samples"
     start = time.perf_counter()
     n = min(FIRST_SAMPLES, cap_per_half)
 
@@ -210,18 +302,18 @@ def render_to_target(desc: SceneDescription, render_once, missing) -> tuple[np.n
             rounds += 1
             noisy = (halves[0].mean("color"), halves[1].mean("color"))
             delivered_a, delivered_b = _delivered_halves(halves, noisy, render)
-            mse = estimated_mse(*noisy, *((delivered_a, delivered_b) if render.denoise else (None, None)))
-            if mse <= target_mse:
+            est = estimated(*noisy, *((delivered_a, delivered_b) if render.denoise else (None, None)))
+            if est.upper_mse <= target_mse:
                 stopped = "target"
                 break
             if limit and time.perf_counter() - start >= limit:
                 stopped = "seconds"
                 break
-            n = next_samples(halves[0].samples, mse, target_mse, cap_per_half)
+            n = next_samples(halves[0].samples, est.upper_mse, target_mse, cap_per_half)
     rgb = ((delivered_a.astype(np.float64) + delivered_b) / 2.0).astype(np.float32)
-    accuracy = {"mode": "target", "target_psnr_db": float(render.target_psnr), "estimated_psnr_db": psnr_db(mse),
+    accuracy = {"mode": "target", "target_psnr_db": float(render.target_psnr), **_record(est),
                 "samples": halves[0].samples + halves[1].samples, "rounds": rounds, "stopped_by": stopped,
-                "estimator": ESTIMATOR + ("" if render.denoise else ", no denoiser: DA = A, DB = B")}
+                "estimator": (ESTIMATOR_DENOISED if render.denoise else ESTIMATOR_NOISY) + ESTIMATOR_BOUND}
     return rgb, first, seconds, accuracy
 
 
@@ -274,14 +366,14 @@ def estimate_fixed(desc: SceneDescription, first: dict, render_once, missing) ->
     f, g = _stack(first, "Combined", "RGB"), _stack(second, "Combined", "RGB")
     fn, gn = _stack(first, "Noisy Image", "RGB"), _stack(second, "Noisy Image", "RGB")
     denoised = desc.render.denoise and fn is not None and gn is not None
-    mse = max(float(np.mean(fixed_error_map(f, g, fn if denoised else None, gn if denoised else None))), 0.0)
-    mse += QUANTISATION_MSE
-    return {"mode": "fixed", "target_psnr_db": None, "estimated_psnr_db": psnr_db(mse),
+    est = estimate_of(fixed_error_map(f, g, fn if denoised else None, gn if denoised else None))
+    return {"mode": "fixed", "target_psnr_db": None, **_record(est),
             "samples": int(desc.render.samples), "rounds": 1, "stopped_by": "samples",
             "estimator": ("a second render G of the same settings, independent seed: per pixel ((DF-Gn)^2 + (DG-Fn)^2 "
                           "- (Fn-Gn)^2)/2 in linear values times the sRGB slope squared" if denoised else
                           "a second render G of the same settings, independent seed: (s(F) - s(G))^2 / 2")
-                         + ", mean + 1/6 (8-bit units)", "estimate_seconds": seconds}
+                         + ", plus each pixel's rounding; standard error from 8x8-block means",
+            "estimate_seconds": seconds}
 
 
 def _delivered_halves(halves, noisy, render) -> tuple[np.ndarray, np.ndarray]:

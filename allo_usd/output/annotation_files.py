@@ -66,9 +66,10 @@ from allo_usd.output.record import RenderRecord
 
 RECORDS = "annotations/records.json"
 INSTANCES = "instances.json"
-RECORDS_VERSION = 5   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files;
+RECORDS_VERSION = 6   # 2: a record lists every anomaly object; 3: entries keep no path, bound to their files;
                       # 4: scene_gt_info counted on the BOP toolkit's canvas (bop.gt_info)
                       # 5: every anomaly object's full silhouette in the image (mask/, px_count_valid)
+                      # 6: a record's accuracy keeps its lower bound (est_psnr_low_db)
 CACHE_BYTES = 16 << 20        # records.json's bound: this much, plus CACHE_ROW_BYTES per manifest row
 MAX_MODEL_BYTES = 256 << 20  # an earlier run's PLY read back when its asset is gone (assets: under 1 MB)
 CACHE_ROW_BYTES = 256 << 10   # an entry is ~1 KB; an anomaly's RLE a few KB

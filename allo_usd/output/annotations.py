@@ -501,14 +501,21 @@ def annotation_columns(meta: RenderRecord | dict) -> dict:
 
 
 # The render's own estimate of its accuracy (the JSON's "accuracy", allo_usd.blender.render.RenderResult):
-# est_psnr_db is its estimated_psnr_db (8-bit sRGB, against the converged image), "" when not estimated or
-# not a finite number in ESTIMATED_PSNR_DB (an 8-bit image is never below 0 dB; 200 dB is past any render).
-ACCURACY_COLUMNS = ("est_psnr_db",)
+# est_psnr_db is its estimated_psnr_db (8-bit sRGB, against the converged image) and est_psnr_low_db its
+# lower_psnr_db (the PSNR the image is at least, at two standard errors of the estimate: what a target
+# render stopped on), each "" when not recorded or not a finite number in ESTIMATED_PSNR_DB (an 8-bit image
+# is never below 0 dB; 200 dB is past any render).
+ACCURACY_COLUMNS = ("est_psnr_db", "est_psnr_low_db")
 ESTIMATED_PSNR_DB = (0.0, 200.0)
+_ACCURACY_KEYS = {"est_psnr_db": "estimated_psnr_db", "est_psnr_low_db": "lower_psnr_db"}
 
 
 def accuracy_columns(meta: RenderRecord | dict) -> dict:
     """The ACCURACY_COLUMNS of a render record (or its JSON object): "" where it records no usable estimate."""
-    value = _num(_get(RenderRecord.given(meta).accuracy, "estimated_psnr_db"))
+    accuracy = RenderRecord.given(meta).accuracy
     lo, hi = ESTIMATED_PSNR_DB
-    return {"est_psnr_db": value if value != "" and lo <= value <= hi else ""}
+    out = {}
+    for column, key in _ACCURACY_KEYS.items():
+        value = _num(_get(accuracy, key))
+        out[column] = value if value != "" and lo <= value <= hi else ""
+    return out

@@ -121,8 +121,9 @@ class Brief(RenderRecord):
     """What planning reads of a render record whose JSON kept the stat at which it passed
     check_render (a re-run does not parse 51,409 JSONs to find 1,000 new ones): its scene's split,
     variant and anomaly, its files, the class pixel counts _kind and the dark warning read, its
-    layer_sha256, whether it has an annotations table, and the accuracy's estimated_psnr_db (the
-    manifest's est_psnr_db, which _unchanged compares). A RenderRecord with only those fields,
+    layer_sha256, whether it has an annotations table, and the accuracy's estimated_psnr_db and
+    lower_psnr_db (the manifest's est_psnr_db and est_psnr_low_db, which _unchanged compares). A
+    RenderRecord with only those fields,
     kept in records.json's state (as_dict) beside the stat and read back with Brief.of; a record
     that is placed again is read whole (_whole)."""
 
@@ -134,7 +135,7 @@ class Brief(RenderRecord):
                    scene={k: scene[k] for k in ("split", "variant", "anomaly") if k in scene},
                    class_pixels={k: pixels[k] for k in ("station_and_bodies", "anomaly") if k in pixels},
                    annotations={} if isinstance(meta.annotations, dict) else None,
-                   accuracy=({"estimated_psnr_db": meta.accuracy.get("estimated_psnr_db")}
+                   accuracy=({k: meta.accuracy.get(k) for k in ("estimated_psnr_db", "lower_psnr_db")}
                              if isinstance(meta.accuracy, dict) else None))
 
 
@@ -497,8 +498,8 @@ def _unchanged(old: dict, meta_path: Path, meta: RenderRecord, kind: str, where:
     split = meta.scene["split"]
     if isinstance(meta.annotations, dict) and not old.get("fx"):
         return False  # a row from before the camera/annotation columns: fill them in
-    if str(old.get("est_psnr_db") or "") != str(accuracy_columns(meta)["est_psnr_db"]):
-        return False  # the render's estimate is not the row's (a row from before the column reads as "")
+    if any(str(old.get(k) or "") != str(v) for k, v in accuracy_columns(meta).items()):
+        return False  # the render's estimate is not the row's (a row from before a column reads it as "")
     if passes_missing(old, meta_path, meta, out):
         return False  # a pass the row lacks (a row from before the pass columns, or a file gone)
     if (old["source"], old["layer_sha256"], old["kind"], old["split"], old["image"]) != (

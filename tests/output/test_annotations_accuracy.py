@@ -1,6 +1,6 @@
-"""The manifest's est_psnr_db column: the render JSON's accuracy.estimated_psnr_db, checked as any value of
-an untrusted JSON is (a finite number in range), empty when the render made no estimate; a manifest
-written before the column reads and re-assembles."""
+"""The manifest's est_psnr_db and est_psnr_low_db columns: the render JSON's accuracy.estimated_psnr_db and
+lower_psnr_db, each checked as any value of an untrusted JSON is (a finite number in range), empty when the
+render made no estimate; a manifest written before the columns reads and re-assembles."""
 
 from __future__ import annotations
 
@@ -25,11 +25,13 @@ from tests.support.renders import edit, fake_render
     ({"estimated_psnr_db": 10 ** 400}, ""), ({"estimated_psnr_db": {"x": 1}}, ""),
 ])
 def test_the_column_takes_only_a_finite_estimate_in_range(accuracy, cell):
-    assert accuracy_columns({"accuracy": accuracy}) == {"est_psnr_db": cell}
+    assert accuracy_columns({"accuracy": accuracy})["est_psnr_db"] == cell
+    bound = {"lower_psnr_db": accuracy["estimated_psnr_db"]} if isinstance(accuracy, dict) and accuracy else accuracy
+    assert accuracy_columns({"accuracy": bound}) == {"est_psnr_db": "", "est_psnr_low_db": cell}
 
 
-def test_the_column_is_the_manifests_last():
-    assert ACCURACY_COLUMNS == ("est_psnr_db",) and COLUMNS[-1] == "est_psnr_db"
+def test_the_columns_are_the_manifests_last():
+    assert ACCURACY_COLUMNS == ("est_psnr_db", "est_psnr_low_db") and COLUMNS[-2:] == ACCURACY_COLUMNS
 
 
 def test_the_manifest_has_the_estimate_of_each_render_and_an_empty_cell_without(tmp_path):
@@ -37,11 +39,12 @@ def test_the_manifest_has_the_estimate_of_each_render_and_an_empty_cell_without(
     fake_render(renders, "d000_p01")
     estimated = fake_render(renders, "d001_p02")
     hostile = fake_render(renders, "d002_p03")
-    edit(estimated, lambda m: m.update(accuracy={"mode": "target", "estimated_psnr_db": 40.5}))
+    edit(estimated, lambda m: m.update(accuracy={"mode": "target", "estimated_psnr_db": 40.5, "lower_psnr_db": 39.25}))
     edit(hostile, lambda m: m.update(accuracy={"estimated_psnr_db": "40 dB; DROP TABLE"}))
     out = tmp_path / "ds"
     rows = {r["name"]: r for r in read_manifest(assemble([renders], out))}
     assert {n: r["est_psnr_db"] for n, r in rows.items()} == {"d000_p01": "", "d001_p02": "40.5", "d002_p03": ""}
+    assert {n: r["est_psnr_low_db"] for n, r in rows.items()} == {"d000_p01": "", "d001_p02": "39.25", "d002_p03": ""}
     assert "DROP" not in (out / "manifest.csv").read_text()
     # a render that estimated its accuracy since: its row follows on the next assembly
     edit(hostile, lambda m: m.update(accuracy={"estimated_psnr_db": 37.0}))
