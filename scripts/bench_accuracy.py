@@ -395,10 +395,10 @@ def run_targets(views: list[View], rows: dict, targets: list[float], cap: int, m
                 save_rows(rows)
 
 
-def run_oidn_sweep(views: list[View], rows: dict, samples: list[int], stop_db: float) -> None:
+def run_oidn_sweep(views: list[View], rows: dict, samples: list[int], stop_db: float, refs: dict) -> None:
     """Fixed renders with each view's own denoiser at growing sample counts, over the views step by step;
-    a view's sweep stops once a row's own estimate reaches `stop_db` (above the highest level asked about:
-    a denoised render's estimate does not see the denoiser's blur, so it runs past the level)."""
+    a view's sweep stops once a row measures `stop_db` against the converged image (converged_error against
+    its reference, `refs`: view id -> Reference), or, without a reference, once its own estimate does."""
     done: set[str] = set()
     for spp in samples:
         for v in views:
@@ -409,8 +409,12 @@ def run_oidn_sweep(views: list[View], rows: dict, samples: list[int], stop_db: f
             if key_of(c) not in vrows:
                 vrows[key_of(c)] = run_one(v, c) | {"group": "sweep", "oidn_sweep": True}
                 save_rows(rows)
-            acc = vrows[key_of(c)].get("accuracy")
-            if acc and acc["estimated_psnr_db"] >= stop_db:
+            row, ref = vrows[key_of(c)], refs.get(v.id)
+            if ref is not None and ref.half_b is not None and (v.dir / row["image"]).is_file():
+                reached = db(converged_error(read_rgb(v.dir / row["image"]), ref.half, ref.half_b)[0])
+            else:
+                reached = (row.get("accuracy") or {}).get("estimated_psnr_db", -math.inf)
+            if reached >= stop_db:
                 done.add(v.id)
 
 
@@ -461,6 +465,7 @@ class Reference:
     spp: int
     seconds: float                 # CPU seconds of all its chunks
     half: np.ndarray | None = None  # the first half of its chunks (a reference of spp/2), when it has 2k chunks
+    half_b: np.ndarray | None = None  # the second half: independent of the first
     noise_mse: float | None = None  # its own noise (sRGB 8-bit MSE), from its two halves
     halves_psnr: float | None = None
 
@@ -475,7 +480,7 @@ def load_reference(view: View, spp: int, chunk: int) -> Reference:
         n = len(paths) // 2
         a, b = mean_image(paths[:n]), mean_image(paths[n:2 * n])
         m = mse_srgb8(a, b)   # = 2 var(half) + 1/6 (two 8-bit roundings) for independent halves
-        ref.half, ref.halves_psnr = a, db(m)
+        ref.half, ref.half_b, ref.halves_psnr = a, b, db(m)
         ref.noise_mse = max(m - QUANTISATION_MSE, 0.0) / 2.0 * (n / len(paths))   # var(full) = var(half) n / chunks
     return ref
 
@@ -490,12 +495,28 @@ def scored(row: dict, view: View, ref: Reference) -> dict:
     rgb = read_rgb(view.dir / row["image"])
     r |= metrics(rgb, ref.rgb)
     r["psnr_half_ref"] = metrics(rgb, ref.half)["psnr_srgb8"] if ref.half is not None and row["scale"] == 1.0 else nan
-    if ref.noise_mse is not None and row["scale"] == 1.0:
-        est = 255.0 ** 2 / 10 ** (r["psnr_srgb8"] / 10) - ref.noise_mse
-        r["psnr_converged"] = db(est)
-    else:
-        r["psnr_converged"] = nan
+    r["psnr_converged"], r["measured_mse"], r["measured_stderr"] = nan, nan, nan
+    if ref.half_b is not None and row["scale"] == 1.0:
+        r["measured_mse"], r["measured_stderr"] = converged_error(rgb, ref.half, ref.half_b)
+        r["psnr_converged"] = db(r["measured_mse"])
     return with_estimate(r)
+
+
+def converged_error(rgb: np.ndarray, ref_a: np.ndarray, ref_b: np.ndarray) -> tuple[float, float]:
+    """The image's squared error against the converged image's 8-bit codes, and its standard error, from
+    two independent references A and B (the halves of the reference's chunks): per pixel, in 8-bit codes,
+    (I - A)(I - B). Its expectation is I's squared error against the converged codes: the references'
+    own errors are independent of I and of each other, so their cross terms vanish, whatever their size.
+    That holds for a reference's sun glints too (one sample of tens of thousands in one chunk saturates
+    its pixel), which squared against one reference would count as the image's error and subtracted as
+    a reference's measured noise would be under-counted (clipping hides three quarters of a saturated
+    difference). Standard error from the spread of 8x8-block means, as the render's own estimate
+    (allo_usd.blender.target.estimate_of)."""
+    from allo_usd.blender.target import block_means, stderr_of
+
+    i, a, b = (linear_to_srgb8(x).astype(np.float64) for x in (rgb, ref_a, ref_b))
+    blocks = block_means(((i - a) * (i - b)).mean(axis=-1))
+    return max(float(blocks.mean()), 1e-9), stderr_of(blocks)
 
 
 def with_estimate(r: dict) -> dict:
@@ -504,9 +525,17 @@ def with_estimate(r: dict) -> dict:
     nan = float("nan")
     acc = r.get("accuracy") or {}
     r["est_psnr"] = acc.get("estimated_psnr_db", nan)
+    r["est_low"] = acc.get("lower_psnr_db", nan)
     r["target_psnr"] = r.get("target_psnr", nan)
     r["measured"] = r["psnr_converged"] if not math.isnan(r["psnr_converged"]) else r["psnr_srgb8"]
     r["est_minus_measured"] = r["est_psnr"] - r["measured"]
+    mse, se = r.get("measured_mse", nan), r.get("measured_stderr", nan)
+    # the PSNR the measurement is within at two standard errors (no upper bound: inf)
+    r["measured_range"] = ((db(mse + 2 * se), db(mse - 2 * se) if mse > 2 * se else math.inf)
+                           if not math.isnan(mse) else (nan, nan))
+    est_mse, est_se = acc.get("estimated_mse", nan), acc.get("estimate_stderr_mse", nan)
+    r["z"] = (mse - est_mse) / math.hypot(se, est_se) if all(
+        isinstance(x, (int, float)) and not math.isnan(x) for x in (mse, se, est_mse, est_se)) and (se or est_se) else nan
     r["rounds"] = acc.get("rounds", "")
     r["stopped_by"] = acc.get("stopped_by", "")
     return r
@@ -515,25 +544,49 @@ def with_estimate(r: dict) -> dict:
 # ----------------------------------------------------------------------------- report
 FINDINGS = """## Findings (five views; references of 4,096 spp at 240x135 and 2,048 at 480x270)
 
-- **Where this stands: neither target of the issue is met yet.** The 40 dB target mode with the layer's
-  denoiser costs 119 CPU s over the five views, 0.67x `final`'s 177 s and 0.44x `paper`'s 270 s, but it
-  measures below 40 dB on three views (39.98 glossy, 38.95 shaded anomaly, 37.54 dark, 38.49 close-up)
-  and no named preset reaches 40 dB on every view either (`final`'s worst is 38.60).
-- **The estimate is within 1 dB on the glossy view** (every row, -0.84 to +0.35 dB) **and on the eclipse
-  view without the denoiser; elsewhere it misses.** Target rows are optimistic by 1.2-4.1 dB on the shaded,
-  dark and close-up views, most at low sample counts: without a denoiser too (+2.9 dB at 176 spp on the
-  shaded view, against a reference whose own noise is 46 dB), so it is not the denoiser's blur alone. Path
-  tracing's noise is heavy-tailed there (rare bright paths off the shaded anomaly and the dark hull): two
-  halves of a few hundred samples seldom catch them, so the halves' difference is most often below the
-  error's mean. A stop margin, or an estimate that accounts for the tail (median of means over pixel
-  blocks, or a third independent batch), is the next step. Fixed denoised presets are pessimistic by
-  1.5-3.8 dB on the dark view (the cross-validation's noisy second render at a dark, clipped-low pixel).
-- **The dark view's reference is the weakest** (its own noise 42.9 dB at 4,096 spp): rows near 45 dB there
-  are resolved to about a dB.
-- **The eclipse view is nearly black** (mean 8-bit value 2.7): every setting measures 54-62 dB; the
-  target mode stops after its first round (32 spp); the denoised estimate is 4-6 dB pessimistic there.
-- **Time to quality where it holds:** on the glossy view the target mode reaches 40 dB (39.98, 0.02 short)
-  in 46 CPU s against `final`'s 74 s (43.8 dB), and 45 dB in 192 s where no preset reaches it.
+- **Measuring needs two references, and even then it is uncertain by up to 3 dB.** The shaded, dark and
+  close-up views have sun glints. A glint is a path of one sample in about 2,000 carrying about 41,600
+  times a pixel's exposure, so the converged pixel is saturated. Each half of a reference catches it
+  once or not at all.
+  - Measured against one reference, a glint counts as the image's error wherever the reference saturates
+    and the image does not.
+  - Subtracting the reference's own noise, as measured from its halves, cannot undo that: clipping hides
+    three quarters of a saturated difference.
+  - So every row is measured against the reference's two independent halves (converged_error: (I - A)(I - B)
+    in 8-bit codes), whose own errors cancel in expectation.
+  - Its two-standard-error range is about +-0.5 dB on the sunlit view. On the shaded one at 40 dB it runs
+    from -3.3 dB to no upper bound at all: three views cannot resolve "within 1 dB" at these references. `z` in the table above says how
+    far each difference is beyond both uncertainties.
+- **The estimate.**
+  - **Sunlit, glossy view:** within 1 dB on every row (-0.90 to +0.25 dB).
+  - **Eclipse view:** -1.8 to +0.6 dB. Each pixel's rounding now follows its noise level: the flat 1/6 it
+    replaced made the nearly black view 4-8 dB pessimistic.
+  - **Shaded view:** -1.9 to +3.4 dB. **Close-up view:** +0.3 to +3.5 dB. Both are mostly optimistic, most
+    at 16-128 spp, but only 5 of the 63 rows are beyond two combined standard errors.
+  - **Dark view:** fixed renders, whose estimate comes from a second render, are pessimistic by
+    2.6-5.0 dB. Target renders are up to 3.2 dB optimistic.
+  - **Where the optimism comes from:** OIDN spreads a single glint sample in one half into a bright
+    blob of a few pixels, where both noisy halves and the reference are black. On the close-up view at
+    128 spp a 7x8-pixel blob holds 1.9 of the image's 4.1 squared codes. The cross-validation gets that
+    error right in linear values. Its conversion to 8-bit codes by the curve's slope at the delivered
+    value is what undercounts an error as large as the value itself: a 0.5 blob over black is 188 codes,
+    and the slope at 0.5 says 84.
+  - **Fixes tried and dropped:** a secant slope from each pixel's estimate, smoothed or not, and a floor
+    where the noisy halves agree. Both overcorrected, by 4-15 dB, on 41 rounds of captured halves.
+- **Without a denoiser the max form replaces (s(A) - s(B))^2 / 4.** It counts a glint one half found at
+  its full error, standing in for those neither found. It took the shaded view's no-denoise rounds from
+  +2.0 to +3.5 dB optimistic to -0.3 to +1.5 dB, and the dark view's from +0.6 to +1.6 to -0.6 to
+  -2.3 dB (measured on captured halves, not in the table).
+- **40 dB with the layer's denoiser.**
+  - **Result:** four of five views measure at least 40 dB. The close-up view measures 39.67 dB, with 40
+    within its measurement's range. It stopped at 74 spp on an estimate of 42.7 dB, the blob case above.
+  - **Cost over the five views:** 213 CPU s. One fixed sample count that reaches 40 dB on every view
+    costs 2.5x that: the layer's denoiser needs about 550 spp on the shaded view, 538 CPU s over the five.
+  - **Named presets:** none reaches 40 dB on every view (`final`'s worst is 38.45 dB, 166 CPU s).
+  - **Why it wins:** it spends where the view needs it. It uses 32 spp on the eclipse view and 118 spp on
+    the sunlit one, against 796 spp on the shaded one and 428 on the dark one.
+- **45 dB** costs 2,000-2,900 spp on the shaded and dark views, 275 and 165 CPU s. Those two, and the
+  close-up view, measure 43.2-45.0 dB, each with 45 within its measurement's range.
 """
 
 NOTES = """## Notes from the earlier one-view sweep
@@ -624,7 +677,8 @@ def targets(presets: dict) -> tuple[bool | None, bool | None]:
 
 CSV_COLUMNS = ["view", "group", "preset", "samples", "denoiser", "adaptive", "bounces", "scale", "seconds", "wall",
                "x_paper", "psnr_srgb8", "psnr_vs_paper", "psnr_linear", "ssim_srgb8", "psnr_converged", "ref_samples",
-               "target_psnr", "est_psnr", "est_minus_measured", "rounds", "stopped_by", "size", "loadavg"]
+               "measured_mse", "measured_stderr", "target_psnr", "est_psnr", "est_low", "est_minus_measured", "z", "rounds",
+               "stopped_by", "size", "loadavg"]
 
 
 def time_to_level(rows: list[dict], level: float) -> tuple[float, float] | None:
@@ -644,13 +698,17 @@ def time_to_level(rows: list[dict], level: float) -> tuple[float, float] | None:
 
 
 def seconds_at(rows: list[dict], samples: float) -> float | None:
-    """The CPU seconds of a sweep (`rows`) at `samples`, log-log between the rows around it (None outside)."""
+    """The CPU seconds of a sweep (`rows`) at `samples`: log-log between the rows around it; past its last
+    row, that row's seconds times samples / its samples (a render's time grows with its samples: 1,024 to
+    2,048 spp on d000_p42_z0 took 95 and 202 CPU s); None below its first row."""
     pts = sorted(rows, key=lambda r: r["samples"])
     for a, b in zip(pts, pts[1:]):
         if a["samples"] <= samples <= b["samples"]:
             f = (math.log(samples) - math.log(a["samples"])) / (math.log(b["samples"]) - math.log(a["samples"]))
             return math.exp(math.log(a["seconds"]) + f * (math.log(b["seconds"]) - math.log(a["seconds"])))
-    return pts[0]["seconds"] if pts and samples == pts[0]["samples"] else None
+    if pts and samples >= pts[-1]["samples"]:
+        return pts[-1]["seconds"] * samples / pts[-1]["samples"]
+    return None
 
 
 def quality_sections(views: list[View], scored_rows: dict) -> list[str]:
@@ -667,12 +725,14 @@ def quality_sections(views: list[View], scored_rows: dict) -> list[str]:
     def cell(r: dict | None) -> str:
         if r is None:
             return "–"
-        miss = "" if r["measured"] >= r.get("level", -math.inf) else " **short**"
+        level = r.get("level", -math.inf)
+        miss = "" if r["measured"] >= level else (
+            " **short**" + (" (the level within its 2 SE range)" if r["measured_range"][1] >= level else ""))
         return f"{r['seconds']:.1f} / {r['wall']:.1f} s, {r['samples']} spp, {_f(r['measured'])} dB{miss}"
 
     L += ["## Time to 35, 40 and 45 dB per view", "",
           "Per view and level: the CPU / wall seconds of the render call and the measured PSNR (8-bit sRGB against "
-          "the converged image: against the reference, its own noise removed). Target mode: the render asked for "
+          "the converged image: from the reference's two independent halves, converged_error). Target mode: the render asked for "
           "that level (`allo:render:targetPsnr`), with the layer's own denoiser and without; **short** marks a "
           "render that stopped at its estimate but measures below the level. Named preset: the cheapest preset that "
           "measures at or above the level on that view. Fixed sweep: the layer's denoiser at 16, 32, 64, ... spp, "
@@ -702,31 +762,46 @@ def quality_sections(views: list[View], scored_rows: dict) -> list[str]:
     if rows:
         L += ["## The estimate against the measured PSNR, every row", "",
               "`estimate`: the render's own estimated PSNR (RenderResult.accuracy: the target mode's two halves, "
-              "or for a fixed render estimate_fixed's second, independent render). `measured`: against the converged "
-              "image (the reference's own noise removed; against the reference itself where its noise is unknown). "
-              "`est - measured` > 0: the estimate is optimistic (the image is worse than it says); < 0: pessimistic.",
-              "", "| view | row | setting | spp | CPU s | wall s | PSNR vs reference (dB) | measured (dB) | "
-              "estimate (dB) | est - measured (dB) | rounds, stopped by |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "or for a fixed render estimate_fixed's second, independent render); `bound`: the PSNR it says the "
+              "image is at least (its lower_psnr_db, two standard errors; what the target mode stops on). "
+              "`measured`: against the converged image, from the reference's two independent halves "
+              "(converged_error), with its own two-standard-error range: a few glints in a small image make the "
+              "measurement itself uncertain by a dB or more. `est - measured` > 0: the estimate is optimistic (the "
+              "image is worse than it says); < 0: pessimistic. `z`: the difference of the two MSEs over their "
+              "combined standard error (> 0: optimistic); **>1 dB** marks a row beyond 1 dB, and *(noise)* one "
+              "whose difference is within two combined standard errors.", "",
+              "| view | row | setting | spp | CPU s | wall s | PSNR vs reference (dB) | measured (dB) [2 SE range] | "
+              "estimate (dB) | bound (dB) | est - measured (dB) | z | rounds, stopped by |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         order = {"target": 0, "preset": 1, "sweep": 2}
         for v, r in sorted(rows, key=lambda vr: (views.index(vr[0]), order.get(vr[1]["group"], 3),
                                                   vr[1].get("target_psnr") or 0, vr[1]["denoiser"],
                                                   vr[1]["samples"])):
             name = r["preset"] or "sweep"
             stop = f"{r['rounds']}, {r['stopped_by']}" if r["group"] == "target" else ""
-            flag = " **>1 dB**" if abs(r["est_minus_measured"]) > 1.0 else ""
+            flag = ""
+            if abs(r["est_minus_measured"]) > 1.0:
+                flag = " **>1 dB**" + (" *(noise)*" if abs(r["z"]) <= 2.0 else "")
+            lo, hi = r["measured_range"]
             L.append(f"| {v.short} | {name} | {setting(r)} | {r['samples']} | {r['seconds']:.1f} | {r['wall']:.1f} | "
-                     f"{_f(r['psnr_srgb8'])} | {_f(r['measured'])} | {_f(r['est_psnr'])} | "
-                     f"{_f(r['est_minus_measured'], sign=True)}{flag} | {stop} |")
-        errs = [r["est_minus_measured"] for _, r in rows if not math.isnan(r["est_minus_measured"])]
-        if errs:
-            groups = {}
-            for _, r in rows:
-                if not math.isnan(r["est_minus_measured"]):
-                    key = "no denoise" if r["denoiser"] == "off" else "denoised"
-                    groups.setdefault(key, []).append(r["est_minus_measured"])
+                     f"{_f(r['psnr_srgb8'])} | {_f(r['measured'])} [{_f(lo)}, {'no bound' if hi == math.inf else _f(hi)}] | "
+                     f"{_f(r['est_psnr'])} | "
+                     f"{_f(r['est_low'])} | {_f(r['est_minus_measured'], sign=True)}{flag} | "
+                     f"{_f(r['z'], sign=True)} | {stop} |")
+        groups = {}
+        for _, r in rows:
+            if not math.isnan(r["est_minus_measured"]):
+                key = "no denoise" if r["denoiser"] == "off" else "denoised"
+                groups.setdefault(key, []).append(r)
+        if groups:
             L += ["", "Estimate minus measured over all rows: " + "; ".join(
-                f"{k}: {len(e)} rows, mean {statistics.fmean(e):+.2f} dB, from {min(e):+.2f} to {max(e):+.2f} dB, "
-                f"{sum(abs(x) > 1.0 for x in e)} beyond 1 dB" for k, e in sorted(groups.items())) + "."]
+                f"{k}: {len(g)} rows, mean {statistics.fmean(r['est_minus_measured'] for r in g):+.2f} dB, from "
+                f"{min(r['est_minus_measured'] for r in g):+.2f} to {max(r['est_minus_measured'] for r in g):+.2f} dB, "
+                f"{sum(abs(r['est_minus_measured']) > 1.0 for r in g)} beyond 1 dB, of which "
+                f"{sum(abs(r['est_minus_measured']) > 1.0 and abs(r['z']) > 2.0 for r in g)} beyond two standard "
+                f"errors; bound above the measured PSNR (the image worse than the bound says): "
+                f"{sum(r['est_low'] > r['measured'] for r in g if not math.isnan(r['est_low']))} rows"
+                for k, g in sorted(groups.items())) + "."]
         L.append("")
 
     # ---- the total at 40 dB
@@ -765,8 +840,9 @@ def quality_sections(views: list[View], scored_rows: dict) -> list[str]:
                 secs = [seconds_at(oidn[v.id], spp) for v in views]
                 if all(x is not None for x in secs):
                     L += ["", f"One fixed sample count of the layer's denoiser for all views must reach 40 dB on the "
-                          f"worst: ~{spp:.0f} spp (interpolated), {sum(secs):.1f} CPU s over the views; the target "
-                          f"mode's total is {tsum / sum(secs):.2f}x that."]
+                          f"worst: ~{spp:.0f} spp (interpolated; seconds past a view's last sweep row scaled by "
+                          f"samples), {sum(secs):.1f} CPU s over the views; the target mode's total is "
+                          f"{tsum / sum(secs):.2f}x that: **{'at most' if tsum <= sum(secs) else 'MORE than'}** it."]
         L.append("")
     return L
 
@@ -827,7 +903,7 @@ def report(views: list[View], refs: dict, scored_rows: dict, runs: list[dict], o
             continue
         L += [f"### {v.short} (reference {refs[v.id].spp} spp)", "",
               "| preset | setting | CPU s | x paper | wall s | PSNR sRGB (dB) | vs paper (dB) | "
-              "est. vs converged (dB) | PSNR linear (dB) | SSIM | rounds | load |",
+              "measured vs converged (dB) | PSNR linear (dB) | SSIM | rounds | load |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for name in PRESETS:
             r = ps.get(name)
@@ -885,9 +961,9 @@ def report(views: list[View], refs: dict, scored_rows: dict, runs: list[dict], o
         L += ["## Does the reference cap the PSNR?", "",
               "Each preset against the first half of the reference's chunks (a reference of half the spp) and "
               "against the whole reference. A row whose PSNR rises with the better reference was capped by the "
-              "reference's noise; `est. vs converged` removes the reference's own noise (measured from its two "
-              "halves) from the row's squared error.", "",
-              "| view | preset | vs half reference (dB) | vs reference (dB) | gain (dB) | est. vs converged (dB) |",
+              "reference's noise; `measured vs converged` is the row's error against the converged image from the "
+              "reference's two independent halves (converged_error), in which the reference's own noise cancels.", "",
+              "| view | preset | vs half reference (dB) | vs reference (dB) | gain (dB) | measured vs converged (dB) |",
               "|---|---|---|---|---|---|"]
         for v in split:
             ref = refs[v.id]
@@ -989,13 +1065,18 @@ def plot(views, refs, scored_rows, path: Path) -> None:
             est_ax.scatter([r["measured"] for r in pts], [r["est_psnr"] for r in pts], marker=mk, c=c, s=25,
                            label={"target": "target, denoised", "target_off": "target, no denoise",
                                   "preset": "preset", "sweep": "fixed sweep"}[key])
+            ranged = [r for r in pts if not math.isnan(r["measured_range"][0])]
+            est_ax.errorbar([r["measured"] for r in ranged], [r["est_psnr"] for r in ranged],
+                            xerr=[[r["measured"] - r["measured_range"][0] for r in ranged],
+                                  [min(r["measured_range"][1], r["measured"] + 6.0) - r["measured"] for r in ranged]],
+                            fmt="none", ecolor=c, elinewidth=0.6, alpha=0.5)
     if allr:
         lo = min(min(r["measured"], r["est_psnr"]) for r in allr) - 1
         hi = max(max(r["measured"], r["est_psnr"]) for r in allr) + 1
         est_ax.plot([lo, hi], [lo, hi], "k-", lw=0.8)
         est_ax.fill_between([lo, hi], [lo - 1, hi - 1], [lo + 1, hi + 1], color="gray", alpha=0.15, label="±1 dB")
         est_ax.legend(fontsize=7, loc="upper left")
-    est_ax.set_xlabel("measured PSNR vs converged (dB)")
+    est_ax.set_xlabel("measured vs converged (dB; bars: 2 SE, cut at +6)")
     est_ax.set_ylabel("the render's own estimate (dB)")
     est_ax.set_title("estimate vs measured, every row (above the line: optimistic)", fontsize=9)
     est_ax.grid(True, alpha=0.3)
@@ -1043,6 +1124,8 @@ def main(argv=None) -> int:
     ap.add_argument("--target-cap", type=int, default=8192, help="the target mode's cap, samples per pixel")
     ap.add_argument("--target-modes", default="layer,off",
                     help="the target phase's denoisers: layer (the layer's own), off (none), or both")
+    ap.add_argument("--sweep-stop", type=float, default=max(LEVELS) + 1.0,
+                    help="the oidn sweep stops on a view once a row measures this PSNR (dB) against the converged image")
     ap.add_argument("--oidn-samples", default="16,32,64,128,256,512,1024,2048",
                     help="the oidn sweep's sample counts (a view stops once its estimate passes the top level + 2 dB)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks"))
@@ -1079,8 +1162,9 @@ def main(argv=None) -> int:
                 ap.error(f"--target-modes {args.target_modes!r}: give layer, off or layer,off")
             run_targets(views, rows, parse_floats(args.targets, "--targets"), args.target_cap, modes)
         if args.phase in ("all", "sweep") and args.sweep == "oidn":
+            refs = {v.id: load_reference(v, args.ref_samples, args.ref_chunk) for v in views}
             run_oidn_sweep(views, rows, [int(x) for x in parse_floats(args.oidn_samples, "--oidn-samples")],
-                           max(LEVELS) + 2.0)
+                           args.sweep_stop, refs)
         if args.phase in ("all", "sweep") and args.sweep != "oidn":
             for c in SWEEPS[args.sweep]():
                 for v in views:

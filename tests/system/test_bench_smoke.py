@@ -70,7 +70,8 @@ NO_RENDER = {"bench_author.py", "bench_scale.py", "bench_sky.py"}
 
 ACCURACY_CSV = ["view", "group", "preset", "samples", "denoiser", "adaptive", "bounces", "scale", "seconds", "wall",
                 "x_paper", "psnr_srgb8", "psnr_vs_paper", "psnr_linear", "ssim_srgb8", "psnr_converged", "ref_samples",
-                "target_psnr", "est_psnr", "est_minus_measured", "rounds", "stopped_by", "size", "loadavg"]
+                "measured_mse", "measured_stderr", "target_psnr", "est_psnr", "est_low", "est_minus_measured", "z",
+                "rounds", "stopped_by", "size", "loadavg"]
 # script -> {file written: the CSV's columns, or a table header line the .md holds}; every run writes a plot too.
 EXPECT: dict[str, dict[str, list[str] | str]] = {
     "bench_accuracy.py": {"bench_accuracy.csv": ACCURACY_CSV,
