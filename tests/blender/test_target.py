@@ -114,6 +114,26 @@ def test_a_denoisers_blur_is_in_the_estimate_not_only_its_variance():
     assert variance_only < 0.5 * measured
 
 
+def test_a_denoiser_blob_over_black_counts_its_full_error_in_codes():
+    """OIDN spreads one glint sample in one half into a bright blob where both noisy halves, and the truth,
+    are black: the denoised halves split (0.5 against 0), the delivered value is 0.25, 137 codes off.
+    The cross-validation has that error right in linear values; in codes it takes the secant, not the
+    slope at 0.25, which would say less than half of it."""
+    a = np.zeros((16, 16, 3))
+    b = a.copy()
+    da, db = a.copy(), a.copy()
+    da[4:11, 5:12] = 0.5
+    e = tg.error_map(a, b, da, db)
+    truth = float(tg.srgb_units(0.25)) ** 2
+    assert e[6, 8] == pytest.approx(truth, rel=1e-9) and e[0, 0] == 0.0
+    tangent = float(tg.srgb_slope_sq(0.25)) * 0.25 ** 2
+    assert tangent < 0.5 * truth
+    # denoised halves within SPLIT_CODES of each other (149 and 156 codes) keep the slope
+    da[4:11, 5:12], db[4:11, 5:12] = 0.30, 0.33
+    d = 0.315
+    assert tg.error_map(a, b, da, db)[6, 8] == pytest.approx(float(tg.srgb_slope_sq(d)) * d * d, rel=1e-9)
+
+
 @pytest.mark.parametrize("done, mse, target, cap, expected", [
     (16, 40.0, 10.0, 4096, 16),       # needs ~4.6x: at most doubles
     (16, 12.0, 10.0, 4096, 8),        # needs a little: at least FIRST_SAMPLES // 2

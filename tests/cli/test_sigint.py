@@ -113,6 +113,9 @@ def test_a_sigint_at_any_time_ends_author_with_130_and_a_resume_gives_the_same_t
             continue
         proc.send_signal(signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=120)
+        if proc.returncode == 0 and when != "scipy":   # it finished as the signal came, its summary printed: a
+            assert "scene layers" in stdout and "Traceback" not in stderr, (when, stdout, stderr)   # complete run
+            continue
         assert proc.returncode == 130, (when, whole, proc.returncode, stdout[-500:], stderr[-2000:])
         lines = [x for x in stderr.splitlines() if x.strip()]
         assert lines and lines[-1].startswith("interrupted"), (when, stderr)
