@@ -305,19 +305,19 @@ def _render(source: Path, out: Path, options: RunOptions) -> None:
 
 def _accuracy_text(meta) -> str:
     """", estimated 40.3 dB, at least 39.1 dB (target 40, stopped by target)" of a render that estimated its
-    accuracy, else ""."""
-    acc = meta.accuracy if isinstance(meta.accuracy, dict) else {}
-    est, low = acc.get("estimated_psnr_db"), acc.get("lower_psnr_db")
-    target, why = acc.get("target_psnr_db"), acc.get("stopped_by")
+    accuracy, else "". The two PSNRs pass the manifest's check (accuracy_columns: finite, 0..200 dB)."""
+    from allo_usd.output.annotations import accuracy_columns
 
-    def number(x) -> bool:
-        return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-    if not number(est):
+    columns = accuracy_columns(meta)
+    est, low = columns["est_psnr_db"], columns["est_psnr_low_db"]
+    if est == "":
         return ""
-    more = ", ".join(x for x in (f"target {target:g}" if number(target) and target else "",
+    acc = meta.accuracy if isinstance(meta.accuracy, dict) else {}
+    target, why = acc.get("target_psnr_db"), acc.get("stopped_by")
+    aimed = isinstance(target, (int, float)) and not isinstance(target, bool) and math.isfinite(target) and target
+    more = ", ".join(x for x in (f"target {target:g}" if aimed else "",
                                  f"stopped by {why}" if why in ("target", "samples", "seconds") else "") if x)
-    return (f", estimated {est:.1f} dB" + (f", at least {low:.1f} dB" if number(low) else "")
+    return (f", estimated {est:.1f} dB" + (f", at least {low:.1f} dB" if low != "" else "")
             + (f" ({more})" if more else ""))
 
 

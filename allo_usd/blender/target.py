@@ -36,6 +36,7 @@ Everything changed on the Blender scene is put back afterwards, value for value,
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from contextlib import contextmanager
@@ -53,13 +54,13 @@ STDERR_BLOCK = 8              # the estimate's standard error is taken over mean
 PSNR_CEILING_DB = 100.0       # the PSNR an estimated-exact image is recorded at
 CONFIDENCE_Z = 2.0            # the bound a target must clear: the estimated MSE plus 2 standard errors
 SEED_STEP = 7919              # half h of round r renders with seed + SEED_STEP * (2 r + h) (mod 2**31)
+_IN_CODES = "times the sRGB slope squared (the secant where {} and {} differ by more than %g codes)" % SPLIT_CODES
+_ERROR_BARS = "plus each pixel's rounding; standard error from %dx%d-block means" % (STDERR_BLOCK, STDERR_BLOCK)
 ESTIMATOR_DENOISED = ("two independent halves A, B, denoised DA, DB: per pixel ((DA-B)^2 + (DB-A)^2 - (A-B)^2)/2 "
-                      "- (DA-DB)^2/4 in linear values times the sRGB slope squared (the secant where DA and DB "
-                      "differ by more than 32 codes)")
+                      "- (DA-DB)^2/4 in linear values " + _IN_CODES.format("DA", "DB"))
 ESTIMATOR_NOISY = ("two independent halves A, B, delivered M = (A+B)/2: per pixel max((s(M)-s(A))^2, (s(M)-s(B))^2) "
                    "in 8-bit sRGB")
-ESTIMATOR_BOUND = ("; plus each pixel's rounding; standard error from 8x8-block means; the target is met when the "
-                   "mean plus 2 standard errors is within it")
+ESTIMATOR_BOUND = f"; {_ERROR_BARS}; the target is met when the mean plus {CONFIDENCE_Z:g} standard errors is within it"
 
 _SRGB_PEAK = 255.0
 
@@ -149,20 +150,19 @@ def rounding_mse(e: np.ndarray) -> np.ndarray:
     1/6 for errors of a code or more (two independent roundings, 1/12 each), sigma sqrt(2/pi) for small
     ones, and 0 where the image is exact (a black sky rounds to the same code as its converged image)."""
     sigma = np.sqrt(np.clip(np.nan_to_num(np.asarray(e, dtype=np.float64)), 0.0, None))
-    return np.interp(sigma, _ROUNDING_SIGMA, _ROUNDING_EXTRA)
+    return np.interp(sigma, *_rounding_table())
 
 
+@functools.cache
 def _rounding_table() -> tuple[np.ndarray, np.ndarray]:
     """E frac(eps) (1 - frac(eps)) for eps ~ N(0, sigma**2) on a sigma grid, by its Fourier series:
-    frac(x) (1 - frac(x)) = 1/6 - sum_k cos(2 pi k x) / (pi k)**2 and E cos(2 pi k eps) = exp(-2 (pi k sigma)**2)."""
+    frac(x) (1 - frac(x)) = 1/6 - sum_k cos(2 pi k x) / (pi k)**2 and E cos(2 pi k eps) = exp(-2 (pi k sigma)**2).
+    Built on first use (0.1 s), not when the module loads."""
     sigma = np.concatenate([[0.0], np.geomspace(1e-3, 3.0, 600)])
     k = np.arange(1, 4001, dtype=np.float64)[:, None]
     extra = 1.0 / 6.0 - (np.exp(-2.0 * (np.pi * k * sigma) ** 2) / (np.pi * k) ** 2).sum(axis=0)
     extra[0] = 0.0   # an exact pixel rounds to its converged code (the truncated series leaves 2.5e-5)
     return sigma, np.clip(extra, 0.0, 1.0 / 6.0)
-
-
-_ROUNDING_SIGMA, _ROUNDING_EXTRA = _rounding_table()
 
 
 @dataclass(frozen=True)
@@ -403,10 +403,9 @@ def estimate_fixed(desc: SceneDescription, first: dict, render_once, missing) ->
     return {"mode": "fixed", "target_psnr_db": None, **_record(est),
             "samples": int(desc.render.samples), "rounds": 1, "stopped_by": "samples",
             "estimator": ("a second render G of the same settings, independent seed: per pixel ((DF-Gn)^2 + (DG-Fn)^2 "
-                          "- (Fn-Gn)^2)/2 in linear values times the sRGB slope squared (the secant where DF and "
-                          "DG differ by more than 32 codes)" if denoised else
+                          "- (Fn-Gn)^2)/2 in linear values " + _IN_CODES.format("DF", "DG") if denoised else
                           "a second render G of the same settings, independent seed: (s(F) - s(G))^2 / 2")
-                         + ", plus each pixel's rounding; standard error from 8x8-block means",
+                         + ", " + _ERROR_BARS,
             "estimate_seconds": seconds}
 
 
